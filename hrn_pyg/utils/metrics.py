@@ -1,0 +1,69 @@
+"""Metric logs: append-only CSV (survives a kill) and a loss-curve picture."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+from hrn_pyg.utils.files import atomic_path
+
+
+class CSVLog:
+    """Append rows of named numbers to a CSV file; the header is written once.
+
+    Rows are flushed as they come, so a killed job keeps every finished row. On resume, rows
+    whose ``step`` is past the checkpoint are dropped first (``truncate_after``), so the log
+    stays one consistent history.
+    """
+
+    def __init__(self, path: str | os.PathLike, fields: list[str]):
+        self.path = Path(path)
+        self.fields = list(fields)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if not self.path.exists() or self.path.stat().st_size == 0:
+            with open(self.path, "w", newline="") as fh:
+                csv.writer(fh).writerow(self.fields)
+
+    def append(self, row: dict[str, float | int | str]) -> None:
+        with open(self.path, "a", newline="") as fh:
+            csv.writer(fh).writerow([row.get(k, "") for k in self.fields])
+
+    def read(self) -> list[dict[str, str]]:
+        with open(self.path, newline="") as fh:
+            return list(csv.DictReader(fh))
+
+    def truncate_after(self, step: int) -> None:
+        rows = [r for r in self.read() if r.get("step", "") != "" and int(float(r["step"])) <= step]
+        with atomic_path(self.path) as tmp:
+            with open(tmp, "w", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=self.fields)
+                w.writeheader()
+                w.writerows(rows)
+
+
+def plot_curves(csv_path: str | os.PathLike, png_path: str | os.PathLike, x: str, ys: list[str],
+                title: str = "", logy: bool = True) -> None:
+    """Draw columns ``ys`` of a CSV against column ``x`` into a PNG (written atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(csv_path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=110)
+    for y in ys:
+        pts = [(float(r[x]), float(r[y])) for r in rows if r.get(y) not in (None, "")]
+        if pts:
+            ax.plot(*zip(*pts), label=y, lw=1.2)
+    ax.set_xlabel(x)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_title(title)
+    ax.legend(frameon=False, fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(png_path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
