@@ -1,0 +1,241 @@
+"""Training windows over a folder of episode files, as a PyG ``Dataset`` of ``HeteroData``.
+
+An episode (``episode_<seed:06d>.npz``, format in docs/architecture.md) holds leaf positions at
+model steps ``0..S`` and the forces of steps ``0..S-1``. A window of horizon ``T`` starting at
+step ``t`` (``2 <= t <= S - T``, so ``x_{t-2}`` exists) is one graph: the episode's static
+structure (:func:`hrn_pyg.data.graph.build_structure`, built once per episode and cached), the
+state at ``t`` (:func:`hrn_pyg.data.graph.set_state`), and for every node
+
+* ``pos_seq (N, T+3, 3)``: ``x_{t-2} .. x_{t+T}`` (ancestors: mass-weighted leaf means),
+* ``force_seq (N, T, 3)``: the forces of steps ``t .. t+T-1`` (zero on ancestors),
+
+plus graph-level ``episode_seed (1,)`` and ``start_step (1,)``. Nothing is processed to disk:
+episodes are read lazily (npz, ``allow_pickle=False``) and a few decoded episodes are kept in
+memory. Splits are disjoint by seed: ``seed % 10 == 9`` test, ``== 8`` val, the rest train.
+"""
+
+from __future__ import annotations
+
+import re
+import zipfile
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch_geometric.data import Dataset, HeteroData
+
+from hrn_pyg.data.graph import NODE, build_structure, leaf_to_ancestor_mean, set_state
+
+SPLITS = ("train", "val", "test")
+#: Seeds with ``seed % SPLIT_MODULUS`` equal to these residues form the val and test splits.
+SPLIT_MODULUS = 10
+VAL_RESIDUE = 8
+TEST_RESIDUE = 9
+#: Episode file names, as written by ``hrn-pyg generate``.
+EPISODE_PATTERN = re.compile(r"^episode_(\d+)\.npz$")
+#: Model states before the window's current step that the model needs (``x_{t-2}, x_{t-1}``).
+HISTORY = 2
+#: The episode keys this dataset reads.
+EPISODE_KEYS = (
+    "positions",
+    "forces",
+    "leaf_mass",
+    "leaf_object",
+    "object_material",
+    "object_stiffness",
+    "hierarchy_parent",
+)
+
+
+def split_of_seed(seed: int) -> str:
+    """The split (``train``/``val``/``test``) an episode seed belongs to."""
+    residue = int(seed) % SPLIT_MODULUS
+    return "test" if residue == TEST_RESIDUE else "val" if residue == VAL_RESIDUE else "train"
+
+
+def read_episode(path: str | Path) -> dict[str, np.ndarray]:
+    """The arrays of one episode file (the keys in :data:`EPISODE_KEYS`).
+
+    Uses ``hrn_pyg.data.io.load_episode`` when that module exists, ``np.load`` otherwise;
+    never unpickles.
+    """
+    try:
+        from hrn_pyg.data.io import load_episode  # written alongside the scenes
+    except ImportError:
+        load_episode = None
+    if load_episode is not None:
+        episode = load_episode(path)
+        get = episode.__getitem__ if isinstance(episode, Mapping) else lambda k: getattr(episode, k)
+        return {key: np.asarray(get(key)) for key in EPISODE_KEYS}
+    with np.load(path, allow_pickle=False) as npz:
+        missing = [key for key in EPISODE_KEYS if key not in npz.files]
+        if missing:
+            raise ValueError(f"{path}: missing keys {missing}")
+        return {key: npz[key] for key in EPISODE_KEYS}
+
+
+def _num_steps(path: Path) -> int:
+    """``S`` of an episode from the header of its ``positions`` array, without reading data."""
+    try:
+        with zipfile.ZipFile(path) as archive, archive.open("positions.npy") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, _, _ = np.lib.format.read_array_header_1_0(f)
+            else:
+                shape, _, _ = np.lib.format.read_array_header_2_0(f)
+    except (zipfile.BadZipFile, KeyError, OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable episode file (positions: {exc})") from exc
+    if len(shape) != 3 or shape[2] != 3:
+        raise ValueError(f"{path}: positions must have shape [S+1, L, 3], got {list(shape)}")
+    return shape[0] - 1
+
+
+def _check_episode(path: Path, ep: dict[str, np.ndarray]) -> None:
+    pos, forces = ep["positions"], ep["forces"]
+    if pos.ndim != 3 or pos.shape[2] != 3:
+        raise ValueError(f"{path}: positions must have shape [S+1, L, 3], got {list(pos.shape)}")
+    steps, n_leaves = pos.shape[0] - 1, pos.shape[1]
+    if forces.shape != (steps, n_leaves, 3):
+        raise ValueError(f"{path}: forces must have shape [{steps}, {n_leaves}, 3], got {list(forces.shape)}")
+    for key in ("leaf_mass", "leaf_object"):
+        if ep[key].shape != (n_leaves,):
+            raise ValueError(f"{path}: {key} must have shape [{n_leaves}], got {list(ep[key].shape)}")
+    if not np.all(np.isfinite(pos)) or not np.all(np.isfinite(forces)):
+        raise ValueError(f"{path}: positions or forces contain NaN or infinite values")
+
+
+class EpisodeWindows(Dataset):
+    """Windows of ``T + 3`` consecutive model states from one split of an episode folder.
+
+    Args:
+        root: folder of ``episode_<seed:06d>.npz`` files.
+        split: ``train``, ``val`` or ``test`` (disjoint by seed, see :func:`split_of_seed`).
+        horizon: ``T``, the number of predicted steps per window (1 for one-step training,
+            up to 6 for recurrent training).
+        collision_radius: ``r_c`` for the window's ``collision`` edges at step ``t``; None
+            leaves them empty (the trainer recomputes them at every unrolled step anyway).
+        cache_episodes: how many decoded episodes to keep in memory (per worker process).
+        transform: PyG transform applied to each window.
+
+    **Shapes** of one window (``N`` nodes, ``L`` leaves): the static attributes of
+    :func:`~hrn_pyg.data.graph.build_structure`; ``pos``, ``prev_pos``, ``prev_prev_pos``,
+    ``force`` ``(N, 3)``; ``pos_seq (N, T+3, 3)``; ``force_seq (N, T, 3)``;
+    ``episode_seed (1,)``, ``start_step (1,)``.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "train",
+        horizon: int = 1,
+        collision_radius: float | None = None,
+        cache_episodes: int = 4,
+        transform: Callable[[HeteroData], HeteroData] | None = None,
+    ) -> None:
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if int(horizon) < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if collision_radius is not None and not float(collision_radius) >= 0:
+            raise ValueError(f"collision_radius must be >= 0, got {collision_radius}")
+        if int(cache_episodes) < 1:
+            raise ValueError(f"cache_episodes must be >= 1, got {cache_episodes}")
+        folder = Path(root)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"episode folder {folder} does not exist")
+        self.split = split
+        self.horizon = int(horizon)
+        self.collision_radius = None if collision_radius is None else float(collision_radius)
+        self.cache_episodes = int(cache_episodes)
+
+        found = sorted((int(m.group(1)), folder / name) for name in _listdir(folder) if (m := EPISODE_PATTERN.match(name)))
+        if not found:
+            raise ValueError(f"no episode_<seed>.npz files in {folder}")
+        chosen = [(seed, path) for seed, path in found if split_of_seed(seed) == split]
+        if not chosen:
+            raise ValueError(f"no episodes of split {split!r} among the {len(found)} in {folder}")
+        self.seeds = [seed for seed, _ in chosen]
+        self.paths = [path for _, path in chosen]
+
+        # windows start at t = HISTORY .. S - T
+        counts = np.array([max(_num_steps(p) - self.horizon - HISTORY + 1, 0) for p in self.paths])
+        if counts.sum() == 0:
+            raise ValueError(f"every {split} episode in {folder} is shorter than {self.horizon + HISTORY} steps")
+        self._window_episode = np.repeat(np.arange(len(self.paths)), counts)
+        first = np.cumsum(counts) - counts
+        self._window_start = np.arange(counts.sum()) - np.repeat(first, counts) + HISTORY
+
+        self._episodes: OrderedDict[int, dict[str, Tensor]] = OrderedDict()
+        self._structures: dict[int, HeteroData] = {}
+        super().__init__(root=str(folder), transform=transform, log=False)
+
+    @property
+    def raw_file_names(self) -> list[str]:
+        return [p.name for p in self.paths]
+
+    @property
+    def processed_file_names(self) -> list[str]:
+        return []
+
+    def len(self) -> int:
+        return int(self._window_episode.shape[0])
+
+    def _episode(self, index: int) -> dict[str, Tensor]:
+        """Decoded arrays of episode ``index`` (a small least-recently-used cache)."""
+        if index in self._episodes:
+            self._episodes.move_to_end(index)
+            return self._episodes[index]
+        path = self.paths[index]
+        arrays = read_episode(path)
+        _check_episode(path, arrays)
+        episode = {key: torch.from_numpy(np.ascontiguousarray(value)) for key, value in arrays.items()}
+        self._episodes[index] = episode
+        if len(self._episodes) > self.cache_episodes:
+            self._episodes.popitem(last=False)
+        return episode
+
+    def structure(self, index: int) -> HeteroData:
+        """The static graph of episode ``index`` (built once, then cached)."""
+        if index not in self._structures:
+            ep = self._episode(index)
+            self._structures[index] = build_structure(
+                ep["hierarchy_parent"].long(),
+                ep["leaf_mass"].float(),
+                ep["leaf_object"].long(),
+                ep["object_material"].long(),
+                ep["object_stiffness"].float(),
+            )
+        return self._structures[index]
+
+    def get(self, idx: int) -> HeteroData:
+        index, t = int(self._window_episode[idx]), int(self._window_start[idx])
+        ep, structure = self._episode(index), self.structure(index)
+        horizon, num_nodes = self.horizon, structure[NODE].num_nodes
+        positions = ep["positions"][t - HISTORY : t + horizon + 1].float()  # [T+3, L, 3]
+        forces = ep["forces"][t : t + horizon].float()  # [T, L, 3]
+        n_leaves = positions.shape[1]
+
+        pad = positions.new_zeros(positions.shape[0], num_nodes - n_leaves, 3)
+        pos_seq = leaf_to_ancestor_mean(torch.cat([positions, pad], dim=1), structure)  # [T+3, N, 3]
+        force_seq = torch.cat([forces, forces.new_zeros(horizon, num_nodes - n_leaves, 3)], dim=1)
+
+        window = set_state(
+            structure,
+            pos_seq[0],
+            pos_seq[1],
+            pos_seq[2],
+            radius=self.collision_radius,
+            force=force_seq[0],
+        )
+        window[NODE].pos_seq = pos_seq.transpose(0, 1).contiguous()
+        window[NODE].force_seq = force_seq.transpose(0, 1).contiguous()
+        window.episode_seed = torch.tensor([self.seeds[index]], dtype=torch.long)
+        window.start_step = torch.tensor([t], dtype=torch.long)
+        return window
+
+
+def _listdir(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if p.is_file()]

@@ -1,0 +1,142 @@
+"""``hrn-pyg generate``: simulate a scene's episodes in worker processes and write them.
+
+Episode ``i`` (``0 <= i < --episodes``) has seed ``--seed-offset + i`` and is written as
+``<out>/episode_<seed:06d>.npz`` (:func:`hrn_pyg.data.io.save_episode`, atomic). A rerun skips
+files that exist, so a killed run loses at most the episodes in flight. ``--shard i/N`` keeps
+the episodes whose index is ``i`` modulo ``N``, so N machines can split one dataset.
+``<out>/meta.json`` (atomic) records the scene, its configuration and the counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing as mp
+import os
+import tempfile
+import time
+
+from tqdm import tqdm
+
+from hrn_pyg.data.io import save_episode
+from hrn_pyg.data.scenes import SCENES, config_to_dict, scene_config, simulate_episode
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", required=True, help=f"one of {', '.join(SCENES)}")
+    parser.add_argument("--episodes", type=int, required=True, help="episodes in the dataset")
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--shard", default="0/1", help="i/N: this machine's share (default 0/1)")
+    parser.add_argument("--steps", type=int, default=None, help="model steps per episode")
+    parser.add_argument("--seed-offset", type=int, default=0, help="seed of episode 0")
+    parser.add_argument("--substeps", type=int, default=None, help="physics steps per model step")
+    parser.add_argument("--physics-hz", type=float, default=None, help="physics rate (Hz)")
+    parser.add_argument("--pitch", type=float, default=None, help="voxel size of the leaves (m)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def parse_shard(spec: str) -> tuple[int, int]:
+    """``"i/N"`` -> ``(i, N)`` with ``0 <= i < N``."""
+    try:
+        i_text, n_text = spec.split("/")
+        index, count = int(i_text), int(n_text)
+    except (ValueError, AttributeError):
+        raise ValueError(f"shard: expected i/N such as 0/4, got {spec!r}") from None
+    if count < 1 or not 0 <= index < count:
+        raise ValueError(f"shard: need 0 <= i < N, got {spec!r}")
+    return index, count
+
+
+def episode_path(out: str, seed: int) -> str:
+    return os.path.join(out, f"episode_{seed:06d}.npz")
+
+
+def _generate_one(task: tuple[str, int, dict, str]) -> tuple[int, bool]:
+    """Worker: simulate one episode and write it; ``(seed, written)``."""
+    scene, seed, config_fields, path = task
+    if os.path.exists(path):
+        return seed, False
+    episode = simulate_episode(scene, seed, config=scene_config(scene, **config_fields))
+    save_episode(path, episode)
+    return seed, True
+
+
+def _write_json_atomic(path: str, payload: dict) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".meta_", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(payload, f, indent=2, sort_keys=True)
+            f.write("\n")
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; episode files are meant to be shared
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def run(args: argparse.Namespace) -> int:
+    # --- validate everything before touching the disk --------------------------------------
+    if args.scene not in SCENES:
+        raise ValueError(f"scene: unknown {args.scene!r}; choose one of {sorted(SCENES)}")
+    if args.episodes < 1:
+        raise ValueError(f"episodes: must be >= 1, got {args.episodes}")
+    if args.workers < 1:
+        raise ValueError(f"workers: must be >= 1, got {args.workers}")
+    if args.seed_offset < 0:
+        raise ValueError(f"seed-offset: must be >= 0, got {args.seed_offset}")
+    shard_index, shard_count = parse_shard(args.shard)
+    config = scene_config(args.scene, steps=args.steps, substeps=args.substeps,
+                          physics_hz=args.physics_hz, pitch=args.pitch)
+    config_fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+
+    os.makedirs(args.out, exist_ok=True)
+    meta_path = os.path.join(args.out, "meta.json")
+    if os.path.exists(meta_path):
+        with open(meta_path) as f:
+            old = json.load(f)
+        if old.get("scene") != args.scene or old.get("config") != config_to_dict(config):
+            raise ValueError(f"out: {args.out} holds a dataset with another scene/config "
+                             "(see its meta.json); choose a new --out")
+    seeds = [args.seed_offset + i for i in range(args.episodes) if i % shard_count == shard_index]
+    todo = [s for s in seeds if not os.path.exists(episode_path(args.out, s))]
+    meta = {
+        "scene": args.scene,
+        "config": config_to_dict(config),
+        "episodes": args.episodes,
+        "seed_offset": args.seed_offset,
+        "shard": f"{shard_index}/{shard_count}",
+        "shard_seeds": len(seeds),
+        "already_done": len(seeds) - len(todo),
+        "written": 0,
+        "complete": False,
+    }
+    _write_json_atomic(meta_path, meta)
+
+    tasks = [(args.scene, s, config_fields, episode_path(args.out, s)) for s in todo]
+    start = time.perf_counter()
+    bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), unit="ep",
+               desc=f"generate {args.scene}", disable=args.no_progress)
+    written = 0
+    try:
+        if args.workers == 1 or len(tasks) <= 1:
+            results = map(_generate_one, tasks)
+            for _, did in results:
+                written += did
+                bar.update(1)
+        else:
+            # spawn: a fresh interpreter per worker, each with its own pybullet client
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(processes=min(args.workers, len(tasks))) as pool:
+                for _, did in pool.imap_unordered(_generate_one, tasks):
+                    written += did
+                    bar.update(1)
+    finally:
+        bar.close()
+    meta.update(written=written, complete=True,
+                seconds=round(time.perf_counter() - start, 3))
+    _write_json_atomic(meta_path, meta)
+    return 0

@@ -1,0 +1,303 @@
+"""The hierarchical particle graph as PyG ``HeteroData`` (see docs/architecture.md).
+
+One node type, ``particle``, holds leaves and ancestors. The static part (node attributes and
+the ``child_to_parent``, ``leaf_to_ancestor``, ``within_siblings`` and
+``ancestor_to_descendant`` edges) is built once per scene by :func:`build_structure`; the
+dynamic part (``pos``, ``prev_pos``, ``prev_prev_pos``, ``force`` and the ``collision`` edges)
+is filled by :func:`set_state` at every step. Ancestor states are always derived from the
+leaves with :func:`leaf_to_ancestor_mean`. :func:`replicate` makes K copies of a scene as one
+batched graph; every function here works on batched graphs as well as single scenes.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import Tensor
+from torch_geometric.data import Batch, HeteroData
+
+from hrn_pyg.data.radius import collision_edges
+
+#: The only node type: leaves and their ancestors.
+NODE = "particle"
+#: Edge types, ``(source type, name, destination type)``; row 0 of edge_index is the source.
+CHILD_TO_PARENT = (NODE, "child_to_parent", NODE)
+COLLISION = (NODE, "collision", NODE)
+LEAF_TO_ANCESTOR = (NODE, "leaf_to_ancestor", NODE)
+WITHIN_SIBLINGS = (NODE, "within_siblings", NODE)
+ANCESTOR_TO_DESCENDANT = (NODE, "ancestor_to_descendant", NODE)
+EDGE_TYPES = (CHILD_TO_PARENT, COLLISION, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
+#: Material names in one-hot column order (episode files store the column index).
+MATERIALS = ("rigid", "soft", "cloth", "static")
+#: Column of the static material: such objects never move.
+STATIC = MATERIALS.index("static")
+
+
+def _sort_edges(src: Tensor, dst: Tensor, num_nodes: int) -> Tensor:
+    """Stack ``(src, dst)`` into an edge_index sorted by destination, then source."""
+    perm = torch.argsort(dst * num_nodes + src)
+    return torch.stack([src[perm], dst[perm]])
+
+
+def _ancestor_pairs(parent: Tensor) -> tuple[Tensor, Tensor]:
+    """All (descendant, ancestor) pairs by repeated parent lookups, one pass per tree level.
+
+    Raises ValueError on a cycle (more levels than nodes).
+    """
+    num_nodes = parent.shape[0]
+    node = torch.nonzero(parent >= 0).flatten()
+    anc = parent[node]
+    nodes, ancestors = [], []
+    for _ in range(num_nodes + 1):  # loop over depth, not over nodes
+        if node.numel() == 0:
+            break
+        nodes.append(node)
+        ancestors.append(anc)
+        up = parent[anc]
+        keep = up >= 0
+        node, anc = node[keep], up[keep]
+    else:
+        raise ValueError("parent contains a cycle")
+    if not nodes:
+        empty = parent.new_empty(0)
+        return empty, empty
+    return torch.cat(nodes), torch.cat(ancestors)
+
+
+def _sibling_pairs(parent: Tensor) -> tuple[Tensor, Tensor]:
+    """All ordered pairs ``(j, i)``, ``j != i``, of children of one parent."""
+    num_nodes = parent.shape[0]
+    child = torch.nonzero(parent >= 0).flatten()
+    p, perm = torch.sort(parent[child], stable=True)
+    child = child[perm]
+    count = torch.bincount(p, minlength=num_nodes)
+    group_start = torch.cumsum(count, 0) - count
+    size = count[p]  # size of each child's sibling group (itself included)
+    total = int(size.sum())
+    dst = child.repeat_interleave(size, output_size=total)
+    within = torch.arange(total, device=parent.device) - (torch.cumsum(size, 0) - size).repeat_interleave(
+        size, output_size=total
+    )
+    src = child[group_start[p].repeat_interleave(size, output_size=total) + within]
+    keep = src != dst
+    return src[keep], dst[keep]
+
+
+def _validate_structure(
+    parent: Tensor,
+    leaf_mass: Tensor,
+    leaf_object: Tensor,
+    object_material: Tensor,
+    object_stiffness: Tensor,
+) -> None:
+    if parent.dim() != 1 or parent.is_floating_point():
+        raise ValueError(f"parent must be a 1-D integer tensor, got {list(parent.shape)} {parent.dtype}")
+    if leaf_mass.dim() != 1 or leaf_mass.shape[0] < 1:
+        raise ValueError(f"leaf_mass must have shape [L>=1], got {list(leaf_mass.shape)}")
+    n_leaves, num_nodes = leaf_mass.shape[0], parent.shape[0]
+    if num_nodes <= n_leaves:
+        raise ValueError(f"parent has {num_nodes} nodes, needs more than the {n_leaves} leaves (one root at least)")
+    if not bool(torch.isfinite(leaf_mass).all()) or bool((leaf_mass <= 0).any()):
+        raise ValueError("leaf_mass must be finite and strictly positive")
+    if leaf_object.shape != (n_leaves,) or leaf_object.is_floating_point():
+        raise ValueError(f"leaf_object must be an integer tensor of shape [{n_leaves}], got {list(leaf_object.shape)}")
+    if object_material.dim() != 1 or object_material.is_floating_point():
+        raise ValueError(f"object_material must be a 1-D integer tensor, got {list(object_material.shape)}")
+    n_objects = object_material.shape[0]
+    if object_stiffness.shape != (n_objects,):
+        raise ValueError(f"object_stiffness must have shape [{n_objects}], got {list(object_stiffness.shape)}")
+    if bool((leaf_object < 0).any()) or bool((leaf_object >= n_objects).any()):
+        raise ValueError(f"leaf_object must lie in 0..{n_objects - 1}")
+    if bool((object_material < 0).any()) or bool((object_material >= len(MATERIALS)).any()):
+        raise ValueError(f"object_material must lie in 0..{len(MATERIALS) - 1} {MATERIALS}")
+    if not bool(torch.isfinite(object_stiffness).all()):
+        raise ValueError("object_stiffness contains NaN or infinite values")
+    if bool((parent < -1).any()) or bool((parent >= num_nodes).any()):
+        raise ValueError(f"parent must lie in -1..{num_nodes - 1}")
+    if bool((parent[:n_leaves] < n_leaves).any()):
+        raise ValueError("every leaf needs a parent, and it must be an ancestor node (index >= L)")
+    if bool(((parent[n_leaves:] >= 0) & (parent[n_leaves:] < n_leaves)).any()):
+        raise ValueError("an ancestor's parent must be an ancestor node (index >= L) or -1")
+
+
+def build_structure(
+    parent: Tensor,
+    leaf_mass: Tensor,
+    leaf_object: Tensor,
+    object_material: Tensor,
+    object_stiffness: Tensor,
+) -> HeteroData:
+    r"""Static part of the scene graph: node attributes and the hierarchy's edge sets.
+
+    With :math:`\mathcal{A}(i)` the ancestors of node ``i`` and :math:`\mathcal{L}(a)` the leaf
+    descendants of ancestor ``a``:
+
+    .. math::
+        m_a = \sum_{l \in \mathcal{L}(a)} m_l, \qquad
+        \mathrm{depth}_i = |\mathcal{A}(i)|, \qquad
+        \mathrm{object}_a = \mathrm{object}_l \ (l \in \mathcal{L}(a))
+
+    Edges: ``child_to_parent`` ``i -> parent(i)``; ``leaf_to_ancestor`` ``i -> a`` for every
+    ``a in A(i)`` (every node, not only leaves, sorted by (dst, src)); ``ancestor_to_descendant``
+    its exact reverse (each edge flipped, same order); ``within_siblings`` ``j -> i`` for distinct
+    ``i, j`` of one parent; ``collision`` empty (filled by :func:`set_state`).
+
+    Args:
+        parent: parent of each node (leaves ``0..L-1`` first, roots ``-1``), as written by
+            :func:`hrn_pyg.data.hierarchy.build_hierarchy`.
+        leaf_mass: leaf masses, > 0.
+        leaf_object: object of each leaf, ``0..O-1``.
+        object_material: material column of each object (:data:`MATERIALS`).
+        object_stiffness: stiffness of each object.
+
+    Returns:
+        HeteroData with ``graph['particle']``: ``mass (N,1)``, ``material (N,4)`` one-hot,
+        ``stiffness (N,1)``, ``object (N,)``, ``depth (N,)``, ``is_leaf``, ``is_root``,
+        ``is_static`` ``(N,)`` bool, and the five edge types.
+
+    **Shapes**: parent ``(N,)``, leaf_mass ``(L,)``, leaf_object ``(L,)``,
+    object_material ``(O,)``, object_stiffness ``(O,)``.
+    """
+    _validate_structure(parent, leaf_mass, leaf_object, object_material, object_stiffness)
+    device = parent.device
+    parent = parent.long()
+    leaf_object = leaf_object.long().to(device)
+    n_leaves, num_nodes = leaf_mass.shape[0], parent.shape[0]
+    dtype = leaf_mass.dtype if leaf_mass.is_floating_point() else torch.get_default_dtype()
+    leaf_mass = leaf_mass.to(device=device, dtype=dtype)
+
+    desc, anc = _ancestor_pairs(parent)
+    depth = torch.bincount(desc, minlength=num_nodes)
+
+    # leaf -> ancestor pairs give each ancestor its mass and object
+    from_leaf = desc < n_leaves
+    leaf, leaf_anc = desc[from_leaf], anc[from_leaf]
+    n_leaf_desc = torch.bincount(leaf_anc, minlength=num_nodes)
+    if bool((n_leaf_desc[n_leaves:] == 0).any()):
+        raise ValueError("every ancestor needs at least one leaf below it")
+    mass = torch.zeros(num_nodes, dtype=dtype, device=device).index_add(0, leaf_anc, leaf_mass[leaf])
+    mass[:n_leaves] = leaf_mass
+    obj_min = torch.full((num_nodes,), n_leaves + 1, dtype=torch.long, device=device)
+    obj_max = torch.full((num_nodes,), -1, dtype=torch.long, device=device)
+    obj_min = obj_min.scatter_reduce(0, leaf_anc, leaf_object[leaf], reduce="amin")
+    obj_max = obj_max.scatter_reduce(0, leaf_anc, leaf_object[leaf], reduce="amax")
+    if bool((obj_min[n_leaves:] != obj_max[n_leaves:]).any()):
+        raise ValueError("an ancestor has leaves of more than one object")
+    obj = torch.cat([leaf_object, obj_min[n_leaves:]])
+
+    material_index = object_material.long().to(device)[obj]
+    graph = HeteroData()
+    store = graph[NODE]
+    store.num_nodes = num_nodes
+    store.mass = mass[:, None]
+    store.material = torch.nn.functional.one_hot(material_index, len(MATERIALS)).to(dtype)
+    store.stiffness = object_stiffness.to(device=device, dtype=dtype)[obj][:, None]
+    store.object = obj
+    store.depth = depth
+    store.is_leaf = torch.arange(num_nodes, device=device) < n_leaves
+    store.is_root = parent < 0
+    store.is_static = material_index == STATIC
+
+    child = torch.nonzero(parent >= 0).flatten()
+    graph[CHILD_TO_PARENT].edge_index = _sort_edges(child, parent[child], num_nodes)
+    l2a = _sort_edges(desc, anc, num_nodes)
+    graph[LEAF_TO_ANCESTOR].edge_index = l2a
+    graph[ANCESTOR_TO_DESCENDANT].edge_index = l2a.flip(0)
+    graph[WITHIN_SIBLINGS].edge_index = _sort_edges(*_sibling_pairs(parent), num_nodes)
+    graph[COLLISION].edge_index = torch.empty(2, 0, dtype=torch.long, device=device)
+    return graph
+
+
+def leaf_to_ancestor_mean(values: Tensor, graph: HeteroData) -> Tensor:
+    r"""Keep leaf rows, replace every ancestor row by the mass-weighted mean of its leaves.
+
+    .. math::
+        v_a = \frac{1}{m_a} \sum_{l \in \mathcal{L}(a)} m_l\, v_l
+
+    computed as one scatter over the ``leaf_to_ancestor`` edges, with weight
+    :math:`m_l / m_a` on edges from a leaf and 0 on edges from an ancestor (no boolean
+    indexing, so no host sync). Differentiable in ``values``; nothing is cached on the graph.
+
+    **Shapes**: values ``(..., N, D)``; returns ``(..., N, D)``.
+    """
+    store = graph[NODE]
+    num_nodes = store.num_nodes
+    if values.dim() < 2 or values.shape[-2] != num_nodes:
+        raise ValueError(f"values must have shape [..., {num_nodes}, D], got {list(values.shape)}")
+    src, dst = graph[LEAF_TO_ANCESTOR].edge_index
+    mass = store.mass[:, 0].to(values.dtype)
+    weight = mass[src] * store.is_leaf[src].to(values.dtype) / mass[dst]  # [E]
+    contrib = values.index_select(-2, src) * weight[:, None]
+    agg = torch.zeros_like(values).index_add(-2, dst, contrib)
+    return torch.where(store.is_leaf[:, None], values, agg)
+
+
+def _to_nodes(name: str, value: Tensor, graph: HeteroData) -> Tensor:
+    """``(N, 3)`` node tensor from an ``(N, 3)`` node or ``(L, 3)`` leaf tensor (ancestors 0)."""
+    store = graph[NODE]
+    num_nodes = store.num_nodes
+    if value.dim() != 2 or value.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [N, 3] or [L, 3], got {list(value.shape)}")
+    if value.shape[0] == num_nodes:
+        return value
+    leaf_index = torch.nonzero(store.is_leaf).flatten()
+    if value.shape[0] != leaf_index.shape[0]:
+        raise ValueError(
+            f"{name} has {value.shape[0]} rows; expected {num_nodes} nodes or {leaf_index.shape[0]} leaves"
+        )
+    return value.new_zeros(num_nodes, 3).index_copy(0, leaf_index, value)
+
+
+def set_state(
+    graph: HeteroData,
+    prev_prev_pos: Tensor,
+    prev_pos: Tensor,
+    pos: Tensor,
+    *,
+    radius: float | None,
+    force: Tensor | None = None,
+) -> HeteroData:
+    r"""A shallow copy of ``graph`` carrying the state ``x_{t-2}, x_{t-1}, x_t`` and its collisions.
+
+    Positions may be given for all nodes ``(N, 3)`` (ancestor rows are ignored) or for the
+    leaves only ``(L, 3)``, in node order of the leaves. Ancestor positions are always derived
+    with :func:`leaf_to_ancestor_mean`; ``force`` is kept on leaves and zero on ancestors.
+    ``collision`` edges are :func:`hrn_pyg.data.radius.collision_edges` of the leaves at ``x_t``,
+    grouped by ``graph['particle'].batch`` when present (so copies never collide), mapped to
+    node indices. ``radius=None`` leaves the collision set empty. The input graph is not
+    modified; its static tensors are shared, not copied.
+
+    **Shapes**: positions and force ``(N, 3)`` or ``(L, 3)``; sets ``pos``, ``prev_pos``,
+    ``prev_prev_pos``, ``force`` ``(N, 3)`` and ``collision`` ``(2, |E_C|)``.
+    """
+    out = copy.copy(graph)
+    store = out[NODE]
+    is_leaf = store.is_leaf[:, None]
+    for name, value in (("prev_prev_pos", prev_prev_pos), ("prev_pos", prev_pos), ("pos", pos)):
+        store[name] = leaf_to_ancestor_mean(_to_nodes(name, value, out), out)
+    if force is None:
+        store.force = torch.zeros_like(store.pos)
+    else:
+        store.force = torch.where(is_leaf, _to_nodes("force", force, out), 0.0)
+
+    leaf_index = torch.nonzero(store.is_leaf).flatten()
+    if radius is None:
+        edges = torch.empty(2, 0, dtype=torch.long, device=leaf_index.device)
+    else:
+        batch = store.batch[leaf_index] if "batch" in store else None
+        edges = leaf_index[collision_edges(store.pos[leaf_index], store.object[leaf_index], radius, batch)]
+    out[COLLISION].edge_index = edges
+    return out
+
+
+def replicate(graph: HeteroData, k: int) -> HeteroData:
+    """``k`` copies of one scene graph as one batched graph (``graph['particle'].batch`` = copy).
+
+    PyG offsets every edge set by the node count of the preceding copies.
+
+    **Shapes**: ``N`` nodes -> ``k N`` nodes; every edge set ``E`` -> ``k E``.
+    """
+    if int(k) < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    return Batch.from_data_list([graph] * int(k))

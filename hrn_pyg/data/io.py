@@ -1,0 +1,112 @@
+"""Episode files: one ``.npz`` per episode, written atomically, read without pickle.
+
+The zip members get a fixed timestamp, so the same episode always gives the same bytes (two
+seeded generations can be compared file to file). The keys and shapes are the "Episode file"
+table of ``docs/architecture.md``.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+import zipfile
+
+import numpy as np
+
+#: key -> (dtype kind(s), number of dimensions). Shapes are cross-checked in ``validate_episode``.
+EPISODE_KEYS: dict[str, tuple[str, int]] = {
+    "positions": ("f", 3),
+    "forces": ("f", 3),
+    "leaf_mass": ("f", 1),
+    "leaf_object": ("i", 1),
+    "object_material": ("i", 1),
+    "object_stiffness": ("f", 1),
+    "hierarchy_parent": ("i", 1),
+    "seed": ("i", 0),
+    "scene": ("U", 0),
+    "params": ("U", 0),
+    "dt": ("f", 0),
+}
+
+#: zip member timestamp (the earliest zip allows): identical content -> identical bytes.
+ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
+def validate_episode(episode: dict[str, np.ndarray]) -> None:
+    """Raise ``ValueError`` naming the first missing key, wrong dtype/shape or non-finite value.
+
+    **Shapes** ``positions [S+1, L, 3]``, ``forces [S, L, 3]``, ``leaf_mass [L]``,
+    ``leaf_object [L]`` in ``0..O-1``, ``object_material [O]`` in ``0..3``,
+    ``object_stiffness [O]``, ``hierarchy_parent [N]`` with ``N >= L``.
+    """
+    for key, (kinds, ndim) in EPISODE_KEYS.items():
+        if key not in episode:
+            raise ValueError(f"episode: missing key {key!r}")
+        value = np.asarray(episode[key])
+        if value.dtype.kind not in kinds or value.ndim != ndim:
+            raise ValueError(f"episode[{key!r}]: expected {ndim}-d of kind {kinds!r}, "
+                             f"got {value.dtype} {value.shape}")
+        if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
+            raise ValueError(f"episode[{key!r}]: contains NaN or inf")
+    pos, forces = episode["positions"], episode["forces"]
+    steps, leaves = pos.shape[0] - 1, pos.shape[1]
+    n_obj = len(episode["object_material"])
+    if steps < 1 or pos.shape[2] != 3:
+        raise ValueError(f"episode['positions']: expected [S+1, L, 3] with S >= 1, got {pos.shape}")
+    if forces.shape != (steps, leaves, 3):
+        raise ValueError(f"episode['forces']: expected {(steps, leaves, 3)}, got {forces.shape}")
+    for key in ("leaf_mass", "leaf_object"):
+        if episode[key].shape != (leaves,):
+            raise ValueError(f"episode[{key!r}]: expected ({leaves},), got {episode[key].shape}")
+    if episode["object_stiffness"].shape != (n_obj,):
+        raise ValueError(f"episode['object_stiffness']: expected ({n_obj},)")
+    obj = episode["leaf_object"]
+    if leaves and (obj.min() < 0 or obj.max() >= n_obj):
+        raise ValueError(f"episode['leaf_object']: values must lie in 0..{n_obj - 1}")
+    mat = episode["object_material"]
+    if n_obj and (mat.min() < 0 or mat.max() > 3):
+        raise ValueError("episode['object_material']: values must lie in 0..3")
+    parent = episode["hierarchy_parent"]
+    if len(parent) < leaves or np.any((parent < -1) | (parent >= len(parent))):
+        raise ValueError("episode['hierarchy_parent']: must have N >= L entries in -1..N-1")
+
+
+def save_episode(path: str | os.PathLike, episode: dict[str, np.ndarray]) -> None:
+    """Validate and write ``episode`` to ``path`` (``.npz``): temp file in the same folder,
+    then ``os.replace``, so a reader never sees half a file."""
+    episode = {k: np.asarray(v) for k, v in episode.items()}
+    validate_episode(episode)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".episode_", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED) as zf:
+            for key in sorted(episode):
+                buffer = io.BytesIO()
+                np.lib.format.write_array(buffer, episode[key], allow_pickle=False)
+                info = zipfile.ZipInfo(f"{key}.npy", date_time=ZIP_EPOCH)
+                info.compress_type = zipfile.ZIP_DEFLATED
+                zf.writestr(info, buffer.getvalue())
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; episode files are meant to be shared
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def load_episode(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read and validate an episode written by :func:`save_episode` (no pickle)."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"episode file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            episode = {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        raise ValueError(f"{path}: not a readable episode file ({exc})") from exc
+    try:
+        validate_episode(episode)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+    return episode

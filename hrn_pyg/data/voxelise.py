@@ -1,0 +1,231 @@
+"""Mesh voxelisation: the one path from a trimesh mesh to leaf particles.
+
+Every material starts here. A rigid body's leaves are the filled voxel centres of its mesh,
+carried by the body's pose; a soft body's leaves are the same voxel centres turned into the
+nodes of a tetrahedral mesh (:func:`lattice_tetrahedra`, :func:`write_tetrahedral_vtk`) that
+pybullet simulates; a cloth is a one-layer lattice (:func:`grid_sheet`).
+
+trimesh's ``voxelized(pitch)`` puts voxel centres on a grid through the mesh's lower corner, so
+a box of side ``a = n * pitch`` yields ``(n + 1)`` centres per axis, the outer ones lying on its
+faces: the leaves span the body exactly.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+import trimesh
+
+#: Relative tolerance when snapping voxel centres to integer lattice indices (float round-off
+#: from trimesh's transform is ~1e-16 of the pitch; anything above 1e-3 means "not on a lattice").
+LATTICE_SNAP_TOL = 1e-3
+
+#: The six tetrahedra of the Kuhn (Freudenthal) split of a unit cube, as indices into the cube's
+#: corners numbered ``i + 2 j + 4 k`` for corner offset ``(i, j, k)``. Every tet shares the main
+#: diagonal 0-7 and neighbouring cubes split their common face the same way, so the mesh is
+#: conforming without any parity bookkeeping.
+KUHN_TETS = np.array(
+    [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]],
+    dtype=np.int64,
+)
+
+
+def _check_mesh(mesh: trimesh.Trimesh) -> None:
+    """Raise ``ValueError`` naming the first problem that makes ``mesh`` unusable as a solid."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"mesh: expected trimesh.Trimesh, got {type(mesh).__name__}")
+    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
+        raise ValueError("mesh: empty (no vertices or no faces)")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise ValueError("mesh: vertices contain NaN or inf")
+    if not mesh.is_watertight:
+        raise ValueError("mesh: not watertight (cannot fill its interior)")
+
+
+def voxelise(mesh: trimesh.Trimesh, pitch: float) -> np.ndarray:
+    """Filled voxel centres of a closed mesh.
+
+    A point :math:`c` is a leaf iff the voxel of side ``pitch`` centred at :math:`c` meets the
+    surface or lies inside it (``mesh.voxelized(pitch).fill()``), so
+    :math:`L \\cdot \\text{pitch}^3 \\approx \\text{vol}(\\text{mesh dilated by pitch}/2)`.
+
+    **Shapes**
+    - ``mesh``: ``V`` vertices, ``F`` faces, watertight, finite.
+    - returns: ``[L, 3]`` float64 voxel centres in the mesh's frame.
+    """
+    if not np.isfinite(pitch) or pitch <= 0:
+        raise ValueError(f"pitch: must be a finite number > 0, got {pitch}")
+    _check_mesh(mesh)
+    points = np.asarray(mesh.voxelized(pitch).fill().points, dtype=np.float64)
+    if len(points) == 0:
+        raise ValueError(f"mesh: no voxel at pitch {pitch} (mesh smaller than one voxel?)")
+    return points
+
+
+def box_mesh(extents: tuple[float, float, float] | float) -> trimesh.Trimesh:
+    """Axis-aligned box centred at the origin. ``extents``: full side lengths (m)."""
+    ext = np.broadcast_to(np.asarray(extents, dtype=np.float64), (3,))
+    if not np.all(np.isfinite(ext)) or np.any(ext <= 0):
+        raise ValueError(f"extents: must be finite and > 0, got {ext.tolist()}")
+    return trimesh.creation.box(extents=ext)
+
+
+def sphere_mesh(radius: float, subdivisions: int = 3) -> trimesh.Trimesh:
+    """Icosphere of ``radius`` (m) centred at the origin."""
+    if not np.isfinite(radius) or radius <= 0:
+        raise ValueError(f"radius: must be finite and > 0, got {radius}")
+    return trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+
+
+def wedge_mesh(width: float, height: float, length: float) -> trimesh.Trimesh:
+    """Triangular prism with its ridge along the y axis.
+
+    Cross-section (x, z): base from ``(-width/2, 0)`` to ``(width/2, 0)``, apex ``(0, height)``;
+    extruded over ``y`` in ``[-length/2, length/2]``. The base lies on ``z = 0``.
+    """
+    for name, value in (("width", width), ("height", height), ("length", length)):
+        if not np.isfinite(value) or value <= 0:
+            raise ValueError(f"{name}: must be finite and > 0, got {value}")
+    h = length / 2
+    tri = np.array([[-width / 2, 0.0], [width / 2, 0.0], [0.0, height]])
+    vertices = np.concatenate(
+        [np.column_stack([tri[:, 0], np.full(3, -h), tri[:, 1]]),
+         np.column_stack([tri[:, 0], np.full(3, h), tri[:, 1]])]
+    )
+    faces = np.array(
+        [[0, 2, 1], [3, 4, 5],  # end caps
+         [0, 1, 4], [0, 4, 3],  # base
+         [1, 2, 5], [1, 5, 4],  # right slope
+         [2, 0, 3], [2, 3, 5]],  # left slope
+        dtype=np.int64,
+    )
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
+    mesh.fix_normals()
+    return mesh
+
+
+def lattice_indices(points: np.ndarray, pitch: float) -> np.ndarray:
+    """Integer lattice coordinates of points on a grid of spacing ``pitch``.
+
+    **Shapes** ``points [L, 3]`` -> ``[L, 3]`` int64, relative to the lowest point per axis.
+    """
+    if not np.isfinite(pitch) or pitch <= 0:
+        raise ValueError(f"pitch: must be a finite number > 0, got {pitch}")
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"points: expected a non-empty [L, 3] array, got {points.shape}")
+    scaled = (points - points.min(axis=0)) / pitch
+    idx = np.rint(scaled)
+    if np.max(np.abs(scaled - idx)) > LATTICE_SNAP_TOL:
+        raise ValueError("points: not on a lattice of the given pitch")
+    return idx.astype(np.int64)
+
+
+def lattice_tetrahedra(points: np.ndarray, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+    """Tetrahedral mesh whose nodes are voxel centres.
+
+    Every lattice cell whose 8 corners are all filled voxel centres is split into the 6 Kuhn
+    tetrahedra (:data:`KUHN_TETS`); each tet is ordered to have positive volume
+    :math:`\\det[x_1 - x_0, x_2 - x_0, x_3 - x_0] > 0`. Voxel centres in no complete cell are
+    dropped (they could not be simulated). A box of ``n^3`` centres gives ``n^3`` nodes and
+    ``6 (n-1)^3`` tets.
+
+    **Shapes**
+    - ``points``: ``[L, 3]`` voxel centres on a lattice of spacing ``pitch``.
+    - returns ``nodes [M, 3]`` float64 (a subset of ``points``, in their order) and
+      ``tets [T, 4]`` int64 indices into ``nodes``.
+    """
+    idx = lattice_indices(points, pitch)
+    dims = idx.max(axis=0) + 1
+    flat = np.ravel_multi_index(idx.T, dims)
+    lookup = np.full(int(np.prod(dims)), -1, dtype=np.int64)
+    lookup[flat] = np.arange(len(idx))
+    offsets = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)])  # corner i+2j+4k
+    corner_idx = idx[:, None, :] + offsets[None, :, :]  # [L, 8, 3], each point as a cell's corner 0
+    inside = np.all(corner_idx < dims, axis=2)
+    corner_flat = np.where(inside, np.ravel_multi_index(
+        np.minimum(corner_idx, dims - 1).transpose(2, 0, 1), dims), 0)
+    corners = np.where(inside, lookup[corner_flat], -1)  # [L, 8]
+    full = np.all(corners >= 0, axis=1)
+    if not np.any(full):
+        raise ValueError("points: no complete lattice cell (need at least 2x2x2 voxels)")
+    cells = corners[full]  # [C, 8]
+    tets = cells[:, KUHN_TETS].reshape(-1, 4)  # [6C, 4]
+    used = np.unique(tets)
+    remap = np.full(len(points), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    nodes = np.asarray(points, dtype=np.float64)[used]
+    tets = remap[tets]
+    x = nodes[tets]
+    det = np.linalg.det(x[:, 1:] - x[:, :1])
+    tets[det < 0] = tets[det < 0][:, [0, 2, 1, 3]]
+    return nodes, tets
+
+
+def write_tetrahedral_vtk(path: str | os.PathLike, nodes: np.ndarray, tets: np.ndarray) -> None:
+    """Write a legacy ASCII ``.vtk`` unstructured grid of tetrahedra (VTK cell type 10).
+
+    Written to a temp file in the same folder and moved into place.
+
+    **Shapes** ``nodes [M, 3]``, ``tets [T, 4]`` int.
+    """
+    nodes = np.asarray(nodes, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    if nodes.ndim != 2 or nodes.shape[1] != 3 or not np.all(np.isfinite(nodes)):
+        raise ValueError(f"nodes: expected finite [M, 3], got {nodes.shape}")
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.min() < 0 or tets.max() >= len(nodes):
+        raise ValueError("tets: expected [T, 4] indices into nodes")
+    lines = ["# vtk DataFile Version 2.0", "hrn_pyg voxel lattice", "ASCII",
+             "DATASET UNSTRUCTURED_GRID", f"POINTS {len(nodes)} double"]
+    lines += [f"{a:.9g} {b:.9g} {c:.9g}" for a, b, c in nodes]
+    lines.append(f"CELLS {len(tets)} {5 * len(tets)}")
+    lines += [f"4 {a} {b} {c} {d}" for a, b, c, d in tets]
+    lines.append(f"CELL_TYPES {len(tets)}")
+    lines += ["10"] * len(tets)
+    _atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def grid_sheet(size: float, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square one-layer lattice in the plane ``z = 0`` centred at the origin (a cloth).
+
+    ``n = round(size / pitch) + 1`` nodes per side; each lattice square is split into two
+    triangles.
+
+    **Shapes** returns ``vertices [n*n, 3]`` float64 and ``faces [2 (n-1)^2, 3]`` int64.
+    """
+    if not np.isfinite(pitch) or pitch <= 0:
+        raise ValueError(f"pitch: must be a finite number > 0, got {pitch}")
+    if not np.isfinite(size) or size < pitch:
+        raise ValueError(f"size: must be finite and >= pitch, got {size}")
+    n = int(round(size / pitch)) + 1
+    coords = (np.arange(n) - (n - 1) / 2) * pitch
+    gx, gy = np.meshgrid(coords, coords, indexing="ij")
+    vertices = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(n * n)])
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    a = (i * n + j).ravel()
+    b, c, d = a + n, a + 1, a + n + 1
+    faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+    return vertices, faces
+
+
+def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a Wavefront ``.obj`` (1-based face indices), atomically."""
+    lines = [f"v {a:.9g} {b:.9g} {c:.9g}" for a, b, c in np.asarray(vertices, dtype=np.float64)]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(faces, dtype=np.int64)]
+    _atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def _atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; episode files are meant to be shared
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise

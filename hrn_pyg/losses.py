@@ -1,0 +1,173 @@
+"""Training losses of the HRN: local and global velocity errors and two shape terms.
+
+The group shape loss is the baseline HRN's (distances between siblings of one parent only); the
+fully-connected shape loss is the seed paper's (distances between all leaf pairs of an object),
+computed in row chunks, each under activation checkpointing, so its memory stays bounded by
+``chunk_size`` times the size of the largest object, in the forward and the backward pass.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.nn.collision import safe_norm
+from hrn_pyg.nn.normalizer import Normalizer
+
+#: rows of the pairwise-distance matrix handled at once by :func:`full_shape_loss`
+DEFAULT_CHUNK_SIZE = 512
+
+
+def _zero(like: Tensor) -> Tensor:
+    """A zero loss that still carries the graph of ``like`` (so ``backward`` works)."""
+    return like.sum() * 0.0
+
+
+def local_velocity_loss(
+    pred_local: Tensor,
+    true_local: Tensor,
+    is_root: Tensor,
+    is_static: Tensor,
+    normalizer: Normalizer,
+) -> Tensor:
+    r"""Mean squared error of local velocities, in target units.
+
+    .. math::
+        \mathcal{L}_{loc} = \frac{1}{3|\mathcal{M}|} \sum_{i \in \mathcal{M}}
+            \Bigl\lVert \frac{\hat v^{loc}_i - v^{loc}_i}{\sigma_{r(i)}} \Bigr\rVert^2
+
+    over the non-static nodes :math:`\mathcal{M}`; :math:`\sigma_{r(i)}` is the normaliser's root
+    scale for roots (global frame) and its local scale otherwise (parent frame). Equal to the MSE
+    of the normalised network output against :func:`hrn_pyg.rollout.target_output`.
+
+    **Shapes:** pred_local, true_local :math:`(N, 3)`; is_root, is_static :math:`(N,)`; returns a scalar.
+    """
+    _, std = normalizer.target_stats(is_root)
+    err = ((pred_local - true_local) / std)[~is_static]
+    return err.pow(2).mean() if err.numel() else _zero(pred_local)
+
+
+def global_velocity_loss(
+    pred_velocity: Tensor,
+    true_velocity: Tensor,
+    is_root: Tensor,
+    is_leaf: Tensor,
+    is_static: Tensor,
+    scale: Tensor | float = 1.0,
+) -> Tensor:
+    r"""Mean squared error of global velocities of the roots and the leaves.
+
+    .. math::
+        \mathcal{L}_{glob} = \frac{1}{3|\mathcal{G}|} \sum_{i \in \mathcal{G}}
+            \Bigl\lVert \frac{\hat v_i - v_i}{\sigma} \Bigr\rVert^2, \qquad
+        \mathcal{G} = \{i : (\mathrm{root}_i \lor \mathrm{leaf}_i) \land \lnot \mathrm{static}_i\}
+
+    ``scale`` :math:`\sigma` is a number or a ``(3,)`` tensor (e.g. the normaliser's
+    ``velocity_std``).
+
+    **Shapes:** pred_velocity, true_velocity :math:`(N, 3)`; masks :math:`(N,)`; returns a scalar.
+    """
+    keep = (is_root | is_leaf) & ~is_static
+    err = ((pred_velocity - true_velocity) / scale)[keep]
+    return err.pow(2).mean() if err.numel() else _zero(pred_velocity)
+
+
+def group_shape_loss(
+    pred_pos: Tensor,
+    true_pos: Tensor,
+    within_siblings: Tensor,
+    scale: Tensor | float = 1.0,
+) -> Tensor:
+    r"""Baseline HRN shape loss: pairwise-distance error between siblings of one parent.
+
+    .. math::
+        \mathcal{L}_{group} = \frac{1}{|\mathcal{E}_{WS}|} \sum_{(j, i) \in \mathcal{E}_{WS}}
+            \Bigl(\frac{\lVert \hat x_i - \hat x_j \rVert - \lVert x_i - x_j \rVert}{\sigma}\Bigr)^2
+
+    over the ``within_siblings`` edges (every level of the tree).
+
+    **Shapes:** pred_pos, true_pos :math:`(N, 3)`; within_siblings :math:`(2, E)`; returns a scalar.
+    """
+    if within_siblings.size(1) == 0:
+        return _zero(pred_pos)
+    src, dst = within_siblings
+    d_pred = safe_norm(pred_pos[dst] - pred_pos[src], keepdim=False)
+    d_true = safe_norm(true_pos[dst] - true_pos[src], keepdim=False)
+    return ((d_pred - d_true) / scale).pow(2).mean()
+
+
+def _block_error(
+    p_rows: Tensor, t_rows: Tensor, p_cols: Tensor, t_cols: Tensor, g_rows: Tensor, g_cols: Tensor
+) -> Tensor:
+    """Sum of squared distance errors over the same-group pairs of one block."""
+    d_pred = safe_norm(p_rows[:, None, :] - p_cols[None, :, :], keepdim=False)
+    d_true = safe_norm(t_rows[:, None, :] - t_cols[None, :, :], keepdim=False)
+    same = g_rows[:, None] == g_cols[None, :]
+    return torch.where(same, (d_pred - d_true).pow(2), torch.zeros_like(d_pred)).sum()
+
+
+def full_shape_loss(
+    pred_pos: Tensor,
+    true_pos: Tensor,
+    group: Tensor,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    scale: Tensor | float = 1.0,
+) -> Tensor:
+    r"""Fully-connected shape loss (seed paper, Fig. 3 right): all leaf pairs of each object.
+
+    .. math::
+        \mathcal{L}_{full} = \frac{1}{P} \sum_{g} \sum_{i \ne j \in g}
+            \Bigl(\frac{\lVert \hat x_i - \hat x_j \rVert - \lVert x_i - x_j \rVert}{\sigma}\Bigr)^2,
+        \qquad P = \sum_g |g| (|g| - 1)
+
+    :math:`g` runs over the groups (one object of one batch copy, see :func:`shape_groups`).
+    The rows are sorted by group and taken ``chunk_size`` at a time against the columns of
+    their own groups only; each block is checkpointed, so at most one
+    ``chunk_size x (largest group)`` block of distances is alive at any time. Exact: every
+    pair is counted once per order, as in the formula.
+
+    **Shapes:** pred_pos, true_pos :math:`(L, 3)` (typically leaves); group :math:`(L,)` long;
+    returns a scalar.
+    """
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+    if pred_pos.shape != true_pos.shape or pred_pos.dim() != 2 or group.shape != pred_pos.shape[:1]:
+        raise ValueError(
+            f"full_shape_loss: pred_pos, true_pos [L, 3] and group [L] expected, got "
+            f"{tuple(pred_pos.shape)}, {tuple(true_pos.shape)}, {tuple(group.shape)}"
+        )
+    order = torch.argsort(group, stable=True)
+    g, p, t = group[order], pred_pos[order] / scale, true_pos[order] / scale
+    _, counts = torch.unique_consecutive(g, return_counts=True)
+    n_pairs = int((counts * (counts - 1)).sum())
+    if n_pairs == 0:
+        return _zero(pred_pos)
+    ends = torch.cumsum(counts, 0)
+    starts = (ends - counts).repeat_interleave(counts).tolist()  # group start of each sorted row
+    ends = ends.repeat_interleave(counts).tolist()
+    use_checkpoint = torch.is_grad_enabled() and (p.requires_grad or t.requires_grad)
+    total = p.new_zeros(())
+    for r0 in range(0, g.numel(), chunk_size):  # loop over row chunks (bounded memory), not particles
+        r1 = min(r0 + chunk_size, g.numel())
+        c0, c1 = starts[r0], ends[r1 - 1]
+        args = (p[r0:r1], t[r0:r1], p[c0:c1], t[c0:c1], g[r0:r1], g[c0:c1])
+        block = checkpoint(_block_error, *args, use_reentrant=False) if use_checkpoint else _block_error(*args)
+        total = total + block
+    return total / n_pairs
+
+
+def shape_groups(graph: HeteroData) -> tuple[Tensor, Tensor]:
+    """Leaves that enter the shape loss and their group: one group per object per batch copy.
+
+    Static leaves are left out (they never move). Returns ``(leaf_index [L'], group [L'])``.
+    """
+    store = graph[NODE]
+    leaf = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
+    obj = store.object[leaf]
+    if "batch" in store:
+        n_obj = int(store.object.max()) + 1 if store.object.numel() else 1
+        obj = store.batch[leaf] * n_obj + obj
+    return leaf, obj

@@ -1,0 +1,84 @@
+"""Collision module of the HRN (Fig. 2): effects of nearby particles of other objects."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch_geometric.nn import MessagePassing
+
+from hrn_pyg.nn.mlp import MLP, MLPConfig
+
+#: added under the square root of a squared distance so that its gradient stays finite when two
+#: particles coincide (d|x|/dx is undefined at 0)
+NORM_EPSILON = 1e-12
+
+
+def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = True) -> Tensor:
+    r""":math:`\sqrt{\lVert x \rVert^2 + \epsilon}` with :data:`NORM_EPSILON`; finite gradient at 0."""
+    return torch.sqrt((x * x).sum(dim=dim, keepdim=keepdim) + NORM_EPSILON)
+
+
+class CollisionModule(MessagePassing):
+    r"""Sum of pairwise collision effects over the collision edges.
+
+    .. math::
+        e_C(i) = \sum_{j \in \mathcal{N}_C(i)}
+            \phi_C\bigl(s_i,\ s_j,\ x_i - x_j,\ \lVert x_i - x_j \rVert\bigr)
+
+    :math:`\mathcal{N}_C(i)` are the sources of the collision edges ``j -> i`` (leaves of other
+    objects within the collision radius), :math:`s` the particle state vectors and :math:`x` the
+    (scaled) positions; only differences of positions enter, so the effect is translation
+    invariant. Aggregation is a sum, so a particle that receives no message gets an exact zero and
+    an empty edge set gives an all-zero output.
+
+    Args:
+        state_dim: size :math:`S` of a particle's state vector.
+        effect_dim: size :math:`D` of the effect.
+        mlp: shape of :math:`\phi_C`.
+
+    **Shapes:**
+        - **input:** state :math:`(|\mathcal{V}|, S)`, pos :math:`(|\mathcal{V}|, 3)`,
+          edge_index :math:`(2, |\mathcal{E}_C|)`, mask :math:`(B, H)` or None,
+          batch :math:`(|\mathcal{V}|,)` (needed with a mask; an edge uses its destination's id)
+        - **output:** effect :math:`(|\mathcal{V}|, D)`
+    """
+
+    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig()) -> None:
+        super().__init__(aggr="add")
+        self.state_dim = state_dim
+        self.effect_dim = effect_dim
+        self.phi = MLP(2 * state_dim + 4, effect_dim, mlp)
+
+    def reset_parameters(self) -> None:
+        super().reset_parameters()
+        self.phi.reset_parameters()
+
+    def forward(
+        self,
+        state: Tensor,
+        pos: Tensor,
+        edge_index: Tensor,
+        mask: Tensor | None = None,
+        batch: Tensor | None = None,
+    ) -> Tensor:
+        if state.dim() != 2 or state.size(1) != self.state_dim:
+            raise ValueError(f"CollisionModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+        if pos.shape != (state.size(0), 3):
+            raise ValueError(f"CollisionModule: pos must be [N, 3], got {tuple(pos.shape)}")
+        if edge_index.dim() != 2 or edge_index.size(0) != 2:
+            raise ValueError(f"CollisionModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
+        if mask is not None and batch is None:
+            raise ValueError("CollisionModule: a dropout mask needs the node batch vector")
+        # an edge takes the trajectory copy of its destination (both ends share one copy)
+        edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
+        n = state.size(0)
+        return self.propagate(edge_index, s=state, x=pos, edge_batch=edge_batch, mask=mask, size=(n, n))
+
+    def message(
+        self, s_i: Tensor, s_j: Tensor, x_i: Tensor, x_j: Tensor, edge_batch: Tensor | None, mask: Tensor | None
+    ) -> Tensor:
+        offset = x_i - x_j
+        return self.phi(torch.cat([s_i, s_j, offset, safe_norm(offset)], dim=-1), mask, edge_batch)
+
+    def __repr__(self) -> str:
+        return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"

@@ -1,0 +1,236 @@
+"""The Hierarchical Relation Network (Fig. 2): force, collision and history effects, propagated
+through each object hierarchy, decoded into next velocities in the parent's frame."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from hrn_pyg.nn.collision import CollisionModule
+from hrn_pyg.nn.force import ForceModule
+from hrn_pyg.nn.history import HistoryModule
+from hrn_pyg.nn.mlp import MLPConfig, dropout_mask
+from hrn_pyg.nn.normalizer import Normalizer
+from hrn_pyg.nn.propagation import PropagationModule
+from hrn_pyg.nn.state import NextStateModule
+
+#: the learned sub-modules, by the name a dropout mask or ``HRNConfig.dropout_modules`` uses
+MODULE_NAMES = ("force", "collision", "history", "l2a", "ws", "a2d", "state")
+
+#: layout of a particle's state vector s_i (see :func:`state_features`)
+STATE_LAYOUT = (
+    ("velocity", 3),   # normalised per-step displacement
+    ("height", 1),     # normalised z above the ground plane
+    ("log_mass", 1),   # normalised log mass
+    ("material", 4),   # one-hot rigid, soft, cloth, static
+    ("stiffness", 1),
+    ("depth", 1),      # level in the tree, root 0
+    ("is_leaf", 1),
+    ("is_root", 1),
+    ("gravity", 3),    # unit gravity direction on roots, zero elsewhere (HRN: gravity enters the root)
+)
+STATE_DIM = sum(d for _, d in STATE_LAYOUT)
+
+#: direction of gravity, z up
+GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
+
+
+@dataclass(frozen=True)
+class HRNConfig:
+    """Everything that fixes the shape and behaviour of an :class:`HRN`; saved with checkpoints.
+
+    Attributes:
+        hidden: hidden width of every MLP.
+        depth: hidden layers of every MLP.
+        activation: MLP activation (see :data:`hrn_pyg.nn.mlp.ACTIVATIONS`).
+        effect_dim: size of an effect vector.
+        collision_radius: metres; leaves of different objects closer than this interact.
+        dropout_rate: default rate of :meth:`HRN.sample_masks` (0: deterministic).
+        dropout_modules: which sub-modules accept a dropout mask (names from :data:`MODULE_NAMES`).
+        skip_idle_modules: do not run the force / collision module when there is no force /
+            no collision edge (the result is the same; False runs them on empty input).
+    """
+
+    hidden: int = 64
+    depth: int = 2
+    activation: str = "relu"
+    effect_dim: int = 64
+    collision_radius: float = 0.08
+    dropout_rate: float = 0.0
+    dropout_modules: tuple[str, ...] = field(default=("force", "collision"))
+    skip_idle_modules: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
+        _ = self.mlp  # builds an MLPConfig, which validates hidden / depth / activation
+        if self.effect_dim < 1:
+            raise ValueError(f"HRNConfig.effect_dim must be >= 1, got {self.effect_dim}")
+        if not self.collision_radius >= 0:
+            raise ValueError(f"HRNConfig.collision_radius must be >= 0, got {self.collision_radius}")
+        if not 0.0 <= self.dropout_rate < 1.0:
+            raise ValueError(f"HRNConfig.dropout_rate must be in [0, 1), got {self.dropout_rate}")
+        unknown = set(self.dropout_modules) - set(MODULE_NAMES)
+        if unknown:
+            raise ValueError(f"HRNConfig.dropout_modules: unknown {sorted(unknown)}; choose from {MODULE_NAMES}")
+
+    @property
+    def mlp(self) -> MLPConfig:
+        return MLPConfig(hidden=self.hidden, depth=self.depth, activation=self.activation)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["dropout_modules"] = list(self.dropout_modules)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> HRNConfig:
+        return cls(**dict(d))
+
+
+class HRNInputs(NamedTuple):
+    """Everything one network pass reads, already normalised (built by
+    :func:`hrn_pyg.rollout.build_inputs`).
+
+    Shapes: ``state``, ``prev_state`` ``[N, STATE_DIM]`` (s(t), s(t-1)); ``pos`` ``[N, 3]``
+    positions divided by the length scale (only differences are used); ``force`` ``[N, 3]``
+    normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
+    the four edge sets ``[2, E]``.
+    """
+
+    state: Tensor
+    prev_state: Tensor
+    pos: Tensor
+    force: Tensor
+    is_static: Tensor
+    is_root: Tensor
+    batch: Tensor
+    collision: Tensor
+    leaf_to_ancestor: Tensor
+    within_siblings: Tensor
+    ancestor_to_descendant: Tensor
+
+
+def state_features(
+    normalizer: Normalizer,
+    velocity: Tensor,
+    z: Tensor,
+    mass: Tensor,
+    material: Tensor,
+    stiffness: Tensor,
+    depth: Tensor,
+    is_leaf: Tensor,
+    is_root: Tensor,
+) -> Tensor:
+    """A particle's state vector in the order of :data:`STATE_LAYOUT`.
+
+    No absolute horizontal position enters: shifting a scene in x or y leaves it unchanged.
+
+    **Shapes:** velocity ``[N, 3]``, z / mass / stiffness ``[N, 1]``, material ``[N, 4]``,
+    depth / is_leaf / is_root ``[N]``; returns ``[N, STATE_DIM]``.
+    """
+    dtype = velocity.dtype
+    root = is_root.to(dtype).unsqueeze(-1)
+    gravity = root * torch.tensor(GRAVITY_DIRECTION, dtype=dtype, device=velocity.device)
+    return torch.cat(
+        [
+            normalizer.velocity(velocity),
+            normalizer.height(z),
+            normalizer.log_mass(mass),
+            material.to(dtype),
+            stiffness.to(dtype),
+            depth.to(dtype).unsqueeze(-1),
+            is_leaf.to(dtype).unsqueeze(-1),
+            root,
+            gravity,
+        ],
+        dim=-1,
+    )
+
+
+class HRN(nn.Module):
+    r"""Hierarchical Relation Network (Mrowca et al. 2018) with optional graph-convolutional dropout.
+
+    .. math::
+        e &= e_F + e_C + e_H \\
+        e &\leftarrow e + \mathrm{L2A}(s, e, x) \\
+        e &\leftarrow e + \mathrm{WS}(s, e, x) \\
+        e &\leftarrow e + \mathrm{A2D}(s, e, x) \\
+        \hat u_i &= \psi(s_i, e_i)
+
+    :math:`e_F` (:class:`ForceModule`) and :math:`e_C` (:class:`CollisionModule`) are skipped when
+    there is no force / no collision edge, which gives the same result as running them. The
+    output is the normalised change of each particle's local velocity (zero on static particles);
+    :func:`hrn_pyg.rollout.decode` turns it into positions. The model carries no hidden state.
+
+    A dropout mask (see :meth:`sample_masks`) is a ``[B, hidden]`` table per module, one row per
+    trajectory copy ``B``, looked up by each node's / edge's batch id. Without masks the model is
+    deterministic, whatever ``dropout_rate`` says.
+
+    **Shapes:**
+        - **input:** :class:`HRNInputs` over :math:`|\mathcal{V}|` nodes; masks ``{name: (B, H)}``
+        - **output:** :math:`(|\mathcal{V}|, 3)`
+    """
+
+    def __init__(self, config: HRNConfig = HRNConfig()) -> None:
+        super().__init__()
+        self.config = config
+        s, d, mlp = STATE_DIM, config.effect_dim, config.mlp
+        self.force = ForceModule(s, d, mlp)
+        self.collision = CollisionModule(s, d, mlp)
+        self.history = HistoryModule(s, d, mlp)
+        self.l2a = PropagationModule(s, d, mlp, name="l2a")
+        self.ws = PropagationModule(s, d, mlp, name="ws")
+        self.a2d = PropagationModule(s, d, mlp, name="a2d")
+        self.state = NextStateModule(s, d, mlp)
+        self.normalizer = Normalizer()
+
+    def reset_parameters(self) -> None:
+        for name in MODULE_NAMES:
+            getattr(self, name).reset_parameters()
+
+    def sample_masks(
+        self,
+        num_copies: int,
+        rate: float | None = None,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, Tensor]:
+        """One fresh mask per module of ``config.dropout_modules``, one row per trajectory copy.
+
+        Call once per prediction step. ``rate`` defaults to ``config.dropout_rate``.
+        """
+        rate = self.config.dropout_rate if rate is None else rate
+        device = self.normalizer.velocity_std.device
+        return {
+            name: dropout_mask(num_copies, self.config.hidden, rate, generator, device)
+            for name in self.config.dropout_modules
+        }
+
+    def forward(self, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:
+        masks = dict(masks or {})
+        unknown = set(masks) - set(self.config.dropout_modules)
+        if unknown:
+            raise ValueError(
+                f"HRN: masks given for {sorted(unknown)}, not in dropout_modules {self.config.dropout_modules}"
+            )
+        x, s, b = inputs.pos, inputs.state, inputs.batch
+        skip = self.config.skip_idle_modules
+        effect = self.history(s, inputs.prev_state, masks.get("history"), b)
+        if not (skip and not bool(inputs.force.ne(0).any())):
+            effect = effect + self.force(s, inputs.force, masks.get("force"), b)
+        if not (skip and inputs.collision.size(1) == 0):
+            effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b)
+        effect = effect + self.l2a(s, effect, x, inputs.leaf_to_ancestor, masks.get("l2a"), b)
+        effect = effect + self.ws(s, effect, x, inputs.within_siblings, masks.get("ws"), b)
+        effect = effect + self.a2d(s, effect, x, inputs.ancestor_to_descendant, masks.get("a2d"), b)
+        return self.state(s, effect, inputs.is_static, masks.get("state"), b)
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (
+            f"{self.__class__.__name__}(hidden={c.hidden}, depth={c.depth}, effect_dim={c.effect_dim}, "
+            f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)})"
+        )

@@ -1,0 +1,133 @@
+"""The one MLP constructor of hrn_pyg, with an optional dropout mask handed in from outside.
+
+Every learned function of the HRN (``phi_F``, ``phi_C``, ``phi_H``, ``eta``, ``psi``) is an
+:class:`MLP` built from one :class:`MLPConfig`. Monte Carlo graph-convolutional dropout (seed
+paper, section 3.2) needs *one* mask per prediction step per trajectory, shared by every node and
+edge of that trajectory; the mask is therefore not drawn inside the layer but passed in as a
+``[B, H]`` table (one row per trajectory copy) and looked up by each row's batch id.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+#: activation name -> constructor; a name keeps the config a plain, saveable dataclass
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "relu": nn.ReLU,
+    "silu": nn.SiLU,
+    "tanh": nn.Tanh,
+    "gelu": nn.GELU,
+}
+
+
+@dataclass(frozen=True)
+class MLPConfig:
+    """Shape of every MLP in the model.
+
+    Attributes:
+        hidden: width of each hidden layer.
+        depth: number of hidden layers (``depth + 1`` linear maps in all).
+        activation: a key of :data:`ACTIVATIONS`.
+    """
+
+    hidden: int = 64
+    depth: int = 2
+    activation: str = "relu"
+
+    def __post_init__(self) -> None:
+        if self.hidden < 1:
+            raise ValueError(f"MLPConfig.hidden must be >= 1, got {self.hidden}")
+        if self.depth < 1:
+            raise ValueError(f"MLPConfig.depth must be >= 1, got {self.depth}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(
+                f"MLPConfig.activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}"
+            )
+
+
+def dropout_mask(
+    num_copies: int,
+    hidden: int,
+    rate: float,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    r"""Draw one inverted-dropout mask per trajectory copy.
+
+    .. math::
+        m_{b,h} = \frac{\mathbb{1}[u_{b,h} \ge p]}{1 - p}, \qquad u_{b,h} \sim U[0, 1)
+
+    Rate 0 gives a mask of exact ones, so the masked model equals the deterministic one bit for bit.
+
+    **Shapes:** output :math:`(B, H)` with ``B = num_copies`` and ``H = hidden``.
+    """
+    if num_copies < 1:
+        raise ValueError(f"num_copies must be >= 1, got {num_copies}")
+    if not 0.0 <= rate < 1.0:
+        raise ValueError(f"dropout rate must be in [0, 1), got {rate}")
+    if rate == 0.0:
+        return torch.ones(num_copies, hidden, device=device)
+    u = torch.rand(num_copies, hidden, generator=generator, device=device)
+    return (u >= rate).to(torch.float32) / (1.0 - rate)
+
+
+class MLP(nn.Module):
+    r"""Fully connected network with an optional per-trajectory mask on its hidden activations.
+
+    .. math::
+        h_0 = x, \quad h_k = m_{b(r)} \odot \sigma(W_k h_{k-1} + b_k)\ (k = 1..D),
+        \quad y = W_{D+1} h_D + b_{D+1}
+
+    where :math:`b(r)` is the batch id (trajectory copy) of row :math:`r` and :math:`m` the mask
+    table; without a mask :math:`m = 1`. The same mask row is applied at every hidden layer.
+
+    **Shapes:**
+        - **input:** ``x`` :math:`(M, F_{in})`, ``mask`` :math:`(B, H)` or None,
+          ``index`` :math:`(M,)` long in ``[0, B)`` (required with a mask)
+        - **output:** :math:`(M, F_{out})`
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, config: MLPConfig = MLPConfig()) -> None:
+        super().__init__()
+        if in_dim < 1 or out_dim < 1:
+            raise ValueError(f"MLP dims must be >= 1, got in_dim={in_dim}, out_dim={out_dim}")
+        self.in_dim = in_dim
+        self.out_dim = out_dim
+        self.config = config
+        dims = [in_dim] + [config.hidden] * config.depth
+        self.hidden_layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.activation = ACTIVATIONS[config.activation]()
+        self.output_layer = nn.Linear(config.hidden, out_dim)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        for layer in self.hidden_layers:
+            layer.reset_parameters()
+        self.output_layer.reset_parameters()
+
+    def forward(self, x: Tensor, mask: Tensor | None = None, index: Tensor | None = None) -> Tensor:
+        row_mask = None
+        if mask is not None:
+            if index is None:
+                raise ValueError("MLP: a dropout mask needs the batch index of every row")
+            if mask.dim() != 2 or mask.size(1) != self.config.hidden:
+                raise ValueError(
+                    f"MLP: mask must be [B, {self.config.hidden}], got {tuple(mask.shape)}"
+                )
+            row_mask = mask.index_select(0, index)
+        h = x
+        for layer in self.hidden_layers:
+            h = self.activation(layer(h))
+            if row_mask is not None:
+                h = h * row_mask
+        return self.output_layer(h)
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (
+            f"{self.__class__.__name__}({self.in_dim}, {self.out_dim}, hidden={c.hidden}, "
+            f"depth={c.depth}, activation={c.activation})"
+        )

@@ -1,0 +1,90 @@
+"""Hierarchical effect propagation of the HRN (Fig. 2): one pairwise graph convolution."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch_geometric.nn import MessagePassing
+
+from hrn_pyg.nn.mlp import MLP, MLPConfig
+
+
+class PropagationModule(MessagePassing):
+    r"""One phase of hierarchical effect propagation, summed into the destination.
+
+    .. math::
+        \Delta e(i) = \sum_{j \in \mathcal{N}(i)}
+            \eta\bigl(s_j,\ s_i,\ e_j,\ x_j - x_i\bigr)
+
+    The HRN uses three of these with separate weights, each adding to the running effect
+    :math:`e \leftarrow e + \Delta e`, in order: leaf-to-ancestor (L2A, edges ``leaf_to_ancestor``),
+    within-siblings (WS, ``within_siblings``), ancestor-to-descendant (A2D,
+    ``ancestor_to_descendant``). :math:`s` is the state vector, :math:`e` the effect so far and
+    :math:`x` the (scaled) position; a node without incoming edges gets an exact zero.
+
+    Args:
+        state_dim: size :math:`S` of a particle's state vector.
+        effect_dim: size :math:`D` of the effect (input and output).
+        mlp: shape of :math:`\eta`.
+        name: the phase, shown in ``repr`` (``"l2a"``, ``"ws"``, ``"a2d"``).
+
+    **Shapes:**
+        - **input:** state :math:`(|\mathcal{V}|, S)`, effect :math:`(|\mathcal{V}|, D)`,
+          pos :math:`(|\mathcal{V}|, 3)`, edge_index :math:`(2, |\mathcal{E}|)`,
+          mask :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)` (needed with a mask)
+        - **output:** effect increment :math:`(|\mathcal{V}|, D)`
+    """
+
+    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig(), name: str = "") -> None:
+        super().__init__(aggr="add")
+        self.state_dim = state_dim
+        self.effect_dim = effect_dim
+        self.name = name
+        self.eta = MLP(2 * state_dim + effect_dim + 3, effect_dim, mlp)
+
+    def reset_parameters(self) -> None:
+        super().reset_parameters()
+        self.eta.reset_parameters()
+
+    def forward(
+        self,
+        state: Tensor,
+        effect: Tensor,
+        pos: Tensor,
+        edge_index: Tensor,
+        mask: Tensor | None = None,
+        batch: Tensor | None = None,
+    ) -> Tensor:
+        n = state.size(0)
+        if state.dim() != 2 or state.size(1) != self.state_dim:
+            raise ValueError(f"PropagationModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+        if effect.shape != (n, self.effect_dim):
+            raise ValueError(f"PropagationModule: effect must be [N, {self.effect_dim}], got {tuple(effect.shape)}")
+        if pos.shape != (n, 3):
+            raise ValueError(f"PropagationModule: pos must be [N, 3], got {tuple(pos.shape)}")
+        if edge_index.dim() != 2 or edge_index.size(0) != 2:
+            raise ValueError(f"PropagationModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
+        if mask is not None and batch is None:
+            raise ValueError("PropagationModule: a dropout mask needs the node batch vector")
+        # an edge takes the trajectory copy of its destination (both ends share one copy)
+        edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
+        return self.propagate(edge_index, s=state, e=effect, x=pos, edge_batch=edge_batch, mask=mask, size=(n, n))
+
+    def message(
+        self,
+        s_i: Tensor,
+        s_j: Tensor,
+        e_j: Tensor,
+        x_i: Tensor,
+        x_j: Tensor,
+        edge_batch: Tensor | None,
+        mask: Tensor | None,
+    ) -> Tensor:
+        return self.eta(torch.cat([s_j, s_i, e_j, x_j - x_i], dim=-1), mask, edge_batch)
+
+    def __repr__(self) -> str:
+        tag = f"{self.name}, " if self.name else ""
+        return (
+            f"{self.__class__.__name__}({tag}state_dim={self.state_dim}, "
+            f"effect_dim={self.effect_dim}, eta={self.eta})"
+        )

@@ -1,0 +1,225 @@
+"""A TorchRL environment whose step is a (learned, stochastic) physics predictor.
+
+Each step samples ``k`` next states (5 in the seed paper) with Monte Carlo dropout and applies
+**reward relaxation** (seed paper, section 3.3): if any sample reaches the goal, the agent is
+rewarded 1 and the episode terminates (the first such sample becomes the next state); otherwise
+one sample, drawn uniformly with the environment's generator, becomes the next state, and the
+reward is the task's ``step_penalty`` (0 by default, so returns are 1 on success and 0 otherwise
+and the discount alone favours short episodes). The episode is truncated after
+``task.max_steps`` steps.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from hrn_pyg.rl.dynamics import StochasticDynamics, dropout_spread
+from hrn_pyg.rl.tasks import GOAL_DIM, TaskConfig, action_to_forces, get_task, goal_reached, sample_goal
+
+
+class HRNEnv(EnvBase):
+    r"""Batched environment over a :class:`~hrn_pyg.rl.dynamics.StochasticDynamics`.
+
+    One step from state :math:`s_t` with action :math:`a_t` (forces, plus Gaussian noise of
+    standard deviation ``action_noise_std * max_force`` for the action-noise baseline, clipped
+    to the bounds):
+
+    .. math::
+        s^{(1..k)}_{t+1} \sim f_\theta(s_t, a_t; p), \qquad
+        r_t = \mathbb 1\big[\exists j: \mathrm{goal}(s^{(j)}_{t+1})\big], \qquad
+        s_{t+1} = \begin{cases} s^{(j^*)}_{t+1}, & j^* = \text{first sample in the goal} \\
+                                s^{(u)}_{t+1},\ u \sim \mathcal U\{1..k\} & \text{otherwise} \end{cases}
+
+    with dropout rate :math:`p` = :attr:`dropout_rate`, an attribute a schedule may change
+    between PPO updates (:meth:`set_dropout_rate` does the same through ``ParallelEnv``).
+
+    Specs (``B`` = ``batch_size``, ``O`` objects, ``S`` = ``dynamics.state_dim``,
+    ``A`` = ``task.action_dim``; ``env.specs`` prints them in full)::
+
+        observation_spec: Composite(shape=(B,))
+            observation: Unbounded((B, O*6 + 2), float32)  # root [x, y, z, vx, vy, vz] per object, goal (x, y)
+            state:       Unbounded((B, S), float32)        # what the dynamics continues from
+            goal:        Unbounded((B, 2), float32)
+            t:           Unbounded((B, 1), int64)          # steps taken in this episode
+        state_spec:      Composite(state, goal, t)          # read back by _step
+        action_spec:     Bounded((B, A), float32, low=-max_force, high=max_force)   # Newton
+        reward_spec:     Unbounded((B, 1), float32)
+        done_spec:       Composite(done, terminated, truncated: Categorical((B, 1), bool))
+
+    Args:
+        task: a :class:`~hrn_pyg.rl.tasks.TaskConfig` or its name.
+        dynamics: the predictor. ``None`` builds
+            :class:`~hrn_pyg.rl.dynamics.PointMassDynamics` for the task (development only).
+        batch_size: ``B``, environments stepped together.
+        num_samples: ``k``; defaults to ``task.num_samples``.
+        dropout_rate: defaults to ``task.dropout_rate``.
+        action_noise_std: Gaussian action noise as a fraction of ``max_force`` (0: none).
+        seed: seeds the environment's own generator.
+    """
+
+    batch_locked = True
+
+    def __init__(self, task: str | TaskConfig, dynamics: StochasticDynamics | None = None, *,
+                 batch_size: int = 1, num_samples: int | None = None,
+                 dropout_rate: float | None = None, action_noise_std: float = 0.0,
+                 seed: int | None = None, device: str | torch.device = "cpu"):
+        task = get_task(task)
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if dynamics is None:
+            from hrn_pyg.rl.dynamics import PointMassDynamics
+
+            dynamics = PointMassDynamics.for_task(task.name, task.dropout_modules)
+        if dynamics.num_objects != task.num_objects:
+            raise ValueError(f"dynamics has {dynamics.num_objects} objects, task {task.name!r} "
+                             f"expects {task.num_objects}")
+        k = task.num_samples if num_samples is None else num_samples
+        if k < 1:
+            raise ValueError(f"num_samples must be >= 1, got {k}")
+        super().__init__(device=device, batch_size=torch.Size([batch_size]))
+        self.task = task
+        self.dynamics = dynamics
+        self.num_samples = k
+        self.dropout_rate = task.dropout_rate if dropout_rate is None else dropout_rate
+        self.action_noise_std = action_noise_std
+        self._make_spec()
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.set_seed(seed)
+
+    # ------------------------------------------------------------------ knobs
+    @property
+    def dropout_rate(self) -> float:
+        return self._dropout_rate
+
+    @dropout_rate.setter
+    def dropout_rate(self, rate: float) -> None:
+        dropout_spread(rate)  # raises ValueError outside [0, 1)
+        self._dropout_rate = float(rate)
+
+    @property
+    def action_noise_std(self) -> float:
+        return self._action_noise_std
+
+    @action_noise_std.setter
+    def action_noise_std(self, std: float) -> None:
+        if std < 0:
+            raise ValueError(f"action_noise_std must be >= 0, got {std}")
+        self._action_noise_std = float(std)
+
+    def set_dropout_rate(self, rate: float) -> None:
+        """Method form of the setter, callable on every worker of a ``ParallelEnv``."""
+        self.dropout_rate = rate
+
+    # ------------------------------------------------------------------ specs
+    def _make_spec(self) -> None:
+        B, task, dyn = self.batch_size, self.task, self.dynamics
+        obs_dim = task.num_objects * dyn.object_dim + GOAL_DIM
+        state = Composite(
+            state=Unbounded(shape=(*B, dyn.state_dim), dtype=torch.float32),
+            goal=Unbounded(shape=(*B, GOAL_DIM), dtype=torch.float32),
+            t=Unbounded(shape=(*B, 1), dtype=torch.int64),
+            shape=B,
+        )
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(*B, obs_dim), dtype=torch.float32),
+            **{key: spec.clone() for key, spec in state.items()},
+            shape=B,
+        )
+        self.state_spec = state
+        self.action_spec = Bounded(low=-task.max_force, high=task.max_force,
+                                   shape=(*B, task.action_dim), dtype=torch.float32)
+        self.reward_spec = Unbounded(shape=(*B, 1), dtype=torch.float32)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(*B, 1), dtype=torch.bool),
+            terminated=Categorical(2, shape=(*B, 1), dtype=torch.bool),
+            truncated=Categorical(2, shape=(*B, 1), dtype=torch.bool),
+            shape=B,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.rng = torch.Generator().manual_seed(int(seed))
+
+    # ------------------------------------------------------------------ dynamics
+    def _observation(self, state: Tensor, goal: Tensor) -> Tensor:
+        roots = self.dynamics.roots(state)
+        return torch.cat([roots.flatten(-2), goal], -1)
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        # Fresh scenes for the whole batch; TorchRL keeps the entries whose "_reset" is False.
+        B = self.batch_size[0]
+        state = self.dynamics.reset_states(B, self.rng).to(torch.float32)
+        goal = sample_goal(self.task, self.dynamics.roots(state), self.rng).to(torch.float32)
+        false = torch.zeros(B, 1, dtype=torch.bool)
+        return TensorDict(
+            {
+                "observation": self._observation(state, goal),
+                "state": state,
+                "goal": goal,
+                "t": torch.zeros(B, 1, dtype=torch.int64),
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state, goal, t = tensordict["state"], tensordict["goal"], tensordict["t"]
+        action = tensordict["action"]
+        bound = self.task.max_force
+        if self.action_noise_std > 0:
+            noise = torch.randn(action.shape, generator=self.rng) * (self.action_noise_std * bound)
+            action = action + noise
+        action = action.clamp(-bound, bound)
+        forces = action_to_forces(self.task, action)
+        samples = self.dynamics.sample_next(state, forces, self.num_samples, self.dropout_rate,
+                                            self.rng)                          # (B, k, S)
+        next_state, hit = relax_reward(self.task, self.dynamics.roots(samples), samples, goal,
+                                       self.rng)
+        t_next = t + 1
+        terminated = hit.unsqueeze(-1)
+        truncated = (t_next >= self.task.max_steps) & ~terminated
+        reward = torch.where(terminated, 1.0, self.task.step_penalty).to(torch.float32)
+        return TensorDict(
+            {
+                "observation": self._observation(next_state, goal),
+                "state": next_state,
+                "goal": goal,
+                "t": t_next,
+                "reward": reward,
+                "done": terminated | truncated,
+                "terminated": terminated,
+                "truncated": truncated,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+
+def relax_reward(task: TaskConfig, sample_roots: Tensor, samples: Tensor, goal: Tensor,
+                 generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Reward relaxation over ``k`` sampled futures.
+
+    Returns the next state of each environment and whether any sample met the goal: the first
+    sample in the goal if one is, otherwise a sample drawn uniformly from ``generator`` (one draw
+    per environment, made every step so the random stream does not depend on the outcome).
+
+    **Shapes**: sample_roots ``(B, k, O, 6)``, samples ``(B, k, S)``, goal ``(B, 2)`` ->
+    next state ``(B, S)``, hit ``(B,)`` bool.
+    """
+    B, k = samples.shape[:2]
+    in_goal = goal_reached(task, sample_roots, goal.unsqueeze(1))               # (B, k)
+    hit = in_goal.any(-1)
+    drawn = torch.randint(k, (B,), generator=generator)
+    first_hit = in_goal.to(torch.int8).argmax(-1)
+    choice = torch.where(hit, first_hit, drawn)
+    next_state = samples[torch.arange(B), choice]
+    return next_state, hit

@@ -1,0 +1,448 @@
+"""``hrn-pyg rl``: PPO in the (stochastic) learned environment, the seed paper's Figs. 7 and 8.
+
+Built from TorchRL pieces: a :class:`~torchrl.modules.ProbabilisticActor` with a
+:class:`~torchrl.modules.TanhNormal` head and a :class:`~torchrl.modules.ValueOperator`, a
+single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
+``SyncDataCollector``), :class:`~torchrl.objectives.value.GAE` and
+:class:`~torchrl.objectives.ClipPPOLoss`. Four modes:
+
+- ``deterministic``: dropout rate 0.
+- ``action_noise``: rate 0, Gaussian noise on the actions (``PPOConfig.action_noise_std`` of
+  the force bound), the Plappert et al. baseline.
+- ``stochastic``: the task's dropout rate held constant (cube_push: 0.1 on the force module).
+- ``stochastic_annealed``: the task's rate brought linearly to 0 over ``anneal_updates`` PPO
+  updates (tower: 0.1 -> 0 over 1200).
+
+Without ``--model`` the environment steps :class:`~hrn_pyg.rl.dynamics.PointMassDynamics`, an
+analytic **development / smoke-test** dynamics; its curves are not the paper's result.
+
+Output (``--out``, default ``runs/rl/<task>``)::
+
+    <mode>/seed<k>/log.csv        one row per PPO update (CSVLog)
+    <mode>/seed<k>/policy.pt      actor + critic + optimiser (atomic, weights-only)
+    <mode>/seed<k>/curve.png      this run's average episode length
+    episode_length.png            every mode found under --out: median over seeds, range shaded
+    summary.json                  final success rate and episode length per run (learned model)
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import Tensor, nn
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
+from hrn_pyg.rl.env import HRNEnv
+from hrn_pyg.rl.tasks import TASKS, TaskConfig, action_to_forces, get_task
+from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
+from hrn_pyg.utils.files import atomic_path, atomic_write_json
+from hrn_pyg.utils.metrics import CSVLog, plot_curves
+from hrn_pyg.utils.schedules import LinearSchedule
+
+MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed")
+LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
+              "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
+              "loss_critic", "loss_entropy", "seconds"]
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyper-parameters (standard clipped PPO; the seed paper does not give its own).
+
+    ``frames_per_batch`` frames are collected per update from ``num_envs`` environments stepped
+    together (so ``frames_per_batch / num_envs`` steps each); the batch is then used for
+    ``epochs`` passes of ``frames_per_batch / minibatch`` gradient steps. ``threads`` caps
+    torch's intra-op threads during training: the networks are tiny, and more threads than free
+    cores made one update ten times slower on the 2-core development machine.
+    """
+
+    updates: int = 300
+    num_envs: int = 32
+    frames_per_batch: int = 320
+    epochs: int = 4
+    minibatch: int = 64
+    lr: float = 3e-4
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coef: float = 1e-3
+    critic_coef: float = 1.0
+    max_grad_norm: float = 1.0
+    hidden: int = 64
+    action_noise_std: float = 0.1
+    eval_episodes: int = 64
+    checkpoint_every: int = 50
+    threads: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("updates", "num_envs", "frames_per_batch", "epochs", "minibatch", "hidden",
+                     "eval_episodes", "checkpoint_every", "threads"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.frames_per_batch % self.num_envs:
+            raise ValueError(f"frames_per_batch ({self.frames_per_batch}) must be a multiple of "
+                             f"num_envs ({self.num_envs})")
+        if self.minibatch > self.frames_per_batch:
+            raise ValueError(f"minibatch ({self.minibatch}) exceeds frames_per_batch "
+                             f"({self.frames_per_batch})")
+        if not (0 < self.gamma <= 1 and 0 <= self.lmbda <= 1 and self.lr > 0):
+            raise ValueError("need 0 < gamma <= 1, 0 <= lmbda <= 1 and lr > 0")
+        if self.action_noise_std < 0:
+            raise ValueError(f"action_noise_std must be >= 0, got {self.action_noise_std}")
+
+
+def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
+                  anneal_updates: int | None = None) -> tuple[LinearSchedule, float]:
+    """The dropout schedule over PPO updates and the action-noise level of a mode."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
+    rate = task.dropout_rate
+    steps = task.anneal_updates if anneal_updates is None else anneal_updates
+    if steps < 0:
+        raise ValueError(f"anneal_updates must be >= 0, got {steps}")
+    if mode == "deterministic":
+        return LinearSchedule(0.0, 0.0, 0), 0.0
+    if mode == "action_noise":
+        return LinearSchedule(0.0, 0.0, 0), config.action_noise_std
+    if mode == "stochastic":
+        return LinearSchedule(rate, rate, 0), 0.0
+    return LinearSchedule(rate, 0.0, steps), 0.0
+
+
+# ---------------------------------------------------------------------------- networks
+def build_actor_critic(env: EnvBase, hidden: int) -> tuple[ProbabilisticActor, ValueOperator]:
+    """Tanh-Gaussian policy and value MLPs (two hidden tanh layers) on ``"observation"``."""
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = env.action_spec.shape[-1]
+    actor_net = nn.Sequential(
+        nn.Linear(obs_dim, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
+        nn.Linear(hidden, 2 * act_dim), NormalParamExtractor(),
+    )
+    actor = ProbabilisticActor(
+        TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
+        spec=env.action_spec, in_keys=["loc", "scale"], distribution_class=TanhNormal,
+        distribution_kwargs={"low": env.action_spec.space.low[..., 0, :],
+                             "high": env.action_spec.space.high[..., 0, :]},
+        return_log_prob=True,
+    )
+    value_net = nn.Sequential(
+        nn.Linear(obs_dim, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
+        nn.Linear(hidden, 1),
+    )
+    critic = ValueOperator(value_net, in_keys=["observation"])
+    return actor, critic
+
+
+def load_dynamics(task: TaskConfig, model: str | None) -> StochasticDynamics:
+    """``None``: the point-mass development dynamics; a path: the learned HRN (when built)."""
+    if model is None:
+        return PointMassDynamics.for_task(task.name, task.dropout_modules)
+    path = Path(model)
+    if not path.is_file():
+        raise FileNotFoundError(f"--model checkpoint not found: {path}")
+    try:
+        from hrn_pyg.rl.hrn_dynamics import HRNDynamics  # added with the learned model
+    except ModuleNotFoundError as exc:
+        raise ValueError("--model needs hrn_pyg.rl.hrn_dynamics (the learned HRN dynamics), "
+                         "which is not available in this version") from exc
+    return HRNDynamics.from_checkpoint(path, task)
+
+
+# ---------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def evaluate_policy(policy: TensorDictModule, env: HRNEnv, episodes: int) -> tuple[float, float]:
+    """Success rate and mean episode length of the policy's deterministic actions.
+
+    Runs ``ceil(episodes / B)`` rounds of ``B`` parallel episodes, each for up to
+    ``task.max_steps`` steps, and scores the first ``episodes`` episodes. The environment is used
+    as configured (set ``dropout_rate = 0`` first to judge the deterministic model).
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    B = env.batch_size[0]
+    successes, lengths = [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(math.ceil(episodes / B)):
+            td = env.reset()
+            finished = torch.zeros(B, dtype=torch.bool)
+            success = torch.zeros(B, dtype=torch.bool)
+            length = torch.full((B,), env.task.max_steps, dtype=torch.int64)
+            for _ in range(env.task.max_steps):
+                td = env.step(policy(td))
+                done = td["next", "done"].squeeze(-1) & ~finished
+                success |= done & td["next", "terminated"].squeeze(-1)
+                length = torch.where(done, td["next", "t"].squeeze(-1), length)
+                finished |= done
+                if finished.all():
+                    break
+                td = step_mdp(td)
+            successes.append(success)
+            lengths.append(length)
+    success = torch.cat(successes)[:episodes].float()
+    length = torch.cat(lengths)[:episodes].float()
+    return float(success.mean()), float(length.mean())
+
+
+def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int) -> list:
+    """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
+
+    Hook for the ground-truth check of issue 6: builds ``hrn_pyg.data.scenes.make_scene(name,
+    seed, None)``, resets it and applies one per-object force ``(O, 3)`` per step (the same
+    mapping the environment uses), returning what each ``scene.step`` returned. Judging the
+    goal on those states, and matching the scene's seed to the environment's initial state, is
+    left to the caller until the scene and learned-model interfaces settle.
+    """
+    task = get_task(task)
+    try:
+        from hrn_pyg.data.scenes import make_scene
+    except ModuleNotFoundError as exc:
+        raise NotImplementedError("hrn_pyg.data.scenes is not available yet") from exc
+    forces = action_to_forces(task, torch.as_tensor(actions, dtype=torch.float32))
+    scene = make_scene(task.name, seed, None)
+    try:
+        scene.reset()
+        return [scene.step(f.numpy()) for f in forces]
+    finally:
+        scene.close()
+
+
+# ---------------------------------------------------------------------------- training
+def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
+          dynamics: StochasticDynamics | None = None, anneal_updates: int | None = None,
+          progress: bool = True) -> dict:
+    """One PPO run; writes ``log.csv``, ``policy.pt`` and ``curve.png`` under ``out_dir``.
+
+    Returns the final evaluation in the learned model with dropout off and no action noise.
+    """
+    schedule, noise = mode_settings(mode, task, config, anneal_updates)
+    dynamics = dynamics if dynamics is not None else load_dynamics(task, None)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.threads)
+    try:
+        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
+           dynamics: StochasticDynamics, schedule: LinearSchedule, noise: float,
+           progress: bool) -> dict:
+    torch.manual_seed(seed)
+    env = HRNEnv(task, dynamics, batch_size=config.num_envs, dropout_rate=schedule(0),
+                 action_noise_std=noise, seed=seed)
+    actor, critic = build_actor_critic(env, config.hidden)
+    collector = Collector(env, actor, frames_per_batch=config.frames_per_batch,
+                          total_frames=config.frames_per_batch * config.updates,
+                          auto_register_policy_transforms=False)
+    gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=True)
+    loss_module = ClipPPOLoss(actor, critic, clip_epsilon=config.clip_epsilon,
+                              entropy_bonus=config.entropy_coef > 0,
+                              entropy_coeff=config.entropy_coef, critic_coeff=config.critic_coef,
+                              loss_critic_type="smooth_l1")
+    optim = torch.optim.Adam(loss_module.parameters(), lr=config.lr)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "log.csv").unlink(missing_ok=True)
+    log = CSVLog(out_dir / "log.csv", LOG_FIELDS)
+    meta = json.dumps({"task": task.to_dict(), "mode": mode, "seed": seed, "ppo": asdict(config),
+                       "schedule": asdict(schedule), "action_noise_std": noise,
+                       "dynamics": repr(dynamics)}, sort_keys=True)
+
+    def checkpoint(update: int) -> None:
+        save_checkpoint(out_dir / "policy.pt", {
+            "model": {"actor": actor.state_dict(), "critic": critic.state_dict()},
+            "optimizer": optim.state_dict(), "config": meta, "update": update})
+
+    bar = _progress(config.updates, f"{task.name}/{mode}/seed{seed}", progress)
+    start = time.perf_counter()
+    try:
+        for update, batch in enumerate(collector):
+            rate = schedule(update)
+            stats = _ppo_update(batch, gae, loss_module, optim, config)
+            row = {"step": update, "update": update, "frames": (update + 1) * config.frames_per_batch,
+                   "dropout_rate": rate, "action_noise_std": noise,
+                   **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
+            log.append(row)
+            env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
+            if (update + 1) % config.checkpoint_every == 0:
+                checkpoint(update + 1)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(len=row.get("mean_episode_length", ""), p=f"{rate:.3f}")
+    finally:
+        collector.shutdown()
+        if bar is not None:
+            bar.close()
+    checkpoint(config.updates)
+    plot_curves(out_dir / "log.csv", out_dir / "curve.png", x="update", ys=["mean_episode_length"],
+                title=f"{task.name} / {mode} / seed {seed}", logy=False)
+    env.dropout_rate, env.action_noise_std = 0.0, 0.0
+    success, length = evaluate_policy(actor, env, config.eval_episodes)
+    return {"task": task.name, "mode": mode, "seed": seed, "success_rate": success,
+            "mean_episode_length": length, "seconds": time.perf_counter() - start}
+
+
+def _ppo_update(batch: TensorDictBase, gae: GAE, loss_module: ClipPPOLoss,
+                optim: torch.optim.Optimizer, config: PPOConfig) -> dict[str, float]:
+    """``epochs`` passes of clipped-PPO minibatch steps over one collected batch ``(B, T)``."""
+    sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0}
+    steps = 0
+    for _ in range(config.epochs):
+        with torch.no_grad():
+            gae(batch)  # advantages from the current critic, along the time dimension
+        flat = batch.reshape(-1)
+        order = torch.randperm(flat.shape[0])
+        for idx in order.split(config.minibatch):
+            losses = loss_module(flat[idx])
+            total = losses["loss_objective"] + losses["loss_critic"] + losses.get(
+                "loss_entropy", torch.zeros(()))
+            optim.zero_grad()
+            total.backward()
+            nn.utils.clip_grad_norm_(loss_module.parameters(), config.max_grad_norm)
+            optim.step()
+            for key in sums:
+                if key in losses.keys():
+                    sums[key] += float(losses[key].detach())
+            steps += 1
+    return {k: v / steps for k, v in sums.items()}
+
+
+def _episode_stats(batch: TensorDictBase) -> dict[str, float | int | str]:
+    """Episodes that ended in this batch: count, mean length and success rate."""
+    done = batch["next", "done"].squeeze(-1)
+    n = int(done.sum())
+    out: dict[str, float | int | str] = {"episodes": n,
+                                         "reward_mean": float(batch["next", "reward"].mean())}
+    if n:
+        out["mean_episode_length"] = float(batch["next", "t"].squeeze(-1)[done].float().mean())
+        out["success_rate"] = float(batch["next", "terminated"].squeeze(-1)[done].float().mean())
+    return out
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="upd", leave=False)
+
+
+# ---------------------------------------------------------------------------- figure
+def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str = "") -> list[str]:
+    """Average episode length against PPO updates, one line per mode found under ``out_root``.
+
+    Reads ``<mode>/seed*/log.csv``; the line is the median over seeds, the shaded band their
+    range (min to max). Returns the modes drawn.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_root = Path(out_root)
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=110)
+    drawn = []
+    for mode in MODES:
+        curves = [_read_curve(p) for p in sorted((out_root / mode).glob("seed*/log.csv"))]
+        curves = [c for c in curves if c]
+        if not curves:
+            continue
+        n = min(len(c) for c in curves)
+        values = torch.tensor([c[:n] for c in curves], dtype=torch.float64)  # (seeds, updates)
+        x = torch.arange(n)
+        med = values.nanmedian(0).values
+        lo = torch.where(values.isnan(), math.inf, values).min(0).values
+        hi = torch.where(values.isnan(), -math.inf, values).max(0).values
+        line, = ax.plot(x, med, lw=1.3, label=f"{mode} (n={len(curves)})")
+        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+        drawn.append(mode)
+    ax.set_xlabel("PPO update")
+    ax.set_ylabel("average episode length")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    if drawn:
+        ax.legend(frameon=False, fontsize=8)
+    fig.tight_layout()
+    with atomic_path(png_path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return drawn
+
+
+def _read_curve(path: Path) -> list[float]:
+    with open(path, newline="") as fh:
+        return [float(r["mean_episode_length"]) if r.get("mean_episode_length") else math.nan
+                for r in csv.DictReader(fh)]
+
+
+# ---------------------------------------------------------------------------- CLI
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    d = PPOConfig()
+    parser.add_argument("--task", choices=sorted(TASKS), default="cube_push")
+    parser.add_argument("--mode", nargs="+", choices=MODES, default=list(MODES),
+                        help="one or more modes (default: all four)")
+    parser.add_argument("--seeds", type=int, default=3, help="number of seeds per mode")
+    parser.add_argument("--seed-start", type=int, default=0)
+    parser.add_argument("--updates", type=int, default=d.updates, help="PPO updates per run")
+    parser.add_argument("--frames-per-batch", type=int, default=d.frames_per_batch)
+    parser.add_argument("--num-envs", type=int, default=d.num_envs)
+    parser.add_argument("--epochs", type=int, default=d.epochs)
+    parser.add_argument("--minibatch", type=int, default=d.minibatch)
+    parser.add_argument("--lr", type=float, default=d.lr)
+    parser.add_argument("--threads", type=int, default=d.threads, help="torch threads per run")
+    parser.add_argument("--action-noise-std", type=float, default=d.action_noise_std,
+                        help="action_noise mode: noise std as a fraction of the force bound")
+    parser.add_argument("--anneal-updates", type=int, default=None,
+                        help="stochastic_annealed: updates to reach rate 0 (default: the task's)")
+    parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    parser.add_argument("--model", default=None,
+                        help="learned HRN checkpoint; absent: point-mass development dynamics")
+    parser.add_argument("--out", default=None, help="output folder (default runs/rl/<task>)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    task = get_task(args.task)
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.anneal_updates is not None and args.anneal_updates < 0:
+        raise ValueError(f"--anneal-updates must be >= 0, got {args.anneal_updates}")
+    config = replace(PPOConfig(), updates=args.updates, frames_per_batch=args.frames_per_batch,
+                     num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
+                     lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
+                     eval_episodes=args.eval_episodes)
+    modes = list(dict.fromkeys(args.mode))
+    dynamics = load_dynamics(task, args.model)
+    out = Path(args.out) if args.out else Path("runs/rl") / task.name
+    results = []
+    for mode in modes:
+        for seed in range(args.seed_start, args.seed_start + args.seeds):
+            res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
+                        args.anneal_updates, progress=not args.no_progress)
+            results.append(res)
+            print(f"{task.name} {mode} seed {seed}: success {res['success_rate']:.2f}, "
+                  f"mean length {res['mean_episode_length']:.2f} ({res['seconds']:.0f} s)")
+    summary_path = out / "summary.json"
+    previous = json.loads(summary_path.read_text()) if summary_path.is_file() else []
+    keep = [r for r in previous if (r.get("mode"), r.get("seed")) not in
+            {(r2["mode"], r2["seed"]) for r2 in results}]
+    atomic_write_json(summary_path, keep + results)
+    drawn = plot_episode_length(out, out / "episode_length.png",
+                                title=f"{task.name}: average episode length"
+                                + ("" if args.model else " (point-mass dynamics)"))
+    print(f"wrote {out / 'episode_length.png'} ({', '.join(drawn)})")
+    return 0

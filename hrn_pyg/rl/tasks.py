@@ -1,0 +1,165 @@
+"""The two manipulation tasks of the seed paper (section 4.3): configs and goal tests.
+
+``cube_push``: two rigid cubes that pass through each other; the agent pushes the cubes (one
+horizontal force per cube) and succeeds when at least one cube's centre lies inside a goal
+disc on the ground. At most 10 steps. Dropout 0.1 on the force module, held constant.
+
+``tower``: three stacked cubes and a ball; the agent pushes only the ball (a 3-vector force, so
+it can loft the ball) and succeeds when the middle cube's centre has left the tower axis by
+more than ``goal_radius`` (one cube edge). At most 15 steps. Dropout on the force and
+collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
+
+A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``) or the
+tower axis (``displaced``). Goal tests take root states with any leading dimensions, so one call
+judges all ``k`` samples of all ``B`` environments.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor
+
+#: Size of the goal entry in observations: a point on the ground plane (x, y).
+GOAL_DIM = 2
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """One RL task.
+
+    Attributes:
+        name: task and scene name.
+        max_steps: episode length limit; the episode is truncated when reached.
+        num_objects: ``O``, movable objects in the scene (root states in the observation).
+        controlled_objects: objects the action pushes, in action order.
+        force_axes: force components the action sets for each controlled object (0=x, 1=y, 2=z);
+            the action has ``len(controlled_objects) * len(force_axes)`` entries.
+        max_force: bound on every action entry, Newton.
+        goal_kind: ``"region"`` (an object inside the goal disc) or ``"displaced"`` (an object
+            farther than ``goal_radius`` from the goal point).
+        goal_objects: objects the goal test looks at; any one of them suffices.
+        goal_radius: disc radius or displacement threshold, metres.
+        goal_distance: for ``region``, the disc centre is drawn at this range of distances from
+            the origin, in a uniformly random direction.
+        dropout_modules: HRN modules that get Monte Carlo dropout.
+        dropout_rate: rate at the start of training (the ``stochastic`` modes).
+        anneal_updates: PPO updates over which ``stochastic_annealed`` brings the rate to 0.
+        num_samples: ``k``, futures sampled per step for reward relaxation.
+        step_penalty: reward added on every step that does not reach the goal (<= 0).
+    """
+
+    name: str
+    max_steps: int
+    num_objects: int
+    controlled_objects: tuple[int, ...]
+    force_axes: tuple[int, ...]
+    max_force: float
+    goal_kind: str
+    goal_objects: tuple[int, ...]
+    goal_radius: float
+    goal_distance: tuple[float, float] = (0.0, 0.0)
+    dropout_modules: tuple[str, ...] = ("force",)
+    dropout_rate: float = 0.1
+    anneal_updates: int = 0
+    num_samples: int = 5
+    step_penalty: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        objs = set(self.controlled_objects) | set(self.goal_objects)
+        if not self.controlled_objects or not self.goal_objects:
+            raise ValueError("controlled_objects and goal_objects must not be empty")
+        if min(objs) < 0 or max(objs) >= self.num_objects:
+            raise ValueError(f"object indices must lie in [0, {self.num_objects})")
+        if not self.force_axes or not set(self.force_axes) <= {0, 1, 2} or \
+                len(set(self.force_axes)) != len(self.force_axes):
+            raise ValueError(f"force_axes must be distinct entries of (0, 1, 2), got {self.force_axes}")
+        if self.max_force <= 0 or self.goal_radius <= 0:
+            raise ValueError("max_force and goal_radius must be positive")
+        if self.goal_kind not in ("region", "displaced"):
+            raise ValueError(f"goal_kind must be 'region' or 'displaced', got {self.goal_kind!r}")
+        if not 0.0 <= self.dropout_rate < 1.0:
+            raise ValueError(f"dropout_rate must be in [0, 1), got {self.dropout_rate}")
+        if self.anneal_updates < 0 or self.num_samples < 1:
+            raise ValueError("anneal_updates must be >= 0 and num_samples >= 1")
+        if self.step_penalty > 0:
+            raise ValueError(f"step_penalty must be <= 0, got {self.step_penalty}")
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.controlled_objects) * len(self.force_axes)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+CUBE_PUSH = TaskConfig(
+    name="cube_push", max_steps=10, num_objects=2, controlled_objects=(0, 1), force_axes=(0, 1),
+    max_force=50.0, goal_kind="region", goal_objects=(0, 1), goal_radius=0.1,
+    goal_distance=(0.25, 0.45), dropout_modules=("force",), dropout_rate=0.1, anneal_updates=1200,
+)
+TOWER = TaskConfig(
+    name="tower", max_steps=15, num_objects=4, controlled_objects=(3,), force_axes=(0, 1, 2),
+    max_force=15.0, goal_kind="displaced", goal_objects=(1,), goal_radius=0.1,
+    dropout_modules=("force", "collision"), dropout_rate=0.1, anneal_updates=1200,
+)
+TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER)}
+
+
+def get_task(task: str | TaskConfig) -> TaskConfig:
+    if isinstance(task, TaskConfig):
+        return task
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
+    return TASKS[task]
+
+
+def action_to_forces(task: TaskConfig, action: Tensor) -> Tensor:
+    """Scatter an action into one force per object; uncontrolled objects get zero.
+
+    **Shapes**: action ``(..., len(controlled) * len(axes))`` -> forces ``(..., O, 3)``.
+    """
+    if action.shape[-1] != task.action_dim:
+        raise ValueError(f"action must end in {task.action_dim}, got shape {tuple(action.shape)}")
+    lead = action.shape[:-1]
+    parts = action.reshape(*lead, len(task.controlled_objects), len(task.force_axes))
+    forces = action.new_zeros(*lead, task.num_objects, 3)
+    obj = torch.tensor(task.controlled_objects)
+    axes = torch.tensor(task.force_axes)
+    forces[..., obj[:, None], axes[None, :]] = parts
+    return forces
+
+
+def sample_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> Tensor:
+    """A goal for each environment from its initial root states ``(B, O, 6)`` -> ``(B, 2)``.
+
+    ``region``: a disc centre at a distance drawn uniformly from ``goal_distance`` in a uniform
+    direction. ``displaced``: the current ground-plane position of the (first) goal object.
+    """
+    B = roots.shape[0]
+    if task.goal_kind == "displaced":
+        return roots[:, task.goal_objects[0], :2].clone()
+    lo, hi = task.goal_distance
+    angle = torch.rand(B, generator=generator) * 2 * math.pi
+    dist = lo + (hi - lo) * torch.rand(B, generator=generator)
+    return torch.stack([dist * torch.cos(angle), dist * torch.sin(angle)], -1)
+
+
+def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
+    r"""Whether each state meets the task's goal.
+
+    ``region``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert \le r`;
+    ``displaced``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert > r`.
+
+    **Shapes**: roots ``(*lead, O, 6)``, goal broadcastable to ``(*lead, 2)`` (e.g. ``(B, 1, 2)``
+    against ``(B, k, O, 6)``) -> ``(*lead,)`` bool.
+    """
+    xy = roots[..., list(task.goal_objects), :2]                # (*lead, G, 2)
+    dist = (xy - goal.unsqueeze(-2)).norm(dim=-1)               # (*lead, G)
+    if task.goal_kind == "region":
+        return (dist <= task.goal_radius).any(-1)
+    return (dist > task.goal_radius).any(-1)

@@ -1,0 +1,215 @@
+"""The one rollout loop of hrn_pyg, used by training, evaluation, sampling and the environment.
+
+A model step has three named stages, each a function testable on its own (after GNS's
+``learned_simulator.py``):
+
+1. :func:`build_inputs`: per-particle state features and edge offsets, normalised with the
+   model's :class:`~hrn_pyg.nn.normalizer.Normalizer` (no absolute horizontal position enters);
+2. :func:`run_network`: the :class:`~hrn_pyg.nn.hrn.HRN` pass, optionally with dropout masks;
+3. :func:`decode`: inverse normalisation to local velocities (parent frame, roots global), one
+   scatter down the tree to global velocities, integration ``x_{t+1} = x_t + v_{t+1}`` of the
+   leaves, ancestor positions re-derived from the leaves; static particles never move.
+
+:func:`step` chains them and also returns the next graph (positions shifted, collision edges
+recomputed at the new positions); :func:`unroll` and :func:`rollout` feed predictions back.
+Everything is differentiable in the positions (the edge sets are not), and vectorised over
+particles.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import (
+    ANCESTOR_TO_DESCENDANT,
+    CHILD_TO_PARENT,
+    COLLISION,
+    LEAF_TO_ANCESTOR,
+    NODE,
+    WITHIN_SIBLINGS,
+    leaf_to_ancestor_mean,
+    set_state,
+)
+from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
+from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
+
+#: ``masks_fn(step_index, graph) -> {module: [B, H] mask} | None``, called once per step
+MasksFn = Callable[[int, HeteroData], Mapping[str, Tensor] | None]
+
+
+class Step(NamedTuple):
+    """Result of one model step.
+
+    Attributes:
+        pos: ``[N, 3]`` positions at ``t+1`` (leaves integrated, ancestors derived).
+        local_velocity: ``[N, 3]`` predicted velocity in the parent's frame (roots global).
+        velocity: ``[N, 3]`` predicted global velocity (local summed down the tree).
+        graph: the graph at ``t+1``: ``prev_prev_pos, prev_pos, pos = x_{t-1}, x_t, x_{t+1}``,
+            force zero, collision edges of ``x_{t+1}``.
+    """
+
+    pos: Tensor
+    local_velocity: Tensor
+    velocity: Tensor
+    graph: HeteroData
+
+
+def _node_force(graph: HeteroData, force: Tensor | None) -> Tensor:
+    store = graph[NODE]
+    if force is None:
+        return store.force if "force" in store else torch.zeros_like(store.pos)
+    if force.shape != store.pos.shape:
+        raise ValueError(f"force must be [N, 3] = {tuple(store.pos.shape)}, got {tuple(force.shape)}")
+    return torch.where(store.is_leaf.unsqueeze(-1), force, torch.zeros_like(force))
+
+
+def build_inputs(model: HRN, graph: HeteroData, force: Tensor | None = None) -> HRNInputs:
+    r"""Stage 1: normalised network inputs of the graph's current state.
+
+    States :math:`s(t)` from :math:`v_t = x_t - x_{t-1}` and :math:`z_t`, :math:`s(t-1)` from
+    :math:`v_{t-1} = x_{t-1} - x_{t-2}` and :math:`z_{t-1}`, plus the static attributes;
+    positions divided by the length scale (edges only see differences); force divided by its
+    scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
+    collision edges are read from the graph as they are.
+    """
+    store = graph[NODE]
+    for name in ("pos", "prev_pos", "prev_prev_pos"):
+        if name not in store:
+            raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
+    norm = model.normalizer
+    pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
+    static = (store.mass, store.material, store.stiffness, store.depth, store.is_leaf, store.is_root)
+    state = state_features(norm, pos - prev, pos[:, 2:], *static)
+    prev_state = state_features(norm, prev - prev2, prev[:, 2:], *static)
+    batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)
+    empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
+    collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
+    return HRNInputs(
+        state=state,
+        prev_state=prev_state,
+        pos=norm.length(pos),
+        force=norm.force(_node_force(graph, force)),
+        is_static=store.is_static,
+        is_root=store.is_root,
+        batch=batch,
+        collision=collision,
+        leaf_to_ancestor=graph[LEAF_TO_ANCESTOR].edge_index,
+        within_siblings=graph[WITHIN_SIBLINGS].edge_index,
+        ancestor_to_descendant=graph[ANCESTOR_TO_DESCENDANT].edge_index,
+    )
+
+
+def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:
+    """Stage 2: the HRN's normalised output ``[N, 3]`` (change of local velocity)."""
+    return model(inputs, masks)
+
+
+def decode(model: HRN, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    r"""Stage 3: normalised output -> ``(pos_{t+1}, local_velocity, velocity)``, each ``[N, 3]``.
+
+    .. math::
+        v^{loc}_i(t+1) &= v^{loc}_i(t) + \mu_{r(i)} + \sigma_{r(i)} \odot \hat u_i \\
+        v_i(t+1) &= v^{loc}_i(t+1) + \sum_{a \in \mathrm{anc}(i)} v^{loc}_a(t+1) \\
+        x_l(t+1) &= x_l(t) + v_l(t+1) \ \text{(leaves)}, \qquad
+        x_a(t+1) = \textstyle\sum_{l} m_l x_l(t+1) / m_a \ \text{(ancestors)}
+
+    Static particles get zero velocity, so their positions are returned unchanged.
+    """
+    store = graph[NODE]
+    c2p = graph[CHILD_TO_PARENT].edge_index
+    local_now = to_local_velocity(store.pos - store.prev_pos, c2p)
+    local = local_now + model.normalizer.denormalize_target(out, store.is_root)
+    local = torch.where(store.is_static.unsqueeze(-1), torch.zeros_like(local), local)
+    velocity = to_global_velocity(local, graph[LEAF_TO_ANCESTOR].edge_index)
+    pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
+    return pos, local, velocity
+
+
+def target_output(model: HRN, graph: HeteroData, next_pos: Tensor) -> Tensor:
+    """Inverse of :func:`decode`: the normalised network output that would produce ``next_pos``.
+
+    ``next_pos`` ``[N, 3]`` must have ancestors derived from its leaves. Useful as a regression
+    target and to test the decoder; ``[N, 3]``.
+    """
+    store = graph[NODE]
+    c2p = graph[CHILD_TO_PARENT].edge_index
+    delta = to_local_velocity(next_pos - store.pos, c2p) - to_local_velocity(store.pos - store.prev_pos, c2p)
+    return model.normalizer.normalize_target(delta, store.is_root)
+
+
+def step(
+    model: HRN,
+    graph: HeteroData,
+    force: Tensor | None = None,
+    masks: Mapping[str, Tensor] | None = None,
+) -> Step:
+    """One model step: build inputs, run the network, decode, and advance the graph.
+
+    Args:
+        model: the HRN (its config gives the collision radius of the next graph).
+        graph: current state (``pos``, ``prev_pos``, ``prev_prev_pos``; collision edges of ``pos``).
+        force: ``[N, 3]`` external force during ``t -> t+1``; None uses ``graph['particle'].force``
+            (zero if absent).
+        masks: dropout masks ``{module: [B, H]}``; None is the deterministic model.
+    """
+    inputs = build_inputs(model, graph, force)
+    out = run_network(model, inputs, masks)
+    pos, local, velocity = decode(model, graph, out)
+    store = graph[NODE]
+    nxt = set_state(graph, store.prev_pos, store.pos, pos, radius=model.config.collision_radius)
+    return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
+
+
+def _check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    n = graph[NODE].num_nodes
+    if forces is not None and (forces.dim() != 3 or forces.shape[0] < steps or forces.shape[1:] != (n, 3)):
+        raise ValueError(f"forces must be [steps>={steps}, {n}, 3], got {tuple(forces.shape)}")
+
+
+def unroll(
+    model: HRN,
+    graph: HeteroData,
+    steps: int,
+    forces: Tensor | None = None,
+    masks_fn: MasksFn | None = None,
+) -> list[Step]:
+    """Feed the model its own predictions for ``steps`` steps; every :class:`Step` is kept.
+
+    The initial graph's collision edges are recomputed with the model's radius first, so the
+    first step sees the same kind of edges as the later ones. ``forces`` ``[steps, N, 3]`` is the
+    external force of each step; None means no external force at any step (the graph's
+    ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
+    ``t`` (None: deterministic).
+    """
+    _check_forces(graph, steps, forces)
+    store = graph[NODE]
+    graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=model.config.collision_radius)
+    out: list[Step] = []
+    for t in range(steps):  # time steps; each step is vectorised over particles
+        force = forces[t] if forces is not None else torch.zeros_like(store.pos)
+        masks = masks_fn(t, graph) if masks_fn is not None else None
+        result = step(model, graph, force, masks)
+        out.append(result)
+        graph = result.graph
+    return out
+
+
+def rollout(
+    model: HRN,
+    graph: HeteroData,
+    steps: int,
+    forces: Tensor | None = None,
+    masks_fn: MasksFn | None = None,
+) -> Tensor:
+    """Positions of all nodes over ``steps`` predicted steps, ``[steps, N, 3]`` (``x_{t+1..t+steps}``).
+
+    See :func:`unroll` for the arguments.
+    """
+    return torch.stack([s.pos for s in unroll(model, graph, steps, forces, masks_fn)])

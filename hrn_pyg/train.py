@@ -1,0 +1,407 @@
+"""``hrn-pyg train``: fit an HRN on an episode folder, as the baseline HRN or as *ours*.
+
+Two presets (seed paper, section 3.1):
+
+* ``hrn``: one step ahead on ground-truth inputs, local + global + **group** shape loss.
+* ``ours``: recurrent and state-invariant: the model's own predictions are fed back for ``T``
+  steps (parent states and collision edges recomputed every step, no hidden state), the loss is
+  summed over the steps with gradients through the whole unroll, ``T`` grows from 1 to 6 over
+  training; local + global + **fully-connected** shape loss.
+
+One training step draws a mini-batch of windows, unrolls, and takes one optimiser step with
+gradient clipping under a warm-up + cosine learning-rate schedule. Checkpoints are written
+atomically every ``checkpoint_every`` steps and at exit (also on Ctrl-C); ``--resume`` continues
+from the last one with the optimiser and random-number state, so the next loss is the one the
+uninterrupted run would have had. Under ``torchrun --nproc_per_node N`` the same command trains
+data-parallel (gloo): each rank draws its own windows and gradients are averaged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+from torch_geometric.data import Batch, HeteroData
+from tqdm import tqdm
+
+from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, WITHIN_SIBLINGS, set_state
+from hrn_pyg.losses import (
+    DEFAULT_CHUNK_SIZE,
+    full_shape_loss,
+    global_velocity_loss,
+    group_shape_loss,
+    local_velocity_loss,
+    shape_groups,
+)
+from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.nn.state import to_local_velocity
+from hrn_pyg.rollout import step as model_step
+from hrn_pyg.utils.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.utils.metrics import CSVLog, plot_curves
+from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
+
+PRESETS = ("hrn", "ours")
+SHAPE_LOSSES = ("group", "full")
+#: windows used to fit the normaliser (the statistics converge long before this)
+NORMALIZER_WINDOWS = 256
+#: validation windows scored at every evaluation
+VAL_WINDOWS = 8
+LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "val_loss", "seconds"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. ``preset`` fixes the defaults of the loss and the unroll schedule.
+
+    Attributes:
+        preset: ``hrn`` (one-step, group shape loss) or ``ours`` (recurrent, full shape loss).
+        data: episode folder (``hrn-pyg generate`` output).
+        out: run folder: checkpoints, ``metrics.csv``, ``loss.png``, ``config.json``.
+        steps: optimiser steps.
+        batch_size: windows per step (per rank).
+        lr: base learning rate (Adam), warm-up for ``warmup`` steps then cosine to 5 percent.
+        grad_clip: global gradient-norm clip.
+        seq_start, seq_end, grow_until: recurrent unroll length, grown from ``seq_start`` to
+            ``seq_end`` over the first ``grow_until`` fraction of training.
+        shape_loss: ``group`` (baseline HRN) or ``full`` (ours).
+        shape_chunk: rows per chunk of the fully-connected shape loss (bounded memory).
+        w_local, w_global, w_shape: loss weights.
+        train_dropout: dropout rate on ``model.dropout_modules`` while training (0: none).
+        checkpoint_every, eval_every: steps between checkpoints / validation scores.
+        seed: seeds the model initialisation, the window draws and the dropout masks.
+        threads: torch intra-op threads (0: leave torch's default).
+    """
+
+    preset: str = "ours"
+    data: str = "data/soft_bounce"
+    out: str = "runs/train/soft_bounce_ours"
+    steps: int = 2000
+    batch_size: int = 4
+    lr: float = 1e-3
+    warmup: int = 50
+    grad_clip: float = 1.0
+    seq_start: int = 1
+    seq_end: int = 6
+    grow_until: float = 0.6
+    shape_loss: str = "full"
+    shape_chunk: int = DEFAULT_CHUNK_SIZE
+    w_local: float = 1.0
+    w_global: float = 1.0
+    w_shape: float = 1.0
+    train_dropout: float = 0.0
+    checkpoint_every: int = 200
+    eval_every: int = 200
+    seed: int = 0
+    threads: int = 0
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset must be one of {PRESETS}, got {self.preset!r}")
+        if self.shape_loss not in SHAPE_LOSSES:
+            raise ValueError(f"shape_loss must be one of {SHAPE_LOSSES}, got {self.shape_loss!r}")
+        for name in ("steps", "batch_size", "seq_start", "seq_end", "shape_chunk", "checkpoint_every", "eval_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0 or not math.isfinite(self.lr):
+            raise ValueError(f"lr must be a positive number, got {self.lr}")
+        if not 0.0 <= self.train_dropout < 1.0:
+            raise ValueError(f"train_dropout must be in [0, 1), got {self.train_dropout}")
+        if self.seq_start > self.seq_end:
+            raise ValueError(f"seq_start ({self.seq_start}) must be <= seq_end ({self.seq_end})")
+
+    @classmethod
+    def for_preset(cls, preset: str, **overrides: Any) -> TrainConfig:
+        """The preset's defaults, then ``overrides`` (None values ignored)."""
+        base: dict[str, Any] = {"preset": preset}
+        if preset == "hrn":
+            base.update(seq_start=1, seq_end=1, shape_loss="group")
+        elif preset == "ours":
+            base.update(seq_start=1, seq_end=6, shape_loss="full")
+        base.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**base)
+
+
+# --------------------------------------------------------------------------------------------
+# the loss of one window
+
+
+def _batch_size_of(graph: HeteroData) -> int:
+    store = graph[NODE]
+    return int(store.batch.max()) + 1 if "batch" in store and store.batch.numel() else 1
+
+
+def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfig,
+                generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+    r"""Loss of unrolling the model ``seq_len`` steps from a (batched) window.
+
+    .. math::
+        \mathcal{L} = \sum_{k=1}^{T} w_{loc}\mathcal{L}_{loc}^{(k)} + w_{glob}\mathcal{L}_{glob}^{(k)}
+            + w_{shape}\mathcal{L}_{shape}^{(k)}
+
+    Step ``k`` starts from the model's own prediction of step ``k-1`` (ground truth for
+    ``k = 1``). The local term compares velocities in the parent's frame, the global term the
+    positions of roots and leaves (at ``k = 1`` the same as their global velocity error), both
+    divided by the velocity scale; the shape term is the group or fully-connected
+    pairwise-distance error. With ``seq_len = 1`` this is the baseline HRN's one-step loss.
+    """
+    store = window[NODE]
+    if "pos_seq" not in store or store.pos_seq.size(1) < seq_len + 3:
+        have = store.pos_seq.size(1) - 3 if "pos_seq" in store else 0
+        raise ValueError(f"window holds {have} future steps, the unroll needs {seq_len}")
+    radius = model.config.collision_radius
+    seq, forces = store.pos_seq, store.force_seq
+    graph = set_state(window, seq[:, 0], seq[:, 1], seq[:, 2], radius=radius)
+    norm = model.normalizer
+    vel_scale = norm.velocity_std
+    shape_scale = vel_scale.mean()
+    c2p = window[CHILD_TO_PARENT].edge_index
+    leaf_index, groups = shape_groups(window)
+    copies = _batch_size_of(window)
+    parts = {"local": 0.0, "global": 0.0, "shape": 0.0}
+    total = seq.new_zeros(())
+    for k in range(seq_len):  # unrolled time steps
+        masks = None
+        if config.train_dropout > 0:
+            masks = model.sample_masks(copies, config.train_dropout, generator)
+        result = model_step(model, graph, forces[:, k], masks)
+        true_prev, true_next = seq[:, k + 2], seq[:, k + 3]
+        true_local = to_local_velocity(true_next - true_prev, c2p)
+        loss_local = local_velocity_loss(result.local_velocity, true_local, store.is_root, store.is_static, norm)
+        loss_global = global_velocity_loss(result.pos, true_next, store.is_root, store.is_leaf, store.is_static, vel_scale)
+        if config.shape_loss == "full":
+            loss_shape = full_shape_loss(result.pos[leaf_index], true_next[leaf_index], groups,
+                                         config.shape_chunk, shape_scale)
+        else:
+            loss_shape = group_shape_loss(result.pos, true_next, window[WITHIN_SIBLINGS].edge_index, shape_scale)
+        total = total + config.w_local * loss_local + config.w_global * loss_global + config.w_shape * loss_shape
+        parts["local"] += float(loss_local.detach())
+        parts["global"] += float(loss_global.detach())
+        parts["shape"] += float(loss_shape.detach())
+        graph = result.graph
+    return total, parts
+
+
+# --------------------------------------------------------------------------------------------
+# distributed helpers (gloo on CPU; a no-op on one process)
+
+
+def _world() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _maybe_init_distributed() -> bool:
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo")
+        return True
+    return False
+
+
+def _average_gradients(model: torch.nn.Module) -> None:
+    """Average gradients over ranks (a module not run on some rank contributes zeros)."""
+    _, world = _world()
+    if world == 1:
+        return
+    for p in model.parameters():
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+        dist.all_reduce(p.grad)
+        p.grad /= world
+
+
+def _draw_windows(n: int, batch_size: int, seed: int, step: int, rank: int) -> list[int]:
+    """The window indices of one step: a pure function of (seed, step, rank), so a resumed run
+    draws exactly what the uninterrupted one would have."""
+    g = torch.Generator().manual_seed(seed * 1_000_003 + step * 7919 + rank * 104_729 + 1)
+    return torch.randint(n, (batch_size,), generator=g).tolist()
+
+
+# --------------------------------------------------------------------------------------------
+# the run
+
+
+def _model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]:
+    return {
+        "model": model.state_dict(),
+        "config": json.dumps({"model": model.config.to_dict(), "train": asdict(config)}),
+        "step": step,
+    }
+
+
+def load_model(path: str | os.PathLike) -> HRN:
+    """An :class:`HRN` with its normaliser from a checkpoint written by ``hrn-pyg train``."""
+    ckpt = load_checkpoint(path)
+    config = json.loads(ckpt["config"])
+    model = HRN(HRNConfig.from_dict(config["model"]))
+    model.load_state_dict(ckpt["model"])
+    model.eval()
+    return model
+
+
+def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,
+          progress: bool = True) -> dict[str, Any]:
+    """Run (or continue) one training job; returns a summary with the last losses."""
+    started_distributed = _maybe_init_distributed()
+    rank, world = _world()
+    out = Path(config.out)
+    last = out / "last.pt"
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+
+    train_set = EpisodeWindows(config.data, "train", horizon=config.seq_end)
+    try:
+        val_set = EpisodeWindows(config.data, "val", horizon=config.seq_end)
+    except ValueError:
+        val_set = None  # a folder without validation episodes trains without a validation score
+
+    torch.manual_seed(config.seed)
+    model = HRN(model_config)
+    start = 0
+    ckpt = None
+    if resume and last.is_file():
+        ckpt = load_checkpoint(last)
+        saved = json.loads(ckpt["config"])
+        model = HRN(HRNConfig.from_dict(saved["model"]))
+        model.load_state_dict(ckpt["model"])
+        start = int(ckpt["step"])
+    elif resume:
+        raise FileNotFoundError(f"--resume: no checkpoint at {last}")
+    else:
+        picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(config.seed))
+        fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
+
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda s: cosine_lr_factor(s, config.steps, config.warmup))
+    if ckpt is not None:
+        optimizer.load_state_dict(ckpt["optimizer"])
+        scheduler.load_state_dict(ckpt["scheduler"])
+        set_rng_state(ckpt["rng"])
+
+    seq_schedule = SequenceLengthSchedule(config.seq_start, config.seq_end, config.steps, config.grow_until)
+    log = CSVLog(out / "metrics.csv", LOG_FIELDS) if rank == 0 else None
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(out / "config.json", {"model": model_config.to_dict() if ckpt is None else
+                                                json.loads(ckpt["config"])["model"], "train": asdict(config),
+                                                "world_size": world})
+        if ckpt is not None:
+            log.truncate_after(start - 1)
+
+    def save(step_done: int) -> None:
+        if rank != 0:
+            return
+        payload = _model_payload(model, config, step_done)
+        payload.update(optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(), rng=rng_state())
+        save_checkpoint(last, payload)
+
+    val_ids = list(range(0, len(val_set), max(1, len(val_set) // VAL_WINDOWS)))[:VAL_WINDOWS] if val_set else []
+    summary: dict[str, Any] = {}
+    step_index = start
+    t0 = time.perf_counter()
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not progress or rank != 0,
+               desc=f"train {config.preset}", dynamic_ncols=True)
+    model.train()
+    try:
+        for step_index in bar:
+            seq_len = seq_schedule(step_index)
+            ids = _draw_windows(len(train_set), config.batch_size, config.seed, step_index, rank)
+            batch = Batch.from_data_list([train_set[i] for i in ids])
+            loss, parts = window_loss(model, batch, seq_len, config)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"loss became {float(loss)} at step {step_index}")
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            _average_gradients(model)
+            torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            optimizer.step()
+            scheduler.step()
+            row = {"step": step_index, "seq_len": seq_len, "lr": scheduler.get_last_lr()[0],
+                   "loss": float(loss.detach()), **parts, "seconds": round(time.perf_counter() - t0, 3)}
+            if val_ids and ((step_index + 1) % config.eval_every == 0 or step_index + 1 == config.steps):
+                row["val_loss"] = validation_loss(model, val_set, val_ids, config.seq_end, config)
+            if log is not None:
+                log.append(row)
+            bar.set_postfix(loss=f"{row['loss']:.4g}", T=seq_len)
+            summary = row
+            if (step_index + 1) % config.checkpoint_every == 0:
+                save(step_index + 1)
+        step_index = config.steps
+    finally:
+        # at exit, also on Ctrl-C or an error: keep the finished steps
+        save(step_index if step_index < config.steps else config.steps)
+        if rank == 0 and (out / "metrics.csv").exists():
+            plot_curves(out / "metrics.csv", out / "loss.png", "step", ["loss", "local", "global", "shape", "val_loss"],
+                        title=f"{config.preset} on {Path(config.data).name}")
+        if started_distributed:
+            dist.destroy_process_group()
+    if rank == 0:
+        save_checkpoint(out / "model.pt", _model_payload(model, config, config.steps))
+    return summary
+
+
+@torch.no_grad()
+def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len: int, config: TrainConfig) -> float:
+    """Mean unrolled loss on fixed validation windows (no dropout)."""
+    was_training = model.training
+    model.eval()
+    batch = Batch.from_data_list([dataset[i] for i in ids])
+    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0))
+    model.train(was_training)
+    return float(loss) / seq_len
+
+
+# --------------------------------------------------------------------------------------------
+# command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", choices=PRESETS, required=True, help="hrn (baseline) or ours")
+    parser.add_argument("--data", required=True, help="episode folder from `hrn-pyg generate`")
+    parser.add_argument("--out", required=True, help="run folder")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    parser.add_argument("--no-progress", action="store_true")
+    for f in fields(TrainConfig):
+        if f.name in ("preset", "data", "out"):
+            continue
+        parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=None)
+    for f in fields(HRNConfig):
+        if f.name in ("dropout_modules", "skip_idle_modules"):
+            continue
+        parser.add_argument(f"--model-{f.name.replace('_', '-')}", type=type(f.default), default=None,
+                            dest=f"model_{f.name}")
+    parser.add_argument("--dropout-modules", default=None,
+                        help="comma-separated modules that take dropout masks (default force,collision)")
+
+
+def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, HRNConfig]:
+    overrides = {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)
+                 if f.name not in ("preset", "data", "out")}
+    config = TrainConfig.for_preset(args.preset, data=args.data, out=args.out, **overrides)
+    model_kwargs = {f.name: getattr(args, f"model_{f.name}") for f in fields(HRNConfig)
+                    if getattr(args, f"model_{f.name}", None) is not None}
+    if args.dropout_modules:
+        model_kwargs["dropout_modules"] = tuple(m for m in args.dropout_modules.split(",") if m)
+    return config, HRNConfig(**model_kwargs)
+
+
+def run(args: argparse.Namespace) -> int:
+    config, model_config = config_from_args(args)
+    summary = train(config, model_config, resume=args.resume, progress=not args.no_progress)
+    if _world()[0] == 0 and summary:
+        print(f"trained {config.preset} to step {config.steps}: loss {summary['loss']:.4g}; "
+              f"model at {Path(config.out) / 'model.pt'}")
+    return 0

@@ -1,0 +1,36 @@
+import pytest
+import torch
+
+from hrn_pyg.nn.mlp import MLP, MLPConfig, dropout_mask
+
+
+def test_layers_and_config_errors():
+    m = MLP(3, 2, MLPConfig(hidden=8, depth=3, activation="tanh"))
+    assert len(m.hidden_layers) == 3 and m(torch.randn(5, 3)).shape == (5, 2)
+    assert repr(m) == "MLP(3, 2, hidden=8, depth=3, activation=tanh)"
+    with pytest.raises(ValueError, match="activation"):
+        MLPConfig(activation="swish2")
+    with pytest.raises(ValueError, match="depth"):
+        MLPConfig(depth=0)
+
+
+def test_dropout_mask_values_and_seed():
+    assert torch.equal(dropout_mask(3, 8, 0.0), torch.ones(3, 8))
+    a = dropout_mask(4, 64, 0.25, torch.Generator().manual_seed(1))
+    b = dropout_mask(4, 64, 0.25, torch.Generator().manual_seed(1))
+    assert torch.equal(a, b)
+    assert torch.isin(a, torch.tensor([0.0, 1.0 / 0.75])).all()
+    assert not torch.equal(a[0], a[1])
+    with pytest.raises(ValueError, match="rate"):
+        dropout_mask(1, 8, 1.0)
+
+
+def test_mask_scales_hidden_units_per_row():
+    torch.manual_seed(0)
+    m = MLP(3, 2, MLPConfig(hidden=8, depth=1))
+    x = torch.randn(4, 3)
+    mask = torch.stack([torch.ones(8), torch.full((8,), 2.0)])
+    out = m(x, mask, torch.tensor([0, 1, 0, 1]))
+    torch.testing.assert_close(out[[0, 2]], m(x[[0, 2]]))
+    h = torch.relu(m.hidden_layers[0](x[[1, 3]]))
+    torch.testing.assert_close(out[[1, 3]], m.output_layer(2.0 * h))

@@ -1,0 +1,85 @@
+"""The environment under TorchRL's collectors and ParallelEnv (2 workers at most)."""
+
+import functools
+import multiprocessing as mp
+import signal
+
+import pytest
+import torch
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import ParallelEnv
+
+from hrn_pyg.rl.env import HRNEnv
+
+#: Seconds a collector test may take before it is failed (a hung worker must not hang CI).
+TIMEOUT_S = 60
+
+make_env = functools.partial(HRNEnv, "cube_push", batch_size=2, seed=0)
+
+
+@pytest.fixture(autouse=True)
+def _timeout():
+    def fail(signum, frame):
+        raise TimeoutError(f"collector test ran past {TIMEOUT_S} s")
+
+    previous = signal.signal(signal.SIGALRM, fail)
+    signal.alarm(TIMEOUT_S)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.fixture
+def fork_start():
+    """Workers forked, not spawned: a spawned worker re-imports torch and TorchRL (~5 s each)."""
+    previous = mp.get_start_method(allow_none=True)
+    mp.set_start_method("fork", force=True)
+    yield
+    mp.set_start_method(previous, force=True)
+
+
+def _check(batch, frames):
+    assert batch.numel() == frames
+    assert torch.isfinite(batch["next", "observation"]).all()
+    t = batch["next", "t"]
+    assert (t >= 1).all() and (t <= 10).all()
+
+
+def test_sync_collector_collects_and_sees_rate_changes():
+    env = make_env()
+    collector = Collector(env, None, frames_per_batch=24, total_frames=48,
+                          auto_register_policy_transforms=False)
+    try:
+        batches = []
+        for i, batch in enumerate(collector):
+            batches.append(batch)
+            env.dropout_rate = 0.0  # a schedule between updates reaches the collected env
+        assert len(batches) == 2
+        for b in batches:
+            _check(b, 24)
+        assert collector.env.dropout_rate == 0.0
+    finally:
+        collector.shutdown()
+
+
+def test_multisync_collector_two_workers(fork_start):
+    collector = MultiSyncCollector([make_env, make_env], None, frames_per_batch=24,
+                                   total_frames=24, auto_register_policy_transforms=False)
+    try:
+        batches = list(collector)
+        assert len(batches) == 1
+        _check(batches[0], 24)
+    finally:
+        collector.shutdown()
+
+
+def test_parallel_env_two_workers_rollout_and_seed():
+    env = ParallelEnv(2, make_env, mp_start_method="fork")
+    try:
+        env.set_seed(7)
+        td = env.rollout(12, break_when_any_done=False)
+        assert td.shape == (2, 2, 12)
+        assert torch.isfinite(td["next", "state"]).all()
+        assert td["next", "done"].any()
+    finally:
+        env.close()

@@ -1,0 +1,199 @@
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics, dropout_spread
+from hrn_pyg.rl.env import HRNEnv, relax_reward
+from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER, action_to_forces, get_task, goal_reached
+
+
+class ScriptedDynamics:
+    """k fixed futures: sample j moves object 0 to x = offsets[j]; records the rate it got."""
+
+    num_objects = 2
+    object_dim = 6
+    state_dim = 12
+
+    def __init__(self, offsets):
+        self.offsets = torch.tensor(offsets, dtype=torch.float32)
+        self.rates = []
+
+    def reset_states(self, batch, generator):
+        s = torch.zeros(batch, 2, 6)
+        s[:, :, 0] = 5.0  # far from any goal drawn for cube_push (<= 0.45 m from the origin)
+        return s.reshape(batch, 12)
+
+    def roots(self, states):
+        return states.reshape(*states.shape[:-1], 2, 6)
+
+    def sample_next(self, states, forces, k, rate, generator):
+        self.rates.append(rate)
+        B = states.shape[0]
+        out = states.reshape(B, 1, 2, 6).repeat(1, k, 1, 1)
+        out[:, :, 0, 0] = self.offsets[:k]
+        out[:, :, 0, 3] = torch.arange(k, dtype=torch.float32)  # a tag naming the sample
+        return out.reshape(B, k, 12)
+
+
+def test_check_env_specs_both_tasks():
+    for task in ("cube_push", "tower"):
+        env = HRNEnv(task, batch_size=3, seed=0)
+        check_env_specs(env)
+        assert env.observation_spec["observation"].shape == (3, env.task.num_objects * 6 + 2)
+        assert env.action_spec.shape == (3, env.task.action_dim)
+        assert set(env.full_done_spec.keys()) == {"done", "terminated", "truncated"}
+
+
+def test_point_mass_satisfies_protocol():
+    assert isinstance(PointMassDynamics.for_task("tower"), StochasticDynamics)
+
+
+def test_relaxation_any_sample_in_goal_rewards_and_terminates():
+    # only sample 3 of 5 lands on the goal (x = 0): reward 1, terminated, next state = sample 3
+    dyn = ScriptedDynamics([5.0, 5.0, 5.0, 0.0, 5.0])
+    env = HRNEnv(CUBE_PUSH, dyn, batch_size=4, seed=0)
+    td = env.reset()
+    td["goal"] = torch.zeros(4, 2)
+    td["action"] = torch.zeros(4, CUBE_PUSH.action_dim)
+    out = env.step(td)["next"]
+    assert out["reward"].flatten().tolist() == [1.0] * 4
+    assert out["terminated"].all() and out["done"].all() and not out["truncated"].any()
+    assert torch.equal(dyn.roots(out["state"])[:, 0, 3], torch.full((4,), 3.0))
+
+
+def test_relaxation_otherwise_next_state_is_one_sample_drawn_at_random():
+    dyn = ScriptedDynamics([5.0, 6.0, 7.0, 8.0, 9.0])
+    env = HRNEnv(CUBE_PUSH, dyn, batch_size=64, seed=1)
+    td = env.reset()
+    td["action"] = torch.zeros(64, CUBE_PUSH.action_dim)
+    out = env.step(td)["next"]
+    assert (out["reward"] == 0).all() and not out["done"].any()
+    roots = dyn.roots(out["state"])
+    tag = roots[:, 0, 3].long()
+    assert torch.equal(roots[:, 0, 0], dyn.offsets[tag])  # exactly the tagged sample
+    assert set(tag.tolist()) == {0, 1, 2, 3, 4}           # drawn, not always the same one
+
+
+def test_relax_reward_first_hit_and_random_choice_by_hand():
+    task = CUBE_PUSH
+    samples = torch.zeros(2, 3, 12)
+    samples[..., 0] = torch.tensor([[1.0, 0.05, 0.0], [1.0, 1.0, 1.0]])   # cube 0 x per sample
+    samples[..., 6] = 1.0                                                 # cube 1 away
+    goal = torch.zeros(2, 2)
+    gen = torch.Generator().manual_seed(0)
+    nxt, hit = relax_reward(task, samples.reshape(2, 3, 2, 6), samples, goal, gen)
+    assert hit.tolist() == [True, False]
+    assert nxt[0, 0] == 0.05                                               # the first in the goal
+
+
+def test_truncated_at_max_steps():
+    dyn = ScriptedDynamics([5.0] * 5)
+    env = HRNEnv(CUBE_PUSH, dyn, batch_size=2, seed=0)
+    td = env.rollout(CUBE_PUSH.max_steps + 3, break_when_any_done=True)
+    assert td.shape == (2, CUBE_PUSH.max_steps)
+    assert td["next", "truncated"][:, -1].all() and not td["next", "terminated"].any()
+    assert not td["next", "done"][:, :-1].any()
+
+
+def test_seeding_reproduces_and_differs():
+    def roll(seed):
+        env = HRNEnv("cube_push", batch_size=3, seed=seed)
+        torch.manual_seed(0)  # the random policy draws from the global generator
+        return env.rollout(12, break_when_any_done=False)
+
+    a, b, c = roll(3), roll(3), roll(4)
+    assert torch.equal(a["next", "state"], b["next", "state"])
+    assert torch.equal(a["next", "reward"], b["next", "reward"])
+    assert not torch.equal(a["state"][:, 0], c["state"][:, 0])
+
+
+def test_random_rollout_stays_finite():
+    for task in ("cube_push", "tower"):
+        env = HRNEnv(task, batch_size=4, seed=0, dropout_rate=0.3, action_noise_std=0.2)
+        td = env.rollout(50, break_when_any_done=False)
+        assert td.shape == (4, 50)
+        for key in ("observation", "state"):
+            assert torch.isfinite(td["next", key]).all()
+        assert td["next", "done"].any()  # auto-reset happened inside 50 steps
+
+
+def test_dropout_rate_changes_sample_spread():
+    dyn = PointMassDynamics.for_task("cube_push")
+    gen = torch.Generator().manual_seed(0)
+    state = dyn.reset_states(8, gen)
+    forces = action_to_forces(CUBE_PUSH, torch.full((8, 4), 30.0))
+
+    def spread(rate):
+        samples = dyn.sample_next(state, forces, 16, rate, torch.Generator().manual_seed(1))
+        return dyn.roots(samples)[..., :3].std(1).mean().item()
+
+    assert spread(0.0) == 0.0
+    assert 0 < spread(0.05) < spread(0.1) < spread(0.3)
+    # and through the env attribute
+    env = HRNEnv(CUBE_PUSH, ScriptedDynamics([5.0] * 5), batch_size=2, seed=0)
+    env.dropout_rate = 0.25
+    td = env.reset()
+    td["action"] = torch.zeros(2, 4)
+    env.step(td)
+    env.set_dropout_rate(0.0)
+    env.step(td)
+    assert env.dynamics.rates == [0.25, 0.0]
+
+
+def test_rate_zero_is_deterministic_and_collision_noise_leaves_rest_quiet():
+    dyn = PointMassDynamics.for_task("tower")
+    gen = torch.Generator().manual_seed(0)
+    state = dyn.reset_states(2, gen)
+    assert torch.equal(dyn.roots(state)[..., 3:], torch.zeros(2, 4, 3))  # starts at rest
+    out = dyn.sample_next(state, torch.zeros(2, 4, 3), 4, 0.0, gen)
+    assert torch.equal(out[:, 0], out[:, 3])
+    noisy = dyn.sample_next(state, torch.zeros(2, 4, 3), 4, 0.5, gen)
+    assert torch.allclose(noisy, out, atol=1e-6)  # no force, no impact: no spread
+    push = torch.zeros(2, 4, 3)
+    push[:, 3, 0] = 10.0
+    assert dyn.sample_next(state, push, 4, 0.5, gen)[:, :, -6:].std(1).max() > 0  # force noise
+
+
+def test_action_noise_perturbs_the_step():
+    def step(std):
+        env = HRNEnv(CUBE_PUSH, batch_size=2, seed=0, dropout_rate=0.0, action_noise_std=std)
+        td = env.reset()
+        td["action"] = torch.full((2, 4), 10.0)
+        return env.step(td)["next", "state"]
+
+    assert torch.equal(step(0.0), step(0.0))
+    assert not torch.equal(step(0.0), step(0.2))
+
+
+def test_goal_tests_by_hand():
+    roots = torch.zeros(1, 3, 2, 6)
+    roots[0, :, 0, :2] = torch.tensor([[0.0, 0.0], [0.3, 0.0], [0.0, 0.09]])
+    roots[0, :, 1, :2] = 1.0
+    goal = torch.zeros(1, 1, 2)
+    assert goal_reached(CUBE_PUSH, roots, goal).tolist() == [[True, False, True]]
+    tower = torch.zeros(1, 2, 4, 6)
+    tower[0, 1, 1, 0] = 0.11                                      # middle cube pushed out
+    tower[0, 0, 3, 0] = 0.5                                       # only the ball moved
+    assert goal_reached(TOWER, tower, goal).tolist() == [[False, True]]
+
+
+def test_action_to_forces_scatter():
+    f = action_to_forces(TOWER, torch.tensor([[1.0, 2.0, 3.0]]))
+    assert f.shape == (1, 4, 3) and f[0, 3].tolist() == [1.0, 2.0, 3.0] and f[0, :3].abs().sum() == 0
+    f = action_to_forces(CUBE_PUSH, torch.tensor([1.0, 2.0, 3.0, 4.0]))
+    assert f.tolist() == [[1.0, 2.0, 0.0], [3.0, 4.0, 0.0]]
+
+
+def test_bad_input_raises():
+    with pytest.raises(ValueError, match="unknown task"):
+        get_task("stack")
+    with pytest.raises(ValueError, match="dropout rate"):
+        HRNEnv("cube_push", batch_size=1, dropout_rate=1.0)
+    with pytest.raises(ValueError, match="objects"):
+        HRNEnv("tower", PointMassDynamics.for_task("cube_push"))
+    with pytest.raises(ValueError, match="batch_size"):
+        HRNEnv("tower", batch_size=0)
+    with pytest.raises(ValueError, match="action"):
+        action_to_forces(CUBE_PUSH, torch.zeros(3))
+    with pytest.raises(ValueError):
+        dropout_spread(-0.1)

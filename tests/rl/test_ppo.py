@@ -1,0 +1,112 @@
+import csv
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from hrn_pyg.cli import main
+from hrn_pyg.rl.env import HRNEnv
+from hrn_pyg.rl.ppo import (MODES, PPOConfig, build_actor_critic, evaluate_policy, mode_settings,
+                            plot_episode_length, train)
+from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER
+from hrn_pyg.utils.checkpoint import load_checkpoint
+
+
+
+class FixedDynamics:
+    """Every sample puts cube 0 at ``(x, x)`` (cube 1 stays at 5 m), whatever the action."""
+
+    num_objects, object_dim, state_dim = 2, 6, 12
+
+    def __init__(self, x: float):
+        self.x = x
+
+    def reset_states(self, batch, generator):
+        return torch.full((batch, 12), 5.0)
+
+    def roots(self, states):
+        return states.reshape(*states.shape[:-1], 2, 6)
+
+    def sample_next(self, states, forces, k, rate, generator):
+        out = states[:, None].repeat(1, k, 1)
+        out[..., :2] = self.x
+        return out
+
+TINY = PPOConfig(updates=2, num_envs=4, frames_per_batch=40, epochs=1, minibatch=20, hidden=16,
+                 eval_episodes=4)
+
+
+def test_annealing_schedule_values():
+    cfg = PPOConfig()
+    sched, noise = mode_settings("stochastic_annealed", TOWER, cfg)
+    assert noise == 0.0
+    assert [sched(u) for u in (0, 600, 1200, 5000)] == pytest.approx([0.1, 0.05, 0.0, 0.0])
+    sched, _ = mode_settings("stochastic", CUBE_PUSH, cfg)
+    assert sched(0) == sched(1200) == pytest.approx(0.1)
+    sched, noise = mode_settings("action_noise", CUBE_PUSH, cfg)
+    assert sched(0) == 0.0 and noise == cfg.action_noise_std
+    sched, noise = mode_settings("deterministic", TOWER, cfg)
+    assert sched(0) == 0.0 and noise == 0.0
+    with pytest.raises(ValueError, match="mode"):
+        mode_settings("greedy", TOWER, cfg)
+
+
+def test_tiny_ppo_run_writes_log_and_checkpoint(tmp_path):
+    res = train(CUBE_PUSH, "stochastic_annealed", 0, TINY, tmp_path, anneal_updates=2,
+                progress=False)
+    with open(tmp_path / "log.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["update"]) for r in rows] == [0, 1]
+    assert [float(r["dropout_rate"]) for r in rows] == pytest.approx([0.1, 0.05])
+    assert all(r["loss_objective"] != "" for r in rows)
+    ckpt = load_checkpoint(tmp_path / "policy.pt")
+    assert ckpt["update"] == 2 and json.loads(ckpt["config"])["mode"] == "stochastic_annealed"
+    env = HRNEnv(CUBE_PUSH, batch_size=2, seed=0)
+    actor, critic = build_actor_critic(env, TINY.hidden)
+    actor.load_state_dict(ckpt["model"]["actor"])
+    critic.load_state_dict(ckpt["model"]["critic"])
+    assert 0.0 <= res["success_rate"] <= 1.0 and 1.0 <= res["mean_episode_length"] <= 10.0
+    assert (tmp_path / "curve.png").stat().st_size > 0
+
+
+def test_evaluate_policy_by_hand():
+    near = dataclasses.replace(CUBE_PUSH, goal_distance=(0.0, 0.0))  # goal at the origin
+    for x, expected in ((0.0, (1.0, 1.0)), (5.0, (0.0, 10.0))):
+        env = HRNEnv(near, FixedDynamics(x), batch_size=3, seed=0)
+        actor, _ = build_actor_critic(env, 8)
+        assert evaluate_policy(actor, env, 5) == pytest.approx(expected)
+
+
+def test_cli_runs_and_draws_the_figure(tmp_path):
+    out = tmp_path / "rl"
+    code = main(["rl", "--task", "tower", "--mode", "deterministic", "action_noise", "--seeds", "1",
+                 "--updates", "1", "--num-envs", "4", "--frames-per-batch", "20", "--minibatch", "20",
+                 "--eval-episodes", "2", "--out", str(out), "--no-progress"])
+    assert code == 0
+    assert (out / "deterministic" / "seed0" / "log.csv").is_file()
+    assert (out / "episode_length.png").stat().st_size > 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert sorted(r["mode"] for r in summary) == ["action_noise", "deterministic"]
+    assert plot_episode_length(out, tmp_path / "again.png") == ["deterministic", "action_noise"]
+
+
+@pytest.mark.parametrize("argv", [
+    ["--seeds", "0"],
+    ["--updates", "0"],
+    ["--frames-per-batch", "33"],
+    ["--model", "does/not/exist.pt"],
+    ["--anneal-updates", "-1"],
+])
+def test_cli_bad_input_exits_2(argv, tmp_path, capsys):
+    assert main(["rl", "--out", str(tmp_path), "--no-progress", *argv]) == 2
+    assert "error" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_cli_unknown_task_or_mode_exits_2():
+    for argv in (["rl", "--task", "stack"], ["rl", "--mode", "greedy"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
+    assert set(MODES) == {"deterministic", "action_noise", "stochastic", "stochastic_annealed"}
