@@ -252,8 +252,13 @@ def load_model(path: str | os.PathLike) -> HRN:
 
 
 def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,
-          progress: bool = True) -> dict[str, Any]:
-    """Run (or continue) one training job; returns a summary with the last losses."""
+          progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
+    """Run (or continue) one training job; returns the last logged row.
+
+    ``stop_after`` ends this call after that many more steps (with a checkpoint), as if it had
+    been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
+    normaliser, no optimiser) is written when the last step is done.
+    """
     started_distributed = _maybe_init_distributed()
     rank, world = _world()
     out = Path(config.out)
@@ -312,7 +317,8 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     summary: dict[str, Any] = {}
     step_index = start
     t0 = time.perf_counter()
-    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not progress or rank != 0,
+    end = config.steps if stop_after is None else min(config.steps, start + int(stop_after))
+    bar = tqdm(range(start, end), initial=start, total=config.steps, disable=not progress or rank != 0,
                desc=f"train {config.preset}", dynamic_ncols=True)
     model.train()
     try:
@@ -339,16 +345,17 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
             summary = row
             if (step_index + 1) % config.checkpoint_every == 0:
                 save(step_index + 1)
-        step_index = config.steps
+        step_index = end
     finally:
-        # at exit, also on Ctrl-C or an error: keep the finished steps
-        save(step_index if step_index < config.steps else config.steps)
+        # at exit, also on Ctrl-C or an error: keep the finished steps (step_index is the one
+        # that was running when an exception came, so it is not counted as done)
+        save(step_index)
         if rank == 0 and (out / "metrics.csv").exists():
             plot_curves(out / "metrics.csv", out / "loss.png", "step", ["loss", "local", "global", "shape", "val_loss"],
                         title=f"{config.preset} on {Path(config.data).name}")
         if started_distributed:
             dist.destroy_process_group()
-    if rank == 0:
+    if rank == 0 and end == config.steps:
         save_checkpoint(out / "model.pt", _model_payload(model, config, config.steps))
     return summary
 

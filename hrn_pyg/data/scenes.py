@@ -35,11 +35,36 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
-import pybullet as p
+
+
+def _import_pybullet():
+    """Import pybullet without the build-time banner its C code prints on import."""
+    streams = []
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            streams.append(stream.fileno())
+            stream.flush()
+        except (AttributeError, OSError, ValueError):  # captured streams without a real fd
+            pass
+    saved = [os.dup(fd) for fd in streams]
+    try:
+        with open(os.devnull, "w") as devnull:
+            for fd in streams:
+                os.dup2(devnull.fileno(), fd)
+        import pybullet
+    finally:
+        for fd, copy in zip(streams, saved):
+            os.dup2(copy, fd)
+            os.close(copy)
+    return pybullet
+
+
+p = _import_pybullet()
 
 from hrn_pyg.data.voxelise import (
     box_mesh,
@@ -454,6 +479,38 @@ class Scene:
         self.t += 1
         return self.leaf_positions()
 
+    def nudge(self, offsets: np.ndarray, velocities: np.ndarray | None = None) -> np.ndarray:
+        """Translate each object by ``offsets [O, 3]`` (m) and add ``velocities [O, 3]`` (m/s)
+        to its linear velocity, at once; return the new leaf positions ``[L, 3]``.
+
+        For perturbing an initial state (a soft body or cloth is translated rigidly and all its
+        nodes get the mean node velocity plus the offset). Static objects' rows must be zero.
+        """
+        self._require_started()
+        c, n_obj = self._client, self.num_objects
+        offsets = np.asarray(offsets, float)
+        velocities = np.zeros((n_obj, 3)) if velocities is None else np.asarray(velocities, float)
+        for name, value in (("offsets", offsets), ("velocities", velocities)):
+            if value.shape != (n_obj, 3) or not np.all(np.isfinite(value)):
+                raise ValueError(f"{name}: expected finite [{n_obj}, 3], got {value.shape}")
+        for i, obj in enumerate(self._objects):  # loop over a handful of objects, not particles
+            if obj.material == STATIC:
+                if np.any(offsets[i] != 0) or np.any(velocities[i] != 0):
+                    raise ValueError(f"offsets/velocities: object {i} is static and cannot be moved")
+                continue
+            pos, quat = p.getBasePositionAndOrientation(obj.body, physicsClientId=c)
+            p.resetBasePositionAndOrientation(obj.body, (np.asarray(pos) + offsets[i]).tolist(), quat,
+                                              physicsClientId=c)
+            if np.any(velocities[i] != 0):
+                if obj.material == RIGID:
+                    lin, ang = p.getBaseVelocity(obj.body, physicsClientId=c)
+                else:
+                    lin = np.zeros(3) if obj.velocity is None else obj.velocity.mean(axis=0)
+                    ang = (0.0, 0.0, 0.0)
+                p.resetBaseVelocity(obj.body, (np.asarray(lin) + velocities[i]).tolist(), list(ang),
+                                    physicsClientId=c)
+        return self.leaf_positions()
+
     # -- internals ----------------------------------------------------------------------------
     def _require_started(self) -> None:
         if self._client is None:
@@ -810,8 +867,13 @@ def config_to_dict(config: SceneConfig) -> dict:
 
 
 def simulate_episode(scene: str, seed: int, steps: int | None = None,
-                     config: SceneConfig | None = None) -> dict[str, np.ndarray]:
+                     config: SceneConfig | None = None, *,
+                     after_reset: Callable[[Scene], None] | None = None) -> dict[str, np.ndarray]:
     """Run one episode with the scene's scripted/random actions; return the episode arrays.
+
+    ``after_reset(scene)``, if given, runs once after ``reset()`` and before step 0 (e.g.
+    :meth:`Scene.nudge` to perturb the initial state of a ground-truth ensemble); the recorded
+    ``positions[0]`` is the state after it.
 
     **Shapes** (``S`` steps, ``L`` leaves, ``O`` objects, ``N`` hierarchy nodes)
     ``positions [S+1, L, 3]`` f32, ``forces [S, L, 3]`` f32, ``leaf_mass [L]`` f32,
@@ -828,6 +890,9 @@ def simulate_episode(scene: str, seed: int, steps: int | None = None,
     n_steps = sim.config.steps
     try:
         x = sim.reset()
+        if after_reset is not None:
+            after_reset(sim)
+            x = sim.leaf_positions()
         positions = np.empty((n_steps + 1, len(x), 3), dtype=np.float32)
         forces = np.empty((n_steps, len(x), 3), dtype=np.float32)
         positions[0] = x

@@ -136,12 +136,13 @@ def point_mass_config(task: str, dropout_modules: tuple[str, ...] | None = None)
     if task == "cube_push":
         # two 10 cm, 1 kg cubes sliding on the ground, transparent to each other
         return PointMassConfig(layout="cube_push", radius=(0.05, 0.05), mass=(1.0, 1.0),
-                               ground_friction=(0.2, 0.2), collide=False,
+                               ground_friction=(0.1, 0.1), collide=False,
                                dropout_modules=dropout_modules or ("force",))
     if task == "tower":
-        # three stacked 10 cm cubes and a 0.5 kg ball that rolls with little loss
-        return PointMassConfig(layout="tower", radius=(0.05, 0.05, 0.05, 0.05),
-                               mass=(1.0, 1.0, 1.0, 0.5), ground_friction=(0.2, 0.2, 0.2, 0.02),
+        # three stacked 10 cm, 0.35 kg cubes and a 7.5 cm, 0.75 kg ball that rolls with little
+        # loss (the middles of the pybullet tower scene's ranges)
+        return PointMassConfig(layout="tower", radius=(0.05, 0.05, 0.05, 0.075),
+                               mass=(0.35, 0.35, 0.35, 0.75), ground_friction=(0.2, 0.2, 0.2, 0.02),
                                collide=True,
                                dropout_modules=dropout_modules or ("force", "collision"))
     raise ValueError(f"no point-mass scene for task {task!r}; known: cube_push, tower")

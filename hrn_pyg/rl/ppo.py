@@ -48,7 +48,7 @@ from torchrl.objectives.value import GAE
 
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.tasks import TASKS, TaskConfig, action_to_forces, get_task
+from hrn_pyg.rl.tasks import TASKS, TaskConfig, action_to_forces, get_task, goal_reached
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.files import atomic_path, atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog, plot_curves
@@ -76,7 +76,7 @@ class PPOConfig:
     frames_per_batch: int = 320
     epochs: int = 4
     minibatch: int = 64
-    lr: float = 3e-4
+    lr: float = 1e-3
     gamma: float = 0.99
     lmbda: float = 0.95
     clip_epsilon: float = 0.2
@@ -198,27 +198,55 @@ def evaluate_policy(policy: TensorDictModule, env: HRNEnv, episodes: int) -> tup
     return float(success.mean()), float(length.mean())
 
 
-def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int) -> list:
+def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
+                       goal: Tensor | None = None) -> dict:
     """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
 
-    Hook for the ground-truth check of issue 6: builds ``hrn_pyg.data.scenes.make_scene(name,
-    seed, None)``, resets it and applies one per-object force ``(O, 3)`` per step (the same
-    mapping the environment uses), returning what each ``scene.step`` returned. Judging the
-    goal on those states, and matching the scene's seed to the environment's initial state, is
-    left to the caller until the scene and learned-model interfaces settle.
+    The ground-truth check of issue 6: builds ``hrn_pyg.data.scenes.make_scene(task, seed)``,
+    applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
+    judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
+    displacement) after every step, stopping at the first success. ``goal`` ``(2,)`` is the
+    episode's goal point; ``None`` is allowed only for ``tower``, whose goal point is the
+    middle cube's initial position. For the comparison to mean anything the learned
+    environment's episode must start from this scene's initial state (the learned dynamics'
+    ``reset_states`` draws scenes by seed).
+
+    Returns ``{"success": bool, "steps": int, "roots": (steps + 1, O, 6) tensor}``.
     """
     task = get_task(task)
+    from hrn_pyg.data.scenes import make_scene
+
+    actions = torch.as_tensor(actions, dtype=torch.float32)
+    forces = action_to_forces(task, actions)                                  # (T, O, 3)
+    scene = make_scene(task.name, seed)
     try:
-        from hrn_pyg.data.scenes import make_scene
-    except ModuleNotFoundError as exc:
-        raise NotImplementedError("hrn_pyg.data.scenes is not available yet") from exc
-    forces = action_to_forces(task, torch.as_tensor(actions, dtype=torch.float32))
-    scene = make_scene(task.name, seed, None)
-    try:
-        scene.reset()
-        return [scene.step(f.numpy()) for f in forces]
+        leaves = torch.as_tensor(scene.reset(), dtype=torch.float32)
+        obj = torch.as_tensor(scene.leaf_object)
+        mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
+
+        def centres(x: Tensor) -> Tensor:  # (L, 3) -> (O, 3), mass-weighted per object
+            num = torch.zeros(task.num_objects, 3).index_add_(0, obj, x * mass[:, None])
+            den = torch.zeros(task.num_objects).index_add_(0, obj, mass)
+            return num / den[:, None]
+
+        prev = centres(leaves)
+        roots = [torch.cat([prev, torch.zeros_like(prev)], -1)]
+        if goal is None:
+            if task.goal_kind != "displaced":
+                raise ValueError(f"goal: task {task.name!r} needs the episode's goal point")
+            goal = prev[task.goal_objects[0], :2]
+        goal = torch.as_tensor(goal, dtype=torch.float32)
+        success = False
+        for f in forces:
+            now = centres(torch.as_tensor(scene.step(f.double().numpy()), dtype=torch.float32))
+            roots.append(torch.cat([now, now - prev], -1))
+            prev = now
+            if bool(goal_reached(task, roots[-1], goal)):
+                success = True
+                break
     finally:
         scene.close()
+    return {"success": success, "steps": len(roots) - 1, "roots": torch.stack(roots)}
 
 
 # ---------------------------------------------------------------------------- training

@@ -37,7 +37,10 @@ class TaskConfig:
         controlled_objects: objects the action pushes, in action order.
         force_axes: force components the action sets for each controlled object (0=x, 1=y, 2=z);
             the action has ``len(controlled_objects) * len(force_axes)`` entries.
-        max_force: bound on every action entry, Newton.
+        max_force: bound on every action entry, Newton; the top of the random-force range
+            the task's training scenes were generated with (``hrn_pyg.data.scenes``
+            ``CubePushConfig.force_range`` 15 N, ``TowerConfig.force_range`` 8 N), because the
+            learned model is only trusted inside the forces it was trained on.
         goal_kind: ``"region"`` (an object inside the goal disc) or ``"displaced"`` (an object
             farther than ``goal_radius`` from the goal point).
         goal_objects: objects the goal test looks at; any one of them suffices.
@@ -99,12 +102,12 @@ class TaskConfig:
 
 CUBE_PUSH = TaskConfig(
     name="cube_push", max_steps=10, num_objects=2, controlled_objects=(0, 1), force_axes=(0, 1),
-    max_force=50.0, goal_kind="region", goal_objects=(0, 1), goal_radius=0.1,
-    goal_distance=(0.25, 0.45), dropout_modules=("force",), dropout_rate=0.1, anneal_updates=1200,
+    max_force=15.0, goal_kind="region", goal_objects=(0, 1), goal_radius=0.1,
+    goal_distance=(0.15, 0.3), dropout_modules=("force",), dropout_rate=0.1, anneal_updates=1200,
 )
 TOWER = TaskConfig(
     name="tower", max_steps=15, num_objects=4, controlled_objects=(3,), force_axes=(0, 1, 2),
-    max_force=15.0, goal_kind="displaced", goal_objects=(1,), goal_radius=0.1,
+    max_force=8.0, goal_kind="displaced", goal_objects=(1,), goal_radius=0.1,
     dropout_modules=("force", "collision"), dropout_rate=0.1, anneal_updates=1200,
 )
 TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER)}

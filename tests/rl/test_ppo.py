@@ -110,3 +110,16 @@ def test_cli_unknown_task_or_mode_exits_2():
             main(argv)
         assert exc.value.code == 2
     assert set(MODES) == {"deterministic", "action_noise", "stochastic", "stochastic_annealed"}
+
+
+def test_replay_in_pybullet_judges_the_goal_on_ground_truth():
+    from hrn_pyg.rl.ppo import replay_in_pybullet
+
+    still = torch.zeros(3, CUBE_PUSH.action_dim)
+    first = replay_in_pybullet(still[:1], "cube_push", 5, goal=torch.tensor([9.0, 9.0]))
+    start = first["roots"][0, 0, :2]                      # cube 0 where the scene put it
+    hit = replay_in_pybullet(still, "cube_push", 5, goal=start)
+    assert hit["success"] and hit["steps"] == 1 and hit["roots"].shape == (2, 2, 6)
+    assert not first["success"] and first["steps"] == 1
+    with pytest.raises(ValueError, match="goal"):
+        replay_in_pybullet(still, "cube_push", 5)

@@ -1,0 +1,181 @@
+"""K plausible futures of one scene by Monte Carlo graph-convolutional dropout (seed paper, 3.2).
+
+The K trajectories are K copies of the scene in *one* batched graph
+(:func:`hrn_pyg.data.graph.replicate`), rolled out together by the one rollout loop
+(:func:`hrn_pyg.rollout.rollout`). At every prediction step a fresh dropout mask is drawn per
+copy and per masked module, a ``[K, H]`` table; the model looks up each node's and each edge's
+row by its batch id, so within one step one trajectory applies one mask everywhere (the
+"kernel" stays one function across its graph) while copies and steps differ. There is no Python
+loop over samples.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import NODE, replicate
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.rollout import MasksFn, rollout
+
+#: the state a scene must carry to be rolled out (``x_{t-2}, x_{t-1}, x_t``)
+STATE_FIELDS = ("prev_prev_pos", "prev_pos", "pos")
+#: per-window attributes of a dataset window that the copies do not need (dropped before
+#: replicating, so K copies do not collate K copies of the whole ground-truth sequence)
+WINDOW_ONLY_FIELDS = ("pos_seq", "force_seq")
+
+
+def check_sampling_args(k: int, steps: int, rate: float) -> None:
+    """Raise ValueError unless ``k >= 1``, ``steps >= 1`` and ``0 <= rate < 1``."""
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise ValueError(f"k must be an integer >= 1, got {k!r}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    if not 0.0 <= float(rate) < 1.0:
+        raise ValueError(f"rate must be in [0, 1), got {rate!r}")
+
+
+def _check_state(graph: HeteroData) -> None:
+    if not isinstance(graph, HeteroData) or NODE not in graph.node_types:
+        raise ValueError(f"initial_state must be a HeteroData with a '{NODE}' node type")
+    store = graph[NODE]
+    for name in STATE_FIELDS:
+        if name not in store:
+            raise ValueError(f"initial_state['{NODE}'] has no '{name}' (set it with hrn_pyg.data.graph.set_state)")
+        value = store[name]
+        if value.dim() != 2 or value.shape != (store.num_nodes, 3):
+            raise ValueError(f"initial_state '{name}' must be [{store.num_nodes}, 3], got {tuple(value.shape)}")
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"initial_state '{name}' contains NaN or infinite values")
+    if "batch" in store and bool((store.batch != 0).any()):
+        raise ValueError("initial_state must be one scene, not a batch of several graphs")
+
+
+def _check_modules(model: HRN, modules: tuple[str, ...] | None) -> tuple[str, ...]:
+    allowed = tuple(model.config.dropout_modules)
+    if modules is None:
+        return allowed
+    modules = tuple(modules)
+    unknown = [m for m in modules if m not in allowed]
+    if unknown:
+        raise ValueError(
+            f"modules {unknown} do not accept dropout masks in this model (its dropout_modules are {allowed})"
+        )
+    return modules
+
+
+def make_masks_fn(
+    model: HRN,
+    k: int,
+    rate: float,
+    generator: torch.Generator | None = None,
+    modules: tuple[str, ...] | None = None,
+) -> MasksFn | None:
+    r"""A ``masks_fn(t, graph)`` for :func:`hrn_pyg.rollout.rollout` drawing fresh masks each step.
+
+    Each call draws, for every module in ``modules`` (default: the model's
+    ``config.dropout_modules``), one inverted-dropout mask per trajectory copy,
+
+    .. math:: m^{(t)}_{b,h} = \mathbb{1}[u^{(t)}_{b,h} \ge p] / (1 - p), \qquad u \sim U[0, 1),
+
+    in module order, from ``generator`` (the global generator if None). Rate 0 returns None (no
+    masks: exactly the deterministic model).
+
+    **Shapes:** each call returns ``{module: (k, hidden)}``.
+    """
+    check_sampling_args(k, 1, rate)
+    modules = _check_modules(model, modules)
+    if float(rate) == 0.0 or not modules:
+        return None
+
+    def masks_fn(t: int, graph: HeteroData) -> Mapping[str, Tensor]:
+        masks = model.sample_masks(k, float(rate), generator)
+        return {name: masks[name] for name in modules}
+
+    return masks_fn
+
+
+def _copy_forces(forces: Tensor | None, graph: HeteroData, steps: int, k: int) -> Tensor | None:
+    """``[steps, N or L, 3]`` forces of one scene -> ``[steps, k N, 3]`` for the k copies."""
+    if forces is None:
+        return None
+    store = graph[NODE]
+    n, leaves = store.num_nodes, int(store.is_leaf.sum())
+    if forces.dim() != 3 or forces.shape[0] < steps or forces.shape[2] != 3 or forces.shape[1] not in (n, leaves):
+        raise ValueError(f"forces must be [steps>={steps}, {n} nodes or {leaves} leaves, 3], got {tuple(forces.shape)}")
+    if not bool(torch.isfinite(forces).all()):
+        raise ValueError("forces contains NaN or infinite values")
+    forces = forces[:steps].to(store.pos.dtype)
+    if forces.shape[1] == leaves:
+        full = forces.new_zeros(steps, n, 3)
+        full[:, store.is_leaf] = forces
+        forces = full
+    forces = torch.where(store.is_leaf[None, :, None], forces, torch.zeros_like(forces))
+    return forces.repeat(1, k, 1)  # copy b holds nodes b N .. (b + 1) N - 1
+
+
+def sample(
+    model: HRN,
+    initial_state: HeteroData,
+    k: int,
+    steps: int,
+    rate: float,
+    forces: Tensor | None = None,
+    generator: torch.Generator | None = None,
+    modules: tuple[str, ...] | None = None,
+) -> Tensor:
+    r"""Sample ``k`` futures of one scene with Monte Carlo graph-convolutional dropout.
+
+    The scene is replicated ``k`` times into one batched graph and rolled out for ``steps``
+    steps; at step ``t`` copy ``b`` runs the model with its own mask :math:`m^{(t)}_b` on the
+    hidden activations of each module in ``modules`` (:func:`make_masks_fn`), the same mask on
+    every node and edge of that copy:
+
+    .. math::
+        x^{(b)}_{t+1} = f_\theta\bigl(x^{(b)}_{t}, x^{(b)}_{t-1}, x^{(b)}_{t-2}, F_t;\ m^{(t)}_b\bigr),
+        \qquad b = 1..k
+
+    ``rate = 0`` draws no mask: every copy equals the deterministic rollout. With a seeded
+    ``generator`` the result repeats exactly. Runs without gradients.
+
+    Args:
+        model: a (trained) :class:`~hrn_pyg.nn.hrn.HRN` with a fitted normaliser.
+        initial_state: one scene's graph with ``prev_prev_pos``, ``prev_pos``, ``pos``
+            (e.g. a dataset window or :func:`hrn_pyg.sampling.ensemble.episode_state`).
+        k: number of sampled trajectories, >= 1.
+        steps: predicted steps, >= 1.
+        rate: dropout rate in [0, 1).
+        forces: external force of each step on each node ``[steps, N, 3]`` or leaf
+            ``[steps, L, 3]``; None is no force.
+        generator: source of the masks (None: torch's global generator).
+        modules: modules to mask (default: the model's ``config.dropout_modules``; each must be
+            in it).
+
+    Returns:
+        Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps``. Only leaves are returned
+        (they are the scene's particles); ancestors are mass-weighted means of their leaves
+        (:func:`hrn_pyg.data.graph.leaf_to_ancestor_mean`, or
+        :func:`hrn_pyg.sampling.metrics.object_centres` for the roots).
+
+    **Shapes:** initial state over ``N`` nodes, ``L`` of them leaves; output ``(k, steps, L, 3)``.
+    """
+    check_sampling_args(k, steps, rate)
+    _check_state(initial_state)
+    modules = _check_modules(model, modules)
+    graph = copy.copy(initial_state)
+    store = graph[NODE]
+    for name in WINDOW_ONLY_FIELDS:
+        if name in store:
+            del store[name]
+    copies_forces = _copy_forces(forces, graph, steps, k)
+    n = store.num_nodes
+    leaf_index = torch.nonzero(store.is_leaf).flatten()
+    batched = replicate(graph, k)
+    masks_fn = make_masks_fn(model, k, rate, generator, modules)
+    with torch.no_grad():
+        pos = rollout(model, batched, steps, copies_forces, masks_fn)  # [steps, k N, 3]
+    return pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()
