@@ -1,0 +1,134 @@
+"""Are the sampled futures calibrated? Dropout samples scored against a ground-truth ensemble.
+
+For each scene, one test episode (``--seed``) gives the model's start state at step 2; the
+ground truth is an ensemble of ``--members`` pybullet replays of that episode whose initial
+objects were shifted by a 2 mm Gaussian in x and y
+(:func:`hrn_pyg.sampling.ensemble.ground_truth_ensemble`). The deterministic model (k = 1, no
+dropout) and k dropout samples at each ``--rates`` are scored at the last predicted step with
+
+* energy score per particle (:func:`~hrn_pyg.sampling.metrics.energy_score` on each leaf's
+  3-D position, mean over leaves; metres, lower is better),
+* best-of-k error (:func:`~hrn_pyg.sampling.metrics.best_of_k_error`: mean leaf distance of the
+  closest sample, averaged over members; metres),
+* coverage (:func:`~hrn_pyg.sampling.metrics.coverage`, per coordinate: fraction of the
+  members' leaf coordinates inside the samples' [min, max]),
+* wedge only: fraction of trajectories whose ball centre ends at ``x < 0`` / ``x >= 0``
+  (:func:`~hrn_pyg.sampling.metrics.side_fractions`), samples against the ensemble.
+
+Run: ``python benchmarks/uncertainty.py [--scenes wedge,soft_bounce,cube_collision]
+[--k 16] [--rates 0.05,0.1,0.3] [--members 16] [--steps 20] [--seed 9]
+[--out benchmarks/results/uncertainty.json]`` with ``--model-dir`` (default
+``hrn_pyg/checkpoints``, one ``<scene>.pt`` each). ``--random-init``: untrained models, a
+pipeline check whose numbers mean nothing. Prints a markdown table, writes JSON atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.scenes import simulate_episode
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.sampling.cli import CHECKPOINT_DIR, model_for
+from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.metrics import best_of_k_error, coverage, energy_score, object_centres, side_fractions
+from hrn_pyg.sampling.sample import sample
+from hrn_pyg.utils.files import atomic_write_json
+
+#: the wedge's ball is object 0; its ridge runs along y at x = 0
+WEDGE_BALL, WEDGE_RIDGE_X = 0, 0.0
+
+
+def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: str) -> dict:
+    """Scores of futures ``[K, L, 3]`` against members ``[M, L, 3]`` (one time step)."""
+    row = {
+        "energy_score_m": float(energy_score(futures, members).mean()),  # per leaf, mean over leaves
+        "best_of_k_m": float(best_of_k_error(futures, members)),
+        "coverage": float(coverage(futures.flatten(1), members.flatten(1))),
+    }
+    if scene == "wedge":
+        obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
+        x = object_centres(futures, obj, mass)[:, WEDGE_BALL, 0]
+        row["side_fractions"] = side_fractions(x, WEDGE_RIDGE_X).tolist()
+    return row
+
+
+def evaluate_scene(model: HRN, scene: str, seed: int, steps: int, members: np.ndarray, episode: dict,
+                   k: int, rates: tuple[float, ...], sample_seed: int) -> list[dict]:
+    graph = episode_state(episode, start=HISTORY, steps=steps)
+    forces = graph[NODE].force_seq.transpose(0, 1)
+    truth = torch.as_tensor(members[:, HISTORY + steps]).float()  # [M, L, 3] at the last step
+    rows = []
+    for label, kk, rate in [("deterministic", 1, 0.0)] + [("dropout", k, r) for r in rates]:
+        gen = torch.Generator().manual_seed(sample_seed)
+        futures = sample(model, graph, kk, steps, rate, forces=forces, generator=gen)[:, -1]  # [K, L, 3]
+        rows.append({"scene": scene, "model": label, "k": kk, "rate": rate,
+                     **score(futures, truth, episode, scene)})
+    if scene == "wedge":
+        obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
+        ens_x = object_centres(truth, obj, mass)[:, WEDGE_BALL, 0]
+        for r in rows:
+            r["ensemble_side_fractions"] = side_fractions(ens_x, WEDGE_RIDGE_X).tolist()
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| scene | model | k | rate | energy score (mm) | best-of-k (mm) | coverage | side split samples | side split ensemble |",
+             "|---|---|---:|---:|---:|---:|---:|---|---|"]
+    for r in rows:
+        split = lambda f: f"{f[0]:.2f} / {f[1]:.2f}" if f else "-"  # noqa: E731
+        lines.append(f"| {r['scene']} | {r['model']} | {r['k']} | {r['rate']} | {1e3 * r['energy_score_m']:.1f} | "
+                     f"{1e3 * r['best_of_k_m']:.1f} | {r['coverage']:.2f} | {split(r.get('side_fractions'))} | "
+                     f"{split(r.get('ensemble_side_fractions'))} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", default="wedge,soft_bounce,cube_collision")
+    parser.add_argument("--model-dir", default=str(CHECKPOINT_DIR))
+    parser.add_argument("--k", type=int, default=16)
+    parser.add_argument("--rates", default="0.05,0.1,0.3")
+    parser.add_argument("--members", type=int, default=16)
+    parser.add_argument("--position-std", type=float, default=PerturbationConfig().position_std)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=9, help="episode seed (a test-split seed: seed % 10 == 9)")
+    parser.add_argument("--sample-seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--random-init", action="store_true", help="untrained models: pipeline check only")
+    parser.add_argument("--out", default="benchmarks/results/uncertainty.json")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rates = tuple(float(r) for r in args.rates.split(",") if r)
+    perturbation = PerturbationConfig(position_std=args.position_std)
+    rows = []
+    for scene in [s for s in args.scenes.split(",") if s]:
+        episode = simulate_episode(scene, args.seed, steps=HISTORY + args.steps)
+        members = ground_truth_ensemble(scene, args.seed, args.members, HISTORY + args.steps, perturbation)
+        model_path = None if args.random_init else str(Path(args.model_dir) / f"{scene}.pt")
+        model = model_for(scene, model_path, args.random_init, episode_state(episode, HISTORY, args.steps))
+        rows += evaluate_scene(model, scene, args.seed, args.steps, members, episode, args.k, rates,
+                               args.sample_seed)
+    table = markdown(rows)
+    print(table)
+    result = {
+        "what": "dropout samples vs a ground-truth ensemble of perturbed pybullet replays, at the last step",
+        "steps": args.steps, "start_step": HISTORY, "episode_seed": args.seed, "members": args.members,
+        "perturbation": perturbation.to_dict(), "k": args.k, "rates": list(rates),
+        "sample_seed": args.sample_seed, "random_init": args.random_init,
+        "model_dir": None if args.random_init else args.model_dir,
+        "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch_threads": args.threads},
+        "rows": rows, "markdown": table,
+    }
+    atomic_write_json(args.out, result)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""The learned HRN as the environment's physics: :class:`HRNDynamics`.
+
+A task scene (``cube_push`` or ``tower``) is drawn from a pool of pybullet initial states, one
+per seed, so that an episode in the learned environment can be replayed in pybullet from the
+very same start. The flattened per-environment state is
+
+.. code-block:: text
+
+    [ x_{t-2} (L*3) | x_{t-1} (L*3) | x_t (L*3) | pool index (1) ]
+
+leaf positions only: ancestors are derived, collision edges recomputed, exactly as in every
+other rollout (:func:`hrn_pyg.rollout.step`). One call of :meth:`HRNDynamics.sample_next`
+steps ``B`` environments times ``k`` samples as one batched graph, each copy with its own
+dropout masks (one per step per copy, the seed paper's graph-convolutional dropout).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch_geometric.data import Batch, HeteroData
+
+from hrn_pyg.data.graph import NODE, build_structure, set_state
+from hrn_pyg.data.hierarchy import build_hierarchy
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.rl.dynamics import ROOT_DIM
+from hrn_pyg.rl.tasks import TaskConfig, get_task
+from hrn_pyg.rollout import step as model_step
+
+#: seeds of the initial-state pool; far from the generated datasets' seeds (0..199), so the
+#: agent starts from scenes the model never saw in training
+POOL_SEEDS = tuple(range(10_000, 10_064))
+#: zero-force pybullet steps taken after reset to get x_{t-2}, x_{t-1}, x_t
+HISTORY_STEPS = 2
+
+
+class HRNDynamics:
+    """:class:`~hrn_pyg.rl.dynamics.StochasticDynamics` backed by a trained :class:`HRN`.
+
+    Args:
+        model: the trained HRN (its normaliser fitted); put in eval mode.
+        task: the task (its ``name`` is the pybullet scene).
+        pool_seeds: pybullet seeds of the initial states :meth:`reset_states` draws from.
+
+    **Shapes:** states ``(B, 9 L + 1)``; roots ``(..., O, 6)``; forces ``(B, O, 3)`` Newton, one
+    per object, spread evenly over its leaves (the datasets' convention).
+    """
+
+    object_dim = ROOT_DIM
+
+    def __init__(self, model: HRN, task: str | TaskConfig, pool_seeds: Sequence[int] = POOL_SEEDS) -> None:
+        from hrn_pyg.data.scenes import make_scene  # pybullet only where a pool is built
+
+        self.task = get_task(task)
+        self.model = model.eval()
+        if not pool_seeds:
+            raise ValueError("pool_seeds must not be empty")
+        histories, masses = [], []
+        leaf_object = None
+        for seed in pool_seeds:  # a few dozen scenes, built once
+            scene = make_scene(self.task.name, int(seed))
+            try:
+                frames = [scene.reset()]
+                for _ in range(HISTORY_STEPS):
+                    frames.append(scene.step(scene.zero_action()))
+                histories.append(np.stack(frames))
+                masses.append(np.asarray(scene.leaf_mass, dtype=np.float32))
+                if leaf_object is None:
+                    leaf_object = np.asarray(scene.leaf_object)
+                    material = np.asarray(scene.object_material)
+                    stiffness = np.asarray(scene.object_stiffness, dtype=np.float32)
+            finally:
+                scene.close()
+        self.pool_seeds = torch.tensor(list(pool_seeds), dtype=torch.long)
+        self.pool = torch.tensor(np.stack(histories), dtype=torch.float32)  # [P, 3, L, 3]
+        self.leaf_mass = torch.tensor(np.stack(masses))  # [P, L]
+        self.leaf_object = torch.tensor(leaf_object, dtype=torch.long)  # [L]
+        self.num_leaves = int(self.leaf_object.numel())
+        self.num_objects = int(self.task.num_objects)
+        if int(self.leaf_object.max()) + 1 < self.num_objects:
+            raise ValueError(f"scene {self.task.name!r} has fewer objects than the task's {self.num_objects}")
+        self.state_dim = 9 * self.num_leaves + 1
+        # one hierarchy (the first pool scene's, at rest) shared by every pool entry; each entry
+        # keeps its own masses
+        parent = torch.as_tensor(build_hierarchy(self.pool[0, -1].numpy(), self.leaf_mass[0].numpy(),
+                                                 leaf_object), dtype=torch.long)
+        self._structures = [
+            build_structure(parent, self.leaf_mass[i], self.leaf_object, torch.as_tensor(material),
+                            torch.as_tensor(stiffness))
+            for i in range(len(pool_seeds))
+        ]
+        self._leaf_count = torch.bincount(self.leaf_object, minlength=self.num_objects).float()
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike, task: str | TaskConfig) -> HRNDynamics:
+        from hrn_pyg.train import load_model
+
+        return cls(load_model(path), task)
+
+    # -- state layout -------------------------------------------------------------------------
+    def _split(self, states: Tensor) -> tuple[Tensor, Tensor]:
+        """``(..., S)`` -> positions ``(..., 3, L, 3)`` and pool index ``(...)`` long."""
+        if states.shape[-1] != self.state_dim:
+            raise ValueError(f"states must end in {self.state_dim}, got {tuple(states.shape)}")
+        pos = states[..., :-1].reshape(*states.shape[:-1], 3, self.num_leaves, 3)
+        return pos, states[..., -1].round().long()
+
+    def _join(self, pos: Tensor, index: Tensor) -> Tensor:
+        return torch.cat([pos.flatten(-3), index.to(pos.dtype).unsqueeze(-1)], dim=-1)
+
+    def scene_seeds(self, states: Tensor) -> Tensor:
+        """The pybullet seed each state's episode started from, ``(...)`` long."""
+        return self.pool_seeds[self._split(states)[1]]
+
+    # -- protocol -----------------------------------------------------------------------------
+    def reset_states(self, batch: int, generator: torch.Generator) -> Tensor:
+        index = torch.randint(len(self._structures), (batch,), generator=generator)
+        return self._join(self.pool[index], index)
+
+    def roots(self, states: Tensor) -> Tensor:
+        pos, index = self._split(states)
+        mass = self.leaf_mass[index]  # [..., L]
+        onehot = torch.nn.functional.one_hot(self.leaf_object, self.num_objects).to(pos.dtype)  # [L, O]
+        weights = mass.unsqueeze(-1) * onehot  # [..., L, O]
+        total = weights.sum(-2).unsqueeze(-1)  # [..., O, 1]
+        centre_now = torch.einsum("...lo,...lc->...oc", weights, pos[..., 2, :, :]) / total
+        centre_prev = torch.einsum("...lo,...lc->...oc", weights, pos[..., 1, :, :]) / total
+        return torch.cat([centre_now, centre_now - centre_prev], dim=-1)
+
+    @torch.no_grad()
+    def sample_next(self, states: Tensor, forces: Tensor, k: int, rate: float,
+                    generator: torch.Generator) -> Tensor:
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        if not 0.0 <= rate < 1.0:
+            raise ValueError(f"rate must be in [0, 1), got {rate}")
+        B = states.shape[0]
+        if forces.shape != (B, self.num_objects, 3):
+            raise ValueError(f"forces must be ({B}, {self.num_objects}, 3), got {tuple(forces.shape)}")
+        pos, index = self._split(states)  # [B, 3, L, 3], [B]
+        copies = index.repeat_interleave(k)  # [B k]
+        graph = Batch.from_data_list([self._structures[i] for i in copies.tolist()])
+        leaf_pos = pos.repeat_interleave(k, dim=0)  # [B k, 3, L, 3]
+        per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [B, L, 3]
+        per_leaf = per_leaf.repeat_interleave(k, dim=0)
+        radius = self.model.config.collision_radius
+        graph = set_state(graph, leaf_pos[:, 0].reshape(-1, 3), leaf_pos[:, 1].reshape(-1, 3),
+                          leaf_pos[:, 2].reshape(-1, 3), radius=radius, force=per_leaf.reshape(-1, 3))
+        masks = self.model.sample_masks(B * k, rate, generator) if rate > 0 else None
+        result = model_step(self.model, graph, None, masks)
+        leaves = graph[NODE].is_leaf
+        nxt = result.pos[leaves].reshape(B * k, 1, self.num_leaves, 3)
+        new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, k, 3, self.num_leaves, 3)
+        return self._join(new_pos, index[:, None].expand(B, k))
+
+    def structure_graph(self, index: int = 0) -> HeteroData:
+        """The static graph of pool entry ``index`` (for pictures and tests)."""
+        return self._structures[index]

@@ -1,0 +1,151 @@
+"""``hrn-pyg sample``: K futures of one scene by Monte Carlo dropout, drawn like Fig. 6.
+
+The initial state comes from a test episode of a dataset folder (``--data``) or from a fresh
+pybullet episode (``--seed``); the model's K sampled futures are drawn light, the simulator's
+ground truth dark, in a PNG of a few time columns and an animated GIF. Also writes
+``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]`` from the start state on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch_geometric.data import HeteroData
+
+import hrn_pyg
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.sampling.ensemble import HISTORY, episode_state
+from hrn_pyg.sampling.sample import sample
+from hrn_pyg.utils.files import atomic_write, atomic_write_json
+
+#: folder of the checkpoints shipped with the package, one ``<scene>.pt`` per scene
+CHECKPOINT_DIR = Path(hrn_pyg.__file__).resolve().parent / "checkpoints"
+#: columns of the PNG, as fractions of the horizon (t = 0 is the start state)
+FIGURE_COLUMNS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def default_model_path(scene: str) -> Path:
+    """``hrn_pyg/checkpoints/<scene>.pt``."""
+    return CHECKPOINT_DIR / f"{scene}.pt"
+
+
+def resolve_model(scene: str, path: str | None) -> Path:
+    """The checkpoint to use; FileNotFoundError naming it and the command that makes it."""
+    model_path = Path(path) if path else default_model_path(scene)
+    if not model_path.is_file():
+        raise FileNotFoundError(
+            f"no model checkpoint at {model_path}; train one with "
+            f"`hrn-pyg generate --scene {scene} --out data/{scene}` then "
+            f"`hrn-pyg train --preset ours --data data/{scene} --out runs/{scene} --train-dropout 0.1` "
+            f"and pass --model runs/{scene}/model.pt"
+        )
+    return model_path
+
+
+def load(path: Path) -> HRN:
+    from hrn_pyg.train import load_model  # the trainer's loader (imports the training stack)
+
+    return load_model(path)
+
+
+def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroData) -> HRN:
+    """The scene's checkpoint, or (``random_init``, for checking a pipeline only) an untrained
+    :class:`HRN` with seed 0 whose normaliser is fitted on ``fit_on``."""
+    if not random_init:
+        return load(resolve_model(scene, path))
+    from hrn_pyg.nn.hrn import HRNConfig
+    from hrn_pyg.nn.normalizer import fit_normalizer
+
+    torch.manual_seed(0)
+    model = HRN(HRNConfig())
+    fit_normalizer([fit_on], model.normalizer)
+    return model.eval()
+
+
+def initial_state(args: argparse.Namespace, steps: int | None) -> tuple[HeteroData, dict]:
+    """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin."""
+    if args.data:
+        from hrn_pyg.data.dataset import EpisodeWindows
+
+        dataset = EpisodeWindows(args.data, split="test", horizon=steps or 1)
+        index = int(args.window)
+        if not 0 <= index < len(dataset):
+            raise ValueError(f"--window must be in [0, {len(dataset) - 1}], got {index}")
+        window = dataset[index]
+        return window, {"data": str(args.data), "window": index,
+                        "episode_seed": int(window.episode_seed), "start_step": int(window.start_step)}
+    from hrn_pyg.data.scenes import simulate_episode
+
+    total = args.start + (steps or 30)
+    episode = simulate_episode(args.scene, int(args.seed), steps=total)
+    graph = episode_state(episode, start=args.start, steps=total - args.start)
+    return graph, {"scene": args.scene, "seed": int(args.seed), "start_step": int(args.start)}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", required=True, help="scene name (picks the default checkpoint)")
+    parser.add_argument("--k", type=int, default=16, help="number of sampled futures")
+    parser.add_argument("--rate", type=float, default=0.3, help="dropout rate at test time")
+    parser.add_argument("--modules", default=None,
+                        help="comma-separated modules to mask (default: the model's dropout_modules)")
+    parser.add_argument("--model", default=None, help="checkpoint (default hrn_pyg/checkpoints/<scene>.pt)")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--data", default=None, help="episode folder: use a window of its test split")
+    source.add_argument("--seed", type=int, default=9, help="simulate a fresh episode with this seed (default)")
+    parser.add_argument("--window", type=int, default=0, help="window index within --data's test split")
+    parser.add_argument("--start", type=int, default=HISTORY, help="start step of a --seed episode")
+    parser.add_argument("--steps", type=int, default=None, help="predicted steps (default 30, or the episode's)")
+    parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
+    parser.add_argument("--out", default=None, help="output folder (default runs/sample/<scene>)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.k < 1:
+        raise ValueError(f"--k must be >= 1, got {args.k}")
+    if not 0.0 <= args.rate < 1.0:
+        raise ValueError(f"--rate must be in [0, 1), got {args.rate}")
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    model = load(resolve_model(args.scene, args.model))
+    graph, origin = initial_state(args, args.steps)
+    store = graph[NODE]
+    steps = int(store.force_seq.shape[1]) if args.steps is None else int(args.steps)
+    forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
+    modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
+    generator = torch.Generator().manual_seed(int(args.sample_seed))
+    samples = sample(model, graph, args.k, steps, args.rate, forces=forces, generator=generator, modules=modules)
+
+    leaf = store.is_leaf
+    truth = store.pos_seq[leaf][:, HISTORY:].transpose(0, 1).numpy()  # [steps+1, L, 3], t = 0..steps
+    start = np.broadcast_to(truth[:1], (args.k, 1) + truth.shape[1:])
+    paths = np.concatenate([start, samples.numpy()], axis=1)  # [K, steps+1, L, 3]
+    leaf_object = store.object[leaf]
+
+    from hrn_pyg.viz import object_colors, samples_figure, write_gif
+
+    out = Path(args.out) if args.out else Path("runs") / "sample" / args.scene
+    out.mkdir(parents=True, exist_ok=True)
+    colors = object_colors(np.asarray(leaf_object))
+    times = sorted({int(round(f * steps)) for f in FIGURE_COLUMNS})
+    title = f"{args.scene}: {args.k} samples, dropout {args.rate}"
+    samples_figure(truth, paths, times, colors, out / "samples.png", title=title)
+    write_gif({"truth (dark) + samples": truth}, colors, out / "samples.gif", samples=paths)
+
+    def write_npz(f) -> None:
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, samples=samples.numpy(), truth=truth)
+        f.write(buffer.getvalue())
+
+    atomic_write(out / "samples.npz", write_npz)
+    atomic_write_json(out / "samples.json", {
+        "k": args.k, "rate": args.rate, "steps": steps, "modules": list(modules or model.config.dropout_modules),
+        "sample_seed": args.sample_seed, "model": str(args.model or default_model_path(args.scene)), **origin,
+    })
+    print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps)")
+    return 0

@@ -1,0 +1,70 @@
+"""Ground-truth ensembles from perturbed pybullet starts (hrn_pyg.sampling.ensemble)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.scenes import simulate_episode
+from hrn_pyg.sampling.ensemble import PerturbationConfig, draw_offsets, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.metrics import object_centres
+
+STEPS = 4
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return simulate_episode("wedge", 5, steps=STEPS)
+
+
+def test_zero_perturbation_replays_the_episode(reference):
+    members = ground_truth_ensemble("wedge", 5, 2, steps=STEPS, perturbation=PerturbationConfig(0.0, 0.0))
+    assert members.shape == (2,) + reference["positions"].shape
+    np.testing.assert_array_equal(members[0], reference["positions"])
+    np.testing.assert_array_equal(members[1], reference["positions"])
+
+
+def test_perturbation_moves_the_ball_sideways_only_and_repeats(reference):
+    pert = PerturbationConfig(position_std=0.002, seed=4)
+    members = ground_truth_ensemble("wedge", 5, 3, steps=STEPS, perturbation=pert)
+    again = ground_truth_ensemble("wedge", 5, 3, steps=STEPS, perturbation=pert)
+    np.testing.assert_array_equal(members, again)
+    centres = object_centres(torch.as_tensor(members[:, 0]), torch.as_tensor(reference["leaf_object"]),
+                             torch.as_tensor(reference["leaf_mass"]))
+    ref = object_centres(torch.as_tensor(reference["positions"][0]), torch.as_tensor(reference["leaf_object"]),
+                         torch.as_tensor(reference["leaf_mass"]))
+    shift = (centres - ref).numpy()  # [M, O=2 (ball, wedge), 3]
+    rng = np.random.default_rng(4)
+    for m in range(3):
+        expected, _ = draw_offsets(rng, reference["object_material"], pert)
+        np.testing.assert_allclose(shift[m], expected, atol=2e-6)
+    assert np.all(np.abs(shift[:, 0, :2]) > 0)  # ball moved in x and y
+    assert np.all(shift[:, :, 2] == 0) and np.all(shift[:, 1] == 0)  # no z offset; wedge static
+
+
+def test_episode_state_matches_the_episode(reference):
+    graph = episode_state(reference, start=2, steps=2)
+    store = graph[NODE]
+    leaves = store.is_leaf
+    pos = torch.as_tensor(reference["positions"])
+    torch.testing.assert_close(store.pos[leaves], pos[2])
+    torch.testing.assert_close(store.prev_prev_pos[leaves], pos[0])
+    assert store.pos_seq.shape == (store.num_nodes, 5, 3)
+    torch.testing.assert_close(store.pos_seq[leaves][:, -1], pos[4])
+    assert store.force_seq.shape == (store.num_nodes, 2, 3)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda ep: episode_state(ep, start=1),
+        lambda ep: episode_state(ep, start=2, steps=STEPS),
+        lambda ep: ground_truth_ensemble("wedge", 5, 0, steps=STEPS),
+        lambda ep: PerturbationConfig(position_std=-1.0),
+    ],
+)
+def test_bad_input_raises(reference, call):
+    with pytest.raises(ValueError):
+        call(reference)

@@ -1,0 +1,109 @@
+"""Hand-computed cases for hrn_pyg.sampling.metrics."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from hrn_pyg.sampling.metrics import (
+    best_of_k_error,
+    coverage,
+    energy_score,
+    object_centres,
+    root_spread,
+    side_fractions,
+)
+
+
+def test_energy_score_one_dimension():
+    # E|X - y| = (1 + 1) / 2 = 1; E|X - X'| = (0 + 2 + 2 + 0) / 4 = 1; ES = 1 - 0.5
+    samples = torch.tensor([[0.0], [2.0]])
+    truth = torch.tensor([[1.0]])
+    assert energy_score(samples, truth).item() == pytest.approx(0.5)
+
+
+def test_energy_score_euclidean_and_member_average():
+    samples = torch.tensor([[0.0, 0.0], [3.0, 4.0]])
+    # member (0, 0): distances 0 and 5 -> 2.5; member (3, 4): 5 and 0 -> 2.5; pairs: (0+5+5+0)/4
+    truth = torch.tensor([[0.0, 0.0], [3.0, 4.0]])
+    assert energy_score(samples, truth).item() == pytest.approx(2.5 - 0.5 * 2.5)
+
+
+def test_energy_score_single_sample_is_the_distance():
+    samples = torch.tensor([[1.0, 2.0, 2.0]])
+    truth = torch.tensor([[0.0, 0.0, 0.0]])
+    assert energy_score(samples, truth).item() == pytest.approx(3.0)
+
+
+def test_energy_score_keeps_middle_dimensions():
+    samples = torch.zeros(2, 5, 3)
+    samples[1, :, 0] = torch.arange(5.0)  # the two samples are t apart at time t
+    truth = torch.zeros(1, 5, 3)
+    # E|X - y| = t / 2, E|X - X'| = 2t / 4 -> ES = t/2 - t/4 = t/4
+    torch.testing.assert_close(energy_score(samples, truth), torch.arange(5.0) / 4)
+
+
+def test_best_of_k_error():
+    samples = torch.tensor([[[0.0, 0, 0], [0, 0, 0]], [[1.0, 0, 0], [1, 0, 0]]])  # [K=2, L=2, 3]
+    truth = torch.tensor([[[0.9, 0, 0], [1.2, 0, 0]], [[0.0, 0, 0], [0.0, 0, 0.4]]])  # [M=2, L=2, 3]
+    # member 0: sample 0 -> (0.9 + 1.2) / 2 = 1.05, sample 1 -> (0.1 + 0.2) / 2 = 0.15 -> 0.15
+    # member 1: sample 0 -> (0 + 0.4) / 2 = 0.2, sample 1 -> (1 + sqrt(1.16)) / 2 -> 0.2
+    assert best_of_k_error(samples, truth).item() == pytest.approx((0.15 + 0.2) / 2)
+
+
+def test_coverage_per_coordinate_and_per_member():
+    samples = torch.tensor([[0.0, 1.0], [2.0, 3.0]])  # range x in [0, 2], y in [1, 3]
+    truth = torch.tensor([[1.0, 2.0], [3.0, 2.0], [0.0, 3.0]])  # in/in, out/in, bounds/bounds
+    assert coverage(samples, truth).item() == pytest.approx(5 / 6)
+    assert coverage(samples, truth, per="member").item() == pytest.approx(2 / 3)
+
+
+def test_coverage_of_one_sample_is_a_point():
+    samples = torch.tensor([[1.0, 1.0]])
+    truth = torch.tensor([[1.0, 1.0], [1.0, 1.5]])
+    assert coverage(samples, truth).item() == pytest.approx(3 / 4)
+    assert coverage(samples, truth, per="member").item() == pytest.approx(1 / 2)
+
+
+def test_object_centres_are_mass_weighted():
+    positions = torch.tensor([[0.0, 0, 0], [4.0, 0, 0], [1.0, 2, 3]])
+    centres = object_centres(positions, torch.tensor([0, 0, 1]), torch.tensor([1.0, 3.0, 2.0]))
+    torch.testing.assert_close(centres, torch.tensor([[3.0, 0, 0], [1.0, 2, 3]]))
+    batched = object_centres(positions.expand(2, 4, 3, 3), torch.tensor([0, 0, 1]), torch.tensor([1.0, 3.0, 2.0]))
+    assert batched.shape == (2, 4, 2, 3)
+
+
+def test_root_spread():
+    centres = torch.tensor([[[0.0, 0, 0]], [[2.0, 0, 0]]])  # [K=2, O=1, 3]: mean (1, 0, 0), each 1 away
+    torch.testing.assert_close(root_spread(centres), torch.tensor([1.0]))
+    three = torch.tensor([[0.0, 0, 0], [0.0, 3, 0], [0.0, 0, 3]])  # mean (0, 1, 1)
+    expected = math.sqrt((2 + 5 + 5) / 3)
+    assert root_spread(three).item() == pytest.approx(expected)
+    assert root_spread(torch.ones(4, 7, 2, 3)).shape == (7, 2)
+    assert root_spread(torch.ones(4, 7, 2, 3)).abs().max() == 0
+
+
+def test_side_fractions():
+    torch.testing.assert_close(side_fractions(torch.tensor([-1.0, -0.5, 0.2, 0.0])),
+                               torch.tensor([0.5, 0.5], dtype=torch.float64))
+    torch.testing.assert_close(side_fractions(torch.tensor([0.3, 0.4, 0.1]), ridge=0.35),
+                               torch.tensor([2 / 3, 1 / 3], dtype=torch.float64))
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: energy_score(torch.zeros(2, 3), torch.zeros(1, 4)),
+        lambda: best_of_k_error(torch.zeros(2, 4, 2), torch.zeros(1, 4, 2)),
+        lambda: coverage(torch.zeros(2, 3), torch.zeros(1, 3), per="all"),
+        lambda: object_centres(torch.zeros(3, 3), torch.tensor([0, 1]), torch.ones(3)),
+        lambda: root_spread(torch.zeros(2, 2)),
+        lambda: side_fractions(torch.tensor([float("nan")])),
+        lambda: side_fractions(torch.zeros(0)),
+    ],
+)
+def test_bad_input_raises(call):
+    with pytest.raises(ValueError):
+        call()
