@@ -12,6 +12,8 @@ dropout) and k dropout samples at each ``--rates`` are scored at the last predic
   closest sample, averaged over members; metres),
 * coverage (:func:`~hrn_pyg.sampling.metrics.coverage`, per coordinate: fraction of the
   members' leaf coordinates inside the samples' [min, max]),
+Leaves of static objects are left out of every score.
+
 * wedge only: fraction of trajectories whose ball centre ends at ``x < 0`` / ``x >= 0``
   (:func:`~hrn_pyg.sampling.metrics.side_fractions`), samples against the ensemble.
 
@@ -33,7 +35,7 @@ import numpy as np
 import torch
 
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import simulate_episode
+from hrn_pyg.data.scenes import STATIC, simulate_episode
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.cli import CHECKPOINT_DIR, model_for
 from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
@@ -46,14 +48,20 @@ WEDGE_BALL, WEDGE_RIDGE_X = 0, 0.0
 
 
 def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: str) -> dict:
-    """Scores of futures ``[K, L, 3]`` against members ``[M, L, 3]`` (one time step)."""
+    """Scores of futures ``[K, L, 3]`` against members ``[M, L, 3]`` (one time step).
+
+    Leaves of static objects (the wedge) never move in either, so they are left out: they would
+    only dilute every score.
+    """
+    obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
+    moving = torch.as_tensor(episode["object_material"])[obj] != STATIC
     row = {
-        "energy_score_m": float(energy_score(futures, members).mean()),  # per leaf, mean over leaves
-        "best_of_k_m": float(best_of_k_error(futures, members)),
-        "coverage": float(coverage(futures.flatten(1), members.flatten(1))),
+        # per leaf, then the mean over the moving leaves
+        "energy_score_m": float(energy_score(futures[:, moving], members[:, moving]).mean()),
+        "best_of_k_m": float(best_of_k_error(futures[:, moving], members[:, moving])),
+        "coverage": float(coverage(futures[:, moving].flatten(1), members[:, moving].flatten(1))),
     }
     if scene == "wedge":
-        obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
         x = object_centres(futures, obj, mass)[:, WEDGE_BALL, 0]
         row["side_fractions"] = side_fractions(x, WEDGE_RIDGE_X).tolist()
     return row

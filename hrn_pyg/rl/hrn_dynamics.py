@@ -12,11 +12,22 @@ leaf positions only: ancestors are derived, collision edges recomputed, exactly 
 other rollout (:func:`hrn_pyg.rollout.step`). One call of :meth:`HRNDynamics.sample_next`
 steps ``B`` environments times ``k`` samples as one batched graph, each copy with its own
 dropout masks (one per step per copy, the seed paper's graph-convolutional dropout).
+
+Speed (the environment step is the RL loop's cost): every pool entry shares one hierarchy, so
+the batched static graph depends only on the number of copies; it is collated once per copy
+count and cached, and only the node attributes that differ between pool entries (the masses)
+are gathered per step. At rate 0 the ``k`` samples are one deterministic prediction, computed
+once per environment and repeated. The model stages are called directly
+(:func:`~hrn_pyg.rollout.build_inputs`, :func:`~hrn_pyg.rollout.run_network`,
+:func:`~hrn_pyg.rollout.decode`), skipping the collision search for a next graph that
+:func:`hrn_pyg.rollout.step` would build and this module would throw away.
 """
 
 from __future__ import annotations
 
+import copy
 import os
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -29,13 +40,16 @@ from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
-from hrn_pyg.rollout import step as model_step
+from hrn_pyg.rollout import build_inputs, decode, run_network
 
 #: seeds of the initial-state pool; far from the generated datasets' seeds (0..199), so the
 #: agent starts from scenes the model never saw in training
 POOL_SEEDS = tuple(range(10_000, 10_064))
 #: zero-force pybullet steps taken after reset to get x_{t-2}, x_{t-1}, x_t
 HISTORY_STEPS = 2
+#: batched static graphs kept (one per copy count: training batch x k, the same at rate 0 with
+#: k = 1, evaluation batches); a handful covers every count one PPO run uses
+BATCH_CACHE_SIZE = 8
 
 
 class HRNDynamics:
@@ -94,6 +108,8 @@ class HRNDynamics:
             for i in range(len(pool_seeds))
         ]
         self._leaf_count = torch.bincount(self.leaf_object, minlength=self.num_objects).float()
+        self._varying = _varying_node_attributes(self._structures)  # {name: [P, N, ...]}
+        self._batched: OrderedDict[int, HeteroData] = OrderedDict()
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, task: str | TaskConfig) -> HRNDynamics:
@@ -142,21 +158,68 @@ class HRNDynamics:
         if forces.shape != (B, self.num_objects, 3):
             raise ValueError(f"forces must be ({B}, {self.num_objects}, 3), got {tuple(forces.shape)}")
         pos, index = self._split(states)  # [B, 3, L, 3], [B]
-        copies = index.repeat_interleave(k)  # [B k]
-        graph = Batch.from_data_list([self._structures[i] for i in copies.tolist()])
-        leaf_pos = pos.repeat_interleave(k, dim=0)  # [B k, 3, L, 3]
         per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [B, L, 3]
-        per_leaf = per_leaf.repeat_interleave(k, dim=0)
-        radius = self.model.config.collision_radius
+        # rate 0: the k samples are one deterministic prediction, made once per environment
+        copies_per_env = k if rate > 0 else 1
+        n = B * copies_per_env
+        copies = index.repeat_interleave(copies_per_env)  # [n]
+        leaf_pos = pos.repeat_interleave(copies_per_env, dim=0)  # [n, 3, L, 3]
+        per_leaf = per_leaf.repeat_interleave(copies_per_env, dim=0)
+        graph = self._batched_structure(copies)
         graph = set_state(graph, leaf_pos[:, 0].reshape(-1, 3), leaf_pos[:, 1].reshape(-1, 3),
-                          leaf_pos[:, 2].reshape(-1, 3), radius=radius, force=per_leaf.reshape(-1, 3))
-        masks = self.model.sample_masks(B * k, rate, generator) if rate > 0 else None
-        result = model_step(self.model, graph, None, masks)
+                          leaf_pos[:, 2].reshape(-1, 3), radius=self.model.config.collision_radius,
+                          force=per_leaf.reshape(-1, 3))
+        masks = self.model.sample_masks(n, rate, generator) if rate > 0 else None
+        out = run_network(self.model, build_inputs(self.model, graph), masks)
+        next_pos = decode(self.model, graph, out)[0]
         leaves = graph[NODE].is_leaf
-        nxt = result.pos[leaves].reshape(B * k, 1, self.num_leaves, 3)
-        new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, k, 3, self.num_leaves, 3)
+        nxt = next_pos[leaves].reshape(n, 1, self.num_leaves, 3)
+        new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
+        new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
         return self._join(new_pos, index[:, None].expand(B, k))
+
+    def _batched_structure(self, copies: Tensor) -> HeteroData:
+        """Pool entries ``copies`` ``[n]`` as one batched static graph (a shallow copy).
+
+        The collated graph of ``n`` copies of entry 0 is cached per ``n``; the attributes that
+        differ between entries are overwritten with each copy's own.
+        """
+        n = int(copies.numel())
+        cached = self._batched.get(n)
+        if cached is None:
+            cached = Batch.from_data_list([self._structures[0]] * n)
+            self._batched[n] = cached
+            if len(self._batched) > BATCH_CACHE_SIZE:
+                self._batched.popitem(last=False)
+        else:
+            self._batched.move_to_end(n)
+        graph = copy.copy(cached)
+        store = graph[NODE]
+        for name, values in self._varying.items():
+            store[name] = values[copies].flatten(0, 1)
+        return graph
 
     def structure_graph(self, index: int = 0) -> HeteroData:
         """The static graph of pool entry ``index`` (for pictures and tests)."""
         return self._structures[index]
+
+
+def _varying_node_attributes(structures: Sequence[HeteroData]) -> dict[str, Tensor]:
+    """Node tensors that differ between pool structures, stacked ``[P, N, ...]``.
+
+    Raises ValueError when the structures do not share node count and edge sets (the batched
+    graph cache relies on one shared hierarchy).
+    """
+    first = structures[0]
+    for other in structures[1:]:
+        if other[NODE].num_nodes != first[NODE].num_nodes or any(
+                not torch.equal(first[et].edge_index, other[et].edge_index) for et in first.edge_types):
+            raise ValueError("pool structures must share one hierarchy (same nodes and edges)")
+    varying = {}
+    for name, value in first[NODE].items():
+        if not isinstance(value, Tensor):
+            continue
+        stacked = torch.stack([s[NODE][name] for s in structures])
+        if not bool((stacked == stacked[:1]).all()):
+            varying[name] = stacked
+    return varying
