@@ -59,12 +59,20 @@ class Step(NamedTuple):
     graph: HeteroData
 
 
+def _check_finite(name: str, value: Tensor) -> None:
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} contains NaN or infinite values")
+
+
 def _node_force(graph: HeteroData, force: Tensor | None) -> Tensor:
     store = graph[NODE]
     if force is None:
-        return store.force if "force" in store else torch.zeros_like(store.pos)
+        force = store.force if "force" in store else torch.zeros_like(store.pos)
+        _check_finite(f"graph['{NODE}'].force", force)
+        return force
     if force.shape != store.pos.shape:
         raise ValueError(f"force must be [N, 3] = {tuple(store.pos.shape)}, got {tuple(force.shape)}")
+    _check_finite("force", force)
     return torch.where(store.is_leaf.unsqueeze(-1), force, torch.zeros_like(force))
 
 
@@ -81,6 +89,7 @@ def build_inputs(model: HRN, graph: HeteroData, force: Tensor | None = None) -> 
     for name in ("pos", "prev_pos", "prev_prev_pos"):
         if name not in store:
             raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
+        _check_finite(f"graph['{NODE}'].{name}", store[name])
     norm = model.normalizer
     pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
     static = (store.mass, store.material, store.stiffness, store.depth, store.is_leaf, store.is_root)
@@ -171,6 +180,8 @@ def _check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:
     n = graph[NODE].num_nodes
     if forces is not None and (forces.dim() != 3 or forces.shape[0] < steps or forces.shape[1:] != (n, 3)):
         raise ValueError(f"forces must be [steps>={steps}, {n}, 3], got {tuple(forces.shape)}")
+    if forces is not None:
+        _check_finite("forces", forces[:steps])
 
 
 def unroll(

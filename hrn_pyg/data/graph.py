@@ -271,6 +271,9 @@ def set_state(
     **Shapes**: positions and force ``(N, 3)`` or ``(L, 3)``; sets ``pos``, ``prev_pos``,
     ``prev_prev_pos``, ``force`` ``(N, 3)`` and ``collision`` ``(2, |E_C|)``.
     """
+    for name, value in (("prev_prev_pos", prev_prev_pos), ("prev_pos", prev_pos), ("pos", pos), ("force", force)):
+        if value is not None and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise ValueError(f"set_state: {name} contains NaN or infinite values")
     out = copy.copy(graph)
     store = out[NODE]
     is_leaf = store.is_leaf[:, None]

@@ -55,8 +55,12 @@ BATCH_CACHE_SIZE = 8
 class HRNDynamics:
     """:class:`~hrn_pyg.rl.dynamics.StochasticDynamics` backed by a trained :class:`HRN`.
 
+    Dropout masks are sampled for every module the model takes them on (so the random stream
+    does not depend on the task) and applied only on the task's ``dropout_modules``.
+
     Args:
-        model: the trained HRN (its normaliser fitted); put in eval mode.
+        model: the trained HRN (its normaliser fitted); put in eval mode. It must take dropout
+            on every module of ``task.dropout_modules``.
         task: the task (its ``name`` is the pybullet scene).
         pool_seeds: pybullet seeds of the initial states :meth:`reset_states` draws from.
 
@@ -71,6 +75,10 @@ class HRNDynamics:
 
         self.task = get_task(task)
         self.model = model.eval()
+        missing = set(self.task.dropout_modules) - set(model.config.dropout_modules)
+        if missing:
+            raise ValueError(f"the model takes no dropout on {sorted(missing)}, which task "
+                             f"{self.task.name!r} samples on")
         if not pool_seeds:
             raise ValueError("pool_seeds must not be empty")
         histories, masses = [], []
@@ -169,7 +177,10 @@ class HRNDynamics:
         graph = set_state(graph, leaf_pos[:, 0].reshape(-1, 3), leaf_pos[:, 1].reshape(-1, 3),
                           leaf_pos[:, 2].reshape(-1, 3), radius=self.model.config.collision_radius,
                           force=per_leaf.reshape(-1, 3))
-        masks = self.model.sample_masks(n, rate, generator) if rate > 0 else None
+        masks = None
+        if rate > 0:  # one mask per copy on the task's modules only (cube_push: force)
+            masks = {name: mask for name, mask in self.model.sample_masks(n, rate, generator).items()
+                     if name in self.task.dropout_modules}
         out = run_network(self.model, build_inputs(self.model, graph), masks)
         next_pos = decode(self.model, graph, out)[0]
         leaves = graph[NODE].is_leaf

@@ -123,3 +123,43 @@ def test_replay_in_pybullet_judges_the_goal_on_ground_truth():
     assert not first["success"] and first["steps"] == 1
     with pytest.raises(ValueError, match="goal"):
         replay_in_pybullet(still, "cube_push", 5)
+
+
+def test_curve_metrics_by_hand():
+    from hrn_pyg.rl.ppo import curve_metrics, smooth, updates_to_reach
+
+    assert smooth([4.0, float("nan"), 2.0], window=2) == [4.0, 4.0, 2.0]
+    # 10 updates at 10, then 90 at 2: final 2, start 10, 90 % of the drop reached when the
+    # 10-update average is <= 2.8, i.e. once at most one of the last ten values is 10
+    curve = [10.0] * 10 + [2.0] * 90
+    m = curve_metrics(curve)
+    assert m["final_length"] == 2.0 and m["start_length"] == 10.0
+    assert m["updates_to_final"] == 18
+    assert updates_to_reach(curve, 6.0) == 14 and updates_to_reach(curve, 1.0) is None
+    flat = curve_metrics([9.0] * 50)
+    assert flat["final_length"] == 9.0 and flat["updates_to_final"] is None   # no learning
+
+
+def test_write_summary_tables(tmp_path):
+    from hrn_pyg.rl.ppo import write_summary
+
+    for mode, seed, curve in (("deterministic", 0, [10.0] * 5 + [4.0] * 20),
+                              ("stochastic", 0, [10.0, 4.0] + [3.0] * 23)):
+        log = tmp_path / mode / f"seed{seed}" / "log.csv"
+        log.parent.mkdir(parents=True)
+        log.write_text("update,mean_episode_length\n" + "".join(f"{i},{v}\n" for i, v in enumerate(curve)))
+    results = [{"task": "cube_push", "mode": "stochastic", "seed": 0, "final_length": 3.0,
+                "updates_to_final": 2, "success_rate": 1.0, "mean_episode_length": 3.0,
+                "pybullet_success_rate": 0.5, "pybullet_mean_length": 6.5},
+               {"task": "cube_push", "mode": "deterministic", "seed": 0, "final_length": 4.0,
+                "updates_to_final": 13, "success_rate": 0.5, "mean_episode_length": 7.0}]
+    write_summary(tmp_path, results)
+    with open(tmp_path / "summary.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["mode"] for r in rows] == ["deterministic", "stochastic"]
+    md = (tmp_path / "summary.md").read_text().splitlines()
+    det = next(line for line in md if line.startswith("| deterministic"))
+    sto = next(line for line in md if line.startswith("| stochastic"))
+    assert "4.00 [4.00, 4.00]" in det and "| - | - |" in det          # no pybullet check there
+    # the stochastic curve's trailing mean first drops to <= 4 at update 7: (10 + 4 + 6 * 3) / 8
+    assert "| 7.00 [7.00, 7.00] |" in sto and "0.50 [0.50, 0.50]" in sto

@@ -1,0 +1,215 @@
+"""The learned HRN as the environment's physics (small random HRN, small pool), and the
+ground-truth check that replays a policy's episodes in pybullet."""
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.graph import NODE, set_state
+from hrn_pyg.data.io import save_episode
+from hrn_pyg.data.scenes import make_scene, simulate_episode
+from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.rl.dynamics import StochasticDynamics
+from hrn_pyg.rl.env import HRNEnv
+from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, POOL_SEEDS, HRNDynamics
+from hrn_pyg.rl.ppo import build_actor_critic, ground_truth_success, record_episodes, replay_in_pybullet
+from hrn_pyg.rollout import step as model_step
+
+POOL = POOL_SEEDS[:4]
+#: windows of the tiny cube_push folder the normaliser is fitted on
+FIT_WINDOWS = 12
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> HRN:
+    """A small random-init HRN with dropout on its force module and a fitted normaliser."""
+    folder = tmp_path_factory.mktemp("cube_push")
+    for seed in (0, 1):  # both in the train split
+        save_episode(folder / f"episode_{seed:06d}.npz", simulate_episode("cube_push", seed, steps=10))
+    windows = EpisodeWindows(folder, "train", horizon=1)
+    torch.manual_seed(0)
+    net = HRN(HRNConfig(hidden=16, effect_dim=16, dropout_modules=("force",)))
+    fit_normalizer((windows[i] for i in range(FIT_WINDOWS)), net.normalizer)
+    return net.eval()
+
+
+@pytest.fixture(scope="module")
+def dynamics(model) -> HRNDynamics:
+    return HRNDynamics(model, "cube_push", pool_seeds=POOL)
+
+
+def _forces(B: int, seed: int = 0) -> torch.Tensor:
+    return (torch.rand(B, 2, 3, generator=torch.Generator().manual_seed(seed)) * 2 - 1) * 10.0
+
+
+def test_protocol_and_shapes(dynamics):
+    assert isinstance(dynamics, StochasticDynamics)
+    L = dynamics.num_leaves
+    assert dynamics.state_dim == 9 * L + 1 and dynamics.num_objects == 2
+    states = dynamics.reset_states(6, torch.Generator().manual_seed(0))
+    assert states.shape == (6, 9 * L + 1)
+    assert dynamics.roots(states).shape == (6, 2, 6)
+    samples = dynamics.sample_next(states, _forces(6), 3, 0.1, torch.Generator().manual_seed(1))
+    assert samples.shape == (6, 3, 9 * L + 1)
+    assert dynamics.roots(samples).shape == (6, 3, 2, 6)
+    # the history shifts by one step and the pool index rides along
+    pos = samples[..., :-1].reshape(6, 3, 3, L, 3)
+    before = states[:, None, :-1].reshape(6, 1, 3, L, 3)
+    assert torch.equal(pos[:, :, :2], before[:, :, 1:].expand(6, 3, 2, L, 3))
+    assert torch.equal(samples[..., -1], states[:, None, -1].expand(6, 3))
+    assert torch.isfinite(samples).all()
+
+
+def test_rate_zero_gives_k_copies_of_one_deterministic_step(dynamics, model):
+    B, L = 3, dynamics.num_leaves
+    states = dynamics.reset_states(B, torch.Generator().manual_seed(2))
+    forces = _forces(B, 1)
+    samples = dynamics.sample_next(states, forces, 4, 0.0, torch.Generator().manual_seed(3))
+    assert torch.equal(samples, samples[:, :1].expand_as(samples))
+    # the same step by hand: one unbatched graph per environment through hrn_pyg.rollout.step
+    per_object = torch.bincount(dynamics.leaf_object).float()
+    for b in range(B):
+        index = int(states[b, -1])
+        x = states[b, :-1].reshape(3, L, 3)
+        leaf_force = forces[b, dynamics.leaf_object] / per_object[dynamics.leaf_object, None]
+        graph = set_state(dynamics.structure_graph(index), x[0], x[1], x[2],
+                          radius=model.config.collision_radius, force=leaf_force)
+        with torch.no_grad():
+            nxt = model_step(model, graph).pos[graph[NODE].is_leaf]
+        got = samples[b, 0, :-1].reshape(3, L, 3)[2]
+        torch.testing.assert_close(got, nxt, rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(got, x[2])  # the step moved something
+
+
+def test_dropout_samples_differ_and_seeded_generator_repeats(dynamics):
+    states = dynamics.reset_states(2, torch.Generator().manual_seed(4))
+    forces = _forces(2, 2)
+    a = dynamics.sample_next(states, forces, 5, 0.3, torch.Generator().manual_seed(5))
+    b = dynamics.sample_next(states, forces, 5, 0.3, torch.Generator().manual_seed(5))
+    c = dynamics.sample_next(states, forces, 5, 0.3, torch.Generator().manual_seed(6))
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+    for env in range(2):  # the k futures of one environment are not all the same
+        spread = (a[env] - a[env, :1]).abs().amax(-1)
+        assert (spread[1:] > 0).all()
+
+
+def test_roots_are_mass_weighted_leaf_means_by_hand(dynamics):
+    states = dynamics.reset_states(4, torch.Generator().manual_seed(7))
+    L = dynamics.num_leaves
+    roots = dynamics.roots(states)
+    for b in range(4):
+        index = int(states[b, -1])
+        mass = dynamics.leaf_mass[index].double().numpy()
+        x = states[b, :-1].reshape(3, L, 3).double().numpy()
+        for obj in range(2):  # two objects, each a weighted sum over its own leaves
+            sel = dynamics.leaf_object.numpy() == obj
+            w = mass[sel] / mass[sel].sum()
+            now = (w[:, None] * x[2, sel]).sum(0)
+            prev = (w[:, None] * x[1, sel]).sum(0)
+            np.testing.assert_allclose(roots[b, obj, :3].numpy(), now, atol=1e-6)
+            np.testing.assert_allclose(roots[b, obj, 3:].numpy(), now - prev, atol=1e-6)
+
+
+def test_scene_seeds_round_trip_to_the_pybullet_scene(dynamics):
+    states = dynamics.reset_states(8, torch.Generator().manual_seed(8))
+    seeds = dynamics.scene_seeds(states)
+    assert seeds.shape == (8,) and set(seeds.tolist()) <= set(POOL)
+    assert torch.equal(seeds, torch.tensor(POOL)[states[:, -1].long()])
+    nxt = dynamics.sample_next(states, _forces(8), 2, 0.1, torch.Generator().manual_seed(9))
+    assert torch.equal(dynamics.scene_seeds(nxt), seeds[:, None].expand(8, 2))
+    # the state is the named scene after HISTORY_STEPS zero-force steps
+    seed = int(seeds[0])
+    scene = make_scene("cube_push", seed)
+    try:
+        frames = [scene.reset()]
+        for _ in range(HISTORY_STEPS):
+            frames.append(scene.step(scene.zero_action()))
+    finally:
+        scene.close()
+    expected = torch.tensor(np.stack(frames), dtype=torch.float32)
+    assert torch.equal(states[0, :-1].reshape(3, -1, 3), expected)
+
+
+def test_bad_input_raises(dynamics, model):
+    states = dynamics.reset_states(2, torch.Generator().manual_seed(0))
+    gen = torch.Generator()
+    with pytest.raises(ValueError, match="states"):
+        dynamics.sample_next(states[:, :-1], _forces(2), 2, 0.1, gen)
+    with pytest.raises(ValueError, match="forces"):
+        dynamics.sample_next(states, _forces(3), 2, 0.1, gen)
+    with pytest.raises(ValueError, match="k"):
+        dynamics.sample_next(states, _forces(2), 0, 0.1, gen)
+    with pytest.raises(ValueError, match="rate"):
+        dynamics.sample_next(states, _forces(2), 2, 1.0, gen)
+    with pytest.raises(ValueError, match="pool_seeds"):
+        HRNDynamics(model, "cube_push", pool_seeds=())
+    no_force = HRN(HRNConfig(hidden=8, effect_dim=8, dropout_modules=("collision",)))
+    with pytest.raises(ValueError, match="dropout"):
+        HRNDynamics(no_force, "cube_push", pool_seeds=POOL)
+
+
+def test_dropout_only_on_the_task_modules(model):
+    # cube_push samples dropout on the force module only: a model that also takes collision
+    # masks gives the very same futures, even with the cubes overlapping (collision edges)
+    both = HRN(HRNConfig(hidden=16, effect_dim=16, dropout_modules=("force", "collision")))
+    both.load_state_dict(model.state_dict())
+    force_only = HRNDynamics(model, "cube_push", pool_seeds=POOL[:1])
+    with_collision = HRNDynamics(both.eval(), "cube_push", pool_seeds=POOL[:1])
+    states = force_only.reset_states(2, torch.Generator().manual_seed(0))
+    L = force_only.num_leaves
+    pos = states[:, :-1].reshape(2, 3, L, 3).clone()
+    cube0, cube1 = force_only.leaf_object == 0, force_only.leaf_object == 1
+    pos[:, :, cube1] = pos[:, :, cube0][:, :, : int(cube1.sum())] + 0.01  # cube 1 inside cube 0
+    states = torch.cat([pos.flatten(1), states[:, -1:]], 1)
+    graph = set_state(force_only.structure_graph(0), *pos[0], radius=model.config.collision_radius)
+    assert graph["particle", "collision", "particle"].edge_index.shape[1] > 0
+    a = force_only.sample_next(states, _forces(2), 3, 0.3, torch.Generator().manual_seed(1))
+    b = with_collision.sample_next(states, _forces(2), 3, 0.3, torch.Generator().manual_seed(1))
+    assert torch.equal(a, b)
+
+
+def test_env_specs_and_random_rollout_stay_finite(dynamics):
+    env = HRNEnv("cube_push", dynamics, batch_size=3, seed=0)
+    check_env_specs(env)
+    td = env.rollout(12, break_when_any_done=False)  # random actions; auto-reset after episodes
+    assert td.batch_size == (3, 12)
+    for key in ("observation", "state", "reward"):
+        assert torch.isfinite(td["next", key]).all()
+    assert ((td["next", "t"] >= 1) & (td["next", "t"] <= env.task.max_steps)).all()
+
+
+def test_record_episodes_and_ground_truth_check(dynamics):
+    env = HRNEnv("cube_push", dynamics, batch_size=3, seed=1, dropout_rate=0.1)
+    torch.manual_seed(0)
+    actor, _ = build_actor_critic(env, 8)
+    records = record_episodes(actor, env, 4)
+    assert len(records) == 4
+    for rec in records:
+        n = rec["length"]
+        assert 1 <= n <= env.task.max_steps and rec["seed"] in POOL
+        assert rec["actions"].shape == (n, env.task.action_dim) and rec["states"].shape == (n + 1, dynamics.state_dim)
+        assert rec["actions"].abs().max() <= env.task.max_force
+        assert int(dynamics.scene_seeds(rec["states"][0])) == rec["seed"]
+    result = ground_truth_success(actor, env, 4)
+    assert result["ground_truth_episodes"] == 4
+    for key in ("model_success_rate", "pybullet_success_rate", "agreement"):
+        assert 0.0 <= result[key] <= 1.0
+    for key in ("model_mean_length", "pybullet_mean_length"):
+        assert 1.0 <= result[key] <= env.task.max_steps
+    assert env.dropout_rate == 0.1  # restored after the check
+
+
+def test_replay_starts_where_the_learned_episode_starts(dynamics):
+    # zero actions: the replay's first root state is the learned state's, velocity included
+    states = dynamics.reset_states(1, torch.Generator().manual_seed(3))
+    seed = int(dynamics.scene_seeds(states)[0])
+    replay = replay_in_pybullet(torch.zeros(2, 4), "cube_push", seed, goal=torch.tensor([9.0, 9.0]),
+                                history_steps=HISTORY_STEPS)
+    torch.testing.assert_close(replay["roots"][0], dynamics.roots(states)[0], rtol=0, atol=1e-5)
+    assert replay["leaves"].shape == (3, dynamics.num_leaves, 3) and not replay["success"]
+    with pytest.raises(ValueError, match="history_steps"):
+        replay_in_pybullet(torch.zeros(1, 4), "cube_push", seed, goal=torch.zeros(2), history_steps=-1)
