@@ -151,6 +151,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--horizons", default="5,15", help="comma-separated steps ahead (default 5,15)")
     parser.add_argument("--stride", type=int, default=10, help="steps between window starts in an episode")
     parser.add_argument("--limit", type=int, default=None, help="score at most this many trajectories")
+    parser.add_argument("--split", default="test", choices=("test", "val"),
+                        help="held-out split to score (val for model selection, test for reporting)")
     parser.add_argument("--no-figure", action="store_true")
 
 
@@ -171,19 +173,20 @@ def run(args: argparse.Namespace) -> int:
     if args.stride < 1:
         raise ValueError(f"--stride must be >= 1, got {args.stride}")
     models = {name: load_model(path) for name, path in _parse_models(args.model).items()}
-    dataset = EpisodeWindows(args.data, "test", horizon=max(horizons))
+    dataset = EpisodeWindows(args.data, args.split, horizon=max(horizons))
     windows = select_windows(dataset, args.stride, args.limit)
     summaries = {name: summarise(evaluate_model(m, windows, horizons)) for name, m in models.items()}
     scene = Path(args.data).name
     table = markdown_table(summaries, horizons, scene)
     out = Path(args.out)
     atomic_write_text(out / "table.md", table)
-    atomic_write_json(out / "results.json", {"scene": scene, "data": str(args.data), "horizons": list(horizons),
+    atomic_write_json(out / "results.json", {"scene": scene, "data": str(args.data), "split": args.split,
+                                            "horizons": list(horizons),
                                             "trajectories": len(windows), "models": _parse_models(args.model),
                                             "results": summaries})
     if not args.no_figure:
         comparison_figure(models, windows[0], out / f"rollout_{scene}.png",
                           times=tuple(sorted({0, *horizons, max(horizons) // 2})))
     print(table, end="")
-    print(f"{len(windows)} held-out trajectories; written to {out}")
+    print(f"{len(windows)} held-out trajectories ({args.split} split); written to {out}")
     return 0

@@ -17,9 +17,12 @@ from torch_geometric.data import HeteroData
 from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE
 from hrn_pyg.nn.state import to_local_velocity
 
-#: a fitted standard deviation below this counts as "never varies in the training data" (e.g. one
-#: mass for every particle) and is replaced by 1, so an unseen value is not blown up by 1/0
-STD_EPSILON = 1e-8
+#: a column whose training values span at most this fraction of their largest magnitude "never
+#: varies" (e.g. one mass for every particle; a few float32 rounding steps) and gets scale 1, so an
+#: unseen value is not blown up by 1/0. Relative, not absolute: a scene in micrometres has real
+#: velocity spreads far below any fixed epsilon, and forcing them to 1 m/step made a fitted model
+#: fly apart (tests/stability, small scales)
+STD_EPSILON = 5e-7
 
 #: floor under masses before the logarithm (static bodies may carry zero mass)
 MASS_FLOOR = 1e-8
@@ -93,12 +96,18 @@ class _Moments:
         self.n = 0
         self.s = torch.zeros(dim, dtype=torch.float64)
         self.ss = torch.zeros(dim, dtype=torch.float64)
+        self.lo = torch.full((dim,), float("inf"), dtype=torch.float64)
+        self.hi = torch.full((dim,), float("-inf"), dtype=torch.float64)
 
     def add(self, x: Tensor) -> None:
         x = x.detach().reshape(-1, self.s.numel()).to(torch.float64).cpu()
+        if x.size(0) == 0:
+            return
         self.n += x.size(0)
         self.s += x.sum(0)
         self.ss += (x * x).sum(0)
+        self.lo = torch.minimum(self.lo, x.amin(0))
+        self.hi = torch.maximum(self.hi, x.amax(0))
 
     def mean(self) -> Tensor:
         return (self.s / self.n).float() if self.n else torch.zeros_like(self.s, dtype=torch.float32)
@@ -109,7 +118,11 @@ class _Moments:
         m2 = self.ss / self.n
         var = m2 - (self.s / self.n) ** 2 if centred else m2
         std = var.clamp_min(0.0).sqrt()
-        return torch.where(std < STD_EPSILON, torch.ones_like(std), std).float()
+        if not centred:  # a scale of the raw values: only all-zero columns are degenerate
+            constant = std == 0
+        else:
+            constant = (self.hi - self.lo) <= STD_EPSILON * torch.maximum(self.hi.abs(), self.lo.abs())
+        return torch.where(constant | (std == 0), torch.ones_like(std), std).float()
 
 
 def _positions(store) -> Tensor:

@@ -77,19 +77,20 @@ class PPOConfig:
     torch's intra-op threads during training: the networks are tiny, and more threads than free
     cores made one update ten times slower on the 2-core development machine.
 
-    Defaults (docs/rl.md): one update collects one 10-step episode's worth of frames from 32
-    environments (320 frames), about 1.6 s with the learned cube_push HRN at k = 5 and
-    rate 0.1 and 0.4 s at rate 0 on one busy core, so a 150-update run takes about 4 minutes
-    (stochastic) or 1 minute (deterministic). ``gamma = 0.9`` makes a shorter successful
-    episode clearly worth more than a longer one (0.9^3 vs 0.9^8 against 0.99^3 vs 0.99^8)
-    and ``lr = 3e-3``; with them PPO on the point-mass cube_push stand-in reached its final
-    length in about 50 updates, where ``gamma = 0.99, lr = 1e-3`` had not started to learn
-    after 150.
+    Defaults (docs/rl.md): one update collects one 10-step episode's worth of frames from 16
+    environments (160 frames). With the learned cube_push HRN at k = 5 that was measured at
+    about 0.8 s per update at rate 0.1 and 0.25 s at rate 0 (1 thread, 2 cores shared with a
+    few other jobs), so a 100-update run takes under 2 minutes on a quiet core; on a machine
+    oversubscribed ~5x it took ~4 s (rate 0) per update. ``gamma = 0.9`` makes a shorter
+    successful episode clearly worth more than a longer one (0.9^3 vs 0.9^8 against 0.99^3 vs
+    0.99^8) and ``lr = 3e-3``; with them PPO on the point-mass cube_push stand-in reached its
+    final length in about 50 updates, where ``gamma = 0.99, lr = 1e-3`` had not started to
+    learn after 150.
     """
 
-    updates: int = 150
-    num_envs: int = 32
-    frames_per_batch: int = 320
+    updates: int = 100
+    num_envs: int = 16
+    frames_per_batch: int = 160
     epochs: int = 4
     minibatch: int = 64
     lr: float = 3e-3

@@ -41,7 +41,9 @@ def trained_checkpoint(scene: str) -> Path | None:
     for path in (REPO / "hrn_pyg" / "checkpoints" / f"{scene}_ours.pt",
                  REPO / "hrn_pyg" / "checkpoints" / f"{scene}_hrn.pt",
                  REPO / "runs" / f"{scene}_ours" / "model.pt",
-                 REPO / "runs" / f"{scene}_hrn" / "model.pt"):
+                 REPO / "runs" / f"{scene}_hrn" / "model.pt",
+                 REPO / "runs" / f"{scene}_ours" / "last.pt",
+                 REPO / "runs" / f"{scene}_hrn" / "last.pt"):
         if path.is_file():
             return path
     return None
