@@ -372,6 +372,14 @@ def main(argv: list[str] | None = None) -> dict:
                   f"pos t+15 {row['position_t+15']:.3g}  shape t+15 {row['shape_t+15']:.3g}  "
                   f"({row['seconds']})", flush=True)
 
+    # rows of other scenes from an earlier run into the same --out are kept (one sweep per scene)
+    previous = json.loads(Path(args.out).read_text()) if Path(args.out).is_file() else {}
+    rows = [r for r in previous.get("rows", []) if r["scene"] not in scenes] + rows
+    pybullet = [q for q in previous.get("pybullet", []) if q["scene"] not in scenes] + pybullet
+    runs = [c for c in previous.get("commands", []) if c["scenes"] != scenes]
+    runs.append({"scenes": scenes, "sweeps": sweeps, "pitches": pitches, "budget": args.budget,
+                 "episodes": args.episodes, "seconds": round(time.perf_counter() - t_start, 1)})
+    scenes = sorted({r["scene"] for r in rows}, key=lambda s: (s not in SCENES, s))
     table = ["| scene | sweep | point | leaves | ms/step | pos MSE t+5 | pos MSE t+15 | shape MSE t+15 | on Pareto front |",
              "|---|---|---|---:|---:|---:|---:|---:|:---:|"]
     for scene in scenes:
@@ -398,8 +406,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "torch": torch.__version__, "torch_threads": args.threads,
                     "load_average_1m_at_end": os.getloadavg()[0],
                     "note": "2 shared cores, loaded by other training jobs while this ran"},
-        "pybullet": pybullet, "rows": rows, "table": text,
-        "total_seconds": round(time.perf_counter() - t_start, 1),
+        "pybullet": pybullet, "rows": rows, "table": text, "commands": runs,
     }
     atomic_write_json(args.out, result)
     plot(rows, pybullet, Path(args.plot))
