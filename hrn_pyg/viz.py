@@ -2,6 +2,12 @@
 
 Every function takes leaf positions as arrays ``[T, L, 3]`` (time, leaf, xyz) and writes its
 file atomically. Matplotlib runs on the ``Agg`` backend, so no screen is needed.
+
+Reading aids: the ground ``z = 0`` is a light line grid drawn *under* the particles (a filled
+surface would hide them); static objects (the wedge) are light grey; the axis limits come from
+the reference rollout (the ground truth) plus a margin, each axis its own length with the box
+drawn to scale, so one wild sample cannot shrink the scene. Points outside the limits are not
+drawn, and a panel says what fraction of its points it left out.
 """
 
 from __future__ import annotations
@@ -15,6 +21,20 @@ from hrn_pyg.utils.files import atomic_path
 
 #: Colours per object (a colour-blind-safe palette); object ``o`` takes ``PALETTE[o % 8]``.
 PALETTE = ("#0072B2", "#E69F00", "#009E73", "#CC79A7", "#D55E00", "#56B4E9", "#F0E442", "#000000")
+#: static objects (never move) in light grey, so the moving ones stand out against them
+STATIC_COLOR = "#c4c4c4"
+#: the ground truth in the sample pictures: dark, over the light samples
+TRUTH_COLOR = "0.1"
+#: colour of the ground grid lines at z = 0
+GROUND_COLOR = "0.75"
+#: ground grid lines per horizontal axis
+GROUND_LINES = 7
+#: smallest axis length (m): a scene flat along one axis still gets a readable box
+MIN_EXTENT = 0.15
+#: camera: elevation and azimuth (degrees)
+VIEW = (20, -60)
+#: how far the 3-D box is zoomed into its panel (matplotlib leaves a wide margin at 1)
+ZOOM = 1.3
 
 
 def _plt():
@@ -26,32 +46,88 @@ def _plt():
     return plt
 
 
-def object_colors(leaf_object: np.ndarray) -> np.ndarray:
-    """An RGB hex colour per leaf from its object id. Shapes: ``[L] -> [L]``."""
-    return np.array([PALETTE[int(o) % len(PALETTE)] for o in np.asarray(leaf_object)])
+def object_colors(leaf_object: np.ndarray, static: np.ndarray | None = None) -> np.ndarray:
+    """An RGB hex colour per leaf from its object id; leaves flagged ``static`` light grey.
+
+    Shapes: ``leaf_object [L]``, ``static [L]`` bool (optional) ``-> [L]``.
+    """
+    leaf_object = np.asarray(leaf_object)
+    colors = np.array([PALETTE[int(o) % len(PALETTE)] for o in leaf_object], dtype=object)
+    if static is not None:
+        static = np.asarray(static, dtype=bool)
+        if static.shape != leaf_object.shape:
+            raise ValueError(f"static must be [{leaf_object.shape[0]}] like leaf_object, got {static.shape}")
+        colors[static] = STATIC_COLOR
+    return colors.astype(str)
 
 
 def scene_limits(*positions: np.ndarray, pad: float = 0.05) -> np.ndarray:
-    """Common axis limits ``[3, 2]`` covering every array given (ground z = 0 always shown)."""
-    pts = np.concatenate([np.asarray(p).reshape(-1, 3) for p in positions], axis=0)
+    """Axis limits ``[3, 2]`` covering every array given plus ``pad`` metres (ground z = 0 shown).
+
+    Each axis keeps its own length (at least :data:`MIN_EXTENT`, grown about its centre); the
+    panels draw the box to scale, so the scene is not squeezed into a cube set by its longest
+    axis. Non-finite points are ignored.
+    """
+    pts = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 3) for p in positions], axis=0)
     pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:
+        raise ValueError("scene_limits: no finite positions given")
     lo, hi = pts.min(axis=0) - pad, pts.max(axis=0) + pad
     lo[2] = min(lo[2], 0.0)
-    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
-    return np.stack([centre - half, centre + half], axis=1)
+    grow = np.maximum(MIN_EXTENT - (hi - lo), 0.0) / 2
+    return np.stack([lo - grow, hi + grow], axis=1)
 
 
-def _draw(ax, pos: np.ndarray, colors, limits: np.ndarray, size: float = 6.0, alpha: float = 1.0):
-    ax.scatter(pos[:, 0], pos[:, 1], pos[:, 2], c=colors, s=size, alpha=alpha, depthshade=False,
-               linewidths=0)
+def _inside(pos: np.ndarray, limits: np.ndarray) -> np.ndarray:
+    """Which points ``[P, 3]`` lie within ``limits [3, 2]`` (and are finite). Shapes: ``-> [P]``."""
+    with np.errstate(invalid="ignore"):
+        return ((pos >= limits[:, 0]) & (pos <= limits[:, 1])).all(axis=1)
+
+
+def _axes(fig, rows: int, cols: int, index: int, limits: np.ndarray):
+    """A 3-D panel with the box to scale, no ticks or panes, the ground grid drawn first."""
+    ax = fig.add_subplot(rows, cols, index, projection="3d")
+    ax.computed_zorder = False  # draw in call order: ground, static, samples, truth on top
     ax.set_xlim(*limits[0]); ax.set_ylim(*limits[1]); ax.set_zlim(*limits[2])
-    ax.view_init(elev=18, azim=-60)
-    ax.set_xticks([]); ax.set_yticks([]); ax.set_zticks([])
-    # draw the ground as a light square
-    xs = np.array([limits[0, 0], limits[0, 1]])
-    ys = np.array([limits[1, 0], limits[1, 1]])
-    X, Y = np.meshgrid(xs, ys)
-    ax.plot_surface(X, Y, np.zeros_like(X), color="0.85", alpha=0.3, linewidth=0)
+    ax.set_box_aspect(tuple(limits[:, 1] - limits[:, 0]), zoom=ZOOM)
+    ax.view_init(elev=VIEW[0], azim=VIEW[1])
+    ax.set_axis_off()
+    for value in np.linspace(limits[0, 0], limits[0, 1], GROUND_LINES):
+        ax.plot([value, value], limits[1], [0.0, 0.0], color=GROUND_COLOR, lw=0.5)
+    for value in np.linspace(limits[1, 0], limits[1, 1], GROUND_LINES):
+        ax.plot(limits[0], [value, value], [0.0, 0.0], color=GROUND_COLOR, lw=0.5)
+    return ax
+
+
+def _draw(ax, pos: np.ndarray, colors, limits: np.ndarray, size: float = 6.0, alpha: float = 1.0) -> int:
+    """Scatter the points of ``pos [P, 3]`` inside ``limits``; returns how many were left out."""
+    keep = _inside(pos, limits)
+    colors = np.asarray(colors)
+    if colors.ndim == 1 and colors.shape[0] == pos.shape[0]:
+        colors = colors[keep]
+    elif colors.ndim == 0:
+        colors = str(colors)
+    if keep.any():
+        ax.scatter(pos[keep, 0], pos[keep, 1], pos[keep, 2], c=colors, s=size, alpha=alpha,
+                   depthshade=False, linewidths=0)
+    return int((~keep).sum())
+
+
+def _note_out_of_view(ax, left_out: int, total: int) -> None:
+    if left_out:
+        share = 100 * left_out / total
+        ax.text2D(0.5, 0.02, f"{share:.0f}% of points out of view" if share >= 1 else "<1% of points out of view",
+                  transform=ax.transAxes, ha="center", fontsize=6, color="0.3")
+
+
+def _static_mask(colors, n_leaves: int, static: np.ndarray | None) -> np.ndarray:
+    """Leaves drawn as static scenery: ``static`` if given, else those coloured :data:`STATIC_COLOR`."""
+    if static is not None:
+        return np.asarray(static, dtype=bool)
+    colors = np.asarray(colors)
+    if colors.ndim == 1 and colors.shape[0] == n_leaves:
+        return colors == STATIC_COLOR
+    return np.zeros(n_leaves, dtype=bool)
 
 
 def _save(fig, path: str | os.PathLike) -> None:
@@ -65,15 +141,19 @@ def rollout_grid(rows: dict[str, np.ndarray], times: Sequence[int], colors, path
                  title: str = "") -> None:
     """One row per named rollout (e.g. ground truth, HRN, ours), one column per time (Fig. 5).
 
+    The axis limits come from the *first* row (by convention the ground truth) at the drawn
+    times; points of other rows outside them are left out and counted in the panel.
+
     Shapes: each ``rows[name]`` is ``[T, L, 3]``; ``colors`` is ``[L]``.
     """
     plt = _plt()
-    limits = scene_limits(*[r[list(times)] for r in rows.values()])
+    reference = next(iter(rows.values()))
+    limits = scene_limits(reference[list(times)])
     fig = plt.figure(figsize=(1.9 * len(times), 1.9 * len(rows)), dpi=100)
     for r, (name, pos) in enumerate(rows.items()):
         for c, t in enumerate(times):
-            ax = fig.add_subplot(len(rows), len(times), r * len(times) + c + 1, projection="3d")
-            _draw(ax, pos[t], colors, limits)
+            ax = _axes(fig, len(rows), len(times), r * len(times) + c + 1, limits)
+            _note_out_of_view(ax, _draw(ax, pos[t], colors, limits), pos.shape[1])
             if r == 0:
                 ax.set_title(f"t+{t}" if t else "t", fontsize=9)
             if c == 0:
@@ -85,51 +165,74 @@ def rollout_grid(rows: dict[str, np.ndarray], times: Sequence[int], colors, path
     _save(fig, path)
 
 
+def _overlay(ax, truth_t: np.ndarray, samples_t: np.ndarray, colors, static: np.ndarray,
+             limits: np.ndarray) -> None:
+    """Static scenery light grey, each sample light in its object colours, the truth dark.
+
+    Shapes: ``truth_t [L, 3]``, ``samples_t [K, L, 3]``, ``static [L]``.
+    """
+    moving = ~static
+    colors = np.asarray(colors)
+    sample_colors = colors[moving] if colors.ndim == 1 and colors.shape[0] == len(static) else colors
+    _draw(ax, truth_t[static], STATIC_COLOR, limits, size=3.0, alpha=0.6)
+    left_out = 0
+    for k in range(samples_t.shape[0]):  # a handful of samples, not a loop over particles
+        left_out += _draw(ax, samples_t[k][moving], sample_colors, limits, size=4.0, alpha=0.18)
+    _draw(ax, truth_t[moving], TRUTH_COLOR, limits, size=4.0, alpha=0.9)
+    _note_out_of_view(ax, left_out, samples_t.shape[0] * int(moving.sum()))
+
+
 def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int], colors,
-                   path: str | os.PathLike, title: str = "") -> None:
+                   path: str | os.PathLike, title: str = "", static: np.ndarray | None = None) -> None:
     """Ground truth dark, each sampled future light, overlaid per time column (Fig. 6).
 
-    Shapes: ``truth`` ``[T, L, 3]``, ``samples`` ``[K, T, L, 3]``, ``colors`` ``[L]``.
+    Static leaves (``static``, or those coloured :data:`STATIC_COLOR`) are drawn once, light
+    grey. Limits come from the ground truth; sample points outside them are counted, not drawn.
+
+    Shapes: ``truth`` ``[T, L, 3]``, ``samples`` ``[K, T, L, 3]``, ``colors`` ``[L]``,
+    ``static`` ``[L]`` bool.
     """
     plt = _plt()
-    limits = scene_limits(truth[list(times)], samples[:, list(times)])
-    fig = plt.figure(figsize=(2.2 * len(times), 2.4), dpi=100)
+    static = _static_mask(colors, truth.shape[1], static)
+    limits = scene_limits(truth[list(times)])
+    extent = limits[:, 1] - limits[:, 0]
+    width = 2.2 * float(np.clip(extent[0] / max(extent[1], extent[2]) * 0.7, 1.0, 1.6))
+    fig = plt.figure(figsize=(width * len(times), 2.4), dpi=100)
     for c, t in enumerate(times):
-        ax = fig.add_subplot(1, len(times), c + 1, projection="3d")
-        for k in range(samples.shape[0]):  # loop over a handful of samples, not particles
-            _draw(ax, samples[k, t], colors, limits, size=3.0, alpha=0.12)
-        _draw(ax, truth[t], "0.15", limits, size=4.0, alpha=0.9)
+        ax = _axes(fig, 1, len(times), c + 1, limits)
+        _overlay(ax, truth[t], samples[:, t], colors, static, limits)
         ax.set_title(f"t+{t}" if t else "t", fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.85, wspace=0.0)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.86, wspace=0.0)
     _save(fig, path)
 
 
 def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fps: int = 10,
-              samples: np.ndarray | None = None) -> None:
+              samples: np.ndarray | None = None, static: np.ndarray | None = None) -> None:
     """An animated GIF with one panel per named rollout; optional light sample clouds on top.
 
+    Limits come from the first rollout (the ground truth) over all its frames.
+
     Shapes: each ``frames[name]`` ``[T, L, 3]``; ``samples`` ``[K, T, L, 3]`` drawn in the first
-    panel.
+    panel; ``static`` ``[L]`` bool (default: leaves coloured :data:`STATIC_COLOR`).
     """
     import imageio.v2 as imageio
 
     plt = _plt()
     arrays = list(frames.values())
-    limits = scene_limits(*arrays, *([samples] if samples is not None else []))
+    limits = scene_limits(arrays[0])
+    static = _static_mask(colors, arrays[0].shape[1], static)
     T = min(a.shape[0] for a in arrays)
     images = []
     for t in range(T):  # one picture per time step
-        fig = plt.figure(figsize=(2.6 * len(frames), 2.6), dpi=80)
+        fig = plt.figure(figsize=(3.2 * len(frames), 2.6), dpi=80)
         for c, (name, pos) in enumerate(frames.items()):
-            ax = fig.add_subplot(1, len(frames), c + 1, projection="3d")
+            ax = _axes(fig, 1, len(frames), c + 1, limits)
             if samples is not None and c == 0:
-                for k in range(samples.shape[0]):
-                    _draw(ax, samples[k, t], colors, limits, size=3.0, alpha=0.12)
-                _draw(ax, pos[t], "0.15", limits, size=4.0)
+                _overlay(ax, pos[t], samples[:, t], colors, static, limits)
             else:
-                _draw(ax, pos[t], colors, limits)
+                _note_out_of_view(ax, _draw(ax, pos[t], colors, limits), pos.shape[1])
             ax.set_title(f"{name}  t+{t}", fontsize=8)
         fig.subplots_adjust(left=0, right=1, bottom=0, top=0.9, wspace=0)
         fig.canvas.draw()

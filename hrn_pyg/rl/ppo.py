@@ -571,8 +571,9 @@ def updates_to_reach(curve: list[float], level: float, window: int = SMOOTH_UPDA
 def curve_metrics(curve: list[float]) -> dict[str, float | int | None]:
     r"""Final average episode length and the updates taken to reach it.
 
-    With :math:`\bar L` the curve smoothed over :data:`SMOOTH_UPDATES`, :math:`L_0` its first
-    value and :math:`L_f` the mean of the last :data:`FINAL_FRACTION` of updates,
+    With :math:`\bar L` the curve smoothed over :data:`SMOOTH_UPDATES`, :math:`L_0` the mean of
+    its first :data:`SMOOTH_UPDATES` values and :math:`L_f` the mean of the last
+    :data:`FINAL_FRACTION` of updates,
     ``updates_to_final`` is the first update with
     :math:`\bar L \le L_f + (1 - \rho)(L_0 - L_f)`, :math:`\rho` = :data:`REACHED_FRACTION`
     (None when :math:`L_0 - L_f <` :data:`MIN_DROP` steps: the run did not learn).
@@ -583,7 +584,8 @@ def curve_metrics(curve: list[float]) -> dict[str, float | int | None]:
     tail = max(1, round(FINAL_FRACTION * len(curve)))
     last = [v for v in curve[-tail:] if not math.isnan(v)] or values[-1:]
     final = sum(last) / len(last)
-    start = smooth(curve)[0] if not math.isnan(curve[0]) else values[0]
+    head = [v for v in curve[:SMOOTH_UPDATES] if not math.isnan(v)] or values[:1]
+    start = sum(head) / len(head)
     reached = None
     if start - final >= MIN_DROP:
         reached = updates_to_reach(curve, final + (1 - REACHED_FRACTION) * (start - final))
@@ -609,7 +611,8 @@ def _stat(values: list) -> str:
 def write_summary(out_root: str | Path, results: list[dict]) -> None:
     """``summary.csv`` (one row per run) and ``summary.md`` (per mode over seeds) under ``out_root``.
 
-    The markdown table gives, per mode, the median over seeds with the range: the final average
+    Curve metrics are recomputed from each run's ``log.csv`` where it exists. The markdown
+    table gives, per mode, the median over seeds with the range: the final average
     episode length of training, the updates to reach it (:func:`curve_metrics`), the updates for
     the smoothed curve to reach the deterministic mode's median final length, and the final
     policy's success rate and mean length in the learned model and replayed in pybullet.
@@ -617,6 +620,10 @@ def write_summary(out_root: str | Path, results: list[dict]) -> None:
     out_root = Path(out_root)
     rows = sorted(results, key=lambda r: (MODES.index(r["mode"]) if r["mode"] in MODES else 99,
                                           r["seed"]))
+    for i, r in enumerate(rows):  # curve metrics from the logs, as they are now
+        log = out_root / r["mode"] / f"seed{r['seed']}" / "log.csv"
+        if log.is_file():
+            rows[i] = {**r, **curve_metrics(_read_curve(log))}
     with atomic_path(out_root / "summary.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=SUMMARY_FIELDS, extrasaction="ignore")

@@ -136,6 +136,7 @@ def test_curve_metrics_by_hand():
     assert m["final_length"] == 2.0 and m["start_length"] == 10.0
     assert m["updates_to_final"] == 18
     assert updates_to_reach(curve, 6.0) == 14 and updates_to_reach(curve, 1.0) is None
+    assert curve_metrics([9.0, 7.0] * 5 + [2.0] * 10)["start_length"] == 8.0  # first ten
     flat = curve_metrics([9.0] * 50)
     assert flat["final_length"] == 9.0 and flat["updates_to_final"] is None   # no learning
 
