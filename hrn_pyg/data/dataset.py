@@ -19,13 +19,15 @@ from __future__ import annotations
 import re
 import zipfile
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 from torch_geometric.data import Dataset, HeteroData
+
+from hrn_pyg.data.io import load_episode
 
 from hrn_pyg.data.graph import NODE, build_structure, leaf_to_ancestor_mean, set_state
 
@@ -57,24 +59,9 @@ def split_of_seed(seed: int) -> str:
 
 
 def read_episode(path: str | Path) -> dict[str, np.ndarray]:
-    """The arrays of one episode file (the keys in :data:`EPISODE_KEYS`).
-
-    Uses ``hrn_pyg.data.io.load_episode`` when that module exists, ``np.load`` otherwise;
-    never unpickles.
-    """
-    try:
-        from hrn_pyg.data.io import load_episode  # written alongside the scenes
-    except ImportError:
-        load_episode = None
-    if load_episode is not None:
-        episode = load_episode(path)
-        get = episode.__getitem__ if isinstance(episode, Mapping) else lambda k: getattr(episode, k)
-        return {key: np.asarray(get(key)) for key in EPISODE_KEYS}
-    with np.load(path, allow_pickle=False) as npz:
-        missing = [key for key in EPISODE_KEYS if key not in npz.files]
-        if missing:
-            raise ValueError(f"{path}: missing keys {missing}")
-        return {key: npz[key] for key in EPISODE_KEYS}
+    """The arrays of one episode file (the keys in :data:`EPISODE_KEYS`), validated, no pickle."""
+    episode = load_episode(path)
+    return {key: np.asarray(episode[key]) for key in EPISODE_KEYS}
 
 
 def _num_steps(path: Path) -> int:

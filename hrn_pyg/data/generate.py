@@ -14,13 +14,13 @@ import dataclasses
 import json
 import multiprocessing as mp
 import os
-import tempfile
 import time
 
 from tqdm import tqdm
 
 from hrn_pyg.data.io import save_episode
 from hrn_pyg.data.scenes import SCENES, config_to_dict, scene_config, simulate_episode
+from hrn_pyg.utils.files import atomic_write_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,21 +63,6 @@ def _generate_one(task: tuple[str, int, dict, str]) -> tuple[int, bool]:
     return seed, True
 
 
-def _write_json_atomic(path: str, payload: dict) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".meta_", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2, sort_keys=True)
-            f.write("\n")
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; episode files are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
-
 def run(args: argparse.Namespace) -> int:
     # --- validate everything before touching the disk --------------------------------------
     if args.scene not in SCENES:
@@ -114,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         "written": 0,
         "complete": False,
     }
-    _write_json_atomic(meta_path, meta)
+    atomic_write_json(meta_path, meta)
 
     tasks = [(args.scene, s, config_fields, episode_path(args.out, s)) for s in todo]
     start = time.perf_counter()
@@ -138,5 +123,5 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     meta.update(written=written, complete=True,
                 seconds=round(time.perf_counter() - start, 3))
-    _write_json_atomic(meta_path, meta)
+    atomic_write_json(meta_path, meta)
     return 0

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import zipfile
 
 import numpy as np
+
+from hrn_pyg.utils.files import atomic_path
 
 #: key -> (dtype kind(s), number of dimensions). Shapes are cross-checked in ``validate_episode``.
 EPISODE_KEYS: dict[str, tuple[str, int]] = {
@@ -77,23 +78,14 @@ def save_episode(path: str | os.PathLike, episode: dict[str, np.ndarray]) -> Non
     then ``os.replace``, so a reader never sees half a file."""
     episode = {k: np.asarray(v) for k, v in episode.items()}
     validate_episode(episode)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".episode_", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED) as zf:
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED) as zf:
             for key in sorted(episode):
                 buffer = io.BytesIO()
                 np.lib.format.write_array(buffer, episode[key], allow_pickle=False)
                 info = zipfile.ZipInfo(f"{key}.npy", date_time=ZIP_EPOCH)
                 info.compress_type = zipfile.ZIP_DEFLATED
                 zf.writestr(info, buffer.getvalue())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; episode files are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def load_episode(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -13,10 +13,11 @@ faces: the leaves span the body exactly.
 from __future__ import annotations
 
 import os
-import tempfile
 
 import numpy as np
 import trimesh
+
+from hrn_pyg.utils.files import atomic_write_text
 
 #: Relative tolerance when snapping voxel centres to integer lattice indices (float round-off
 #: from trimesh's transform is ~1e-16 of the pitch; anything above 1e-3 means "not on a lattice").
@@ -184,7 +185,7 @@ def write_tetrahedral_vtk(path: str | os.PathLike, nodes: np.ndarray, tets: np.n
     lines += [f"4 {a} {b} {c} {d}" for a, b, c, d in tets]
     lines.append(f"CELL_TYPES {len(tets)}")
     lines += ["10"] * len(tets)
-    _atomic_write_text(path, "\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def grid_sheet(size: float, pitch: float) -> tuple[np.ndarray, np.ndarray]:
@@ -214,18 +215,4 @@ def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     """Write a Wavefront ``.obj`` (1-based face indices), atomically."""
     lines = [f"v {a:.9g} {b:.9g} {c:.9g}" for a, b, c in np.asarray(vertices, dtype=np.float64)]
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(faces, dtype=np.int64)]
-    _atomic_write_text(path, "\n".join(lines) + "\n")
-
-
-def _atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; episode files are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    atomic_write_text(path, "\n".join(lines) + "\n")
