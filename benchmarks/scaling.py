@@ -314,6 +314,9 @@ def main(argv: list[str] | None = None) -> dict | None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--sides", default=",".join(map(str, SIDES)))
     parser.add_argument("--objects", default=",".join(map(str, OBJECTS)))
+    parser.add_argument("--chunks", default=",".join(map(str, CHUNKS)), help="shape-loss chunk sizes")
+    parser.add_argument("--shape-sides", default=",".join(map(str, SHAPE_SIDES)),
+                        help=f"leaves per side of the shape-loss object at chunk {FIXED_CHUNK}")
     parser.add_argument("--out", default="benchmarks/results/scaling.json")
     parser.add_argument("--plot", default="benchmarks/results/scaling.png")
     parser.add_argument("--child", choices=("step", "shape"), help=argparse.SUPPRESS)
@@ -356,12 +359,12 @@ def main(argv: list[str] | None = None) -> dict | None:
             print(f"objects: {o:3d} ({r['leaves']:6d} leaves, {r['edges']['collision']} collision edges) "
                   f"{r['ms_per_step']:9.2f} ms/step {r['peak_mb_per_step']:8.1f} MB", flush=True)
     chunks = []
-    for c in (*CHUNKS, 0):
+    for c in (*(int(c) for c in args.chunks.split(",") if c), 0):
         r = run_child(["--child", "shape", "--n", str(SHAPE_SIDE), "--chunk", str(c)], args)
         chunks.append(r)
         print(f"shape loss L={r['leaves']} chunk {r['chunk']}: {r['ms']:.1f} ms, {r['peak_mb']:.1f} MB", flush=True)
     sizes = []
-    for n in SHAPE_SIDES:
+    for n in (int(x) for x in args.shape_sides.split(",") if x):
         for c in (FIXED_CHUNK, 0):
             if c == 0 and n**3 > NAIVE_MAX_LEAVES:
                 continue

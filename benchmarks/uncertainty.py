@@ -14,11 +14,13 @@ dropout) and k dropout samples at each ``--rates`` are scored at the last predic
   members' leaf coordinates inside the samples' [min, max]),
 Leaves of static objects are left out of every score.
 
+* spread: RMS distance of each moving leaf from its mean, for the samples and for the ensemble
+  (:func:`~hrn_pyg.sampling.metrics.root_spread`, mean over leaves; metres),
 * wedge only: fraction of trajectories whose ball centre ends at ``x < 0`` / ``x >= 0``
   (:func:`~hrn_pyg.sampling.metrics.side_fractions`), samples against the ensemble.
 
 Run: ``python benchmarks/uncertainty.py [--scenes wedge,soft_bounce,cube_collision]
-[--k 16] [--rates 0.05,0.1,0.3] [--members 16] [--steps 20] [--seed 9]
+[--k 16] [--rates 0.05,0.1,0.3] [--members 16] [--steps 20] [--seeds 9,19,29]
 [--out benchmarks/results/uncertainty.json]`` with ``--model-dir`` (default
 ``hrn_pyg/checkpoints``, one ``<scene>.pt`` each). ``--random-init``: untrained models, a
 pipeline check whose numbers mean nothing. Prints a markdown table, writes JSON atomically.
@@ -39,7 +41,9 @@ from hrn_pyg.data.scenes import STATIC, simulate_episode
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.cli import CHECKPOINT_DIR, model_for
 from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
-from hrn_pyg.sampling.metrics import best_of_k_error, coverage, energy_score, object_centres, side_fractions
+from hrn_pyg.sampling.metrics import (
+    best_of_k_error, coverage, energy_score, object_centres, root_spread, side_fractions,
+)
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json
 
@@ -60,6 +64,9 @@ def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: st
         "energy_score_m": float(energy_score(futures[:, moving], members[:, moving]).mean()),
         "best_of_k_m": float(best_of_k_error(futures[:, moving], members[:, moving])),
         "coverage": float(coverage(futures[:, moving].flatten(1), members[:, moving].flatten(1))),
+        # RMS distance of each moving leaf from its mean, samples against ensemble members
+        "spread_m": float(root_spread(futures[:, moving]).mean()),
+        "ensemble_spread_m": float(root_spread(members[:, moving]).mean()),
     }
     if scene == "wedge":
         x = object_centres(futures, obj, mass)[:, WEDGE_BALL, 0]
@@ -76,7 +83,7 @@ def evaluate_scene(model: HRN, scene: str, seed: int, steps: int, members: np.nd
     for label, kk, rate in [("deterministic", 1, 0.0)] + [("dropout", k, r) for r in rates]:
         gen = torch.Generator().manual_seed(sample_seed)
         futures = sample(model, graph, kk, steps, rate, forces=forces, generator=gen)[:, -1]  # [K, L, 3]
-        rows.append({"scene": scene, "model": label, "k": kk, "rate": rate,
+        rows.append({"scene": scene, "episode_seed": seed, "model": label, "k": kk, "rate": rate,
                      **score(futures, truth, episode, scene)})
     if scene == "wedge":
         obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
@@ -86,14 +93,46 @@ def evaluate_scene(model: HRN, scene: str, seed: int, steps: int, members: np.nd
     return rows
 
 
+def _split(fractions) -> str:
+    return f"{fractions[0]:.2f} / {fractions[1]:.2f}" if fractions else "-"
+
+
 def markdown(rows: list[dict]) -> str:
-    lines = ["| scene | model | k | rate | energy score (mm) | best-of-k (mm) | coverage | side split samples | side split ensemble |",
-             "|---|---|---:|---:|---:|---:|---:|---|---|"]
+    """One line per (scene, episode seed, model, rate)."""
+    lines = ["| scene | seed | model | k | rate | energy score (mm) | best-of-k (mm) | coverage | spread samples / ensemble (mm) | side split samples | side split ensemble |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in rows:
-        split = lambda f: f"{f[0]:.2f} / {f[1]:.2f}" if f else "-"  # noqa: E731
-        lines.append(f"| {r['scene']} | {r['model']} | {r['k']} | {r['rate']} | {1e3 * r['energy_score_m']:.1f} | "
-                     f"{1e3 * r['best_of_k_m']:.1f} | {r['coverage']:.2f} | {split(r.get('side_fractions'))} | "
-                     f"{split(r.get('ensemble_side_fractions'))} |")
+        lines.append(f"| {r['scene']} | {r.get('episode_seed', '-')} | {r['model']} | {r['k']} | {r['rate']} | "
+                     f"{1e3 * r['energy_score_m']:.1f} | {1e3 * r['best_of_k_m']:.1f} | {r['coverage']:.2f} | "
+                     f"{1e3 * r['spread_m']:.1f} / {1e3 * r['ensemble_spread_m']:.1f} | "
+                     f"{_split(r.get('side_fractions'))} | {_split(r.get('ensemble_side_fractions'))} |")
+    return "\n".join(lines)
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """Mean of every score over the episode seeds, per (scene, model, rate)."""
+    keys = ("energy_score_m", "best_of_k_m", "coverage", "spread_m", "ensemble_spread_m")
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["model"], r["k"], r["rate"]), []).append(r)
+    out = []
+    for (scene, model, k, rate), group in groups.items():
+        row = {"scene": scene, "model": model, "k": k, "rate": rate, "seeds": len(group)}
+        row.update({key: float(np.mean([g[key] for g in group])) for key in keys})
+        for key in ("side_fractions", "ensemble_side_fractions"):
+            if key in group[0]:
+                row[key] = np.mean([g[key] for g in group], axis=0).tolist()
+        out.append(row)
+    return out
+
+
+def markdown_summary(rows: list[dict]) -> str:
+    lines = ["| scene | model | k | rate | seeds | energy score (mm) | best-of-k (mm) | coverage | spread samples / ensemble (mm) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['model']} | {r['k']} | {r['rate']} | {r['seeds']} | "
+                     f"{1e3 * r['energy_score_m']:.1f} | {1e3 * r['best_of_k_m']:.1f} | {r['coverage']:.2f} | "
+                     f"{1e3 * r['spread_m']:.1f} / {1e3 * r['ensemble_spread_m']:.1f} |")
     return "\n".join(lines)
 
 
@@ -106,7 +145,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--members", type=int, default=16)
     parser.add_argument("--position-std", type=float, default=PerturbationConfig().position_std)
     parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=9, help="episode seed (a test-split seed: seed % 10 == 9)")
+    parser.add_argument("--seeds", default="9",
+                        help="comma-separated episode seeds (test-split seeds: seed %% 10 == 9)")
     parser.add_argument("--sample-seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--random-init", action="store_true", help="untrained models: pipeline check only")
@@ -115,24 +155,33 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     rates = tuple(float(r) for r in args.rates.split(",") if r)
     perturbation = PerturbationConfig(position_std=args.position_std)
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    if not seeds:
+        raise ValueError("--seeds must name at least one episode seed")
     rows = []
     for scene in [s for s in args.scenes.split(",") if s]:
-        episode = simulate_episode(scene, args.seed, steps=HISTORY + args.steps)
-        members = ground_truth_ensemble(scene, args.seed, args.members, HISTORY + args.steps, perturbation)
-        model_path = None if args.random_init else str(Path(args.model_dir) / f"{scene}.pt")
-        model = model_for(scene, model_path, args.random_init, episode_state(episode, HISTORY, args.steps))
-        rows += evaluate_scene(model, scene, args.seed, args.steps, members, episode, args.k, rates,
-                               args.sample_seed)
+        model = None
+        for seed in seeds:  # a few test episodes; each is one batched rollout per rate
+            episode = simulate_episode(scene, seed, steps=HISTORY + args.steps)
+            members = ground_truth_ensemble(scene, seed, args.members, HISTORY + args.steps, perturbation)
+            if model is None:
+                model_path = None if args.random_init else str(Path(args.model_dir) / f"{scene}.pt")
+                model = model_for(scene, model_path, args.random_init, episode_state(episode, HISTORY, args.steps))
+            rows += evaluate_scene(model, scene, seed, args.steps, members, episode, args.k, rates,
+                                   args.sample_seed)
+            print(markdown(rows[-1 - len(rates):]), flush=True)
     table = markdown(rows)
-    print(table)
+    means = summary(rows)
+    mean_table = markdown_summary(means)
+    print("\nall rows:\n" + table + "\n\nmean over episode seeds:\n" + mean_table)
     result = {
         "what": "dropout samples vs a ground-truth ensemble of perturbed pybullet replays, at the last step",
-        "steps": args.steps, "start_step": HISTORY, "episode_seed": args.seed, "members": args.members,
+        "steps": args.steps, "start_step": HISTORY, "episode_seeds": seeds, "members": args.members,
         "perturbation": perturbation.to_dict(), "k": args.k, "rates": list(rates),
         "sample_seed": args.sample_seed, "random_init": args.random_init,
         "model_dir": None if args.random_init else args.model_dir,
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch_threads": args.threads},
-        "rows": rows, "markdown": table,
+        "rows": rows, "markdown": table, "mean_over_seeds": means, "markdown_mean": mean_table,
     }
     atomic_write_json(args.out, result)
     return result

@@ -112,9 +112,12 @@ class _Moments:
     def mean(self) -> Tensor:
         return (self.s / self.n).float() if self.n else torch.zeros_like(self.s, dtype=torch.float32)
 
-    def std(self, centred: bool = True) -> Tensor:
+    def std(self, centred: bool = True, fallback: Tensor | None = None) -> Tensor:
+        """Standard deviation per column (root mean square if not ``centred``); a column that
+        never varies gets ``fallback`` (default 1)."""
+        fallback = torch.ones_like(self.s, dtype=torch.float32) if fallback is None else fallback.float()
         if self.n == 0:
-            return torch.ones_like(self.s, dtype=torch.float32)
+            return fallback
         m2 = self.ss / self.n
         var = m2 - (self.s / self.n) ** 2 if centred else m2
         std = var.clamp_min(0.0).sqrt()
@@ -122,7 +125,7 @@ class _Moments:
             constant = std == 0
         else:
             constant = (self.hi - self.lo) <= STD_EPSILON * torch.maximum(self.hi.abs(), self.lo.abs())
-        return torch.where(constant | (std == 0), torch.ones_like(std), std).float()
+        return torch.where(constant | (std == 0), fallback.to(std.dtype), std).float()
 
 
 def _positions(store) -> Tensor:
@@ -176,10 +179,14 @@ def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None =
     with torch.no_grad():
         norm.velocity_mean.copy_(vel.mean())
         norm.velocity_std.copy_(vel.std())
+        # a target that never varies (e.g. the local velocity of a one-leaf object, always 0)
+        # takes the scale of the other target, then of the velocity: a per-step velocity change,
+        # not 1 m/step, which made a barely trained one-voxel model fly off (tests/stability)
+        root_std = root.std(fallback=vel.std())
         norm.local_mean.copy_(loc.mean())
-        norm.local_std.copy_(loc.std())
+        norm.local_std.copy_(loc.std(fallback=root_std))
         norm.root_mean.copy_(root.mean())
-        norm.root_std.copy_(root.std())
+        norm.root_std.copy_(root_std)
         norm.height_mean.copy_(height.mean())
         norm.height_std.copy_(height.std())
         norm.log_mass_mean.copy_(log_mass.mean())

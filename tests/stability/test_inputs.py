@@ -15,7 +15,7 @@ from hrn_pyg.rollout import build_inputs, rollout, step
 from hrn_pyg.sampling.sample import sample
 from toy_scene import LEAF_OBJECT, MATERIAL, PARENT, STIFFNESS, structure, toy_scene, trajectory
 
-from conftest import fitted_model
+from stability_helpers import fitted_model
 
 BAD = (float("nan"), float("inf"), float("-inf"))
 

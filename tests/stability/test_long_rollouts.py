@@ -30,7 +30,7 @@ from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.train import load_model
 from toy_scene import toy_scene
 
-from conftest import SLOW, fitted_model, slow, trained_checkpoint
+from stability_helpers import SLOW, fitted_model, slow, trained_checkpoint
 
 #: how far (m) a leaf may go below the ground plane z = 0 in a trained model's long rollout:
 #: one voxel pitch of the datasets (0.05 m); pybullet's own contact margin is 6 mm
