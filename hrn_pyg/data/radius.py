@@ -4,7 +4,9 @@ PyG's ``radius`` needs pyg-lib or torch-cluster, which are not installed here, s
 does its own fixed-radius neighbour search on a uniform cell grid, fully vectorised in torch
 (no Python loop over particles), on whatever device the positions live on:
 
-1. every leaf gets an integer cell ``c = floor((x - x_min) / h)`` with cell size ``h >= r``,
+1. every leaf gets an integer cell ``c = floor((x - x_min) / h)`` with cell size ``h >= r``
+   (occupied coordinates renumbered per axis, adjacency kept, so far-apart points cannot
+   overflow the keys),
    and one int64 key combining its batch copy and its cell;
 2. leaves are sorted by key; the occupied cells are the runs of equal keys;
 3. for each occupied cell, its occupied neighbours among the 27 surrounding cells (a pair closer
@@ -48,6 +50,24 @@ def _validate(leaf_pos: Tensor, leaf_object: Tensor, radius: float, batch: Tenso
         raise ValueError("leaf_pos contains NaN or infinite values")
 
 
+def _compress_cells(cell: Tensor) -> Tensor:
+    """Renumber the occupied cell coordinates of each axis to ``0, 1, 2, ...`` keeping adjacency.
+
+    Two occupied coordinates one apart stay one apart; a larger gap becomes a gap of two, so
+    cells that were not neighbours still are not. The grid then spans at most ``2 L`` cells per
+    axis however far apart the points are (a scene 1e6 radii wide, or a diverged rollout), and
+    the int64 keys cannot overflow.
+
+    **Shapes**: ``(L, 3)`` long -> ``(L, 3)`` long.
+    """
+    out = torch.empty_like(cell)
+    for axis in range(3):  # three axes, not particles
+        values, inverse = torch.unique(cell[:, axis], return_inverse=True)
+        steps = torch.diff(values).clamp_(max=2)
+        out[:, axis] = torch.cat([steps.new_zeros(1), torch.cumsum(steps, 0)])[inverse]
+    return out
+
+
 def _empty(device: torch.device) -> Tensor:
     return torch.empty(2, 0, dtype=torch.long, device=device)
 
@@ -89,7 +109,7 @@ def collision_edges(
 
     # float64 for the cell assignment: robust for large scenes relative to the radius
     pos = leaf_pos.detach().to(torch.float64)
-    cell = torch.floor((pos - pos.amin(dim=0)) / (radius * (1.0 + CELL_MARGIN))).long() + 1
+    cell = _compress_cells(torch.floor((pos - pos.amin(dim=0)) / (radius * (1.0 + CELL_MARGIN))).long()) + 1
     dims = (cell.amax(dim=0) + 2).tolist()  # +1 shift and +1 margin: neighbours never wrap
     n_copies = 1 if batch is None else int(batch.max()) + 1
     if n_copies * dims[0] * dims[1] * dims[2] >= MAX_KEYS:

@@ -130,3 +130,15 @@ def test_does_not_track_gradients() -> None:
 def test_bad_input(pos, obj, radius, batch, match) -> None:
     with pytest.raises(ValueError, match=match):
         collision_edges(pos, obj, radius, batch)
+
+
+def test_points_billions_of_radii_apart_still_match_brute_force() -> None:
+    # clusters 1e7 m apart with r = 0.05 (a diverged rollout looks like this): the dense cell
+    # grid would need ~1e26 keys; renumbering occupied cells keeps the search exact
+    g = torch.Generator().manual_seed(3)
+    centres = torch.tensor([[0.0, 0.0, 0.0], [1e7, -1e7, 3e6], [1e7, -1e7, 3e6 + 0.03]], dtype=torch.float64)
+    pos = (centres.repeat_interleave(20, 0) + 0.04 * torch.rand(60, 3, generator=g, dtype=torch.float64))
+    obj = torch.arange(3).repeat_interleave(20)
+    got = collision_edges(pos, obj, 0.05)
+    assert got.size(1) > 0
+    assert torch.equal(got, brute_force(pos, obj, 0.05))
