@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     # 1. Table 1 on held-out episodes -----------------------------------------------------------
     for scene in ("soft_bounce", "cube_collision"):
-        hrn, ours = ckpt / f"{scene}_hrn.pt", ckpt / f"{scene}.pt"
+        hrn, ours = ckpt / f"{scene}_hrn.pt", ckpt / f"{scene}_ours.pt"
         if not (hrn.is_file() and ours.is_file()):
             _note(report, f"skipped Table 1 on {scene}: {hrn.name} / {ours.name} not shipped "
                           f"(make them with `hrn-pyg train`, see docs/results.md)")
