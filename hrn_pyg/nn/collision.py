@@ -72,13 +72,21 @@ class CollisionModule(MessagePassing):
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
         n = state.size(0)
-        return self.propagate(edge_index, s=state, x=pos, edge_batch=edge_batch, mask=mask, size=(n, n))
+        # phi_C's first layer applied per node, then gathered onto the edges (see message)
+        w_dst, w_src, w_offset, w_dist = self.phi.split_first_weight((self.state_dim, self.state_dim, 3, 1))
+        from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
+        from_src = state @ w_src.T
+        return self.propagate(edge_index, a=from_dst, b=from_src, x=pos, w_offset=w_offset, w_dist=w_dist,
+                              edge_batch=edge_batch, mask=mask, size=(n, n))
 
     def message(
-        self, s_i: Tensor, s_j: Tensor, x_i: Tensor, x_j: Tensor, edge_batch: Tensor | None, mask: Tensor | None
+        self, a_i: Tensor, b_j: Tensor, x_i: Tensor, x_j: Tensor, w_offset: Tensor, w_dist: Tensor,
+        edge_batch: Tensor | None, mask: Tensor | None
     ) -> Tensor:
+        # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks
         offset = x_i - x_j
-        return self.phi(torch.cat([s_i, s_j, offset, safe_norm(offset)], dim=-1), mask, edge_batch)
+        pre = a_i + b_j + offset @ w_offset.T + safe_norm(offset) @ w_dist.T
+        return self.phi.forward_from_first(pre, mask, edge_batch)
 
     def __repr__(self) -> str:
         return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"

@@ -9,6 +9,7 @@ edge of that trajectory; the mask is therefore not drawn inside the layer but pa
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -109,6 +110,29 @@ class MLP(nn.Module):
         self.output_layer.reset_parameters()
 
     def forward(self, x: Tensor, mask: Tensor | None = None, index: Tensor | None = None) -> Tensor:
+        return self.forward_from_first(self.hidden_layers[0](x), mask, index)
+
+    def split_first_weight(self, sizes: Sequence[int]) -> tuple[Tensor, ...]:
+        r"""The first layer's weight cut by input columns, :math:`W_1 = [W_1^{(1)} | W_1^{(2)} | \dots]`.
+
+        An edge MLP whose input concatenates per-node parts can then apply each block once per
+        node and gather the products onto the edges (:meth:`forward_from_first`), instead of
+        multiplying the concatenated input once per edge; the result is the same.
+        """
+        if sum(sizes) != self.in_dim:
+            raise ValueError(f"MLP: column blocks {list(sizes)} do not add up to in_dim={self.in_dim}")
+        return torch.split(self.hidden_layers[0].weight, list(sizes), dim=1)
+
+    @property
+    def first_bias(self) -> Tensor:
+        return self.hidden_layers[0].bias
+
+    def forward_from_first(self, pre: Tensor, mask: Tensor | None = None, index: Tensor | None = None) -> Tensor:
+        """The MLP from the first layer's pre-activation :math:`W_1 x + b_1` onwards.
+
+        **Shapes:** ``pre`` :math:`(M, H)`; mask and index as in :meth:`forward`; output
+        :math:`(M, F_{out})`.
+        """
         row_mask = None
         if mask is not None:
             if index is None:
@@ -118,9 +142,9 @@ class MLP(nn.Module):
                     f"MLP: mask must be [B, {self.config.hidden}], got {tuple(mask.shape)}"
                 )
             row_mask = mask.index_select(0, index)
-        h = x
-        for layer in self.hidden_layers:
-            h = self.activation(layer(h))
+        h = pre
+        for k, layer in enumerate(self.hidden_layers):
+            h = self.activation(h if k == 0 else layer(h))
             if row_mask is not None:
                 h = h * row_mask
         return self.output_layer(h)

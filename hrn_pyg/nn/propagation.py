@@ -68,19 +68,27 @@ class PropagationModule(MessagePassing):
             raise ValueError("PropagationModule: a dropout mask needs the node batch vector")
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
-        return self.propagate(edge_index, s=state, e=effect, x=pos, edge_batch=edge_batch, mask=mask, size=(n, n))
+        # eta's first layer applied per node, then gathered onto the edges (see message)
+        w_src, w_dst, w_effect, w_offset = self.eta.split_first_weight(
+            (self.state_dim, self.state_dim, self.effect_dim, 3))
+        from_src = state @ w_src.T + effect @ w_effect.T
+        from_dst = torch.addmm(self.eta.first_bias, state, w_dst.T)
+        return self.propagate(edge_index, a=from_src, b=from_dst, x=pos, w_offset=w_offset,
+                              edge_batch=edge_batch, mask=mask, size=(n, n))
 
     def message(
         self,
-        s_i: Tensor,
-        s_j: Tensor,
-        e_j: Tensor,
+        a_j: Tensor,
+        b_i: Tensor,
         x_i: Tensor,
         x_j: Tensor,
+        w_offset: Tensor,
         edge_batch: Tensor | None,
         mask: Tensor | None,
     ) -> Tensor:
-        return self.eta(torch.cat([s_j, s_i, e_j, x_j - x_i], dim=-1), mask, edge_batch)
+        # eta([s_j, s_i, e_j, x_j - x_i]) with its first layer split by input blocks
+        pre = a_j + b_i + (x_j - x_i) @ w_offset.T
+        return self.eta.forward_from_first(pre, mask, edge_batch)
 
     def __repr__(self) -> str:
         tag = f"{self.name}, " if self.name else ""
