@@ -6,7 +6,8 @@ file atomically. Matplotlib runs on the ``Agg`` backend, so no screen is needed.
 Reading aids: the ground ``z = 0`` is a light line grid drawn *under* the particles (a filled
 surface would hide them); static objects (the wedge) are light grey; the axis limits come from
 the reference rollout (the ground truth) plus a margin, each axis its own length with the box
-drawn to scale, so one wild sample cannot shrink the scene. Points outside the limits are not
+drawn to scale, so one wild sample cannot shrink the scene (sample pictures also cover the
+central 80% of the sample points per axis). Points outside the limits are not
 drawn, and a panel says what fraction of its points it left out.
 """
 
@@ -31,10 +32,15 @@ GROUND_COLOR = "0.75"
 GROUND_LINES = 7
 #: smallest axis length (m): a scene flat along one axis still gets a readable box
 MIN_EXTENT = 0.15
+#: margin (m) around the ground truth in pictures of sampled futures: room for a plausible spread
+SAMPLES_PAD = 0.1
+#: the sample pictures' limits also cover the central part of the samples: per axis, the
+#: quantiles ``q`` and ``1 - q`` of all sample points (a few wild samples do not count)
+SAMPLES_BULK = 0.1
 #: camera: elevation and azimuth (degrees)
-VIEW = (20, -60)
+VIEW = (18, -72)
 #: how far the 3-D box is zoomed into its panel (matplotlib leaves a wide margin at 1)
-ZOOM = 1.3
+ZOOM = 1.1
 
 
 def _plt():
@@ -82,6 +88,18 @@ def _inside(pos: np.ndarray, limits: np.ndarray) -> np.ndarray:
     """Which points ``[P, 3]`` lie within ``limits [3, 2]`` (and are finite). Shapes: ``-> [P]``."""
     with np.errstate(invalid="ignore"):
         return ((pos >= limits[:, 0]) & (pos <= limits[:, 1])).all(axis=1)
+
+
+def _bulk(samples: np.ndarray) -> np.ndarray:
+    """Corners ``[2, 3]`` of the central part of the sample points (quantiles :data:`SAMPLES_BULK`).
+
+    Shapes: ``samples [..., 3] -> [2, 3]``.
+    """
+    pts = np.asarray(samples, dtype=float).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:
+        return np.zeros((0, 3))
+    return np.quantile(pts, [SAMPLES_BULK, 1.0 - SAMPLES_BULK], axis=0)
 
 
 def _axes(fig, rows: int, cols: int, index: int, limits: np.ndarray):
@@ -187,14 +205,16 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
     """Ground truth dark, each sampled future light, overlaid per time column (Fig. 6).
 
     Static leaves (``static``, or those coloured :data:`STATIC_COLOR`) are drawn once, light
-    grey. Limits come from the ground truth; sample points outside them are counted, not drawn.
+    grey. Limits cover the ground truth and the central part of the moving samples (per axis,
+    quantiles :data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK``), plus :data:`SAMPLES_PAD`; sample
+    points outside them are counted in the panel, not drawn.
 
     Shapes: ``truth`` ``[T, L, 3]``, ``samples`` ``[K, T, L, 3]``, ``colors`` ``[L]``,
     ``static`` ``[L]`` bool.
     """
     plt = _plt()
     static = _static_mask(colors, truth.shape[1], static)
-    limits = scene_limits(truth[list(times)])
+    limits = scene_limits(truth[list(times)], _bulk(samples[:, list(times)][:, :, ~static]), pad=SAMPLES_PAD)
     extent = limits[:, 1] - limits[:, 0]
     width = 2.2 * float(np.clip(extent[0] / max(extent[1], extent[2]) * 0.7, 1.0, 1.6))
     fig = plt.figure(figsize=(width * len(times), 2.4), dpi=100)
@@ -204,7 +224,7 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
         ax.set_title(f"t+{t}" if t else "t", fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.86, wspace=0.0)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.8, wspace=0.0)
     _save(fig, path)
 
 
@@ -212,7 +232,8 @@ def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fp
               samples: np.ndarray | None = None, static: np.ndarray | None = None) -> None:
     """An animated GIF with one panel per named rollout; optional light sample clouds on top.
 
-    Limits come from the first rollout (the ground truth) over all its frames.
+    Limits come from the first rollout (the ground truth) over all its frames and, with
+    ``samples``, the central part of the moving samples (as in :func:`samples_figure`).
 
     Shapes: each ``frames[name]`` ``[T, L, 3]``; ``samples`` ``[K, T, L, 3]`` drawn in the first
     panel; ``static`` ``[L]`` bool (default: leaves coloured :data:`STATIC_COLOR`).
@@ -221,8 +242,11 @@ def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fp
 
     plt = _plt()
     arrays = list(frames.values())
-    limits = scene_limits(arrays[0])
     static = _static_mask(colors, arrays[0].shape[1], static)
+    if samples is None:
+        limits = scene_limits(arrays[0])
+    else:
+        limits = scene_limits(arrays[0], _bulk(samples[:, :, ~static]), pad=SAMPLES_PAD)
     T = min(a.shape[0] for a in arrays)
     images = []
     for t in range(T):  # one picture per time step

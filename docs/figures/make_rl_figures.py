@@ -91,11 +91,11 @@ def policy_figure(task: str, runs: Path, model: Path, seed: int, episodes: int, 
     for mode in recs:
         rec, real = recs[mode][pick], replays[mode][pick]
         learned = rec["states"][:, :-1].reshape(-1, 3, L, 3)[:, 2].numpy()  # x_t of each state
-        for name, frames, ok, steps in (("learned", learned, rec["success"], rec["length"]),
+        for name, frames, ok, steps in (("model", learned, rec["success"], rec["length"]),
                                         ("pybullet", real["leaves"].numpy(), real["success"], real["steps"])):
             frames = pad_frames(frames, length)
             frames = np.concatenate([frames, np.broadcast_to(ring, (length, GOAL_POINTS, 3))], axis=1)
-            label = f"{mode[:5]}. / {name}\n({'goal' if ok else 'miss'}, {steps} st.)"
+            label = f"{mode[:3]}. {name}: {'goal' if ok else 'miss'} @{steps}"
             rows[label] = frames
             info[f"{mode}/{name}"] = {"success": bool(ok), "steps": int(steps)}
     colors = np.concatenate([object_colors(dynamics.leaf_object.numpy()), [GOAL_COLOR] * GOAL_POINTS])

@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out else Path("runs") / "sample" / args.scene
     out.mkdir(parents=True, exist_ok=True)
-    colors = object_colors(np.asarray(leaf_object))
+    colors = object_colors(np.asarray(leaf_object), static=np.asarray(store.is_static[leaf]))  # static light grey
     times = sorted({int(round(f * steps)) for f in FIGURE_COLUMNS})
     title = f"{args.scene}: {args.k} samples, dropout {args.rate}"
     samples_figure(truth, paths, times, colors, out / "samples.png", title=title)
