@@ -62,6 +62,15 @@ from hrn_pyg.utils.metrics import CSVLog, plot_curves
 from hrn_pyg.utils.schedules import LinearSchedule
 
 MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed")
+#: trailing moving-average window (updates) of the episode-length curve for the summary metrics
+#: and the figure
+SMOOTH_UPDATES = 10
+#: fraction of the last updates whose mean is a run's final average episode length
+FINAL_FRACTION = 0.1
+#: a run "reached its final length" when its smoothed curve has made this part of its drop
+REACHED_FRACTION = 0.9
+#: a drop (steps) smaller than this counts as no learning: updates_to_final is then None
+MIN_DROP = 0.5
 LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
               "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
               "loss_critic", "loss_entropy", "seconds"]
@@ -493,11 +502,13 @@ def _progress(total: int, desc: str, enabled: bool):
 
 
 # ---------------------------------------------------------------------------- figure
-def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str = "") -> list[str]:
+def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str = "",
+                        window: int = SMOOTH_UPDATES) -> list[str]:
     """Average episode length against PPO updates, one line per mode found under ``out_root``.
 
-    Reads ``<mode>/seed*/log.csv``; the line is the median over seeds, the shaded band their
-    range (min to max). Returns the modes drawn.
+    Reads ``<mode>/seed*/log.csv`` and smooths each seed's curve with a trailing moving average
+    over ``window`` updates (1: raw); the line is the median over seeds, the shaded band their
+    range (min to max), over the updates every seed has reached. Returns the modes drawn.
     """
     import matplotlib
 
@@ -509,7 +520,7 @@ def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str =
     drawn = []
     for mode in MODES:
         curves = [_read_curve(p) for p in sorted((out_root / mode).glob("seed*/log.csv"))]
-        curves = [c for c in curves if c]
+        curves = [smooth(c, window) for c in curves if c]
         if not curves:
             continue
         n = min(len(c) for c in curves)
@@ -522,7 +533,7 @@ def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str =
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
         drawn.append(mode)
     ax.set_xlabel("PPO update")
-    ax.set_ylabel("average episode length")
+    ax.set_ylabel("average episode length" + (f"\n({window}-update moving average)" if window > 1 else ""))
     ax.set_title(title)
     ax.grid(alpha=0.3)
     if drawn:
@@ -541,14 +552,6 @@ def _read_curve(path: Path) -> list[float]:
 
 
 # ---------------------------------------------------------------------------- summaries
-#: trailing moving-average window (updates) of the episode-length curve for the summary metrics
-SMOOTH_UPDATES = 10
-#: fraction of the last updates whose mean is a run's final average episode length
-FINAL_FRACTION = 0.1
-#: a run "reached its final length" when its smoothed curve has made this part of its drop
-REACHED_FRACTION = 0.9
-#: a drop (steps) smaller than this counts as no learning: updates_to_final is then None
-MIN_DROP = 0.5
 
 
 def smooth(curve: list[float], window: int = SMOOTH_UPDATES) -> list[float]:
@@ -561,9 +564,14 @@ def smooth(curve: list[float], window: int = SMOOTH_UPDATES) -> list[float]:
 
 
 def updates_to_reach(curve: list[float], level: float, window: int = SMOOTH_UPDATES) -> int | None:
-    """First update at which the smoothed curve is at or below ``level``; None if never."""
-    for i, v in enumerate(smooth(curve, window)):
-        if v <= level:
+    """First update at which the smoothed curve is at or below ``level``; None if never.
+
+    Only full windows count (updates ``window - 1`` on): an average of the first one or two
+    noisy updates would otherwise "reach" a level by chance.
+    """
+    smoothed = smooth(curve, window)
+    for i in range(min(window, len(curve)) - 1, len(curve)):
+        if smoothed[i] <= level:
             return i
     return None
 
@@ -613,8 +621,10 @@ def write_summary(out_root: str | Path, results: list[dict]) -> None:
 
     Curve metrics are recomputed from each run's ``log.csv`` where it exists. The markdown
     table gives, per mode, the median over seeds with the range: the final average
-    episode length of training, the updates to reach it (:func:`curve_metrics`), the updates for
-    the smoothed curve to reach the deterministic mode's median final length, and the final
+    episode length of training, the updates to reach it (:func:`curve_metrics`; seeds whose
+    curve dropped less than :data:`MIN_DROP` are counted as "no drop" and left out of the
+    median), the updates for the smoothed curve to reach the deterministic mode's median final
+    length ("never" counted the same way), and the final
     policy's success rate and mean length in the learned model and replayed in pybullet.
     """
     out_root = Path(out_root)
@@ -648,9 +658,11 @@ def write_summary(out_root: str | Path, results: list[dict]) -> None:
                 to_level.append(updates_to_reach(_read_curve(log), level_f))
         never = sum(v is None for v in to_level)
         reach = _stat(to_level) + (f" ({never} never)" if never else "")
+        no_drop = sum(r.get("updates_to_final") is None for r in runs)
+        flat = f" ({no_drop} no drop)" if no_drop else ""
         lines.append(
             f"| {mode} | {len(runs)} | {_stat([r.get('final_length') for r in runs])} | "
-            f"{_stat([r.get('updates_to_final') for r in runs])} | {reach} | "
+            f"{_stat([r.get('updates_to_final') for r in runs])}{flat} | {reach} | "
             f"{_stat([r.get('model_success_rate', r.get('success_rate')) for r in runs])} | "
             f"{_stat([r.get('model_mean_length', r.get('mean_episode_length')) for r in runs])} | "
             f"{_stat([r.get('pybullet_success_rate') for r in runs])} | "
