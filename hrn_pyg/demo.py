@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
                     "--steps", "30", "--out", str(target)])
         if code:
             return code
-        report.append(f"- {scene}: {target / 'samples.png'}, {target / 'samples.gif'}")
+        _note(report, f"- {scene}: {target / 'samples.png'}, {target / 'samples.gif'}")
 
     # 3. a learned cube-push policy ---------------------------------------------------------------
     policy = ckpt / "cube_push_policy.pt"
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         from hrn_pyg.rl.showcase import showcase_policy
 
         summary = showcase_policy(ckpt / "cube_push.pt", policy, out / "policy")
-        report.append(f"- cube_push policy: {summary}")
+        _note(report, f"- cube_push policy: {summary}")
     else:
         _note(report, "skipped the cube-push policy: cube_push_policy.pt not shipped (see docs/rl.md)")
 

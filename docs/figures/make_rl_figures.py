@@ -29,8 +29,8 @@ import torch
 
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
-from hrn_pyg.rl.ppo import build_actor_critic, record_episodes, replay_in_pybullet
-from hrn_pyg.utils.checkpoint import load_checkpoint
+from hrn_pyg.rl.ppo import record_episodes, replay_in_pybullet
+from hrn_pyg.rl.showcase import load_actor
 from hrn_pyg.utils.files import atomic_path
 from hrn_pyg.viz import object_colors, rollout_grid
 
@@ -45,15 +45,6 @@ COLUMNS = 4
 #: episodes shorter than this are drawn only if nothing longer qualifies: a goal drawn next to
 #: a cube can be met after one step, which shows no pushing
 MIN_STEPS = 3
-
-
-def load_actor(path: Path, env: HRNEnv):
-    """The trained actor of a ``policy.pt`` written by ``hrn-pyg rl``."""
-    ckpt = load_checkpoint(path)
-    hidden = json.loads(ckpt["config"])["ppo"]["hidden"]
-    actor, _ = build_actor_critic(env, hidden)
-    actor.load_state_dict(ckpt["model"]["actor"])
-    return actor.eval()
 
 
 def goal_ring(goal: np.ndarray, radius: float) -> np.ndarray:
