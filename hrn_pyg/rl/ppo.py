@@ -197,34 +197,15 @@ def load_dynamics(task: TaskConfig, model: str | None) -> StochasticDynamics:
 def evaluate_policy(policy: TensorDictModule, env: HRNEnv, episodes: int) -> tuple[float, float]:
     """Success rate and mean episode length of the policy's deterministic actions.
 
-    Runs ``ceil(episodes / B)`` rounds of ``B`` parallel episodes, each for up to
-    ``task.max_steps`` steps, and scores the first ``episodes`` episodes. The environment is used
-    as configured (set ``dropout_rate = 0`` first to judge the deterministic model).
+    Runs rounds of ``B`` parallel episodes (:func:`record_episodes`), each for up to
+    ``task.max_steps`` steps, and scores the first ``episodes``; an episode that never reaches the
+    goal counts ``max_steps``. The environment is used as configured (set ``dropout_rate = 0``
+    first to judge the deterministic model).
     """
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    B = env.batch_size[0]
-    successes, lengths = [], []
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        for _ in range(math.ceil(episodes / B)):
-            td = env.reset()
-            finished = torch.zeros(B, dtype=torch.bool)
-            success = torch.zeros(B, dtype=torch.bool)
-            length = torch.full((B,), env.task.max_steps, dtype=torch.int64)
-            for _ in range(env.task.max_steps):
-                td = env.step(policy(td))
-                done = td["next", "done"].squeeze(-1) & ~finished
-                success |= done & td["next", "terminated"].squeeze(-1)
-                length = torch.where(done, td["next", "t"].squeeze(-1), length)
-                finished |= done
-                if finished.all():
-                    break
-                td = step_mdp(td)
-            successes.append(success)
-            lengths.append(length)
-    success = torch.cat(successes)[:episodes].float()
-    length = torch.cat(lengths)[:episodes].float()
-    return float(success.mean()), float(length.mean())
+    records = record_episodes(policy, env, episodes)
+    success = sum(r["success"] for r in records) / len(records)
+    length = sum(r["length"] for r in records) / len(records)
+    return float(success), float(length)
 
 
 def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
@@ -294,22 +275,21 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
 def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> list[dict]:
     """Run the policy's deterministic actions in ``env`` and keep everything a replay needs.
 
-    Like :func:`evaluate_policy` (the environment is used as configured), but per episode:
-    ``seed`` (the pybullet scene it started from, ``env.dynamics.scene_seeds``), ``goal`` ``(2,)``,
+    The environment is used as configured. Per episode: ``seed`` (the pybullet scene it started
+    from, ``env.dynamics.scene_seeds``; -1 for dynamics without one), ``goal`` ``(2,)``,
     ``actions`` ``(T, A)`` (clipped to the action bounds, as the environment applies them),
     ``states`` ``(T + 1, S)`` (start, then after each action), ``success`` (bool: the episode
     ended by reaching the goal) and ``length`` ``T`` (steps until it ended).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    if not hasattr(env.dynamics, "scene_seeds"):
-        raise ValueError("record_episodes needs dynamics with scene_seeds (the learned HRN)")
     B, bound = env.batch_size[0], env.task.max_force
     out: list[dict] = []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         while len(out) < episodes:
             td = env.reset()
-            seeds = env.dynamics.scene_seeds(td["state"])
+            seeds = (env.dynamics.scene_seeds(td["state"]) if hasattr(env.dynamics, "scene_seeds")
+                     else torch.full((B,), -1, dtype=torch.long))
             goal = td["goal"].clone()
             states, actions = [td["state"].clone()], []
             finished = torch.zeros(B, dtype=torch.bool)
