@@ -29,13 +29,9 @@ def fitted_model(seed: int = 0, hidden: int = 16, dtype: torch.dtype = torch.flo
 
 
 def trained_checkpoint(scene: str) -> Path | None:
-    """A trained checkpoint for ``scene`` if one is on disk (package checkpoints first)."""
+    """The shipped checkpoint of ``scene`` (Table 1 "ours" first, then the scene's default)."""
     for path in (REPO / "hrn_pyg" / "checkpoints" / f"{scene}_ours.pt",
-                 REPO / "hrn_pyg" / "checkpoints" / f"{scene}_hrn.pt",
-                 REPO / "runs" / f"{scene}_ours" / "model.pt",
-                 REPO / "runs" / f"{scene}_hrn" / "model.pt",
-                 REPO / "runs" / f"{scene}_ours" / "last.pt",
-                 REPO / "runs" / f"{scene}_hrn" / "last.pt"):
+                 REPO / "hrn_pyg" / "checkpoints" / f"{scene}.pt"):
         if path.is_file():
             return path
     return None
