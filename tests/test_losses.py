@@ -9,7 +9,7 @@ from hrn_pyg.losses import (
     shape_groups,
 )
 from hrn_pyg.nn.normalizer import Normalizer
-from toy_scene import one_thread, toy_scene  # noqa: F401 (autouse fixture)
+from toy_scene import toy_scene
 
 
 def test_local_velocity_loss_hand_case():

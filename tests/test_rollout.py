@@ -8,7 +8,7 @@ from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.nn.state import to_local_velocity
 from hrn_pyg.rollout import build_inputs, decode, rollout, run_network, step, target_output, unroll
-from toy_scene import one_thread, toy_scene, toy_window  # noqa: F401 (autouse fixture)
+from toy_scene import toy_scene, toy_window
 
 
 def _model(seed=0, hidden=16, **kw):

@@ -7,7 +7,6 @@ the ground. Nodes: leaves 0..13, groups 14 and 15, roots 16 (soft), 17 (rigid), 
 
 from __future__ import annotations
 
-import pytest
 import torch
 from torch_geometric.data import HeteroData
 
@@ -76,13 +75,3 @@ def toy_window(steps: int, seed: int = 0, separate: bool = False) -> HeteroData:
     graph[NODE].pos_seq = leaf_to_ancestor_mean(full, graph).transpose(0, 1).contiguous()
     graph[NODE].force_seq = torch.zeros(n, steps, 3)
     return graph
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Run each test on one intra-op thread: the graphs here are tiny, and on a busy 2-core
-    machine two spinning OpenMP threads made a 3 ms model step take hundreds of ms."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
