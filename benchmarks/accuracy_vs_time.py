@@ -50,6 +50,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch, HeteroData
 
+from hrn_pyg.viz import save_figure
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy
@@ -309,11 +310,7 @@ def plot(rows: list[dict], pybullet: list[dict], path: Path) -> None:
             ax.set_title(f"{scene}: {metric.replace('_', ' ')}")
             ax.legend(fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    os.replace(tmp, path)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> dict:

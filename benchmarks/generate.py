@@ -8,10 +8,7 @@ Median over repeats. Prints a markdown table and writes JSON (atomically).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
-import tempfile
 import time
 
 import numpy as np
@@ -20,6 +17,7 @@ import torch
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.data.radius import collision_edges
 from hrn_pyg.data.scenes import SCENES, make_scene
+from hrn_pyg.utils.files import atomic_write_json
 
 #: Collision radius for the edge-search timing (m): about one voxel pitch, as the model uses.
 COLLISION_RADIUS = 0.06
@@ -86,14 +84,7 @@ def main() -> None:
                     "torch_threads": torch.get_num_threads()},
         "rows": rows,
     }
-    folder = os.path.dirname(os.path.abspath(args.out))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(payload, f, indent=2)
-        f.write("\n")
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, args.out)
+    atomic_write_json(args.out, payload)
     print(f"wrote {args.out}")
 
 

@@ -31,7 +31,8 @@ from hrn_pyg.sampling.cli import model_for
 from hrn_pyg.sampling.ensemble import HISTORY, episode_state
 from hrn_pyg.sampling.metrics import object_centres, root_spread
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.utils.files import atomic_path, atomic_write_json
+from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.viz import save_figure
 
 #: (figure, scene, masked modules, rates), as in the seed paper's supplement
 STUDIES = (
@@ -73,9 +74,7 @@ def plot(results: dict, path: str) -> None:
         ax.set_ylabel("root spread over samples (cm)")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -52,6 +52,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hrn_pyg.viz import save_figure
+
 #: cube side (m) of the particle-count experiment
 CUBE_SIDE = 0.2
 #: collision radius as a multiple of the pitch (face neighbours and in-plane diagonals)
@@ -300,11 +302,7 @@ def plot(particles: list[dict], objects: list[dict], chunks: list[dict], sizes: 
     lines3 = ax3.get_legend_handles_labels()
     ax.legend(lines[0] + lines3[0], lines[1] + lines3[1], fontsize=7, loc="upper left")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    os.replace(tmp, path)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> dict | None:

@@ -19,7 +19,6 @@ standard error. All test windows are rolled out together as one batched graph.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any

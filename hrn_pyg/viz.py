@@ -148,10 +148,12 @@ def _static_mask(colors, n_leaves: int, static: np.ndarray | None) -> np.ndarray
     return np.zeros(n_leaves, dtype=bool)
 
 
-def _save(fig, path: str | os.PathLike) -> None:
+def save_figure(fig, path: str | os.PathLike, dpi: float | None = None) -> None:
+    """Write a matplotlib figure atomically (format from the suffix, PNG by default), then close it."""
     plt = _plt()
-    with atomic_path(path, suffix=os.path.splitext(str(path))[1]) as tmp:
-        fig.savefig(tmp, format=os.path.splitext(str(path))[1][1:] or "png")
+    suffix = os.path.splitext(str(path))[1]
+    with atomic_path(path, suffix=suffix) as tmp:
+        fig.savefig(tmp, format=suffix[1:] or "png", dpi=dpi)
     plt.close(fig)
 
 
@@ -180,7 +182,7 @@ def rollout_grid(rows: dict[str, np.ndarray], times: Sequence[int], colors, path
     if title:
         fig.suptitle(title, fontsize=10)
     fig.subplots_adjust(left=0.04, right=0.99, bottom=0.01, top=0.9, wspace=0.0, hspace=0.0)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _overlay(ax, truth_t: np.ndarray, samples_t: np.ndarray, colors, static: np.ndarray,
@@ -225,7 +227,7 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
     if title:
         fig.suptitle(title, fontsize=10)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.8, wspace=0.0)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fps: int = 10,

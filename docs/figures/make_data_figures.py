@@ -17,6 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hrn_pyg.data.scenes import SCENES, simulate_episode  # noqa: E402
+from hrn_pyg.viz import save_figure  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 #: Seeds for the wedge's "where does the ball end" panel.
@@ -94,8 +95,7 @@ def draw(scene: str, seed: int, out: str) -> str:
         ax.set_aspect("equal")
     fig.tight_layout()
     path = os.path.join(out, f"data_{scene}.png")
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 

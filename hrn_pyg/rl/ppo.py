@@ -56,10 +56,11 @@ from torchrl.objectives.value import GAE
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.tasks import TASKS, TaskConfig, action_to_forces, get_task, goal_reached
-from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
+from hrn_pyg.utils.checkpoint import save_checkpoint
 from hrn_pyg.utils.files import atomic_path, atomic_write_json, atomic_write_text
 from hrn_pyg.utils.metrics import CSVLog, plot_curves
 from hrn_pyg.utils.schedules import LinearSchedule
+from hrn_pyg.viz import save_figure
 
 MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed")
 #: trailing moving-average window (updates) of the episode-length curve for the summary metrics
@@ -519,9 +520,7 @@ def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str =
     if drawn:
         ax.legend(frameon=False, fontsize=8)
     fig.tight_layout()
-    with atomic_path(png_path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, png_path)
     return drawn
 
 

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from hrn_pyg.utils.files import atomic_path
+from hrn_pyg.viz import save_figure
 
 
 class CSVLog:
@@ -64,6 +65,4 @@ def plot_curves(csv_path: str | os.PathLike, png_path: str | os.PathLike, x: str
     ax.legend(frameon=False, fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    with atomic_path(png_path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, png_path)
