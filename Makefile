@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 OUT     ?= out/demo
 JOBS    ?= 2
 
-.PHONY: demo test test-slow bench clean-venv
+.PHONY: demo test test-slow bench checkpoints clean-venv
 
 $(STAMP): setup.cfg constraints.txt
 	@command -v $(PY) >/dev/null 2>&1 || { echo "need $(PY) on PATH (or set PY=python3)"; exit 2; }
@@ -27,6 +27,13 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/generate.py
+
+# Remake every shipped checkpoint from data/recipes.toml (data/README.md). A rerun continues
+# where a killed one stopped. Options pass through, e.g.
+# make checkpoints CHECKPOINTS_ARGS="--only wedge --jobs 4 --device cuda"
+CHECKPOINTS_ARGS ?=
+checkpoints: $(STAMP)
+	$(BIN)/hrn-pyg checkpoints $(CHECKPOINTS_ARGS)
 
 clean-venv:
 	rm -rf $(VENV)

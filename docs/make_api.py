@@ -31,11 +31,14 @@ MODULES = (
     "hrn_pyg.nn.propagation",
     "hrn_pyg.nn.state",
     "hrn_pyg.nn.normalizer",
+    "hrn_pyg.nn.rigid",
     "hrn_pyg.nn.hrn",
     "hrn_pyg.rollout",
     "hrn_pyg.losses",
     "hrn_pyg.train",
     "hrn_pyg.evaluate",
+    "hrn_pyg.recipe",
+    "hrn_pyg.metrics_rest",
     "hrn_pyg.sampling.sample",
     "hrn_pyg.sampling.metrics",
     "hrn_pyg.sampling.ensemble",
@@ -48,6 +51,7 @@ MODULES = (
     "hrn_pyg.utils.schedules",
     "hrn_pyg.utils.checkpoint",
     "hrn_pyg.utils.files",
+    "hrn_pyg.utils.device",
     "hrn_pyg.utils.metrics",
 )
 

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sample": ("hrn_pyg.sampling.cli", "sample K futures with Monte Carlo dropout"),
     "rl": ("hrn_pyg.rl.ppo", "train a PPO agent in the learned environment"),
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
+    "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),
 }
 
 

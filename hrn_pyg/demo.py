@@ -11,7 +11,8 @@ hand:
    pybullet (the ground-truth check).
 
 Everything lands under one output folder, named at the end. A step whose checkpoint is not
-shipped is skipped with a note naming the command that makes it.
+shipped is skipped with a note naming the command that makes it. ``--device`` is passed on to
+every step.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import argparse
 import time
 from pathlib import Path
 
+from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_text
 
 #: test-split seeds (seed % 10 == 9) used for the demo's held-out episodes, far from the
@@ -52,6 +54,8 @@ def _note(lines: list[str], text: str) -> None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--k", type=int, default=16, help="sampled futures per scene")
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
+    device = resolve_device(args.device)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = checkpoint_dir()
@@ -74,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             continue
         data = _held_out_episodes(scene, out / "data" / scene)
         code = cli(["evaluate", "--data", str(data), "--model", f"HRN={hrn}", "--model", f"ours={ours}",
-                    "--out", str(out / "table1" / scene), "--stride", "100"])
+                    "--out", str(out / "table1" / scene), "--stride", "100", "--device", str(device)])
         if code:
             return code
         report += [(out / "table1" / scene / "table.md").read_text(), ""]
@@ -86,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
             continue
         target = out / "samples" / scene
         code = cli(["sample", "--scene", scene, "--k", str(args.k), "--rate", "0.3", "--seed", str(DEMO_SEEDS[0]),
-                    "--steps", "30", "--out", str(target)])
+                    "--steps", "30", "--out", str(target), "--device", str(device)])
         if code:
             return code
         _note(report, f"- {scene}: {target / 'samples.png'}, {target / 'samples.gif'}")
@@ -96,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if policy.is_file() and (ckpt / "cube_push.pt").is_file():
         from hrn_pyg.rl.showcase import showcase_policy
 
-        summary = showcase_policy(ckpt / "cube_push.pt", policy, out / "policy")
+        summary = showcase_policy(ckpt / "cube_push.pt", policy, out / "policy", device=device)
         _note(report, f"- cube_push policy: {summary}")
     else:
         _note(report, "skipped the cube-push policy: cube_push_policy.pt not shipped (see docs/rl.md)")

@@ -14,6 +14,14 @@ pybullet's ground truth, over the moving leaves:
 (velocities are per-step displacements, the shape error is the fully-connected pairwise-distance
 error). Each trajectory gives one number per metric and horizon; the table shows their mean and
 standard error. All test windows are rolled out together as one batched graph.
+
+**Long rollouts.** A second table scores one rollout per held-out episode, started at the
+earliest possible step (``t = 2``) and run to the episode's end, at the long horizons (default
+``t+50`` and ``t+100``; a horizon past an episode's end is read at the end and labelled e.g.
+``t+47 (end)``), plus the rest metrics of :mod:`hrn_pyg.metrics_rest`: how far movable leaves get
+below the ground, and for objects at rest at the end of the ground truth the error of the
+predicted resting height and the predicted horizontal drift. The short-horizon Table 1 keeps its
+own windows (``--stride`` apart, horizon ``max(--horizons)``), so its numbers are unchanged.
 """
 
 from __future__ import annotations
@@ -26,18 +34,24 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
-from torch_geometric.data import Batch
+from torch_geometric.data import Batch, HeteroData
 from torch_geometric.utils import scatter
 
-from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.dataset import HISTORY, EpisodeWindows, _num_steps
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.losses import full_shape_loss, shape_groups
+from hrn_pyg.metrics_rest import REST_SPEED, REST_STEPS, rest_metrics
 from hrn_pyg.rollout import rollout
 from hrn_pyg.train import load_model
+from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
 METRICS = ("position", "velocity", "shape")
 DEFAULT_HORIZONS = (5, 15)
+#: Long horizons of the second table (read at the episode's end where an episode is shorter).
+DEFAULT_LONG_HORIZONS = (50, 100)
+#: The rest metrics of each model, in table order.
+REST_METRICS = ("ground_depth", "rest_height_error", "rest_drift")
 
 
 def per_trajectory_errors(pred: Tensor, truth: Tensor, graph: Batch, prev_truth: Tensor,
@@ -70,9 +84,14 @@ def per_trajectory_errors(pred: Tensor, truth: Tensor, graph: Batch, prev_truth:
 
 
 @torch.no_grad()
-def evaluate_model(model, windows: list, horizons: tuple[int, ...]) -> dict[str, dict[int, np.ndarray]]:
-    """Roll ``model`` out from every window (one batched graph); errors ``{metric: {h: [B]}}``."""
-    graph = Batch.from_data_list(windows)
+def evaluate_model(model, windows: list, horizons: tuple[int, ...],
+                   device: torch.device | str = "cpu") -> dict[str, dict[int, np.ndarray]]:
+    """Roll ``model`` out from every window (one batched graph); errors ``{metric: {h: [B]}}``.
+
+    ``model`` must already be on ``device``; the windows are moved there, the errors come back
+    to the CPU.
+    """
+    graph = Batch.from_data_list(windows).to(device)
     store = graph[NODE]
     steps = max(horizons)
     forces = store.force_seq[:, :steps].transpose(0, 1)  # [steps, N, 3]
@@ -124,22 +143,176 @@ def select_windows(dataset: EpisodeWindows, stride: int, limit: int | None) -> l
     return [dataset[i] for i in chosen]
 
 
-def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 10, 15)) -> None:
+def episode_start_windows(data: str | Path, split: str, limit: int | None = None) -> list[HeteroData]:
+    """One window per episode of ``split``: from the earliest start ``t = 2`` to the episode's end.
+
+    The window of episode ``e`` (``S_e`` steps) has horizon ``T_e = S_e - 2``, so one rollout
+    covers the whole episode, whatever its length (episodes may differ). Episodes of fewer than
+    3 steps are skipped; at most ``limit`` windows, in seed order.
+
+    **Shapes:** window ``e`` holds ``pos_seq`` ``[N_e, S_e + 1, 3]`` (``x_0 .. x_{S_e}``) and
+    ``force_seq`` ``[N_e, S_e - 2, 3]``.
+    """
+    probe = EpisodeWindows(data, split, horizon=1)
+    lengths = [_num_steps(path) - HISTORY for path in probe.paths]
+    chosen = [(episode, length) for episode, length in enumerate(lengths) if length >= 1][:limit]
+    datasets: dict[int, EpisodeWindows] = {1: probe}
+    windows = []
+    for episode, length in chosen:  # one window per episode
+        if length not in datasets:
+            datasets[length] = EpisodeWindows(data, split, horizon=length)
+        ds = datasets[length]
+        index = np.flatnonzero((ds._window_episode == episode) & (ds._window_start == HISTORY))
+        windows.append(ds[int(index[0])])
+    return windows
+
+
+@torch.no_grad()
+def evaluate_long(model, windows: list, horizons: tuple[int, ...],
+                  device: torch.device | str = "cpu") -> dict[str, Any]:
+    """Roll ``model`` over whole-episode windows (:func:`episode_start_windows`) and score them.
+
+    Windows of equal length are rolled out together as one batched graph. Horizon ``h`` is read
+    at step ``min(h, T_e)`` of window ``e``; the rest metrics (:func:`hrn_pyg.metrics_rest.rest_metrics`)
+    use the whole rollout, which ends at the episode's end. ``model`` must already be on
+    ``device``; results come back to the CPU.
+
+    **Shapes** (``E`` windows, ``R`` objects at rest at the end of the ground truth, over all
+    windows): returns ``errors`` ``{metric: {h: [E]}}``, ``steps`` ``{h: [E]}`` (the step each
+    horizon was read at), ``ground_depth`` and ``truth_ground_depth`` ``[E]``,
+    ``rest_height_error`` and ``rest_drift`` ``[R]`` (numpy arrays).
+    """
+    lengths = np.array([int(w[NODE].force_seq.shape[1]) for w in windows])
+    count = len(windows)
+    errors = {m: {h: np.empty(count) for h in horizons} for m in METRICS}
+    depth, truth_depth = np.empty(count), np.empty(count)
+    height: list[np.ndarray] = []
+    drift: list[np.ndarray] = []
+    for length in np.unique(lengths).tolist():  # one batched rollout per distinct episode length
+        members = np.flatnonzero(lengths == length)
+        graph = Batch.from_data_list([windows[i] for i in members]).to(device)
+        store = graph[NODE]
+        forces = store.force_seq.transpose(0, 1)  # [T, N, 3]
+        pred = torch.cat([store.pos[None], rollout(model, graph, length, forces)])  # [T+1, N, 3]: x_2..x_S
+        truth = store.pos_seq[:, HISTORY:].transpose(0, 1)  # [T+1, N, 3]: x_2..x_S
+        for h in horizons:
+            s = min(h, length)
+            err = per_trajectory_errors(pred[s], truth[s], graph, truth[s - 1], pred[s - 1])
+            for m in METRICS:
+                errors[m][h][members] = err[m].cpu().numpy()
+        leaf = store.is_leaf.nonzero().flatten()
+        copy = store.batch[leaf]
+        n_obj = int(store.object.max()) + 1
+        rest = rest_metrics(pred[:, leaf], truth[:, leaf], copy * n_obj + store.object[leaf],
+                            ~store.is_static[leaf], copy, num_objects=len(members) * n_obj,
+                            num_groups=len(members), mass=store.mass[leaf, 0])
+        depth[members] = rest.depth.cpu().numpy()
+        truth_depth[members] = rest.truth_depth.cpu().numpy()
+        height.append(rest.height_error[rest.at_rest].cpu().numpy())
+        drift.append(rest.drift[rest.at_rest].cpu().numpy())
+    return {
+        "errors": errors,
+        "steps": {h: np.minimum(h, lengths) for h in horizons},
+        "ground_depth": depth,
+        "truth_ground_depth": truth_depth,
+        "rest_height_error": np.concatenate(height) if height else np.empty(0),
+        "rest_drift": np.concatenate(drift) if drift else np.empty(0),
+    }
+
+
+def horizon_label(horizon: int, steps: np.ndarray) -> str:
+    """Table header of a long horizon read at ``steps`` (one per episode, ``min(h, T_e)``).
+
+    ``t+50`` when every episode reaches it, ``t+47 (end)`` when all end earlier at the same
+    step, ``t+40..50 (end)`` when episode lengths differ and some end earlier.
+    """
+    lo, hi = int(steps.min()), int(steps.max())
+    if lo == hi == horizon:
+        return f"t+{horizon}"
+    if lo == hi:
+        return f"t+{lo} (end)"
+    return f"t+{lo}..{hi} (end)"
+
+
+def _mean_sem(values: np.ndarray) -> dict[str, float]:
+    """Mean, standard error and count of a sample (NaN where undefined)."""
+    n = len(values)
+    mean = float(values.mean()) if n else float("nan")
+    sem = float(values.std(ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
+    return {"mean": mean, "sem": sem, "n": n}
+
+
+def summarise_long(result: dict[str, Any]) -> dict[str, dict]:
+    """Mean ± standard error of :func:`evaluate_long`'s output.
+
+    Returns ``{"long": {metric: {"t+h": {mean, sem, n, label, step_min, step_max}}}, "rest":
+    {ground_depth: {mean, sem, n, max}, rest_height_error: {mean, sem, n}, rest_drift: ...}}``;
+    ``ground_depth`` is over trajectories, the other two over objects at rest.
+    """
+    long: dict[str, dict[str, dict]] = {}
+    for m, by_h in result["errors"].items():
+        long[m] = {}
+        for h, values in by_h.items():
+            steps = result["steps"][h]
+            long[m][f"t+{h}"] = {**_mean_sem(values), "label": horizon_label(h, steps),
+                                 "step_min": int(steps.min()), "step_max": int(steps.max())}
+    depth = result["ground_depth"]
+    rest = {
+        "ground_depth": {**_mean_sem(depth), "max": float(depth.max()) if len(depth) else float("nan")},
+        "rest_height_error": _mean_sem(result["rest_height_error"]),
+        "rest_drift": _mean_sem(result["rest_drift"]),
+    }
+    return {"long": long, "rest": rest}
+
+
+def _cell(stats: dict[str, float], count: bool = False) -> str:
+    if stats["n"] == 0:
+        return "n/a (no object at rest)" if count else "n/a"
+    text = f"{stats['mean']:.3g} ± {stats['sem']:.2g}"
+    return f"{text} (n={stats['n']})" if count else text
+
+
+def long_table(summaries: dict[str, dict], scene: str) -> str:
+    """Long rollouts: one row per model (``summaries[name]`` from :func:`summarise_long`).
+
+    Position / velocity / shape MSE at each distinct long horizon (horizons past every
+    episode's end collapse into one ``(end)`` column), then the rest metrics: lowest movable
+    leaf below the ground (m, over trajectories), rest height error and rest drift (m, over
+    objects at rest, their count in brackets).
+    """
+    first = next(iter(summaries.values()))["long"]
+    columns: dict[str, str] = {}  # label -> "t+h" key, first horizon per label
+    for key, stats in first[METRICS[0]].items():
+        columns.setdefault(stats["label"], key)
+    head = ("| scene | model | " + " | ".join(f"{m} MSE {label}" for m in METRICS for label in columns)
+            + (" | " if columns else "") + "below ground (m) | rest height error (m) | rest drift (m) |")
+    rule = "|" + "---|" * (2 + len(METRICS) * len(columns) + len(REST_METRICS))
+    rows = [head, rule]
+    for name, s in summaries.items():
+        cells = [_cell(s["long"][m][key]) for m in METRICS for key in columns.values()]
+        cells += [_cell(s["rest"]["ground_depth"]), _cell(s["rest"]["rest_height_error"], count=True),
+                  _cell(s["rest"]["rest_drift"], count=True)]
+        rows.append(f"| {scene} | {name} | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
+def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 10, 15),
+                      device: torch.device | str = "cpu") -> None:
     """Ground truth and each model on one test trajectory, side by side over time (Fig. 5)."""
     from hrn_pyg.viz import object_colors, rollout_grid
 
-    graph = Batch.from_data_list([window])
+    graph = Batch.from_data_list([window]).to(device)
     store = graph[NODE]
     steps = max(times)
     forces = store.force_seq[:, :steps].transpose(0, 1)
     leaves = store.is_leaf.nonzero().flatten()
-    truth = store.pos_seq[:, 2:steps + 3].transpose(0, 1)[:, leaves].numpy()
+    truth = store.pos_seq[:, 2:steps + 3].transpose(0, 1)[:, leaves].cpu().numpy()
     rows = {"ground truth": truth}
     for name, model in models.items():
         with torch.no_grad():
             pred = rollout(model, graph, steps, forces)
-        rows[name] = torch.cat([store.pos[None], pred])[:, leaves].numpy()
-    rollout_grid(rows, list(times), object_colors(store.object[leaves].numpy()), path)
+        rows[name] = torch.cat([store.pos[None], pred])[:, leaves].cpu().numpy()
+    rollout_grid(rows, list(times), object_colors(store.object[leaves].cpu().numpy()), path)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -148,6 +321,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a checkpoint to score, e.g. --model hrn=runs/hrn/model.pt (repeatable)")
     parser.add_argument("--out", required=True, help="folder for table.md, results.json and the figure")
     parser.add_argument("--horizons", default="5,15", help="comma-separated steps ahead (default 5,15)")
+    parser.add_argument("--long-horizons", default=",".join(map(str, DEFAULT_LONG_HORIZONS)),
+                        help="comma-separated steps ahead of the long-rollout table, one rollout per "
+                             "episode from its start; read at the episode's end when shorter "
+                             "(default 50,100; '' for the rest metrics only)")
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--stride", type=int, default=10, help="steps between window starts in an episode")
     parser.add_argument("--limit", type=int, default=None, help="score at most this many trajectories")
     parser.add_argument("--split", default="test", choices=("test", "val"),
@@ -165,27 +344,52 @@ def _parse_models(specs: list[str]) -> dict[str, str]:
     return models
 
 
+def _parse_horizons(text: str, option: str, allow_empty: bool = False) -> tuple[int, ...]:
+    try:
+        horizons = tuple(int(h) for h in str(text).split(",") if h.strip())
+    except ValueError:
+        raise ValueError(f"{option} must be comma-separated positive integers, got {text!r}") from None
+    if (not horizons and not allow_empty) or (horizons and min(horizons) < 1):
+        raise ValueError(f"{option} must be positive integers, got {text!r}")
+    return horizons
+
+
 def run(args: argparse.Namespace) -> int:
-    horizons = tuple(int(h) for h in str(args.horizons).split(",") if h)
-    if not horizons or min(horizons) < 1:
-        raise ValueError(f"--horizons must be positive integers, got {args.horizons!r}")
+    device = resolve_device(getattr(args, "device", None))
+    horizons = _parse_horizons(args.horizons, "--horizons")
+    long_horizons = _parse_horizons(getattr(args, "long_horizons", ""), "--long-horizons", allow_empty=True)
     if args.stride < 1:
         raise ValueError(f"--stride must be >= 1, got {args.stride}")
-    models = {name: load_model(path) for name, path in _parse_models(args.model).items()}
+    models = {name: load_model(path).to(device) for name, path in _parse_models(args.model).items()}
     dataset = EpisodeWindows(args.data, args.split, horizon=max(horizons))
     windows = select_windows(dataset, args.stride, args.limit)
-    summaries = {name: summarise(evaluate_model(m, windows, horizons)) for name, m in models.items()}
+    summaries = {name: summarise(evaluate_model(m, windows, horizons, device)) for name, m in models.items()}
+    starts = episode_start_windows(args.data, args.split, args.limit)
+    long_results = {name: evaluate_long(m, starts, long_horizons, device) for name, m in models.items()}
+    long_summaries = {name: summarise_long(r) for name, r in long_results.items()}
+    truth_depth = _mean_sem(next(iter(long_results.values()))["truth_ground_depth"])
     scene = Path(args.data).name
-    table = markdown_table(summaries, horizons, scene)
+    caption = (f"Long rollouts: {len(starts)} episode{'s' if len(starts) != 1 else ''}, each rolled out from "
+               f"t=2 to its end; rest = every "
+               f"leaf moved < {REST_SPEED * 1e3:g} mm/step over the last {REST_STEPS} steps of the ground "
+               f"truth; ground truth below ground: {truth_depth['mean']:.3g} m.")
+    table = markdown_table(summaries, horizons, scene) + "\n" + caption + "\n\n" + long_table(long_summaries, scene)
     out = Path(args.out)
     atomic_write_text(out / "table.md", table)
-    atomic_write_json(out / "results.json", {"scene": scene, "data": str(args.data), "split": args.split,
-                                            "horizons": list(horizons),
-                                            "trajectories": len(windows), "models": _parse_models(args.model),
-                                            "results": summaries})
+    atomic_write_json(out / "results.json", {
+        "scene": scene, "data": str(args.data), "split": args.split, "device": str(device),
+        "horizons": list(horizons), "trajectories": len(windows), "models": _parse_models(args.model),
+        "results": summaries,
+        "long_horizons": list(long_horizons), "long_trajectories": len(starts),
+        "long_results": {name: s["long"] for name, s in long_summaries.items()},
+        "rest": {name: s["rest"] for name, s in long_summaries.items()},
+        "rest_truth": {"ground_depth": truth_depth},
+        "rest_definition": {"speed_m_per_step": REST_SPEED, "steps": REST_STEPS},
+    })
     if not args.no_figure:
         comparison_figure(models, windows[0], out / f"rollout_{scene}.png",
-                          times=tuple(sorted({0, *horizons, max(horizons) // 2})))
+                          times=tuple(sorted({0, *horizons, max(horizons) // 2})), device=device)
     print(table, end="")
-    print(f"{len(windows)} held-out trajectories ({args.split} split); written to {out}")
+    print(f"{len(windows)} held-out trajectories and {len(starts)} whole episode{'s' if len(starts) != 1 else ''} "
+          f"({args.split} split, {device}); written to {out}")
     return 0

@@ -30,13 +30,18 @@ from hrn_pyg.data.graph import (
     CHILD_TO_PARENT,
     COLLISION,
     LEAF_TO_ANCESTOR,
+    MATERIALS,
     NODE,
     WITHIN_SIBLINGS,
     leaf_to_ancestor_mean,
     set_state,
 )
 from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
+from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
+
+#: column of the rigid material in ``graph['particle'].material``
+RIGID = MATERIALS.index("rigid")
 
 #: ``masks_fn(step_index, graph) -> {module: [B, H] mask} | None``, called once per step
 MasksFn = Callable[[int, HeteroData], Mapping[str, Tensor] | None]
@@ -90,11 +95,16 @@ def build_inputs(model: HRN, graph: HeteroData, force: Tensor | None = None) -> 
         if name not in store:
             raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
         _check_finite(f"graph['{NODE}'].{name}", store[name])
-    norm = model.normalizer
+    norm, config = model.normalizer, model.config
     pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
     static = (store.mass, store.material, store.stiffness, store.depth, store.is_leaf, store.is_root)
-    state = state_features(norm, pos - prev, pos[:, 2:], *static)
-    prev_state = state_features(norm, prev - prev2, prev[:, 2:], *static)
+    ground = config.collision_radius if config.ground_contact else None
+    state = state_features(norm, pos - prev, pos[:, 2:], *static, ground_radius=ground)
+    prev_state = state_features(norm, prev - prev2, prev[:, 2:], *static, ground_radius=ground)
+    rest_pos = None
+    if config.rest_offsets:
+        # a graph without a recorded rest shape takes its current shape as the rest shape
+        rest_pos = norm.length(store.rest_pos if "rest_pos" in store else pos)
     batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)
     empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
     collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
@@ -110,6 +120,7 @@ def build_inputs(model: HRN, graph: HeteroData, force: Tensor | None = None) -> 
         leaf_to_ancestor=graph[LEAF_TO_ANCESTOR].edge_index,
         within_siblings=graph[WITHIN_SIBLINGS].edge_index,
         ancestor_to_descendant=graph[ANCESTOR_TO_DESCENDANT].edge_index,
+        rest_pos=rest_pos,
     )
 
 
@@ -127,7 +138,10 @@ def decode(model: HRN, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, 
         x_l(t+1) &= x_l(t) + v_l(t+1) \ \text{(leaves)}, \qquad
         x_a(t+1) = \textstyle\sum_{l} m_l x_l(t+1) / m_a \ \text{(ancestors)}
 
-    Static particles get zero velocity, so their positions are returned unchanged.
+    Static particles get zero velocity, so their positions are returned unchanged. With
+    ``model.config.rigid_fit`` the leaves of every rigid object then move by the one rigid
+    transform that fits their predicted motion best (:func:`rigid_leaf_positions`), and that
+    object's velocities are the fitted ones.
     """
     store = graph[NODE]
     c2p = graph[CHILD_TO_PARENT].edge_index
@@ -136,7 +150,37 @@ def decode(model: HRN, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, 
     local = torch.where(store.is_static.unsqueeze(-1), torch.zeros_like(local), local)
     velocity = to_global_velocity(local, graph[LEAF_TO_ANCESTOR].edge_index)
     pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
+    if model.config.rigid_fit:
+        pos = leaf_to_ancestor_mean(rigid_leaf_positions(graph, pos), graph)
+        rigid = store.material[:, RIGID].bool().unsqueeze(-1)
+        velocity = torch.where(rigid, pos - store.pos, velocity)
+        local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     return pos, local, velocity
+
+
+def rigid_leaf_positions(graph: HeteroData, pred_pos: Tensor) -> Tensor:
+    """``pred_pos`` ``[N, 3]`` with the leaves of each rigid object replaced by the best rigid
+    motion of their current positions (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`); other rows are
+    returned unchanged (ancestor rows still need re-deriving).
+
+    An object (of one batch copy) is identified by its root node, so the groups need no host
+    sync; rows other than rigid leaves enter the fit with zero weight.
+    """
+    store = graph[NODE]
+    rigid_leaf = store.is_leaf & store.material[:, RIGID].bool()
+    weight = torch.where(rigid_leaf, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
+    fitted = fit_rigid_motion(store.pos, pred_pos, weight, root_of(graph), store.num_nodes)
+    return torch.where(rigid_leaf.unsqueeze(-1), fitted, pred_pos)
+
+
+def root_of(graph: HeteroData) -> Tensor:
+    """``[N]`` long: the root node of every node's tree (a root is its own)."""
+    store = graph[NODE]
+    node, ancestor = graph[LEAF_TO_ANCESTOR].edge_index
+    index = torch.arange(store.num_nodes, device=node.device)
+    candidate = torch.where(store.is_root[ancestor], ancestor, torch.full_like(ancestor, -1))
+    roots = torch.full_like(index, -1).scatter_reduce(0, node, candidate, reduce="amax")
+    return torch.where(store.is_root, index, roots)
 
 
 def target_output(model: HRN, graph: HeteroData, next_pos: Tensor) -> Tensor:

@@ -13,7 +13,9 @@ gradient clipping under a warm-up + cosine learning-rate schedule. Checkpoints a
 atomically every ``checkpoint_every`` steps and at exit (also on Ctrl-C); ``--resume`` continues
 from the last one with the optimiser and random-number state, so the next loss is the one the
 uninterrupted run would have had. Under ``torchrun --nproc_per_node N`` the same command trains
-data-parallel (gloo): each rank draws its own windows and gradients are averaged.
+data-parallel (nccl on CUDA, gloo on CPU): each rank draws its own windows and gradients are
+averaged. ``--device`` (default CUDA when available) places the model and every batch;
+``--workers N`` assembles the batches in N background processes.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from typing import Any
 import torch
 import torch.distributed as dist
 from torch import Tensor
+from torch.utils.data import DataLoader
 from torch_geometric.data import Batch, HeteroData
 from tqdm import tqdm
 
@@ -46,13 +49,17 @@ from hrn_pyg.losses import (
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.nn.state import to_local_velocity
+from hrn_pyg.rollout import root_of
 from hrn_pyg.rollout import step as model_step
-from hrn_pyg.utils.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog, plot_curves
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
 
 PRESETS = ("hrn", "ours")
+#: model settings each preset implies unless given explicitly (``hrn`` is the paper's baseline)
+PRESET_MODEL: dict[str, dict[str, Any]] = {"hrn": {}, "ours": {}}
 SHAPE_LOSSES = ("group", "full")
 #: windows used to fit the normaliser (the statistics converge long before this)
 NORMALIZER_WINDOWS = 256
@@ -82,6 +89,14 @@ class TrainConfig:
         checkpoint_every, eval_every: steps between checkpoints / validation scores.
         seed: seeds the model initialisation, the window draws and the dropout masks.
         threads: torch intra-op threads (0: leave torch's default).
+        input_noise: standard deviation (m) of a random walk added to the input positions
+            ``x_{t-2}, x_{t-1}, x_t`` of each window (GNS's remedy for error accumulation); the
+            first step's velocity target is measured from the noisy ``x_t``. Rigid objects get one
+            shift per object, so their inputs stay rigid.
+        device: where the model and batches live ("" : CUDA when available, else CPU).
+        workers: background processes assembling batches (0: in the training process).
+        time_limit: minutes after which this call stops as if interrupted (checkpoint written,
+            ``--resume`` continues); 0: no limit. For fixed-length sittings and lent machines.
     """
 
     preset: str = "ours"
@@ -105,6 +120,10 @@ class TrainConfig:
     eval_every: int = 200
     seed: int = 0
     threads: int = 0
+    input_noise: float = 0.0
+    device: str = ""
+    workers: int = 0
+    time_limit: float = 0.0
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -118,6 +137,12 @@ class TrainConfig:
             raise ValueError(f"lr must be a positive number, got {self.lr}")
         if not 0.0 <= self.train_dropout < 1.0:
             raise ValueError(f"train_dropout must be in [0, 1), got {self.train_dropout}")
+        if not 0.0 <= self.input_noise < math.inf:
+            raise ValueError(f"input_noise must be a finite number >= 0, got {self.input_noise}")
+        if not 0.0 <= self.time_limit < math.inf:
+            raise ValueError(f"time_limit must be a finite number of minutes >= 0, got {self.time_limit}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
         if self.seq_start > self.seq_end:
             raise ValueError(f"seq_start ({self.seq_start}) must be <= seq_end ({self.seq_end})")
 
@@ -138,12 +163,15 @@ class TrainConfig:
 
 
 def _batch_size_of(graph: HeteroData) -> int:
+    if isinstance(graph, Batch):
+        return int(graph.num_graphs)
     store = graph[NODE]
     return int(store.batch.max()) + 1 if "batch" in store and store.batch.numel() else 1
 
 
 def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfig,
-                generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+                generator: torch.Generator | None = None,
+                noise_generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
     r"""Loss of unrolling the model ``seq_len`` steps from a (batched) window.
 
     .. math::
@@ -162,21 +190,25 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         raise ValueError(f"window holds {have} future steps, the unroll needs {seq_len}")
     radius = model.config.collision_radius
     seq, forces = store.pos_seq, store.force_seq
-    graph = set_state(window, seq[:, 0], seq[:, 1], seq[:, 2], radius=radius)
+    inputs = seq[:, :3]
+    if config.input_noise > 0:
+        inputs = inputs + input_noise(window, config.input_noise, noise_generator)
+    graph = set_state(window, inputs[:, 0], inputs[:, 1], inputs[:, 2], radius=radius)
     norm = model.normalizer
     vel_scale = norm.velocity_std
     shape_scale = vel_scale.mean()
     c2p = window[CHILD_TO_PARENT].edge_index
     leaf_index, groups = shape_groups(window)
     copies = _batch_size_of(window)
-    parts = {"local": 0.0, "global": 0.0, "shape": 0.0}
+    parts = {"local": seq.new_zeros(()), "global": seq.new_zeros(()), "shape": seq.new_zeros(())}
     total = seq.new_zeros(())
     for k in range(seq_len):  # unrolled time steps
         masks = None
         if config.train_dropout > 0:
             masks = model.sample_masks(copies, config.train_dropout, generator)
         result = model_step(model, graph, forces[:, k], masks)
-        true_prev, true_next = seq[:, k + 2], seq[:, k + 3]
+        # the first target is measured from the (possibly noisy) input, later ones from the truth
+        true_prev, true_next = (graph[NODE].pos if k == 0 else seq[:, k + 2]), seq[:, k + 3]
         true_local = to_local_velocity(true_next - true_prev, c2p)
         loss_local = local_velocity_loss(result.local_velocity, true_local, store.is_root, store.is_static, norm)
         loss_global = global_velocity_loss(result.pos, true_next, store.is_root, store.is_leaf, store.is_static, vel_scale)
@@ -186,15 +218,38 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         else:
             loss_shape = group_shape_loss(result.pos, true_next, window[WITHIN_SIBLINGS].edge_index, shape_scale)
         total = total + config.w_local * loss_local + config.w_global * loss_global + config.w_shape * loss_shape
-        parts["local"] += float(loss_local.detach())
-        parts["global"] += float(loss_global.detach())
-        parts["shape"] += float(loss_shape.detach())
+        parts["local"] = parts["local"] + loss_local.detach()
+        parts["global"] = parts["global"] + loss_global.detach()
+        parts["shape"] = parts["shape"] + loss_shape.detach()
         graph = result.graph
-    return total, parts
+    # one host transfer for the three logged parts
+    values = torch.stack(list(parts.values())).tolist()
+    return total, dict(zip(parts, values))
+
+
+def input_noise(window: HeteroData, std: float, generator: torch.Generator | None = None) -> Tensor:
+    r"""Random-walk noise for the three input positions of a window, ``[N, 3, 3]``.
+
+    .. math::
+        n_{t-2} = \epsilon_0, \quad n_{t-1} = \epsilon_0 + \epsilon_1, \quad
+        n_t = \epsilon_0 + \epsilon_1 + \epsilon_2, \qquad \epsilon_k \sim \mathcal{N}(0, \sigma^2 / 3)
+
+    so the noise of ``x_t`` has standard deviation :math:`\sigma` and the input velocities are
+    perturbed consistently. Every leaf of a rigid object takes its root's draw (a rigid shift), a
+    static particle none; ancestor rows are re-derived by ``set_state`` anyway.
+    """
+    store = window[NODE]
+    n = store.num_nodes
+    device = store.pos_seq.device
+    steps = torch.randn(n, 3, 3, generator=generator, device="cpu" if generator is not None else device)
+    walk = steps.to(device).cumsum(dim=1) * (std / math.sqrt(3.0))
+    rigid = store.material[:, 0].bool()
+    walk = torch.where(rigid[:, None, None], walk[root_of(window)], walk)
+    return torch.where(store.is_static[:, None, None], torch.zeros_like(walk), walk)
 
 
 # --------------------------------------------------------------------------------------------
-# distributed helpers (gloo on CPU; a no-op on one process)
+# distributed helpers (nccl on CUDA, gloo on CPU; a no-op on one process)
 
 
 def _world() -> tuple[int, int]:
@@ -203,9 +258,9 @@ def _world() -> tuple[int, int]:
     return 0, 1
 
 
-def _maybe_init_distributed() -> bool:
+def _maybe_init_distributed(device: torch.device) -> bool:
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
-        dist.init_process_group("gloo")
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
         return True
     return False
 
@@ -229,6 +284,25 @@ def _draw_windows(n: int, batch_size: int, seed: int, step: int, rank: int) -> l
     return torch.randint(n, (batch_size,), generator=g).tolist()
 
 
+class StepWindows:
+    """Batch sampler of a run: the window indices of steps ``start .. end-1`` (see
+    :func:`_draw_windows`), so a ``DataLoader`` with workers yields what the loop would draw."""
+
+    def __init__(self, n: int, batch_size: int, seed: int, rank: int, start: int, end: int) -> None:
+        self.n, self.batch_size, self.seed, self.rank, self.start, self.end = n, batch_size, seed, rank, start, end
+
+    def __iter__(self):
+        for step in range(self.start, self.end):
+            yield _draw_windows(self.n, self.batch_size, self.seed, step, self.rank)
+
+    def __len__(self) -> int:
+        return max(self.end - self.start, 0)
+
+
+def _collate(windows: list[HeteroData]) -> HeteroData:
+    return Batch.from_data_list(windows)
+
+
 # --------------------------------------------------------------------------------------------
 # the run
 
@@ -241,14 +315,20 @@ def _model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]
     }
 
 
-def load_model(path: str | os.PathLike) -> HRN:
-    """An :class:`HRN` with its normaliser from a checkpoint written by ``hrn-pyg train``."""
+def load_model(path: str | os.PathLike, device: str | torch.device | None = None) -> HRN:
+    """An :class:`HRN` with its normaliser from a checkpoint written by ``hrn-pyg train``, on
+    ``device`` (None: the CPU)."""
     ckpt = load_checkpoint(path)
-    config = json.loads(ckpt["config"])
-    model = HRN(HRNConfig.from_dict(config["model"]))
-    model.load_state_dict(ckpt["model"])
+    try:
+        config = json.loads(ckpt["config"])
+        model = HRN(HRNConfig.from_dict(config["model"]))
+        model.load_state_dict(ckpt["model"])
+    except (KeyError, TypeError, RuntimeError) as exc:
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
+                              f"({type(exc).__name__}: {first_line})") from None
     model.eval()
-    return model
+    return model.to(resolve_device(device)) if device is not None else model
 
 
 def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,
@@ -259,16 +339,21 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
     normaliser, no optimiser) is written when the last step is done.
     """
-    started_distributed = _maybe_init_distributed()
+    device = resolve_device(config.device)
+    started_distributed = _maybe_init_distributed(device)
     rank, world = _world()
+    if device.type == "cuda" and world > 1:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", rank)) % torch.cuda.device_count())
+        torch.cuda.set_device(device)
     out = Path(config.out)
     last = out / "last.pt"
     if config.threads > 0:
         torch.set_num_threads(config.threads)
 
-    train_set = EpisodeWindows(config.data, "train", horizon=config.seq_end)
+    # every episode stays decoded in memory: windows are drawn at random across the whole split
+    train_set = EpisodeWindows(config.data, "train", horizon=config.seq_end, cache_episodes=1 << 20)
     try:
-        val_set = EpisodeWindows(config.data, "val", horizon=config.seq_end)
+        val_set = EpisodeWindows(config.data, "val", horizon=config.seq_end, cache_episodes=1 << 20)
     except ValueError:
         val_set = None  # a folder without validation episodes trains without a validation score
 
@@ -288,6 +373,7 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
         picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(config.seed))
         fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
 
+    model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: cosine_lr_factor(s, config.steps, config.warmup))
@@ -318,15 +404,23 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     step_index = start
     t0 = time.perf_counter()
     end = config.steps if stop_after is None else min(config.steps, start + int(stop_after))
-    bar = tqdm(range(start, end), initial=start, total=config.steps, disable=not progress or rank != 0,
-               desc=f"train {config.preset}", dynamic_ncols=True)
+    loader = DataLoader(train_set, batch_sampler=StepWindows(len(train_set), config.batch_size, config.seed,
+                                                             rank, start, end),
+                        collate_fn=_collate, num_workers=config.workers, pin_memory=device.type == "cuda",
+                        # its own generator: the loader's seed draw must not shift the global
+                        # random stream that dropout masks use (resume would then diverge)
+                        generator=torch.Generator().manual_seed(config.seed))
+    bar = tqdm(zip(range(start, end), loader), initial=start, total=config.steps,
+               disable=not progress or rank != 0, desc=f"train {config.preset}", dynamic_ncols=True)
+    noise = torch.Generator().manual_seed(config.seed * 7 + rank + 3) if config.input_noise > 0 else None
+    if noise is not None and ckpt is not None:
+        noise.manual_seed(config.seed * 7 + rank + 3 + start)  # a resumed run draws fresh noise
     model.train()
     try:
-        for step_index in bar:
+        for step_index, batch in bar:
             seq_len = seq_schedule(step_index)
-            ids = _draw_windows(len(train_set), config.batch_size, config.seed, step_index, rank)
-            batch = Batch.from_data_list([train_set[i] for i in ids])
-            loss, parts = window_loss(model, batch, seq_len, config)
+            batch = batch.to(device, non_blocking=True)
+            loss, parts = window_loss(model, batch, seq_len, config, noise_generator=noise)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"loss became {float(loss)} at step {step_index}")
             optimizer.zero_grad(set_to_none=True)
@@ -345,7 +439,11 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
             summary = row
             if (step_index + 1) % config.checkpoint_every == 0:
                 save(step_index + 1)
-        step_index = end
+            if config.time_limit > 0 and time.perf_counter() - t0 > 60.0 * config.time_limit:
+                step_index, end = step_index + 1, step_index + 1  # stop here, as if interrupted
+                break
+        else:
+            step_index = end
     finally:
         # at exit, also on Ctrl-C or an error: keep the finished steps (step_index is the one
         # that was running when an exception came, so it is not counted as done)
@@ -365,8 +463,9 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
     """Mean unrolled loss on fixed validation windows (no dropout)."""
     was_training = model.training
     model.eval()
-    batch = Batch.from_data_list([dataset[i] for i in ids])
-    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0))
+    device = next(model.parameters()).device
+    batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
+    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0))
     model.train(was_training)
     return float(loss) / seq_len
 
@@ -384,22 +483,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for f in fields(TrainConfig):
         if f.name in ("preset", "data", "out"):
             continue
-        parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=None)
+        parser.add_argument(f"--{f.name.replace('_', '-')}", type=_option_type(f.default), default=None)
     for f in fields(HRNConfig):
         if f.name in ("dropout_modules", "skip_idle_modules"):
             continue
-        parser.add_argument(f"--model-{f.name.replace('_', '-')}", type=type(f.default), default=None,
+        parser.add_argument(f"--model-{f.name.replace('_', '-')}", type=_option_type(f.default), default=None,
                             dest=f"model_{f.name}")
     parser.add_argument("--dropout-modules", default=None,
                         help="comma-separated modules that take dropout masks (default force,collision)")
+
+
+def _parse_bool(text: str) -> bool:
+    value = text.strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+
+
+def _option_type(default: Any) -> Any:
+    """The argparse type of a config field (``bool("False")`` is True, so booleans are parsed)."""
+    return _parse_bool if isinstance(default, bool) else type(default)
 
 
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, HRNConfig]:
     overrides = {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)
                  if f.name not in ("preset", "data", "out")}
     config = TrainConfig.for_preset(args.preset, data=args.data, out=args.out, **overrides)
-    model_kwargs = {f.name: getattr(args, f"model_{f.name}") for f in fields(HRNConfig)
-                    if getattr(args, f"model_{f.name}", None) is not None}
+    model_kwargs = dict(PRESET_MODEL[args.preset])
+    model_kwargs.update({f.name: getattr(args, f"model_{f.name}") for f in fields(HRNConfig)
+                         if getattr(args, f"model_{f.name}", None) is not None})
     if args.dropout_modules:
         model_kwargs["dropout_modules"] = tuple(m for m in args.dropout_modules.split(",") if m)
     return config, HRNConfig(**model_kwargs)
@@ -409,6 +523,11 @@ def run(args: argparse.Namespace) -> int:
     config, model_config = config_from_args(args)
     summary = train(config, model_config, resume=args.resume, progress=not args.no_progress)
     if _world()[0] == 0 and summary:
-        print(f"trained {config.preset} to step {config.steps}: loss {summary['loss']:.4g}; "
-              f"model at {Path(config.out) / 'model.pt'}")
+        done = int(summary["step"]) + 1
+        if done >= config.steps:
+            print(f"trained {config.preset} to step {config.steps}: loss {summary['loss']:.4g}; "
+                  f"model at {Path(config.out) / 'model.pt'}")
+        else:
+            print(f"stopped {config.preset} at step {done} of {config.steps} (time limit): loss "
+                  f"{summary['loss']:.4g}; continue with --resume")
     return 0

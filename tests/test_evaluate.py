@@ -10,7 +10,8 @@ from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.evaluate import per_trajectory_errors, summarise
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.train import TrainConfig, train
+from hrn_pyg.rollout import rollout
+from hrn_pyg.train import TrainConfig, load_model, train
 
 
 def test_errors_are_zero_for_the_truth_and_match_a_hand_case(tiny_episodes):
@@ -35,16 +36,63 @@ def test_summary_mean_and_standard_error():
     assert s["position"]["t+5"]["sem"] == pytest.approx(np.std([1.0, 3.0], ddof=1) / np.sqrt(2))
 
 
-def test_evaluate_cli_writes_table_json_and_figure(tiny_episodes, tmp_path, capsys):
-    cfg = TrainConfig.for_preset("hrn", data=str(tiny_episodes), out=str(tmp_path / "m"), steps=2, batch_size=1)
+def _train_tiny(data, out, seed: int):
+    """A two-step ``hrn`` model; different seeds give different weights and windows."""
+    cfg = TrainConfig.for_preset("hrn", data=str(data), out=str(out), steps=2, batch_size=1, seed=seed)
     train(cfg, HRNConfig(hidden=16, depth=1, effect_dim=16), progress=False)
-    code = main(["evaluate", "--data", str(tiny_episodes), "--model", f"a={tmp_path / 'm' / 'model.pt'}",
-                 "--model", f"b={tmp_path / 'm' / 'model.pt'}", "--out", str(tmp_path / "e"),
-                 "--horizons", "2,5", "--stride", "3"])
+    return out / "model.pt"
+
+
+def _expected_summary(model_path, windows: list, horizons: tuple[int, ...]) -> dict[str, dict[str, dict]]:
+    """Mean, standard error and count of :func:`per_trajectory_errors` over ``windows``, each window
+    rolled out on its own (the CLI batches them all), ``{metric: {"t+h": {mean, sem, n}}}``."""
+    model = load_model(model_path)
+    per_window: dict[str, dict[int, list[float]]] = {}
+    for window in windows:
+        graph = Batch.from_data_list([window])
+        store = graph[NODE]
+        forces = store.force_seq[:, : max(horizons)].transpose(0, 1)
+        with torch.no_grad():
+            pred = torch.cat([store.pos[None], rollout(model, graph, max(horizons), forces)])  # x_t .. x_{t+H}
+        truth = store.pos_seq.transpose(0, 1)[2:]  # x_t .. x_{t+H}
+        for h in horizons:
+            errors = per_trajectory_errors(pred[h], truth[h], graph, truth[h - 1], pred[h - 1])
+            for metric, value in errors.items():
+                per_window.setdefault(metric, {}).setdefault(h, []).append(float(value[0]))
+    return {metric: {f"t+{h}": {"mean": float(np.mean(v)), "sem": float(np.std(v, ddof=1) / np.sqrt(len(v))),
+                                "n": len(v)} for h, v in by_h.items()}
+            for metric, by_h in per_window.items()}
+
+
+def test_evaluate_cli_writes_table_json_and_figure(tiny_episodes, tmp_path):
+    models = {"a": _train_tiny(tiny_episodes, tmp_path / "a", seed=0),
+              "b": _train_tiny(tiny_episodes, tmp_path / "b", seed=1)}
+    horizons = (2, 5)
+    code = main(["evaluate", "--data", str(tiny_episodes), "--model", f"a={models['a']}", "--model",
+                 f"b={models['b']}", "--out", str(tmp_path / "e"), "--horizons", "2,5", "--stride", "1"])
     assert code == 0
     result = json.loads((tmp_path / "e" / "results.json").read_text())
-    assert result["results"]["a"] == result["results"]["b"]
-    assert np.isfinite(result["results"]["a"]["shape"]["t+5"]["mean"])
+
+    # stride 1: every window of the test split, with room for the longest horizon
+    dataset = EpisodeWindows(tiny_episodes, "test", horizon=max(horizons))
+    windows = [dataset[i] for i in range(len(dataset))]
+    assert result["trajectories"] == len(windows) > 1
+    expected = {name: _expected_summary(path, windows, horizons) for name, path in models.items()}
+    # the two models really differ, so scoring one in place of the other would show
+    assert expected["a"]["position"]["t+5"]["mean"] != pytest.approx(expected["b"]["position"]["t+5"]["mean"],
+                                                                     rel=0.05)
+    compared = 0
+    for name in models:
+        got = result["results"][name]
+        for metric in ("position", "velocity", "shape"):  # metrics and horizons of both (others may be added)
+            for key in expected[name][metric].keys() & got[metric].keys():
+                want = expected[name][metric][key]
+                assert got[metric][key]["n"] == want["n"], (name, metric, key)
+                assert got[metric][key]["mean"] == pytest.approx(want["mean"], rel=1e-5, abs=1e-12), (name, metric, key)
+                assert got[metric][key]["sem"] == pytest.approx(want["sem"], rel=1e-5, abs=1e-12), (name, metric, key)
+                compared += 1
+    assert compared == 2 * 3 * len(horizons)
+
     assert "| a |" in (tmp_path / "e" / "table.md").read_text()
     figures = list((tmp_path / "e").glob("rollout_*.png"))
     assert len(figures) == 1 and figures[0].stat().st_size > 1000

@@ -80,9 +80,55 @@ def test_cli_errors_are_one_line(tiny_episodes, tmp_path, capsys):
                  "--resume"]) == 2
 
 
+#: Run under torchrun: ``hrn-pyg train`` with the rest of argv, recording on every rank the
+#: windows it drew and its gradients before and after the all-reduce, then saving them with the
+#: rank's final weights to ``<argv[1]>/rank<R>.pt`` (train.py writes rank 0's model only).
+RANK_RECORDER = """
+import os
+import sys
+
+import torch
+
+import hrn_pyg.train as train_module
+from hrn_pyg.cli import main
+
+seen = {"windows": [], "before": [], "after": [], "model": None}
+draw_windows, average_gradients = train_module._draw_windows, train_module._average_gradients
+
+
+def flat_gradients(model):
+    return torch.cat([torch.zeros_like(p).flatten() if p.grad is None else p.grad.detach().flatten().clone()
+                      for p in model.parameters()])
+
+
+def recording_draw(*args, **kwargs):
+    ids = draw_windows(*args, **kwargs)
+    seen["windows"].append(list(ids))
+    return ids
+
+
+def recording_average(model):
+    seen["model"] = model
+    seen["before"].append(flat_gradients(model))
+    average_gradients(model)
+    seen["after"].append(flat_gradients(model))
+
+
+train_module._draw_windows = recording_draw
+train_module._average_gradients = recording_average
+code = main(sys.argv[2:])
+torch.save({"windows": seen["windows"], "before": torch.stack(seen["before"]), "after": torch.stack(seen["after"]),
+            "weights": seen["model"].state_dict()}, os.path.join(sys.argv[1], f"rank{os.environ['RANK']}.pt"))
+sys.exit(code)
+"""
+
+
 def test_data_parallel_under_torchrun(tiny_episodes, tmp_path):
-    out = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "-m", "hrn_pyg.cli", "train",
+    out, ranks = tmp_path / "ddp", tmp_path / "ranks"
+    ranks.mkdir()
+    script = tmp_path / "record_ranks.py"
+    script.write_text(RANK_RECORDER)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", str(script), str(ranks), "train",
            "--preset", "hrn", "--data", str(tiny_episodes), "--out", str(out), "--steps", "3", "--batch-size", "1",
            "--model-hidden", "16", "--model-depth", "1", "--model-effect-dim", "16", "--no-progress"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
@@ -90,4 +136,62 @@ def test_data_parallel_under_torchrun(tiny_episodes, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((out / "config.json").read_text())["world_size"] == 2
     assert len(_losses(out)) == 3
-    load_model(out / "model.pt")
+
+    rank0, rank1 = (torch.load(ranks / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    # the ranks drew their own windows (by chance the same one at some steps); where the windows
+    # differed, so did the ranks' own gradients, and unsynced weights would have parted there ...
+    assert len(rank0["windows"]) == len(rank1["windows"]) == 3
+    same_windows = [w0 == w1 for w0, w1 in zip(rank0["windows"], rank1["windows"])]
+    assert not all(same_windows)
+    same_gradients = [torch.equal(g0, g1) for g0, g1 in zip(rank0["before"], rank1["before"])]
+    assert same_gradients == same_windows
+    # ... and the all-reduce gave both their mean, so they took the same steps
+    torch.testing.assert_close(rank0["after"], (rank0["before"] + rank1["before"]) / 2)
+    assert torch.equal(rank0["after"], rank1["after"])
+    assert rank0["weights"].keys() == rank1["weights"].keys()
+    for key, value in rank0["weights"].items():
+        assert torch.equal(value, rank1["weights"][key]), key
+    # rank 0's weights are the ones written to model.pt
+    saved = load_model(out / "model.pt").state_dict()
+    for key, value in rank0["weights"].items():
+        assert torch.equal(value, saved[key]), key
+
+
+def test_time_limit_stops_like_an_interruption(tiny_episodes, tmp_path):
+    out = tmp_path / "run"
+    train(_config(tiny_episodes, out, steps=50, time_limit=1e-5), SMALL, progress=False)
+    stopped = torch.load(out / "last.pt", weights_only=True)["step"]
+    assert 1 <= stopped < 50 and not (out / "model.pt").exists()
+    train(_config(tiny_episodes, out, steps=50), SMALL, resume=True, progress=False)
+    assert [s for s, _ in _losses(out)] == list(range(50)) and (out / "model.pt").exists()
+
+
+def test_input_noise_is_a_random_walk_rigid_per_object_and_zero_on_static():
+    from hrn_pyg.data.graph import NODE
+    from hrn_pyg.train import input_noise
+    from toy_scene import toy_window
+
+    window = toy_window(3)
+    store = window[NODE]
+    noise = input_noise(window, 0.01, torch.Generator().manual_seed(0))  # [N, 3 inputs, 3]
+    assert noise.shape == (store.num_nodes, 3, 3)
+    rigid = torch.arange(8, 12)  # the toy scene's rigid square: one shift for all its leaves
+    assert torch.equal(noise[rigid], noise[rigid[:1]].expand(4, 3, 3))
+    assert not torch.equal(noise[0], noise[1])  # soft leaves move independently
+    assert torch.equal(noise[12:14], torch.zeros(2, 3, 3))  # static leaves never move
+    many = torch.stack([input_noise(window, 0.01, torch.Generator().manual_seed(s))[:8] for s in range(400)])
+    # the noise of x_t has the requested standard deviation, x_{t-2}'s a third of its variance
+    assert many[:, :, 2].std().item() == pytest.approx(0.01, rel=0.1)
+    assert many[:, :, 0].std().item() == pytest.approx(0.01 / 3 ** 0.5, rel=0.1)
+
+
+def test_boolean_model_options_parse_false(tiny_episodes, tmp_path):
+    out = tmp_path / "run"
+    args = ["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(out), "--steps", "2",
+            "--batch-size", "2", "--model-hidden", "8", "--model-effect-dim", "8", "--no-progress",
+            "--model-rigid-fit", "false", "--model-ground-contact", "true"]
+    assert main(args) == 0
+    model = load_model(out / "model.pt")
+    assert model.config.rigid_fit is False and model.config.ground_contact is True
+    with pytest.raises(SystemExit):
+        main([*args[:-1], "maybe"])

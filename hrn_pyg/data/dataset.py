@@ -194,6 +194,7 @@ class EpisodeWindows(Dataset):
                 ep["leaf_object"].long(),
                 ep["object_material"].long(),
                 ep["object_stiffness"].float(),
+                rest_pos=ep["positions"][0].float(),
             )
         return self._structures[index]
 

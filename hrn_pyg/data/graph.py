@@ -127,6 +127,7 @@ def build_structure(
     leaf_object: Tensor,
     object_material: Tensor,
     object_stiffness: Tensor,
+    rest_pos: Tensor | None = None,
 ) -> HeteroData:
     r"""Static part of the scene graph: node attributes and the hierarchy's edge sets.
 
@@ -150,6 +151,8 @@ def build_structure(
         leaf_object: object of each leaf, ``0..O-1``.
         object_material: material column of each object (:data:`MATERIALS`).
         object_stiffness: stiffness of each object.
+        rest_pos: leaf positions of the rest shape (e.g. an episode's first state); stored as
+            ``rest_pos (N, 3)`` with ancestors derived, for models with ``rest_offsets``.
 
     Returns:
         HeteroData with ``graph['particle']``: ``mass (N,1)``, ``material (N,4)`` one-hot,
@@ -206,6 +209,10 @@ def build_structure(
     graph[ANCESTOR_TO_DESCENDANT].edge_index = l2a.flip(0)
     graph[WITHIN_SIBLINGS].edge_index = _sort_edges(*_sibling_pairs(parent), num_nodes)
     graph[COLLISION].edge_index = torch.empty(2, 0, dtype=torch.long, device=device)
+    if rest_pos is not None:
+        if rest_pos.shape != (n_leaves, 3) or not bool(torch.isfinite(rest_pos).all()):
+            raise ValueError(f"rest_pos must be finite with shape [{n_leaves}, 3], got {list(rest_pos.shape)}")
+        store.rest_pos = leaf_to_ancestor_mean(_to_nodes("rest_pos", rest_pos.to(device=device, dtype=dtype), graph), graph)
     return graph
 
 

@@ -113,14 +113,22 @@ class SceneConfig:
 
     ``steps``: model steps per episode; ``substeps``: physics steps per model step;
     ``physics_hz``: physics rate; ``pitch``: voxel size (m) for leaves; ``friction``: lateral
-    friction of every body and the ground. A field named ``*_range`` is ``(low, high)``.
+    friction of every body and the ground; ``rolling_friction``: the ground's rolling and
+    spinning friction (0: a ball on the ground rolls or spins forever; > 0: it slows down and
+    comes to rest). A field named ``*_range`` is ``(low, high)``.
+
+    Episodes are long (150-160 model steps; the wedge 140) and end in a rest phase: scripted
+    pushes stop early enough (``last_push_step_range``) for the objects to settle and stay still
+    for the last 40+ steps, so a model sees both contacts and long stretches of rest. (Resting
+    soft bodies and cloth keep pybullet's small contact jitter: node speeds of mm/s to cm/s.)
     """
 
-    steps: int = 50
+    steps: int = 150
     substeps: int = 8
     physics_hz: float = 240.0
     pitch: float = 0.05
     friction: float = 0.5
+    rolling_friction: float = 0.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -141,8 +149,9 @@ class SceneConfig:
         for name in ("physics_hz", "pitch"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
-        if self.friction < 0:
-            raise ValueError(f"friction: must be >= 0, got {self.friction}")
+        for name in ("friction", "rolling_friction"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
 
     #: ``*_range`` fields whose values must be >= 0 (masses, sizes, speeds, stiffnesses ...).
     nonnegative_ranges: ClassVar[tuple[str, ...]] = ()
@@ -155,8 +164,9 @@ class SceneConfig:
 
 @dataclass(frozen=True)
 class SoftBounceConfig(SceneConfig):
-    """Soft cube resting on the ground, kicked up and spun once, falls and bounces."""
+    """Soft cube resting on the ground, kicked up and spun once, falls, bounces and rests."""
 
+    steps: int = 160
     cube_side: float = 0.2
     mass_range: tuple[float, float] = (0.5, 1.5)
     log10_mu_range: tuple[float, float] = (2.8, 3.4)
@@ -170,23 +180,35 @@ class SoftBounceConfig(SceneConfig):
 
 @dataclass(frozen=True)
 class CubeCollisionConfig(SceneConfig):
-    """Two rigid cubes on the ground pushed into each other by repeated impulses."""
+    """Two rigid cubes on the ground pushed into each other by repeated impulses.
 
+    No impulse after the episode's ``last_push_step`` (drawn from ``last_push_step_range``):
+    the cubes slide to a stop and rest for the remaining steps.
+    """
+
+    steps: int = 160
     cube_side: float = 0.1
     mass_range: tuple[float, float] = (0.5, 2.0)
     distance_range: tuple[float, float] = (0.35, 0.7)
     push_speed_range: tuple[float, float] = (1.2, 2.5)
     push_every_range: tuple[int, int] = (12, 20)
     first_push_range: tuple[int, int] = (2, 4)
+    last_push_step_range: tuple[int, int] = (60, 80)
     nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "mass_range", "distance_range", "push_speed_range", "push_every_range", "first_push_range")
+        "mass_range", "distance_range", "push_speed_range", "push_every_range", "first_push_range",
+        "last_push_step_range")
 
 
 @dataclass(frozen=True)
 class WedgeConfig(SceneConfig):
-    """A ball dropped onto the ridge of a static wedge; a small offset picks the side."""
+    """A ball dropped onto the ridge of a static wedge; a small offset picks the side.
 
-    steps: int = 40
+    The ground's rolling friction stops the ball once it has rolled off the wedge (after
+    ~1.3 m, by step 76-91 over seeds 0-25), so it rests for the last ~50 steps.
+    """
+
+    steps: int = 140
+    rolling_friction: float = 0.01
     ball_radius: float = 0.075
     ball_mass_range: tuple[float, float] = (0.3, 1.0)
     wedge_width: float = 0.4
@@ -219,20 +241,34 @@ class MultiMaterialConfig(SceneConfig):
 
 @dataclass(frozen=True)
 class CubePushConfig(SceneConfig):
-    """Two rigid cubes that pass through each other, moved by random horizontal forces."""
+    """Two rigid cubes that pass through each other, moved by random horizontal forces.
+
+    Each push is held ``hold_range`` steps, then ``pause_range`` steps without force; no push
+    after the episode's ``last_push_step`` (so the cubes settle and rest at the end).
+    """
 
     cube_side: float = 0.1
     mass_range: tuple[float, float] = (0.8, 1.2)
     spread: float = 0.6
     force_range: tuple[float, float] = (0.0, 15.0)
     hold_range: tuple[int, int] = (3, 8)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = ("mass_range", "force_range", "hold_range")
+    pause_range: tuple[int, int] = (5, 30)
+    last_push_step_range: tuple[int, int] = (60, 80)
+    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
+        "mass_range", "force_range", "hold_range", "pause_range", "last_push_step_range")
 
 
 @dataclass(frozen=True)
 class TowerConfig(SceneConfig):
-    """Three stacked rigid cubes and a ball pushed by random forces (mostly towards them)."""
+    """Three stacked rigid cubes and a ball pushed by random forces (mostly towards them).
 
+    Pushes are scheduled as in :class:`CubePushConfig` but follow each other without pauses (a
+    ball that stops between pushes seldom topples the tower: 1 of 12 seeds with 5-30 step
+    pauses, 5 of 12 without); the episode's rest phase comes after ``last_push_step``, and the
+    ground's rolling friction stops the ball then.
+    """
+
+    rolling_friction: float = 0.05
     cube_side: float = 0.1
     ball_radius: float = 0.075
     cube_mass_range: tuple[float, float] = (0.2, 0.5)
@@ -241,8 +277,11 @@ class TowerConfig(SceneConfig):
     force_range: tuple[float, float] = (0.0, 8.0)
     aim_noise_range: tuple[float, float] = (-0.35, 0.35)
     hold_range: tuple[int, int] = (3, 8)
+    pause_range: tuple[int, int] = (0, 0)
+    last_push_step_range: tuple[int, int] = (60, 80)
     nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "cube_mass_range", "ball_mass_range", "ball_distance_range", "force_range", "hold_range")
+        "cube_mass_range", "ball_mass_range", "ball_distance_range", "force_range", "hold_range",
+        "pause_range", "last_push_step_range")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -383,7 +422,9 @@ class Scene:
             physicsClientId=c)
         ground = p.createMultiBody(0, shape, basePosition=[0, 0, -GROUND_HALF_THICKNESS],
                                    physicsClientId=c)
-        p.changeDynamics(ground, -1, lateralFriction=self.config.friction, physicsClientId=c)
+        p.changeDynamics(ground, -1, lateralFriction=self.config.friction,
+                         rollingFriction=self.config.rolling_friction,
+                         spinningFriction=self.config.rolling_friction, physicsClientId=c)
         self._objects = []
         self.build()
         self.t = 0
@@ -673,6 +714,7 @@ class CubeCollision(Scene):
             "push_speeds": [_uniform(rng, cfg.push_speed_range) for _ in range(2)],
             "push_every": _integer(rng, cfg.push_every_range),
             "first_push": _integer(rng, cfg.first_push_range),
+            "last_push_step": _integer(rng, cfg.last_push_step_range),
         }
 
     def build(self):
@@ -684,6 +726,8 @@ class CubeCollision(Scene):
 
     def scripted_action(self, t):
         pr, forces = self.params, self.zero_action()
+        if t > pr["last_push_step"]:
+            return forces, None
         if t >= pr["first_push"] and (t - pr["first_push"]) % pr["push_every"] == 0:
             x = np.stack([self._object_positions(o).mean(axis=0) for o in self._objects])
             towards = x[::-1] - x
@@ -754,28 +798,44 @@ class MultiMaterial(Scene):
 
 
 class _RandomForces(Scene):
-    """Shared random-action script: a horizontal force on each actuated object, redrawn
-    after a random number of steps (held in between so pushes have an effect)."""
+    """Shared random-action script: a horizontal force on each actuated object, held for a
+    random number of steps (so pushes have an effect), then a random pause without force (its
+    length drawn from ``pause_range``; may be 0); from step ``last_push_step + 1`` on no force
+    at all, so every episode ends at rest."""
 
     def draw_params(self, rng):
-        return {}
+        return self._schedule_params(rng)
+
+    def _schedule_params(self, rng: np.random.Generator) -> dict:
+        """The pushes' schedule; drawn after the scene's own parameters, so those are the same
+        for a seed whatever the schedule (the RL pools start from them)."""
+        return {"last_push_step": _integer(rng, self.config.last_push_step_range)}
 
     def _aim(self, index: int) -> float:
         """Heading (rad) around which object ``index``'s random force is drawn; uniform here."""
         return float(self.rng.uniform(0, 2 * np.pi))
 
+    def _draw_push(self) -> np.ndarray:
+        """Forces ``[O, 3]`` of a new push (horizontal, random heading and magnitude)."""
+        push = self.zero_action()
+        for i in self.actuated:
+            heading = self._aim(i)
+            magnitude = _uniform(self.rng, self.config.force_range)
+            push[i] = magnitude * np.array([math.cos(heading), math.sin(heading), 0.0])
+        return push
+
     def scripted_action(self, t):
         if t == 0:
             self._current = self.zero_action()
-            self._next_change = 0
+            self._push_end = self._next_change = 0
+        if t > self.params["last_push_step"]:
+            return self.zero_action(), None
         if t >= self._next_change:
-            cfg = self.config
-            self._current = self.zero_action()
-            for i in self.actuated:
-                heading = self._aim(i)
-                magnitude = _uniform(self.rng, cfg.force_range)
-                self._current[i] = magnitude * np.array([math.cos(heading), math.sin(heading), 0.0])
-            self._next_change = t + _integer(self.rng, cfg.hold_range)
+            self._current = self._draw_push()
+            self._push_end = t + _integer(self.rng, self.config.hold_range)
+            self._next_change = self._push_end + _integer(self.rng, self.config.pause_range)
+        if t >= self._push_end:
+            return self.zero_action(), None
         return self._current.copy(), None
 
 
@@ -792,6 +852,7 @@ class CubePush(_RandomForces):
             "masses": [_uniform(rng, cfg.mass_range) for _ in range(2)],
             "xy": rng.uniform(-cfg.spread / 2, cfg.spread / 2, size=(2, 2)).tolist(),
             "yaws": rng.uniform(0, np.pi / 2, size=2).tolist(),
+            **self._schedule_params(rng),
         }
 
     def build(self):
@@ -817,6 +878,7 @@ class Tower(_RandomForces):
             "yaws": rng.uniform(-0.2, 0.2, size=3).tolist(),
             "ball_distance": _uniform(rng, cfg.ball_distance_range),
             "ball_heading": float(rng.uniform(0, 2 * np.pi)),
+            **self._schedule_params(rng),
         }
 
     def build(self):

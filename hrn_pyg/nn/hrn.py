@@ -34,6 +34,8 @@ STATE_LAYOUT = (
     ("gravity", 3),    # unit gravity direction on roots, zero elsewhere (HRN: gravity enters the root)
 )
 STATE_DIM = sum(d for _, d in STATE_LAYOUT)
+#: the extra state column of ``HRNConfig.ground_contact``: height clipped at the collision radius
+GROUND_CONTACT_DIM = 1
 
 #: direction of gravity, z up
 GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
@@ -41,7 +43,7 @@ GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
 
 @dataclass(frozen=True)
 class HRNConfig:
-    """Everything that fixes the shape and behaviour of an :class:`HRN`; saved with checkpoints.
+    r"""Everything that fixes the shape and behaviour of an :class:`HRN`; saved with checkpoints.
 
     Attributes:
         hidden: hidden width of every MLP.
@@ -53,6 +55,12 @@ class HRNConfig:
         dropout_modules: which sub-modules accept a dropout mask (names from :data:`MODULE_NAMES`).
         skip_idle_modules: do not run the force / collision module when there is no force /
             no collision edge (the result is the same; False runs them on empty input).
+        rigid_fit: replace the predicted leaf motion of every rigid object by its best rigid
+            transform (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`), in training and at inference.
+        rest_offsets: the propagation modules also see each edge's offset in the rest shape
+            (``graph['particle'].rest_pos``), so an elastic restoring effect is learnable.
+        ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`: the distance to
+            the ground plane, saturated beyond the collision radius (GNS treats walls so).
     """
 
     hidden: int = 64
@@ -63,6 +71,9 @@ class HRNConfig:
     dropout_rate: float = 0.0
     dropout_modules: tuple[str, ...] = field(default=("force", "collision"))
     skip_idle_modules: bool = True
+    rigid_fit: bool = False
+    rest_offsets: bool = False
+    ground_contact: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -71,11 +82,18 @@ class HRNConfig:
             raise ValueError(f"HRNConfig.effect_dim must be >= 1, got {self.effect_dim}")
         if not self.collision_radius >= 0:
             raise ValueError(f"HRNConfig.collision_radius must be >= 0, got {self.collision_radius}")
+        if self.ground_contact and not self.collision_radius > 0:
+            raise ValueError("HRNConfig.ground_contact needs collision_radius > 0")
         if not 0.0 <= self.dropout_rate < 1.0:
             raise ValueError(f"HRNConfig.dropout_rate must be in [0, 1), got {self.dropout_rate}")
         unknown = set(self.dropout_modules) - set(MODULE_NAMES)
         if unknown:
             raise ValueError(f"HRNConfig.dropout_modules: unknown {sorted(unknown)}; choose from {MODULE_NAMES}")
+
+    @property
+    def state_dim(self) -> int:
+        """Size of a particle's state vector under this config."""
+        return STATE_DIM + (GROUND_CONTACT_DIM if self.ground_contact else 0)
 
     @property
     def mlp(self) -> MLPConfig:
@@ -98,7 +116,8 @@ class HRNInputs(NamedTuple):
     Shapes: ``state``, ``prev_state`` ``[N, STATE_DIM]`` (s(t), s(t-1)); ``pos`` ``[N, 3]``
     positions divided by the length scale (only differences are used); ``force`` ``[N, 3]``
     normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
-    the four edge sets ``[2, E]``.
+    the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided by the
+    length scale, or None (models without ``rest_offsets``).
     """
 
     state: Tensor
@@ -112,6 +131,7 @@ class HRNInputs(NamedTuple):
     leaf_to_ancestor: Tensor
     within_siblings: Tensor
     ancestor_to_descendant: Tensor
+    rest_pos: Tensor | None = None
 
 
 def state_features(
@@ -124,17 +144,20 @@ def state_features(
     depth: Tensor,
     is_leaf: Tensor,
     is_root: Tensor,
+    ground_radius: float | None = None,
 ) -> Tensor:
-    """A particle's state vector in the order of :data:`STATE_LAYOUT`.
+    r"""A particle's state vector in the order of :data:`STATE_LAYOUT`, then (with
+    ``ground_radius``) the ground-contact column :math:`\mathrm{clip}(z / r, -1, 1)`.
 
     No absolute horizontal position enters: shifting a scene in x or y leaves it unchanged.
 
     **Shapes:** velocity ``[N, 3]``, z / mass / stiffness ``[N, 1]``, material ``[N, 4]``,
-    depth / is_leaf / is_root ``[N]``; returns ``[N, STATE_DIM]``.
+    depth / is_leaf / is_root ``[N]``; returns ``[N, STATE_DIM]`` (``+ 1`` with ``ground_radius``).
     """
     dtype = velocity.dtype
     root = is_root.to(dtype).unsqueeze(-1)
     gravity = root * torch.tensor(GRAVITY_DIRECTION, dtype=dtype, device=velocity.device)
+    ground = [] if ground_radius is None else [(z / ground_radius).clamp(-1.0, 1.0)]
     return torch.cat(
         [
             normalizer.velocity(velocity),
@@ -146,6 +169,7 @@ def state_features(
             is_leaf.to(dtype).unsqueeze(-1),
             root,
             gravity,
+            *ground,
         ],
         dim=-1,
     )
@@ -178,13 +202,14 @@ class HRN(nn.Module):
     def __init__(self, config: HRNConfig = HRNConfig()) -> None:
         super().__init__()
         self.config = config
-        s, d, mlp = STATE_DIM, config.effect_dim, config.mlp
+        s, d, mlp = config.state_dim, config.effect_dim, config.mlp
         self.force = ForceModule(s, d, mlp)
         self.collision = CollisionModule(s, d, mlp)
         self.history = HistoryModule(s, d, mlp)
-        self.l2a = PropagationModule(s, d, mlp, name="l2a")
-        self.ws = PropagationModule(s, d, mlp, name="ws")
-        self.a2d = PropagationModule(s, d, mlp, name="a2d")
+        rest = config.rest_offsets
+        self.l2a = PropagationModule(s, d, mlp, name="l2a", rest_offsets=rest)
+        self.ws = PropagationModule(s, d, mlp, name="ws", rest_offsets=rest)
+        self.a2d = PropagationModule(s, d, mlp, name="a2d", rest_offsets=rest)
         self.state = NextStateModule(s, d, mlp)
         self.normalizer = Normalizer()
 
@@ -217,20 +242,26 @@ class HRN(nn.Module):
                 f"HRN: masks given for {sorted(unknown)}, not in dropout_modules {self.config.dropout_modules}"
             )
         x, s, b = inputs.pos, inputs.state, inputs.batch
+        if s.size(-1) != self.config.state_dim:
+            raise ValueError(f"HRN: state has {s.size(-1)} columns, this config needs {self.config.state_dim}")
+        rest = inputs.rest_pos
+        if self.config.rest_offsets and rest is None:
+            raise ValueError("HRN: config.rest_offsets needs inputs.rest_pos (the rest shape)")
         skip = self.config.skip_idle_modules
         effect = self.history(s, inputs.prev_state, masks.get("history"), b)
         if not (skip and not bool(inputs.force.ne(0).any())):
             effect = effect + self.force(s, inputs.force, masks.get("force"), b)
         if not (skip and inputs.collision.size(1) == 0):
             effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b)
-        effect = effect + self.l2a(s, effect, x, inputs.leaf_to_ancestor, masks.get("l2a"), b)
-        effect = effect + self.ws(s, effect, x, inputs.within_siblings, masks.get("ws"), b)
-        effect = effect + self.a2d(s, effect, x, inputs.ancestor_to_descendant, masks.get("a2d"), b)
+        effect = effect + self.l2a(s, effect, x, inputs.leaf_to_ancestor, masks.get("l2a"), b, rest)
+        effect = effect + self.ws(s, effect, x, inputs.within_siblings, masks.get("ws"), b, rest)
+        effect = effect + self.a2d(s, effect, x, inputs.ancestor_to_descendant, masks.get("a2d"), b, rest)
         return self.state(s, effect, inputs.is_static, masks.get("state"), b)
 
     def __repr__(self) -> str:
         c = self.config
         return (
             f"{self.__class__.__name__}(hidden={c.hidden}, depth={c.depth}, effect_dim={c.effect_dim}, "
-            f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)})"
+            f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
+            f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact})"
         )

@@ -14,33 +14,41 @@ class PropagationModule(MessagePassing):
 
     .. math::
         \Delta e(i) = \sum_{j \in \mathcal{N}(i)}
-            \eta\bigl(s_j,\ s_i,\ e_j,\ x_j - x_i\bigr)
+            \eta\bigl(s_j,\ s_i,\ e_j,\ x_j - x_i\ [,\ \bar x_j - \bar x_i]\bigr)
 
     The HRN uses three of these with separate weights, each adding to the running effect
     :math:`e \leftarrow e + \Delta e`, in order: leaf-to-ancestor (L2A, edges ``leaf_to_ancestor``),
     within-siblings (WS, ``within_siblings``), ancestor-to-descendant (A2D,
     ``ancestor_to_descendant``). :math:`s` is the state vector, :math:`e` the effect so far and
-    :math:`x` the (scaled) position; a node without incoming edges gets an exact zero.
+    :math:`x` the (scaled) position; a node without incoming edges gets an exact zero. With
+    ``rest_offsets`` the edge also carries its offset in the rest shape :math:`\bar x` (as
+    MeshGraphNets feeds mesh-space coordinates), which lets a deformed body see how far it is
+    from its rest shape.
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.
         effect_dim: size :math:`D` of the effect (input and output).
         mlp: shape of :math:`\eta`.
         name: the phase, shown in ``repr`` (``"l2a"``, ``"ws"``, ``"a2d"``).
+        rest_offsets: take the rest-shape offset as a further edge input.
 
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, effect :math:`(|\mathcal{V}|, D)`,
           pos :math:`(|\mathcal{V}|, 3)`, edge_index :math:`(2, |\mathcal{E}|)`,
-          mask :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)` (needed with a mask)
+          mask :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)` (needed with a mask),
+          rest_pos :math:`(|\mathcal{V}|, 3)` (needed with ``rest_offsets``)
         - **output:** effect increment :math:`(|\mathcal{V}|, D)`
     """
 
-    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig(), name: str = "") -> None:
+    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig(), name: str = "",
+                 rest_offsets: bool = False) -> None:
         super().__init__(aggr="add")
         self.state_dim = state_dim
         self.effect_dim = effect_dim
         self.name = name
-        self.eta = MLP(2 * state_dim + effect_dim + 3, effect_dim, mlp)
+        self.rest_offsets = bool(rest_offsets)
+        self.offset_dim = 6 if self.rest_offsets else 3
+        self.eta = MLP(2 * state_dim + effect_dim + self.offset_dim, effect_dim, mlp)
 
     def reset_parameters(self) -> None:
         super().reset_parameters()
@@ -54,6 +62,7 @@ class PropagationModule(MessagePassing):
         edge_index: Tensor,
         mask: Tensor | None = None,
         batch: Tensor | None = None,
+        rest_pos: Tensor | None = None,
     ) -> Tensor:
         n = state.size(0)
         if state.dim() != 2 or state.size(1) != self.state_dim:
@@ -66,11 +75,16 @@ class PropagationModule(MessagePassing):
             raise ValueError(f"PropagationModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
         if mask is not None and batch is None:
             raise ValueError("PropagationModule: a dropout mask needs the node batch vector")
+        if self.rest_offsets:
+            if rest_pos is None or rest_pos.shape != (n, 3):
+                got = None if rest_pos is None else tuple(rest_pos.shape)
+                raise ValueError(f"PropagationModule: rest_offsets needs rest_pos [N, 3], got {got}")
+            pos = torch.cat([pos, rest_pos], dim=-1)  # both offsets go through one weight block
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
         # eta's first layer applied per node, then gathered onto the edges (see message)
         w_src, w_dst, w_effect, w_offset = self.eta.split_first_weight(
-            (self.state_dim, self.state_dim, self.effect_dim, 3))
+            (self.state_dim, self.state_dim, self.effect_dim, self.offset_dim))
         from_src = state @ w_src.T + effect @ w_effect.T
         from_dst = torch.addmm(self.eta.first_bias, state, w_dst.T)
         return self.propagate(edge_index, a=from_src, b=from_dst, x=pos, w_offset=w_offset,
@@ -86,7 +100,7 @@ class PropagationModule(MessagePassing):
         edge_batch: Tensor | None,
         mask: Tensor | None,
     ) -> Tensor:
-        # eta([s_j, s_i, e_j, x_j - x_i]) with its first layer split by input blocks
+        # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks
         pre = a_j + b_i + (x_j - x_i) @ w_offset.T
         return self.eta.forward_from_first(pre, mask, edge_batch)
 
@@ -94,5 +108,5 @@ class PropagationModule(MessagePassing):
         tag = f"{self.name}, " if self.name else ""
         return (
             f"{self.__class__.__name__}({tag}state_dim={self.state_dim}, "
-            f"effect_dim={self.effect_dim}, eta={self.eta})"
+            f"effect_dim={self.effect_dim}, rest_offsets={self.rest_offsets}, eta={self.eta})"
         )

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -52,6 +53,16 @@ def dropout_spread(rate: float) -> float:
     return math.sqrt(rate / (1.0 - rate))
 
 
+def _rand(generator: torch.Generator, *shape: int) -> Tensor:
+    """Uniform ``[0, 1)`` draws on the generator's own device (a generator draws nowhere else)."""
+    return torch.rand(*shape, generator=generator, device=generator.device)
+
+
+def _randn(generator: torch.Generator, *shape: int) -> Tensor:
+    """Standard normal draws on the generator's own device."""
+    return torch.randn(*shape, generator=generator, device=generator.device)
+
+
 @runtime_checkable
 class StochasticDynamics(Protocol):
     """A physics predictor the environment can step.
@@ -70,6 +81,9 @@ class StochasticDynamics(Protocol):
       one force per object, spread over its leaves by the dynamics) -> ``(B, k, S)``, ``k``
       futures each with its own dropout masks at ``rate`` on the dynamics' configured modules.
       ``rate = 0`` must return ``k`` identical copies of the deterministic prediction.
+
+    States and forces live on the dynamics' device (the environment's); a ``generator`` draws on
+    its own device, and the dynamics moves what it draws.
     """
 
     num_objects: int
@@ -169,22 +183,29 @@ class PointMassDynamics:
 
     - state: ``(B, O * 6)``, per object ``[x, y, z, vx, vy, vz]``
     - ``sample_next``: states ``(B, O*6)``, forces ``(B, O, 3)`` -> ``(B, k, O*6)``
+
+    States live on ``device``; the noise is drawn on the generator's device and moved there.
     """
 
     object_dim = ROOT_DIM
 
-    def __init__(self, config: PointMassConfig):
+    def __init__(self, config: PointMassConfig, device: str | torch.device = "cpu"):
         self.config = config
+        self.device = torch.device(device)
         self.num_objects = len(config.radius)
         self.state_dim = self.num_objects * ROOT_DIM
-        self._radius = torch.tensor(config.radius, dtype=torch.float32)
-        self._mass = torch.tensor(config.mass, dtype=torch.float32)
-        self._friction = torch.tensor(config.ground_friction, dtype=torch.float32)
+        as_tensor = partial(torch.tensor, dtype=torch.float32, device=self.device)
+        self._radius = as_tensor(config.radius)
+        self._mass = as_tensor(config.mass)
+        self._friction = as_tensor(config.ground_friction)
+        self._gravity = as_tensor([0.0, 0.0, config.gravity])
+        self._horizontal = as_tensor([1.0, 1.0, 0.0])
         self._stack_height = self._settled_stack() if config.layout == "tower" else None
 
     @classmethod
-    def for_task(cls, task: str, dropout_modules: tuple[str, ...] | None = None) -> PointMassDynamics:
-        return cls(point_mass_config(task, dropout_modules))
+    def for_task(cls, task: str, dropout_modules: tuple[str, ...] | None = None,
+                 device: str | torch.device = "cpu") -> PointMassDynamics:
+        return cls(point_mass_config(task, dropout_modules), device)
 
     def __repr__(self) -> str:
         c = self.config
@@ -203,19 +224,19 @@ class PointMassDynamics:
         if batch < 1:
             raise ValueError(f"batch must be >= 1, got {batch}")
         c, O = self.config, self.num_objects
-        pos = torch.zeros(batch, O, 3)
+        pos = torch.zeros(batch, O, 3, device=self.device)
         if c.layout == "cube_push":
-            xy = (torch.rand(batch, O, 2, generator=generator) * 2 - 1) * c.spawn_half_width
-            pos[..., :2] = xy
+            xy = (_rand(generator, batch, O, 2) * 2 - 1) * c.spawn_half_width
+            pos[..., :2] = xy.to(self.device)
             pos[..., 2] = self._radius
         else:  # tower: cubes 0..O-2 stacked at the origin, ball O-1 on the ground nearby
             cubes = O - 1
             pos[:, :cubes, 2] = self._stack_height
-            angle = torch.rand(batch, generator=generator) * 2 * math.pi
+            angle = _rand(generator, batch) * 2 * math.pi
             lo, hi = c.ball_distance
-            dist = lo + (hi - lo) * torch.rand(batch, generator=generator)
-            pos[:, -1, 0] = dist * torch.cos(angle)
-            pos[:, -1, 1] = dist * torch.sin(angle)
+            dist = lo + (hi - lo) * _rand(generator, batch)
+            pos[:, -1, 0] = (dist * torch.cos(angle)).to(self.device)
+            pos[:, -1, 1] = (dist * torch.sin(angle)).to(self.device)
             pos[:, -1, 2] = self._radius[-1]
         vel = torch.zeros_like(pos)
         return torch.cat([pos, vel], -1).reshape(batch, self.state_dim)
@@ -223,13 +244,15 @@ class PointMassDynamics:
     def _settled_stack(self) -> Tensor:
         """Rest heights of the stacked cubes: stack them touching, let gravity settle them."""
         cubes = self.num_objects - 1
-        pos = torch.zeros(1, self.num_objects, 3)
+        pos = torch.zeros(1, self.num_objects, 3, device=self.device)
         pos[0, :cubes, 2] = torch.cumsum(self._radius[:cubes] * 2, 0) - self._radius[:cubes]
-        pos[0, -1] = torch.tensor([10.0, 0.0, float(self._radius[-1])])  # the ball out of reach
+        pos[0, -1, 0] = 10.0  # the ball out of reach, on the ground
+        pos[0, -1, 2] = self._radius[-1]
         state = torch.cat([pos, torch.zeros_like(pos)], -1).reshape(1, self.state_dim)
-        still = torch.zeros(1, self.num_objects, 3)
+        still = torch.zeros(1, self.num_objects, 3, device=self.device)
+        unused = torch.Generator(device=self.device)  # rate 0 draws nothing
         for _ in range(SETTLE_STEPS):  # a loop over time steps
-            state = self.sample_next(state, still, 1, 0.0, torch.Generator())[:, 0]
+            state = self.sample_next(state, still, 1, 0.0, unused)[:, 0]
         return self.roots(state)[0, :cubes, 2].clone()
 
     # ------------------------------------------------------------------ one step
@@ -249,15 +272,15 @@ class PointMassDynamics:
         x, v = roots[..., :3], roots[..., 3:]
         force = forces.unsqueeze(1).expand(B, k, O, 3)
         if spread > 0 and "force" in c.dropout_modules:
-            eps = torch.randn(B, k, O, 3, generator=generator)
+            eps = _randn(generator, B, k, O, 3).to(force.device)
             force = force + c.force_spread * spread * force.norm(dim=-1, keepdim=True) * eps
         dt2 = c.dt ** 2
         accel = force / self._mass[:, None]
-        accel = accel - torch.tensor([0.0, 0.0, c.gravity])
+        accel = accel - self._gravity
         v_new = v + accel * dt2
         on_ground = (x[..., 2] <= self._radius + GROUND_TOL).unsqueeze(-1)
-        keep = torch.where(on_ground, 1.0 - self._friction[:, None], torch.ones(()))
-        horizontal = torch.tensor([1.0, 1.0, 0.0])
+        keep = torch.where(on_ground, 1.0 - self._friction[:, None], 1.0)
+        horizontal = self._horizontal
         v_new = v_new * (keep * horizontal + (1 - horizontal))
         x_new = self._ground(x + v_new)
         if c.collide and O > 1:
@@ -273,14 +296,14 @@ class PointMassDynamics:
         """Jacobi projection of overlapping pairs; ``x`` ``(B, k, O, 3)``."""
         c, O = self.config, self.num_objects
         reach = self._radius[:, None] + self._radius[None, :]              # (O, O)
-        not_self = ~torch.eye(O, dtype=torch.bool)
+        not_self = ~torch.eye(O, dtype=torch.bool, device=x.device)
         inv_m = 1.0 / self._mass
         share = inv_m[:, None] / (inv_m[:, None] + inv_m[None, :])          # i's part of pair (i, j)
         noise = None
         if spread > 0 and "collision" in c.dropout_modules:
             rel_speed = (v_prev[..., :, None, :] - v_prev[..., None, :, :]).norm(dim=-1)
             impact = rel_speed / (rel_speed + IMPACT_SPEED)                 # 0 at rest, -> 1 at impact
-            eps = torch.randn(*x.shape[:-2], O, O, 3, generator=generator)
+            eps = _randn(generator, *x.shape[:-2], O, O, 3).to(x.device)
             noise = c.collision_spread * spread * impact.unsqueeze(-1) * eps
         # a loop over solver iterations, each one vectorised over all pairs
         for _ in range(c.contact_iterations):

@@ -58,7 +58,10 @@ class HRNEnv(EnvBase):
         num_samples: ``k``; defaults to ``task.num_samples``.
         dropout_rate: defaults to ``task.dropout_rate``.
         action_noise_std: Gaussian action noise as a fraction of ``max_force`` (0: none).
-        seed: seeds the environment's own generator.
+        seed: seeds the environment's own generator (on ``device``: the same seed draws other
+            numbers on CUDA than on the CPU).
+        device: where states, actions and rewards live; must be the dynamics' device. None:
+            ``dynamics.device`` when it has one, else the CPU.
     """
 
     batch_locked = True
@@ -66,14 +69,16 @@ class HRNEnv(EnvBase):
     def __init__(self, task: str | TaskConfig, dynamics: StochasticDynamics | None = None, *,
                  batch_size: int = 1, num_samples: int | None = None,
                  dropout_rate: float | None = None, action_noise_std: float = 0.0,
-                 seed: int | None = None, device: str | torch.device = "cpu"):
+                 seed: int | None = None, device: str | torch.device | None = None):
         task = get_task(task)
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if device is None:
+            device = getattr(dynamics, "device", "cpu")
         if dynamics is None:
             from hrn_pyg.rl.dynamics import PointMassDynamics
 
-            dynamics = PointMassDynamics.for_task(task.name, task.dropout_modules)
+            dynamics = PointMassDynamics.for_task(task.name, task.dropout_modules, device)
         if dynamics.num_objects != task.num_objects:
             raise ValueError(f"dynamics has {dynamics.num_objects} objects, task {task.name!r} "
                              f"expects {task.num_objects}")
@@ -144,7 +149,7 @@ class HRNEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self.rng = torch.Generator().manual_seed(int(seed))
+        self.rng = torch.Generator(device=self.device).manual_seed(int(seed))
 
     # ------------------------------------------------------------------ dynamics
     def _observation(self, state: Tensor, goal: Tensor) -> Tensor:
@@ -156,13 +161,13 @@ class HRNEnv(EnvBase):
         B = self.batch_size[0]
         state = self.dynamics.reset_states(B, self.rng).to(torch.float32)
         goal = sample_goal(self.task, self.dynamics.roots(state), self.rng).to(torch.float32)
-        false = torch.zeros(B, 1, dtype=torch.bool)
+        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
         return TensorDict(
             {
                 "observation": self._observation(state, goal),
                 "state": state,
                 "goal": goal,
-                "t": torch.zeros(B, 1, dtype=torch.int64),
+                "t": torch.zeros(B, 1, dtype=torch.int64, device=self.device),
                 "done": false,
                 "terminated": false.clone(),
                 "truncated": false.clone(),
@@ -176,8 +181,8 @@ class HRNEnv(EnvBase):
         action = tensordict["action"]
         bound = self.task.max_force
         if self.action_noise_std > 0:
-            noise = torch.randn(action.shape, generator=self.rng) * (self.action_noise_std * bound)
-            action = action + noise
+            noise = torch.randn(action.shape, generator=self.rng, device=self.rng.device)
+            action = action + noise.to(action.device) * (self.action_noise_std * bound)
         action = action.clamp(-bound, bound)
         forces = action_to_forces(self.task, action)
         samples = self.dynamics.sample_next(state, forces, self.num_samples, self.dropout_rate,
@@ -210,7 +215,8 @@ def relax_reward(task: TaskConfig, sample_roots: Tensor, samples: Tensor, goal: 
 
     Returns the next state of each environment and whether any sample met the goal: the first
     sample in the goal if one is, otherwise a sample drawn uniformly from ``generator`` (one draw
-    per environment, made every step so the random stream does not depend on the outcome).
+    per environment, made every step so the random stream does not depend on the outcome) on
+    the generator's device; the results are on ``samples``' device.
 
     **Shapes**: sample_roots ``(B, k, O, 6)``, samples ``(B, k, S)``, goal ``(B, 2)`` ->
     next state ``(B, S)``, hit ``(B,)`` bool.
@@ -218,8 +224,8 @@ def relax_reward(task: TaskConfig, sample_roots: Tensor, samples: Tensor, goal: 
     B, k = samples.shape[:2]
     in_goal = goal_reached(task, sample_roots, goal.unsqueeze(1))               # (B, k)
     hit = in_goal.any(-1)
-    drawn = torch.randint(k, (B,), generator=generator)
+    drawn = torch.randint(k, (B,), generator=generator, device=generator.device).to(samples.device)
     first_hit = in_goal.to(torch.int8).argmax(-1)
     choice = torch.where(hit, first_hit, drawn)
-    next_state = samples[torch.arange(B), choice]
+    next_state = samples[torch.arange(B, device=samples.device), choice]
     return next_state, hit

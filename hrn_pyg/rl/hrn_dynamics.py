@@ -41,6 +41,7 @@ from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.rollout import build_inputs, decode, run_network
+from hrn_pyg.sampling.sample import draw_masks, model_device
 
 #: seeds of the initial-state pool; far from the generated datasets' seeds (0..199), so the
 #: agent starts from scenes the model never saw in training
@@ -63,6 +64,9 @@ class HRNDynamics:
             on every module of ``task.dropout_modules``.
         task: the task (its ``name`` is the pybullet scene).
         pool_seeds: pybullet seeds of the initial states :meth:`reset_states` draws from.
+
+    The pool, the structures and every state live on the model's device (:attr:`device`);
+    the pybullet pool is built on the CPU and moved there once.
 
     **Shapes:** states ``(B, 9 L + 1)``; roots ``(..., O, 6)``; forces ``(B, O, 3)`` Newton, one
     per object, spread evenly over its leaves (the datasets' convention).
@@ -97,33 +101,39 @@ class HRNDynamics:
                     stiffness = np.asarray(scene.object_stiffness, dtype=np.float32)
             finally:
                 scene.close()
-        self.pool_seeds = torch.tensor(list(pool_seeds), dtype=torch.long)
-        self.pool = torch.tensor(np.stack(histories), dtype=torch.float32)  # [P, 3, L, 3]
-        self.leaf_mass = torch.tensor(np.stack(masses))  # [P, L]
-        self.leaf_object = torch.tensor(leaf_object, dtype=torch.long)  # [L]
-        self.num_leaves = int(self.leaf_object.numel())
+        self.device = device = model_device(model)
+        pool = np.stack(histories).astype(np.float32)  # [P, 3, L, 3]
+        leaf_mass = torch.from_numpy(np.stack(masses))  # [P, L]
+        leaf_object_t = torch.as_tensor(leaf_object, dtype=torch.long)  # [L]
+        self.num_leaves = int(leaf_object_t.numel())
         self.num_objects = int(self.task.num_objects)
-        if int(self.leaf_object.max()) + 1 < self.num_objects:
+        if int(leaf_object_t.max()) + 1 < self.num_objects:
             raise ValueError(f"scene {self.task.name!r} has fewer objects than the task's {self.num_objects}")
         self.state_dim = 9 * self.num_leaves + 1
         # one hierarchy (the first pool scene's, at rest) shared by every pool entry; each entry
         # keeps its own masses
-        parent = torch.as_tensor(build_hierarchy(self.pool[0, -1].numpy(), self.leaf_mass[0].numpy(),
-                                                 leaf_object), dtype=torch.long)
+        parent = torch.as_tensor(build_hierarchy(pool[0, -1], masses[0], leaf_object), dtype=torch.long)
         self._structures = [
-            build_structure(parent, self.leaf_mass[i], self.leaf_object, torch.as_tensor(material),
-                            torch.as_tensor(stiffness))
+            build_structure(parent, leaf_mass[i], leaf_object_t, torch.as_tensor(material),
+                            torch.as_tensor(stiffness)).to(device)
             for i in range(len(pool_seeds))
         ]
+        self.pool_seeds = torch.tensor(list(pool_seeds), dtype=torch.long, device=device)
+        self.pool = torch.from_numpy(pool).to(device)
+        self.leaf_mass = leaf_mass.to(device)
+        self.leaf_object = leaf_object_t.to(device)
         self._leaf_count = torch.bincount(self.leaf_object, minlength=self.num_objects).float()
         self._varying = _varying_node_attributes(self._structures)  # {name: [P, N, ...]}
         self._batched: OrderedDict[int, HeteroData] = OrderedDict()
 
     @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike, task: str | TaskConfig) -> HRNDynamics:
+    def from_checkpoint(cls, path: str | os.PathLike, task: str | TaskConfig,
+                        device: str | torch.device | None = None,
+                        pool_seeds: Sequence[int] = POOL_SEEDS) -> HRNDynamics:
+        """The dynamics of a checkpoint's model on ``device`` (None: the CPU)."""
         from hrn_pyg.train import load_model
 
-        return cls(load_model(path), task)
+        return cls(load_model(path, device), task, pool_seeds)
 
     # -- state layout -------------------------------------------------------------------------
     def _split(self, states: Tensor) -> tuple[Tensor, Tensor]:
@@ -142,7 +152,8 @@ class HRNDynamics:
 
     # -- protocol -----------------------------------------------------------------------------
     def reset_states(self, batch: int, generator: torch.Generator) -> Tensor:
-        index = torch.randint(len(self._structures), (batch,), generator=generator)
+        index = torch.randint(len(self._structures), (batch,), generator=generator, device=generator.device)
+        index = index.to(self.device)
         return self._join(self.pool[index], index)
 
     def roots(self, states: Tensor) -> Tensor:
@@ -179,7 +190,7 @@ class HRNDynamics:
                           force=per_leaf.reshape(-1, 3))
         masks = None
         if rate > 0:  # one mask per copy on the task's modules only (cube_push: force)
-            masks = {name: mask for name, mask in self.model.sample_masks(n, rate, generator).items()
+            masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.task.dropout_modules}
         out = run_network(self.model, build_inputs(self.model, graph), masks)
         next_pos = decode(self.model, graph, out)[0]

@@ -57,6 +57,7 @@ from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.tasks import TASKS, TaskConfig, action_to_forces, get_task, goal_reached
 from hrn_pyg.utils.checkpoint import save_checkpoint
+from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_path, atomic_write_json, atomic_write_text
 from hrn_pyg.utils.metrics import CSVLog, plot_curves
 from hrn_pyg.utils.schedules import LinearSchedule
@@ -156,13 +157,14 @@ def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
 
 # ---------------------------------------------------------------------------- networks
 def build_actor_critic(env: EnvBase, hidden: int) -> tuple[ProbabilisticActor, ValueOperator]:
-    """Tanh-Gaussian policy and value MLPs (two hidden tanh layers) on ``"observation"``."""
+    """Tanh-Gaussian policy and value MLPs (two hidden tanh layers) on ``"observation"``, on the
+    environment's device."""
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     actor_net = nn.Sequential(
         nn.Linear(obs_dim, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
         nn.Linear(hidden, 2 * act_dim), NormalParamExtractor(),
-    )
+    ).to(env.device)
     actor = ProbabilisticActor(
         TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
         spec=env.action_spec, in_keys=["loc", "scale"], distribution_class=TanhNormal,
@@ -173,15 +175,17 @@ def build_actor_critic(env: EnvBase, hidden: int) -> tuple[ProbabilisticActor, V
     value_net = nn.Sequential(
         nn.Linear(obs_dim, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
         nn.Linear(hidden, 1),
-    )
+    ).to(env.device)
     critic = ValueOperator(value_net, in_keys=["observation"])
     return actor, critic
 
 
-def load_dynamics(task: TaskConfig, model: str | None) -> StochasticDynamics:
-    """``None``: the point-mass development dynamics; a path: the learned HRN (when built)."""
+def load_dynamics(task: TaskConfig, model: str | None,
+                  device: str | torch.device = "cpu") -> StochasticDynamics:
+    """``None``: the point-mass development dynamics; a path: the learned HRN (when built); on
+    ``device``."""
     if model is None:
-        return PointMassDynamics.for_task(task.name, task.dropout_modules)
+        return PointMassDynamics.for_task(task.name, task.dropout_modules, device)
     path = Path(model)
     if not path.is_file():
         raise FileNotFoundError(f"--model checkpoint not found: {path}")
@@ -190,7 +194,7 @@ def load_dynamics(task: TaskConfig, model: str | None) -> StochasticDynamics:
     except ModuleNotFoundError as exc:
         raise ValueError("--model needs hrn_pyg.rl.hrn_dynamics (the learned HRN dynamics), "
                          "which is not available in this version") from exc
-    return HRNDynamics.from_checkpoint(path, task)
+    return HRNDynamics.from_checkpoint(path, task, device)
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -233,7 +237,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
         raise ValueError(f"history_steps must be >= 0, got {history_steps}")
     from hrn_pyg.data.scenes import make_scene
 
-    actions = torch.as_tensor(actions, dtype=torch.float32)
+    actions = torch.as_tensor(actions, dtype=torch.float32).cpu()  # pybullet takes numpy
     forces = action_to_forces(task, actions)                                  # (T, O, 3)
     scene = make_scene(task.name, seed)
     try:
@@ -256,7 +260,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
             if task.goal_kind != "displaced":
                 raise ValueError(f"goal: task {task.name!r} needs the episode's goal point")
             goal = prev[task.goal_objects[0], :2]
-        goal = torch.as_tensor(goal, dtype=torch.float32)
+        goal = torch.as_tensor(goal, dtype=torch.float32).cpu()
         success = False
         for f in forces:
             frames.append(torch.as_tensor(scene.step(f.double().numpy()), dtype=torch.float32))
@@ -276,7 +280,8 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
 def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> list[dict]:
     """Run the policy's deterministic actions in ``env`` and keep everything a replay needs.
 
-    The environment is used as configured. Per episode: ``seed`` (the pybullet scene it started
+    The environment is used as configured, on its device; the records are CPU tensors (ready
+    for :func:`replay_in_pybullet` and numpy). Per episode: ``seed`` (the pybullet scene it started
     from, ``env.dynamics.scene_seeds``; -1 for dynamics without one), ``goal`` ``(2,)``,
     ``actions`` ``(T, A)`` (clipped to the action bounds, as the environment applies them),
     ``states`` ``(T + 1, S)`` (start, then after each action), ``success`` (bool: the episode
@@ -293,9 +298,9 @@ def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> lis
                      else torch.full((B,), -1, dtype=torch.long))
             goal = td["goal"].clone()
             states, actions = [td["state"].clone()], []
-            finished = torch.zeros(B, dtype=torch.bool)
-            success = torch.zeros(B, dtype=torch.bool)
-            length = torch.full((B,), env.task.max_steps, dtype=torch.int64)
+            finished = torch.zeros(B, dtype=torch.bool, device=env.device)
+            success = torch.zeros_like(finished)
+            length = torch.full((B,), env.task.max_steps, dtype=torch.int64, device=env.device)
             for _ in range(env.task.max_steps):  # a loop over time steps
                 td = env.step(policy(td))
                 actions.append(td["action"].clamp(-bound, bound).clone())
@@ -307,7 +312,9 @@ def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> lis
                 if finished.all():
                     break
                 td = step_mdp(td)
-            actions_t, states_t = torch.stack(actions, 1), torch.stack(states, 1)  # (B, T, A), (B, T+1, S)
+            # back to the CPU once per round: (B, T, A), (B, T+1, S)
+            actions_t, states_t = torch.stack(actions, 1).cpu(), torch.stack(states, 1).cpu()
+            seeds, goal, success, length = seeds.cpu(), goal.cpu(), success.cpu(), length.cpu()
             for i in range(B):  # a loop over finished episodes, to split them by length
                 n = int(length[i])
                 out.append({"seed": int(seeds[i]), "goal": goal[i], "actions": actions_t[i, :n],
@@ -360,31 +367,34 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
 # ---------------------------------------------------------------------------- training
 def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
           dynamics: StochasticDynamics | None = None, anneal_updates: int | None = None,
-          progress: bool = True) -> dict:
+          progress: bool = True, device: str | torch.device | None = None) -> dict:
     """One PPO run; writes ``log.csv``, ``policy.pt`` and ``curve.png`` under ``out_dir``.
 
+    The environment, policy, critic and collector run on ``device`` (None: the dynamics'
+    device, the CPU for the default point-mass dynamics), which must be the dynamics' device.
     Returns the final evaluation in the learned model with dropout off and no action noise.
     """
     schedule, noise = mode_settings(mode, task, config, anneal_updates)
-    dynamics = dynamics if dynamics is not None else load_dynamics(task, None)
+    if dynamics is None:
+        dynamics = load_dynamics(task, None, "cpu" if device is None else device)
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
     try:
-        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress)
+        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress, device)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
            dynamics: StochasticDynamics, schedule: LinearSchedule, noise: float,
-           progress: bool) -> dict:
+           progress: bool, device: str | torch.device | None) -> dict:
     torch.manual_seed(seed)
     env = HRNEnv(task, dynamics, batch_size=config.num_envs, dropout_rate=schedule(0),
-                 action_noise_std=noise, seed=seed)
+                 action_noise_std=noise, seed=seed, device=device)
     actor, critic = build_actor_critic(env, config.hidden)
     collector = Collector(env, actor, frames_per_batch=config.frames_per_batch,
                           total_frames=config.frames_per_batch * config.updates,
-                          auto_register_policy_transforms=False)
+                          device=env.device, auto_register_policy_transforms=False)
     gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=True)
     loss_module = ClipPPOLoss(actor, critic, clip_epsilon=config.clip_epsilon,
                               entropy_bonus=config.entropy_coef > 0,
@@ -440,26 +450,27 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
 def _ppo_update(batch: TensorDictBase, gae: GAE, loss_module: ClipPPOLoss,
                 optim: torch.optim.Optimizer, config: PPOConfig) -> dict[str, float]:
     """``epochs`` passes of clipped-PPO minibatch steps over one collected batch ``(B, T)``."""
-    sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0}
+    keys = ("loss_objective", "loss_critic", "loss_entropy")
+    sums: dict[str, Tensor] = {}  # on the batch's device: read back once, after the update
     steps = 0
     for _ in range(config.epochs):
         with torch.no_grad():
             gae(batch)  # advantages from the current critic, along the time dimension
         flat = batch.reshape(-1)
-        order = torch.randperm(flat.shape[0])
+        order = torch.randperm(flat.shape[0]).to(flat.device)  # the CPU stream on every device
         for idx in order.split(config.minibatch):
             losses = loss_module(flat[idx])
             total = losses["loss_objective"] + losses["loss_critic"] + losses.get(
-                "loss_entropy", torch.zeros(()))
+                "loss_entropy", torch.zeros((), device=flat.device))
             optim.zero_grad()
             total.backward()
             nn.utils.clip_grad_norm_(loss_module.parameters(), config.max_grad_norm)
             optim.step()
-            for key in sums:
+            for key in keys:
                 if key in losses.keys():
-                    sums[key] += float(losses[key].detach())
+                    sums[key] = sums.get(key, 0.0) + losses[key].detach().double()
             steps += 1
-    return {k: v / steps for k, v in sums.items()}
+    return {k: float(sums[k]) / steps if k in sums else 0.0 for k in keys}
 
 
 def _episode_stats(batch: TensorDictBase) -> dict[str, float | int | str]:
@@ -674,6 +685,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="learned HRN checkpoint; absent: point-mass development dynamics")
     parser.add_argument("--out", default=None, help="output folder (default runs/rl/<task>)")
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -688,14 +701,15 @@ def run(args: argparse.Namespace) -> int:
                      lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
                      eval_episodes=args.eval_episodes,
                      ground_truth_episodes=args.ground_truth_episodes)
+    device = resolve_device(args.device)
     modes = list(dict.fromkeys(args.mode))
-    dynamics = load_dynamics(task, args.model)
+    dynamics = load_dynamics(task, args.model, device)
     out = Path(args.out) if args.out else Path("runs/rl") / task.name
     results = []
     for mode in modes:
         for seed in range(args.seed_start, args.seed_start + args.seeds):
             res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
-                        args.anneal_updates, progress=not args.no_progress)
+                        args.anneal_updates, progress=not args.no_progress, device=device)
             results.append(res)
             truth = (f", pybullet success {res['pybullet_success_rate']:.2f} length "
                      f"{res['pybullet_mean_length']:.2f}" if "pybullet_success_rate" in res else "")

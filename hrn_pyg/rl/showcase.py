@@ -8,6 +8,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
@@ -20,7 +21,8 @@ SHOWCASE_SEED = 7
 
 
 def load_actor(path: str | os.PathLike, env: HRNEnv):
-    """The trained actor of a ``policy.pt`` written by ``hrn-pyg rl`` (weights-only load)."""
+    """The trained actor of a ``policy.pt`` written by ``hrn-pyg rl`` (weights-only load), on the
+    environment's device."""
     ckpt = load_checkpoint(path)
     hidden = json.loads(ckpt["config"])["ppo"]["hidden"]
     actor, _ = build_actor_critic(env, hidden)
@@ -29,16 +31,17 @@ def load_actor(path: str | os.PathLike, env: HRNEnv):
 
 
 def showcase_policy(model: str | os.PathLike, policy: str | os.PathLike, out: str | os.PathLike,
-                    task: str = "cube_push", episodes: int = 4) -> str:
-    """Run ``episodes`` deterministic episodes of ``policy`` in the learned model (dropout 0),
-    replay each in pybullet, draw the first one, and return a one-line summary."""
+                    task: str = "cube_push", episodes: int = 4, device: str | torch.device | None = None) -> str:
+    """Run ``episodes`` deterministic episodes of ``policy`` in the learned model (dropout 0) on
+    ``device`` (None: the CPU), replay each in pybullet, draw the first one, and return a
+    one-line summary."""
     from hrn_pyg.viz import object_colors, rollout_grid
 
     out = Path(out)
-    dynamics = HRNDynamics.from_checkpoint(model, task)
+    dynamics = HRNDynamics.from_checkpoint(model, task, device)
     env = HRNEnv(task, dynamics, batch_size=episodes, seed=SHOWCASE_SEED, dropout_rate=0.0)
     actor = load_actor(policy, env)
-    records = record_episodes(actor, env, episodes)
+    records = record_episodes(actor, env, episodes)  # CPU tensors
     replays = [replay_in_pybullet(r["actions"], task, r["seed"], r["goal"], history_steps=HISTORY_STEPS)
                for r in records]  # one pybullet scene per episode
     rec, real = records[0], replays[0]
@@ -49,7 +52,7 @@ def showcase_policy(model: str | os.PathLike, policy: str | os.PathLike, out: st
     pad = lambda a: np.concatenate([a, np.repeat(a[-1:], length - len(a), 0)]) if len(a) < length else a
     times = sorted({int(t) for t in np.linspace(0, length - 1, 4).round()})
     rollout_grid({"learned model": pad(learned), "pybullet replay": pad(pyb)}, times,
-                 object_colors(dynamics.leaf_object.numpy()), out / f"{task}_policy.png",
+                 object_colors(dynamics.leaf_object.cpu().numpy()), out / f"{task}_policy.png",
                  title=f"{task}: the same actions in the learned model and in pybullet")
     summary = {
         "episodes": episodes,

@@ -131,8 +131,8 @@ def action_to_forces(task: TaskConfig, action: Tensor) -> Tensor:
     lead = action.shape[:-1]
     parts = action.reshape(*lead, len(task.controlled_objects), len(task.force_axes))
     forces = action.new_zeros(*lead, task.num_objects, 3)
-    obj = torch.tensor(task.controlled_objects)
-    axes = torch.tensor(task.force_axes)
+    obj = torch.tensor(task.controlled_objects, device=action.device)
+    axes = torch.tensor(task.force_axes, device=action.device)
     forces[..., obj[:, None], axes[None, :]] = parts
     return forces
 
@@ -142,14 +142,15 @@ def sample_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> 
 
     ``region``: a disc centre at a distance drawn uniformly from ``goal_distance`` in a uniform
     direction. ``displaced``: the current ground-plane position of the (first) goal object.
+    Drawn on ``generator``'s device, returned on ``roots``'.
     """
     B = roots.shape[0]
     if task.goal_kind == "displaced":
         return roots[:, task.goal_objects[0], :2].clone()
     lo, hi = task.goal_distance
-    angle = torch.rand(B, generator=generator) * 2 * math.pi
-    dist = lo + (hi - lo) * torch.rand(B, generator=generator)
-    return torch.stack([dist * torch.cos(angle), dist * torch.sin(angle)], -1)
+    angle = torch.rand(B, generator=generator, device=generator.device) * 2 * math.pi
+    dist = lo + (hi - lo) * torch.rand(B, generator=generator, device=generator.device)
+    return torch.stack([dist * torch.cos(angle), dist * torch.sin(angle)], -1).to(roots.device)
 
 
 def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:

@@ -21,6 +21,7 @@ from hrn_pyg.data.graph import NODE
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import HISTORY, episode_state
 from hrn_pyg.sampling.sample import sample
+from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
 
 #: folder of the checkpoints shipped with the package, one ``<scene>.pt`` per scene
@@ -47,24 +48,28 @@ def resolve_model(scene: str, path: str | None) -> Path:
     return model_path
 
 
-def load(path: Path) -> HRN:
+def load(path: Path, device: torch.device | str | None = None) -> HRN:
+    """The checkpoint's model on ``device`` (None: the CPU)."""
     from hrn_pyg.train import load_model  # the trainer's loader (imports the training stack)
 
-    return load_model(path)
+    return load_model(path, device)
 
 
-def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroData) -> HRN:
+def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroData,
+              device: torch.device | str | None = None) -> HRN:
     """The scene's checkpoint, or (``random_init``, for checking a pipeline only) an untrained
-    :class:`HRN` with seed 0 whose normaliser is fitted on ``fit_on``."""
+    :class:`HRN` with seed 0 whose normaliser is fitted on ``fit_on``; on ``device`` (None: the
+    CPU)."""
     if not random_init:
-        return load(resolve_model(scene, path))
+        return load(resolve_model(scene, path), device)
     from hrn_pyg.nn.hrn import HRNConfig
     from hrn_pyg.nn.normalizer import fit_normalizer
 
     torch.manual_seed(0)
     model = HRN(HRNConfig())
     fit_normalizer([fit_on], model.normalizer)
-    return model.eval()
+    model.eval()
+    return model if device is None else model.to(device)
 
 
 def initial_state(args: argparse.Namespace, steps: int | None) -> tuple[HeteroData, dict]:
@@ -102,6 +107,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=None, help="predicted steps (default 30, or the episode's)")
     parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
     parser.add_argument("--out", default=None, help="output folder (default runs/sample/<scene>)")
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -111,19 +118,21 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--rate must be in [0, 1), got {args.rate}")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
-    model = load(resolve_model(args.scene, args.model))
+    device = resolve_device(args.device)
+    model = load(resolve_model(args.scene, args.model), device)
     graph, origin = initial_state(args, args.steps)
     store = graph[NODE]
     steps = int(store.force_seq.shape[1]) if args.steps is None else int(args.steps)
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
-    generator = torch.Generator().manual_seed(int(args.sample_seed))
-    samples = sample(model, graph, args.k, steps, args.rate, forces=forces, generator=generator, modules=modules)
+    generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
+    samples = sample(model, graph, args.k, steps, args.rate, forces=forces, generator=generator,
+                     modules=modules).cpu().numpy()  # [K, steps, L, 3]
 
     leaf = store.is_leaf
     truth = store.pos_seq[leaf][:, HISTORY:].transpose(0, 1).numpy()  # [steps+1, L, 3], t = 0..steps
     start = np.broadcast_to(truth[:1], (args.k, 1) + truth.shape[1:])
-    paths = np.concatenate([start, samples.numpy()], axis=1)  # [K, steps+1, L, 3]
+    paths = np.concatenate([start, samples], axis=1)  # [K, steps+1, L, 3]
     leaf_object = store.object[leaf]
 
     from hrn_pyg.viz import object_colors, samples_figure, write_gif
@@ -138,13 +147,14 @@ def run(args: argparse.Namespace) -> int:
 
     def write_npz(f) -> None:
         buffer = io.BytesIO()
-        np.savez_compressed(buffer, samples=samples.numpy(), truth=truth)
+        np.savez_compressed(buffer, samples=samples, truth=truth)
         f.write(buffer.getvalue())
 
     atomic_write(out / "samples.npz", write_npz)
     atomic_write_json(out / "samples.json", {
         "k": args.k, "rate": args.rate, "steps": steps, "modules": list(modules or model.config.dropout_modules),
-        "sample_seed": args.sample_seed, "model": str(args.model or default_model_path(args.scene)), **origin,
+        "sample_seed": args.sample_seed, "model": str(args.model or default_model_path(args.scene)),
+        "device": str(device), **origin,
     })
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps)")
     return 0

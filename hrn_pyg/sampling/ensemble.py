@@ -127,6 +127,7 @@ def episode_state(
         torch.as_tensor(np.asarray(episode["leaf_object"]), dtype=torch.long),
         torch.as_tensor(np.asarray(episode["object_material"]), dtype=torch.long),
         torch.as_tensor(np.asarray(episode["object_stiffness"]), dtype=torch.float32),
+        rest_pos=positions[0],
     )
     n, leaves = structure[NODE].num_nodes, positions.shape[1]
     seq = positions[start - HISTORY : start + steps + 1]  # [steps+3, L, 3]

@@ -4,7 +4,8 @@ Notation: ``K`` samples :math:`X_1..X_K` and ``M`` ground-truth members :math:`y
 vector in :math:`\\mathbb{R}^D` (one time step; ``D`` = 3 for one particle or one object centre,
 ``3L`` for a whole scene flattened). Extra dimensions between the first and the last (time,
 particles, ...) are kept: every score is computed per index of them. All distances are Euclidean
-and in metres. A deterministic model is the case ``K = 1``.
+and in metres. A deterministic model is the case ``K = 1``. Scores are computed on the samples'
+device (the truth is moved there) and returned there.
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ SIDES = ("below", "above")
 
 
 def _pair(samples: Tensor, truth: Tensor, name: str = "truth") -> tuple[Tensor, Tensor]:
-    samples, truth = torch.as_tensor(samples), torch.as_tensor(truth)
+    samples = torch.as_tensor(samples)
+    truth = torch.as_tensor(truth, device=samples.device)  # e.g. a numpy ensemble against device samples
     if samples.dim() < 2 or samples.shape[0] < 1:
         raise ValueError(f"samples must be [K>=1, ..., D], got {tuple(samples.shape)}")
     if truth.shape[1:] != samples.shape[1:] or truth.shape[0] < 1:
@@ -97,8 +99,8 @@ def object_centres(positions: Tensor, leaf_object: Tensor, leaf_mass: Tensor) ->
     returns ``(*, O, 3)``.
     """
     positions = torch.as_tensor(positions)
-    leaf_object = torch.as_tensor(leaf_object).long()
-    leaf_mass = torch.as_tensor(leaf_mass).to(positions.dtype)
+    leaf_object = torch.as_tensor(leaf_object, device=positions.device).long()
+    leaf_mass = torch.as_tensor(leaf_mass, device=positions.device).to(positions.dtype)
     if positions.dim() < 2 or positions.shape[-1] != 3:
         raise ValueError(f"positions must be [..., L, 3], got {tuple(positions.shape)}")
     n_leaves = positions.shape[-2]
@@ -108,8 +110,8 @@ def object_centres(positions: Tensor, leaf_object: Tensor, leaf_mass: Tensor) ->
         raise ValueError("leaf_mass must be > 0 and leaf_object >= 0")
     n_obj = int(leaf_object.max()) + 1
     weighted = positions * leaf_mass[:, None]
-    total = torch.zeros(*positions.shape[:-2], n_obj, 3, dtype=positions.dtype).index_add(-2, leaf_object, weighted)
-    mass = torch.zeros(n_obj, dtype=positions.dtype).index_add(0, leaf_object, leaf_mass)
+    total = positions.new_zeros(*positions.shape[:-2], n_obj, 3).index_add(-2, leaf_object, weighted)
+    mass = positions.new_zeros(n_obj).index_add(0, leaf_object, leaf_mass)
     return total / mass[:, None]
 
 

@@ -20,6 +20,7 @@ from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import NODE, replicate
 from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.nn.mlp import dropout_mask
 from hrn_pyg.rollout import MasksFn, rollout
 
 #: the state a scene must carry to be rolled out (``x_{t-2}, x_{t-1}, x_t``)
@@ -68,6 +69,27 @@ def _check_modules(model: HRN, modules: tuple[str, ...] | None) -> tuple[str, ..
     return modules
 
 
+def model_device(model: HRN) -> torch.device:
+    """The device the model's weights (and so its inputs) live on."""
+    return model.normalizer.velocity_std.device
+
+
+def draw_masks(model: HRN, k: int, rate: float, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+    """:meth:`HRN.sample_masks` from a generator on any device, the masks on the model's device.
+
+    A :class:`torch.Generator` only draws on its own device: a CPU generator driving a CUDA
+    model draws on the CPU (the same numbers as a CPU model gets) and the masks are moved.
+
+    **Shapes:** ``{module: (k, hidden)}`` for every module of ``config.dropout_modules``.
+    """
+    device = model_device(model)
+    if generator is None or generator.device == device:
+        return model.sample_masks(k, rate, generator)
+    hidden = model.config.hidden
+    return {name: dropout_mask(k, hidden, rate, generator, generator.device).to(device)
+            for name in model.config.dropout_modules}
+
+
 def make_masks_fn(
     model: HRN,
     k: int,
@@ -82,8 +104,8 @@ def make_masks_fn(
 
     .. math:: m^{(t)}_{b,h} = \mathbb{1}[u^{(t)}_{b,h} \ge p] / (1 - p), \qquad u \sim U[0, 1),
 
-    in module order, from ``generator`` (the global generator if None). Rate 0 returns None (no
-    masks: exactly the deterministic model).
+    in module order, from ``generator`` (the global generator if None; on any device, see
+    :func:`draw_masks`). Rate 0 returns None (no masks: exactly the deterministic model).
 
     **Shapes:** each call returns ``{module: (k, hidden)}``.
     """
@@ -93,7 +115,7 @@ def make_masks_fn(
         return None
 
     def masks_fn(t: int, graph: HeteroData) -> Mapping[str, Tensor]:
-        masks = model.sample_masks(k, float(rate), generator)
+        masks = draw_masks(model, k, float(rate), generator)
         return {name: masks[name] for name in modules}
 
     return masks_fn
@@ -109,7 +131,7 @@ def _copy_forces(forces: Tensor | None, graph: HeteroData, steps: int, k: int) -
         raise ValueError(f"forces must be [steps>={steps}, {n} nodes or {leaves} leaves, 3], got {tuple(forces.shape)}")
     if not bool(torch.isfinite(forces).all()):
         raise ValueError("forces contains NaN or infinite values")
-    forces = forces[:steps].to(store.pos.dtype)
+    forces = forces[:steps].to(device=store.pos.device, dtype=store.pos.dtype)
     if forces.shape[1] == leaves:
         full = forces.new_zeros(steps, n, 3)
         full[:, store.is_leaf] = forces
@@ -140,7 +162,9 @@ def sample(
         \qquad b = 1..k
 
     ``rate = 0`` draws no mask: every copy equals the deterministic rollout. With a seeded
-    ``generator`` the result repeats exactly. Runs without gradients.
+    ``generator`` the result repeats exactly. Runs without gradients, on the model's device:
+    the initial state and forces are moved there (the caller's graph is left as it is), and so
+    is the result (``.cpu()`` it for numpy).
 
     Args:
         model: a (trained) :class:`~hrn_pyg.nn.hrn.HRN` with a fitted normaliser.
@@ -151,7 +175,8 @@ def sample(
         rate: dropout rate in [0, 1).
         forces: external force of each step on each node ``[steps, N, 3]`` or leaf
             ``[steps, L, 3]``; None is no force.
-        generator: source of the masks (None: torch's global generator).
+        generator: source of the masks (None: torch's global generator of the model's device);
+            a CPU generator also serves a model on another device (:func:`draw_masks`).
         modules: modules to mask (default: the model's ``config.dropout_modules``; each must be
             in it).
 
@@ -166,11 +191,12 @@ def sample(
     check_sampling_args(k, steps, rate)
     _check_state(initial_state)
     modules = _check_modules(model, modules)
-    graph = copy.copy(initial_state)
-    store = graph[NODE]
+    graph = copy.copy(initial_state)  # new stores: deleting and moving below leave the caller's
     for name in WINDOW_ONLY_FIELDS:
-        if name in store:
-            del store[name]
+        if name in graph[NODE]:
+            del graph[NODE][name]
+    graph = graph.to(model_device(model))
+    store = graph[NODE]
     copies_forces = _copy_forces(forces, graph, steps, k)
     n = store.num_nodes
     leaf_index = torch.nonzero(store.is_leaf).flatten()

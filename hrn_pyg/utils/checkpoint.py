@@ -7,8 +7,12 @@ JSON text. No pickled Python objects, so loading one cannot run code.
 
 from __future__ import annotations
 
+import json
 import os
+import pickle
 import random
+import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -28,20 +32,76 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> None:
     atomic_write(path, lambda fh: torch.save(payload, fh))
 
 
+class CheckpointError(ValueError):
+    """A file that is not a usable hrn_pyg checkpoint; the message is one line naming the file."""
+
+
+def _unreadable_reason(exc: BaseException) -> str:
+    """A short description of why ``torch.load(weights_only=True)`` failed (torch's own
+    messages run to a paragraph that suggests ``weights_only=False``, which is not an option)."""
+    text = str(exc)
+    refused = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+    if refused:
+        return f"it holds a pickled {refused.group(1)}, which a weights-only load refuses"
+    if "zip archive" in text or "PytorchStreamReader" in text:
+        return "truncated or damaged zip archive"
+    if isinstance(exc, EOFError):
+        return "the file is empty or cut short"
+    if isinstance(exc, pickle.UnpicklingError):
+        return "not a file written by torch.save"
+    if isinstance(exc, OSError):
+        return exc.strerror or type(exc).__name__
+    first_line = next((line.strip() for line in text.splitlines() if line.strip()), "")
+    return f"{type(exc).__name__}: {first_line[:120]}" if first_line else type(exc).__name__
+
+
+def _foreign_reason(ckpt: object) -> str | None:
+    """Why a loaded object is not an hrn_pyg checkpoint, or None when it is one."""
+    if not isinstance(ckpt, dict):
+        return f"it holds a {type(ckpt).__name__}, not a dict"
+    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    if missing:
+        return "missing keys " + ", ".join(repr(k) for k in missing)
+    if ckpt["format"] != FORMAT:
+        return f"format {ckpt['format']!r}, expected {FORMAT!r}"
+    if not isinstance(ckpt["model"], dict):
+        return f"'model' is a {type(ckpt['model']).__name__}, not a state dict"
+    if not _is_json_object(ckpt["config"]):
+        return "'config' is not JSON text of an object"
+    return None
+
+
+def _is_json_object(text: object) -> bool:
+    """Whether ``text`` is a string holding one JSON object (how configs are stored)."""
+    if not isinstance(text, str):
+        return False
+    try:
+        return isinstance(json.loads(text), dict)
+    except json.JSONDecodeError:
+        return False
+
+
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
-    """Read a checkpoint safely and check that it is one of ours."""
+    """Read a checkpoint safely and check that it is one of ours.
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file.
+        CheckpointError: the file cannot be read with a weights-only load (truncated, random
+            bytes, pickled objects) or holds something other than an hrn_pyg checkpoint; the
+            message is one line that names the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # a truncated or foreign file
-        raise ValueError(f"checkpoint {path} is not readable as a weights-only file: {exc}") from exc
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise ValueError(f"checkpoint {path} was not written by hrn_pyg ({FORMAT})")
-    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
-    if missing:
-        raise ValueError(f"checkpoint {path} lacks keys {missing}")
+        with warnings.catch_warnings():  # a foreign pickle protocol is reported below, not warned about
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
+            ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # whatever torch raises becomes the one-line error below
+        raise CheckpointError(f"{path} is not a readable checkpoint ({_unreadable_reason(exc)})") from None
+    reason = _foreign_reason(ckpt)
+    if reason is not None:
+        raise CheckpointError(f"{path} is not an hrn_pyg checkpoint ({reason})")
     return ckpt
 
 

@@ -123,3 +123,63 @@ def test_bad_input():
             scene.step(np.zeros((3, 3)))
     finally:
         scene.close()
+
+
+def _max_leaf_speed(ep, steps):
+    """Per object, the largest leaf speed (m/s) over the episode's last ``steps`` steps."""
+    x = ep["positions"].astype(np.float64)[-(steps + 1):]
+    speed = np.linalg.norm(np.diff(x, axis=0), axis=-1) / float(ep["dt"])
+    obj = ep["leaf_object"]
+    return np.array([speed[:, obj == o].max() for o in range(obj.max() + 1)])
+
+
+def test_long_episode_defaults():
+    steps = {name: scene_config(name).steps for name in SCENES}
+    assert steps == {"soft_bounce": 160, "cube_collision": 160, "wedge": 140,
+                     "multi_material": 150, "cube_push": 150, "tower": 150}
+    for name in ("cube_collision", "cube_push", "tower"):  # pushes stop well before the end
+        cfg = scene_config(name)
+        assert cfg.last_push_step_range[1] <= cfg.steps - 70
+
+
+@pytest.mark.parametrize("scene", ["cube_collision", "wedge", "cube_push", "tower"])
+def test_rigid_scenes_end_at_rest(scene):
+    ep = simulate_episode(scene, seed=0)
+    assert len(ep["forces"]) == scene_config(scene).steps
+    assert np.abs(ep["forces"][-40:]).max() == 0
+    assert _max_leaf_speed(ep, 40).max() < 0.01
+    assert _max_leaf_speed(ep, len(ep["forces"])).max() > 0.5  # but things did move
+
+
+def test_cube_collision_pushes_stop_after_last_push_step():
+    cfg = scene_config("cube_collision", steps=30, first_push_range=(2, 2), push_every_range=(5, 5),
+                       last_push_step_range=(12, 12))
+    ep = simulate_episode("cube_collision", seed=0, config=cfg)
+    pushed = np.nonzero(np.abs(ep["forces"]).sum(axis=(1, 2)) > 0)[0].tolist()
+    assert pushed == [2, 7, 12]
+    assert json.loads(str(ep["params"]))["params"]["last_push_step"] == 12
+
+
+def test_random_forces_alternate_pushes_and_pauses():
+    cfg = scene_config("cube_push", steps=16, force_range=(5.0, 10.0), hold_range=(2, 2),
+                       pause_range=(3, 3), last_push_step_range=(10, 10))
+    ep = simulate_episode("cube_push", seed=0, config=cfg)
+    pushed = np.nonzero(np.abs(ep["forces"]).sum(axis=(1, 2)) > 0)[0].tolist()
+    assert pushed == [0, 1, 5, 6, 10]
+
+
+def test_schedule_does_not_change_the_initial_state():
+    """The RL pools start from make_scene(name, seed): the push schedule is drawn last."""
+    for name in ("cube_push", "tower"):
+        a = make_scene(name, seed=3)
+        b = make_scene(name, seed=3, config=scene_config(name, last_push_step_range=(5, 9)))
+        a.params.pop("last_push_step")
+        b.params.pop("last_push_step")
+        assert a.params == b.params
+
+
+def test_ground_rolling_friction_stops_a_rolling_ball():
+    rolls = scene_config("wedge", rolling_friction=0.0)
+    assert _max_leaf_speed(simulate_episode("wedge", seed=0, config=rolls), 40).max() > 0.5
+    with pytest.raises(ValueError, match="rolling_friction"):
+        scene_config("wedge", rolling_friction=-0.1)

@@ -197,3 +197,30 @@ def test_bad_input_raises():
         action_to_forces(CUBE_PUSH, torch.zeros(3))
     with pytest.raises(ValueError):
         dropout_spread(-0.1)
+
+
+def test_explicit_cpu_device_everywhere():
+    """``device=torch.device("cpu")`` reaches the dynamics, the generator and every tensordict,
+    and gives the run of the default device (None: the dynamics' own)."""
+    cpu = torch.device("cpu")
+    dyn = PointMassDynamics.for_task("tower", device=cpu)
+    assert dyn.device == cpu
+    env = HRNEnv("tower", dyn, batch_size=2, seed=5, dropout_rate=0.2, action_noise_std=0.1)
+    assert env.device == cpu and env.rng.device == cpu
+    explicit = HRNEnv("tower", batch_size=2, seed=5, dropout_rate=0.2, action_noise_std=0.1, device=cpu)
+    torch.manual_seed(0)
+    a = env.rollout(5, break_when_any_done=False)
+    torch.manual_seed(0)
+    b = explicit.rollout(5, break_when_any_done=False)
+    assert a.device == cpu and a["next", "state"].device == cpu
+    assert torch.equal(a["next", "state"], b["next", "state"])
+
+
+def test_draws_follow_the_generator_and_results_the_samples():
+    """relax_reward draws on the generator's device and indexes on the samples' (the meta device
+    stands in for CUDA)."""
+    task = get_task("cube_push")
+    samples = torch.zeros(3, 2, 12, device="meta")
+    roots = samples.reshape(3, 2, 2, 6)
+    state, hit = relax_reward(task, roots, samples, torch.zeros(3, 2, device="meta"), torch.Generator())
+    assert state.device.type == "meta" and state.shape == (3, 12) and hit.shape == (3,)

@@ -213,3 +213,20 @@ def test_replay_starts_where_the_learned_episode_starts(dynamics):
     assert replay["leaves"].shape == (3, dynamics.num_leaves, 3) and not replay["success"]
     with pytest.raises(ValueError, match="history_steps"):
         replay_in_pybullet(torch.zeros(1, 4), "cube_push", seed, goal=torch.zeros(2), history_steps=-1)
+
+
+def test_from_checkpoint_on_an_explicit_device(model, dynamics, tmp_path):
+    from hrn_pyg.train import TrainConfig, _model_payload
+    from hrn_pyg.utils.checkpoint import save_checkpoint
+
+    path = tmp_path / "cube_push.pt"
+    save_checkpoint(path, _model_payload(model, TrainConfig(), 0))
+    loaded = HRNDynamics.from_checkpoint(path, "cube_push", device=torch.device("cpu"), pool_seeds=POOL)
+    assert loaded.device == torch.device("cpu")
+    assert loaded.pool.device == loaded.leaf_object.device == torch.device("cpu")
+    env = HRNEnv("cube_push", loaded, batch_size=2, seed=0)
+    assert env.device == loaded.device  # the environment follows its dynamics by default
+    states = loaded.reset_states(2, torch.Generator().manual_seed(0))
+    a = loaded.sample_next(states, _forces(2), 2, 0.2, torch.Generator().manual_seed(1))
+    b = dynamics.sample_next(states, _forces(2), 2, 0.2, torch.Generator().manual_seed(1))
+    assert torch.equal(a, b)

@@ -97,11 +97,32 @@ def test_cli_runs_and_draws_the_figure(tmp_path):
     ["--frames-per-batch", "33"],
     ["--model", "does/not/exist.pt"],
     ["--anneal-updates", "-1"],
+    ["--device", "nonsense"],
 ])
 def test_cli_bad_input_exits_2(argv, tmp_path, capsys):
     assert main(["rl", "--out", str(tmp_path), "--no-progress", *argv]) == 2
-    assert "error" in capsys.readouterr().err
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("hrn-pyg rl: error:") and "\n" not in err
     assert not any(tmp_path.iterdir())
+
+
+def test_cli_device_cpu(tmp_path):
+    out = tmp_path / "rl"
+    code = main(["rl", "--task", "cube_push", "--mode", "deterministic", "--seeds", "1", "--updates", "1",
+                 "--num-envs", "2", "--frames-per-batch", "10", "--minibatch", "10", "--eval-episodes", "2",
+                 "--out", str(out), "--no-progress", "--device", "cpu"])
+    assert code == 0
+    assert (out / "deterministic" / "seed0" / "policy.pt").is_file()
+
+
+def test_train_on_an_explicit_device_repeats_the_default_run(tmp_path):
+    cfg = dataclasses.replace(TINY, updates=1)
+    a = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path / "a", progress=False, device=torch.device("cpu"))
+    b = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path / "b", progress=False)
+    for key in ("success_rate", "mean_episode_length"):
+        assert a[key] == b[key]
+    rows = [(tmp_path / run / "log.csv").read_text().splitlines()[1].rsplit(",", 1)[0] for run in "ab"]
+    assert rows[0] == rows[1]  # every logged value but the seconds
 
 
 def test_cli_unknown_task_or_mode_exits_2():

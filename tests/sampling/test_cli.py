@@ -47,3 +47,21 @@ def test_missing_default_checkpoint_names_path_and_command(tmp_path):
 
 def test_bad_rate_is_a_clean_error(checkpoint):
     assert main(["sample", "--scene", "wedge", "--rate", "1.5", "--model", str(checkpoint)]) == 2
+
+
+def test_device_cpu_runs_and_is_recorded(checkpoint, tmp_path):
+    out = tmp_path / "out"
+    code = main(["sample", "--scene", "wedge", "--k", "2", "--seed", "5", "--steps", "2",
+                 "--model", str(checkpoint), "--out", str(out), "--device", "cpu"])
+    assert code == 0
+    assert json.loads((out / "samples.json").read_text())["device"] == "cpu"
+
+
+def test_unknown_device_is_a_one_line_error(checkpoint, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(["sample", "--scene", "wedge", "--model", str(checkpoint), "--out", str(out),
+                 "--device", "nonsense"])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "nonsense" in err and err.startswith("hrn-pyg sample: error:")
+    assert not out.exists()

@@ -175,3 +175,41 @@ def test_missing_state_and_batches_are_rejected(model):
 
     with pytest.raises(ValueError, match="one scene"):
         sample(model, replicate(toy_scene(), 2), 2, STEPS, 0.3)
+
+
+def test_explicit_cpu_device_and_a_caller_graph_left_in_place(model):
+    """``sample`` runs where the model is (here ``torch.device("cpu")``, named explicitly),
+    leaves the caller's graph where it was, and matches the implicit-device run."""
+    graph, forces = scene_and_forces()
+    on_cpu = model.to(torch.device("cpu"))
+    out = sample(on_cpu, graph, 2, STEPS, 0.3, forces=forces,
+                 generator=torch.Generator(device=torch.device("cpu")).manual_seed(4))
+    assert out.device == torch.device("cpu") and graph[NODE].pos.device == torch.device("cpu")
+    again = sample(model, graph, 2, STEPS, 0.3, forces=forces, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(out, again)
+
+
+def test_masks_from_a_generator_on_another_device_are_moved_to_the_model():
+    """A CPU generator driving a model elsewhere (the meta device stands in for CUDA) draws on
+    the CPU, the numbers a CPU model gets, and hands the masks over on the model's device."""
+    from hrn_pyg.sampling.sample import draw_masks
+
+    cpu_model = HRN(HRNConfig(hidden=8, effect_dim=8, depth=2))
+    elsewhere = HRN(HRNConfig(hidden=8, effect_dim=8, depth=2)).to("meta")
+    moved = draw_masks(elsewhere, 3, 0.4, torch.Generator().manual_seed(2))
+    expected = cpu_model.sample_masks(3, 0.4, torch.Generator().manual_seed(2))
+    assert moved.keys() == expected.keys()
+    for name, mask in moved.items():
+        assert mask.device.type == "meta" and mask.shape == expected[name].shape
+    gen = torch.Generator().manual_seed(2)
+    masks = make_masks_fn(elsewhere, 3, 0.4, gen)(0, None)
+    assert all(m.device.type == "meta" for m in masks.values())
+    assert torch.equal(gen.get_state(), _after(expected, seed=2))
+
+
+def _after(masks: dict, seed: int) -> torch.Tensor:
+    """State of a CPU generator after drawing tables the size of ``masks``, in order."""
+    gen = torch.Generator().manual_seed(seed)
+    for table in masks.values():
+        torch.rand(table.shape, generator=gen)
+    return gen.get_state()

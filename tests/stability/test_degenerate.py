@@ -24,12 +24,16 @@ from stability_helpers import fitted_model
 STEPS = 15
 
 
-def _scene(objects: list[np.ndarray], masses: list[float], radius: float = 0.08, speed=None):
+def _scene(objects: list[np.ndarray], masses: list[float], radius: float = 0.08, speed=None,
+           leaf_weights: list[np.ndarray] | None = None):
     """Graph of rigid objects given by their leaf positions, falling (or moving at ``speed``
-    m/step per object), and the parent array."""
+    m/step per object). Object ``i`` weighs ``masses[i]``, shared equally by its leaves or in
+    proportion to ``leaf_weights[i]``."""
     leaves = np.concatenate(objects)
     leaf_object = np.concatenate([np.full(len(o), i) for i, o in enumerate(objects)])
-    mass = np.concatenate([np.full(len(o), m / len(o)) for o, m in zip(objects, masses)])
+    if leaf_weights is None:
+        leaf_weights = [np.ones(len(o)) for o in objects]
+    mass = np.concatenate([m * w / w.sum() for w, m in zip(leaf_weights, masses)])
     parent = build_hierarchy(leaves, mass, leaf_object)
     n_obj = len(objects)
     structure = build_structure(torch.as_tensor(parent), torch.as_tensor(mass, dtype=torch.float32),
@@ -102,13 +106,28 @@ def test_coincident_particles_have_finite_gradients():
 
 
 def test_mass_ratio_of_a_thousand():
-    heavy = voxelise(box_mesh(0.1), 0.05) + [0, 0, 0.3]
-    light = voxelise(box_mesh(0.1), 0.05) + [0.13, 0, 0.3]
-    g = _scene([heavy, light], [100.0, 0.1])
+    """A 100 kg cube next to a 0.1 kg one. The heavy cube's leaves are not equally heavy: its
+    three x-layers (at x = -0.05, 0, +0.05 about its centre) weigh 1 : 1 : 10, so its root sits
+    at x = (-0.05 * 1 + 0 * 1 + 0.05 * 10) / 12 = 0.0375, not at the plain mean 0."""
+    cube = voxelise(box_mesh(0.1), 0.05)  # 27 leaves, 3 x-layers of 9
+    layer_weight = np.select([cube[:, 0] < -0.01, cube[:, 0] > 0.01], [1.0, 10.0], 1.0)
+    heavy, light = cube + [0, 0, 0.3], cube + [0.13, 0, 0.3]
+    g = _scene([heavy, light], [100.0, 0.1], leaf_weights=[layer_weight, np.ones(len(cube))])
+    store = g[NODE]
+    roots = store.is_root.nonzero().flatten()
+    assert store.object[roots].tolist() == [0, 1]
+    torch.testing.assert_close(store.mass[roots, 0], torch.tensor([100.0, 0.1]))
+    torch.testing.assert_close(store.pos[roots], torch.tensor([[0.0375, 0.0, 0.3], [0.13, 0.0, 0.3]]))
+
     model = fitted_model()
-    traj = _assert_finite_rollout(model, g)
-    # ancestors stay the mass-weighted means of their leaves, exactly as derived
-    torch.testing.assert_close(traj[-1], leaf_to_ancestor_mean(traj[-1], g))
+    traj = _assert_finite_rollout(model, g).double().numpy()  # [steps, N, 3]
+    leaf_mass = store.mass[:, 0].double().numpy()[: 2 * len(cube)]
+    for obj, root in enumerate(roots.tolist()):
+        leaves = slice(obj * len(cube), (obj + 1) * len(cube))  # leaves are in input order
+        expected = np.einsum("l,tld->td", leaf_mass[leaves], traj[:, leaves]) / leaf_mass[leaves].sum()
+        np.testing.assert_allclose(traj[:, root], expected, rtol=0, atol=1e-5)
+    # the weighting matters: the heavy root is not the plain mean of its leaves
+    assert np.abs(traj[:, roots[0]] - traj[:, : len(cube)].mean(1)).max() > 0.03
     _grads_finite(model, g)
 
 
@@ -180,14 +199,44 @@ def test_gradients_finite_through_a_fifteen_step_unroll():
     assert any(g.abs().sum() > 0 for g in grads.values())
 
 
+def _min_distance_between_objects(graph) -> float:
+    """Smallest distance between leaves of different objects at the graph's current state."""
+    store = graph[NODE]
+    leaf = store.is_leaf
+    pos, obj = store.pos[leaf], store.object[leaf]
+    dist = torch.cdist(pos, pos)
+    return float(dist[obj[:, None] != obj[None, :]].min())
+
+
 def test_impact_at_ten_times_the_training_speed():
-    """Two cubes flying at each other at 10x the fastest push of cube_collision (2.5 m/s)."""
+    """Two cubes flying at each other at 10x the fastest push of cube_collision (2.5 m/s).
+
+    At that speed a cube moves further in one step than the collision radius, so the start is
+    chosen to make them meet: their facing layers of leaves coincide after ``meet`` steps of
+    constant velocity. The rollout must see collision edges there (not fly through without
+    contact) and stay finite and bounded."""
+    meet = 2
     speed = 10 * 2.5 * DT  # m per model step
-    left = voxelise(box_mesh(0.1), 0.05) + [-0.3, 0, 0.05]
-    right = voxelise(box_mesh(0.1), 0.05) + [0.3, 0, 0.05]
+    cube = voxelise(box_mesh(0.1), 0.05)  # leaves from -0.05 to 0.05 about the centre
+    centre = 0.05 + meet * speed
+    left, right = cube + [-centre, 0, 0.05], cube + [centre, 0, 0.05]
     g = _scene([left, right], [1.0, 1.0], speed=[[speed, 0, 0], [-speed, 0, 0]])
     model = fitted_model()
-    _assert_finite_rollout(model, g, steps=30)
+    radius = model.config.collision_radius
+    assert speed > radius  # one step jumps further than a collision reaches
+    assert _min_distance_between_objects(g) > radius and g[COLLISION].edge_index.size(1) == 0  # no contact yet
+
+    with torch.no_grad():
+        steps = unroll(model, g, 30)
+    traj = torch.stack([s.pos for s in steps])
+    assert torch.isfinite(traj).all() and traj.abs().max() < 1e3
+
+    at_meet = steps[meet - 1].graph  # Step.graph holds the state after the step and its collisions
+    assert _min_distance_between_objects(at_meet) < radius
+    edges = at_meet[COLLISION].edge_index
+    assert edges.size(1) > 0
+    objects = at_meet[NODE].object
+    assert bool((objects[edges[0]] != objects[edges[1]]).all())  # edges join the two cubes
     _grads_finite(model, g, steps=5)
 
 

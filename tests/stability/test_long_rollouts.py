@@ -13,8 +13,8 @@ What is asserted where, and why:
 * No sinking through the ground is a property of a *trained* model (the decoder does not clamp
   positions: a clamp would hide errors and is not physical for soft bodies, whose pybullet nodes
   may sit slightly in the contact margin). It is checked on the shipped checkpoints
-  (``hrn_pyg/checkpoints``), with a stated depth of one voxel pitch (5 cm); four of the six
-  shipped models fail it over 1000 steps and are marked as strict expected failures below.
+  (``hrn_pyg/checkpoints``), with a stated depth of one voxel pitch (5 cm); the shipped models
+  that still fail it over 1000 steps are marked as strict expected failures below.
 """
 
 from __future__ import annotations
@@ -116,14 +116,13 @@ def test_thousand_step_ballistic_rollout_of_every_scene(scene):
     torch.testing.assert_close(traj, expected, rtol=1e-7, atol=1e-6)
 
 
-#: Shipped models that do NOT pass the 1000-step check (measured at the end of the session that
-#: trained them; the models saw 40-50-step episodes only). Strict: a model that starts passing
-#: turns the xfail into a failure, so this list has to be kept true.
+#: Shipped models that do NOT pass the 1000-step check (measured when they were last retrained).
+#: Strict: a model that starts passing turns the xfail into a failure, so this list has to be
+#: kept true. tower, cube_push and soft_bounce left it when they were retrained on 150-step
+#: episodes with the rigid fit / rest-shape offsets (before: drifted away, sank 14 cm and 8.6 cm);
+#: multi_material has not been retrained yet (old 50-step episodes).
 LONG_ROLLOUT_FAILURES = {
-    "cube_push": "drifts and diverges: leaves 1.8e7 m from the start after 1000 steps",
-    "soft_bounce": "sinks 8.6 cm into the ground",
     "multi_material": "sinks 28 cm into the ground",
-    "tower": "sinks 14 cm into the ground",
 }
 
 
@@ -172,3 +171,72 @@ def test_trained_model_survives_an_impact_at_ten_times_the_training_speed():
         traj = rollout(model, g, 100)
     assert torch.isfinite(traj).all()
     assert (traj - store.pos).abs().max() < TRAINED_BOUND
+
+
+#: the goals of the stability issue: over 1000 steps a rigid object keeps its mean pairwise leaf
+#: distance within 1 %, and an object pybullet keeps at rest moves less than one voxel pitch
+RIGID_SHAPE_TOLERANCE = 0.01
+REST_DRIFT = 0.05
+#: step after which every object of a resting start must hold still (the model may settle first)
+SETTLE = 200
+#: shipped models that keep no rigid shape (trained before the rigid fit existed)
+RIGID_SHAPE_FAILURES = {
+    "wedge": "no rigid fit: the ball's mean pairwise leaf distance changes by 18 %",
+    "multi_material": "no rigid fit: the rigid cube changes by 105 %",
+}
+#: scenes at rest at step 2 with no force, and the shipped models that still slide there
+RESTING_SCENES = ("cube_collision", "cube_push", "soft_bounce", "tower")
+REST_DRIFT_FAILURES = {
+    "cube_push": "the cubes slide 1.25 m between steps 200 and 1000",
+    "soft_bounce": "the soft cube slides 5.7 cm (goal: 5 cm)",
+    "tower": "the ball and cubes slide 1.0 m",
+}
+
+
+def _xfail_unless(scenes, failures):
+    return [pytest.param(s, marks=pytest.mark.xfail(strict=True, reason=failures[s])) if s in failures else s
+            for s in scenes]
+
+
+def _resting_rollout(scene):
+    path = trained_checkpoint(scene)
+    if path is None:
+        pytest.skip(f"no trained checkpoint for {scene} on disk")
+    _, window = _scene_state(scene)
+    g = window.clone()
+    del g[NODE].pos_seq, g[NODE].force_seq
+    with torch.no_grad():
+        traj = rollout(load_model(path), g, LONG_STEPS)
+    store = g[NODE]
+    return traj, store, torch.nonzero(store.is_leaf & ~store.is_static).flatten()
+
+
+def _mean_pairwise(x):
+    p = x.shape[-2]
+    return (x[..., :, None, :] - x[..., None, :, :]).norm(dim=-1).sum(dim=(-1, -2)) / (p * (p - 1))
+
+
+@slow
+@pytest.mark.parametrize("scene", _xfail_unless(["cube_collision", "cube_push", "tower", "wedge", "multi_material"],
+                                                RIGID_SHAPE_FAILURES))
+def test_rigid_objects_keep_their_shape_for_a_thousand_steps(scene):
+    traj, store, leaves = _resting_rollout(scene)
+    rigid = leaves[store.material[leaves, 0].bool()]
+    assert rigid.numel() > 0
+    for obj in torch.unique(store.object[rigid]).tolist():  # a few objects per scene
+        idx = rigid[store.object[rigid] == obj]
+        change = _mean_pairwise(traj[-1, idx]) / _mean_pairwise(store.pos[idx]) - 1.0
+        assert abs(float(change)) < RIGID_SHAPE_TOLERANCE, f"object {obj}: {100 * float(change):.2f} %"
+
+
+@slow
+@pytest.mark.parametrize("scene", _xfail_unless(RESTING_SCENES, REST_DRIFT_FAILURES))
+def test_objects_at_rest_stay_at_rest_for_a_thousand_steps(scene):
+    from hrn_pyg.metrics_rest import object_centroids
+
+    traj, store, leaves = _resting_rollout(scene)
+    num_objects = int(store.object.max()) + 1
+    centres = object_centroids(traj[SETTLE:, leaves], store.object[leaves], num_objects, store.mass[leaves, 0])
+    present = torch.bincount(store.object[leaves], minlength=num_objects) > 0
+    drift = (centres - centres[:1]).norm(dim=-1).amax(dim=0)[present]
+    assert float(drift.max()) < REST_DRIFT, f"drift {drift.tolist()} m"

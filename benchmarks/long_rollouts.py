@@ -1,0 +1,133 @@
+"""Do the models hold? 1000-step rollouts of trained checkpoints from a scene's resting start.
+
+For every (scene, checkpoint) and every start seed: the pybullet scene at model step 2 (objects
+at rest, before any scripted push), rolled on by the model for ``--steps`` steps with no external
+force, which in pybullet leaves every object where it is. Reported per run:
+
+* ``finite`` and ``max_move`` (m): the package's 1000-step check asks for finite positions, no leaf
+  further than 50 m from its start and ``min_z`` (lowest leaf) above -0.05 m (one voxel pitch);
+* ``rigid_shape``: for rigid objects, the largest relative change of the mean pairwise leaf
+  distance between the start and the end (the goal: within 1 %);
+* ``rest_drift`` (m): the largest displacement of an object's mass-weighted centre between step
+  ``--settle`` and the end (the goal: under 0.05 m; pybullet keeps them still);
+* ``soft_extent``: for soft bodies and cloth, the ratio of the height extent (max z - min z of the
+  object's leaves) at the end to the start.
+
+Run: ``python benchmarks/long_rollouts.py --model soft_bounce=hrn_pyg/checkpoints/soft_bounce_ours.pt
+[--model ...] [--seeds 8,18,28] [--steps 1000] [--out benchmarks/results/long_rollouts.json]``.
+Validation seeds (``seed % 10 == 8``) by default, so it can be used for model selection. Prints a
+markdown table and writes JSON atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from hrn_pyg.data.graph import MATERIALS, NODE
+from hrn_pyg.data.scenes import SCENES, simulate_episode
+from hrn_pyg.rollout import rollout
+from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.train import load_model
+from hrn_pyg.utils.files import atomic_write_json
+
+#: the package's 1000-step check (tests/stability/test_long_rollouts.py)
+SINK_DEPTH, BOUND = 0.05, 50.0
+RIGID, SOFT, CLOTH = (MATERIALS.index(m) for m in ("rigid", "soft", "cloth"))
+
+
+def mean_pairwise_distance(x: torch.Tensor) -> torch.Tensor:
+    """``[..., P, 3]`` -> ``[...]`` mean distance over ordered pairs of distinct points."""
+    d = (x[..., :, None, :] - x[..., None, :, :]).norm(dim=-1)
+    p = x.shape[-2]
+    return d.sum(dim=(-1, -2)) / max(p * (p - 1), 1)
+
+
+def score(traj: torch.Tensor, graph, settle: int) -> dict[str, float]:
+    """The metrics of the module docstring for one rollout ``traj`` ``[S, N, 3]``."""
+    store = graph[NODE]
+    leaves = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
+    start = store.pos
+    out = {
+        "finite": bool(torch.isfinite(traj).all()),
+        "max_move": float((traj[:, leaves] - start[leaves]).abs().max()),
+        "min_z": float(traj[:, leaves, 2].min()),
+        "rigid_shape": 0.0,
+        "rest_drift": 0.0,
+        "soft_extent": float("nan"),
+    }
+    material = store.material.argmax(dim=1)
+    mass = store.mass[:, 0]
+    extents = []
+    for obj in torch.unique(store.object[leaves]).tolist():  # a handful of objects per scene
+        idx = leaves[store.object[leaves] == obj]
+        kind = int(material[idx[0]])
+        w = (mass[idx] / mass[idx].sum())[:, None]
+        centre = (traj[:, idx] * w).sum(dim=1)  # [S, 3]
+        out["rest_drift"] = max(out["rest_drift"], float((centre[settle:] - centre[settle]).norm(dim=-1).max()))
+        if kind == RIGID:
+            change = mean_pairwise_distance(traj[-1, idx]) / mean_pairwise_distance(start[idx]) - 1.0
+            out["rigid_shape"] = max(out["rigid_shape"], abs(float(change)))
+        elif kind in (SOFT, CLOTH):
+            z0, z1 = start[idx, 2], traj[-1, idx, 2]
+            extents.append(float((z1.max() - z1.min()) / (z0.max() - z0.min()).clamp_min(1e-3)))
+    if extents:
+        out["soft_extent"] = max(extents)
+    out["passes_check"] = out["finite"] and out["max_move"] < BOUND and out["min_z"] > -SINK_DEPTH
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", action="append", required=True, metavar="SCENE=PATH[:LABEL]")
+    parser.add_argument("--seeds", default="8,18,28")
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--settle", type=int, default=200, help="step after which objects should rest")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default="benchmarks/results/long_rollouts.json")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    rows = []
+    for spec in args.model:
+        scene, _, rest = spec.partition("=")
+        path, _, label = rest.partition(":")
+        if scene not in SCENES:
+            parser.error(f"unknown scene {scene!r}; choose from {sorted(SCENES)}")
+        model = load_model(path)
+        for seed in seeds:
+            graph = episode_state(simulate_episode(scene, seed, steps=5), start=2, steps=3)
+            del graph[NODE].pos_seq, graph[NODE].force_seq
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                try:
+                    traj = rollout(model, graph, args.steps)
+                except ValueError as exc:  # a rollout that left the finite numbers
+                    rows.append({"scene": scene, "model": label or path, "seed": seed, "finite": False,
+                                 "passes_check": False, "error": str(exc).splitlines()[0]})
+                    print(rows[-1], flush=True)
+                    continue
+            row = {"scene": scene, "model": label or path, "seed": seed, **score(traj, graph, args.settle),
+                   "seconds": time.perf_counter() - t0}
+            rows.append(row)
+            print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+
+    print(f"\n| scene | model | seed | passes | max move (m) | lowest leaf (m) | rigid shape change | "
+          f"rest drift (m) | soft extent ratio |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if "error" in r:
+            print(f"| {r['scene']} | {r['model']} | {r['seed']} | no | {r['error']} | | | | |")
+            continue
+        print(f"| {r['scene']} | {r['model']} | {r['seed']} | {'yes' if r['passes_check'] else 'no'} | "
+              f"{r['max_move']:.3g} | {r['min_z']:.3g} | {100 * r['rigid_shape']:.2f} % | "
+              f"{r['rest_drift']:.3g} | {r['soft_extent']:.3g} |")
+    atomic_write_json(args.out, {"steps": args.steps, "settle": args.settle, "seeds": seeds, "rows": rows})
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,242 @@
+"""``hrn-pyg checkpoints`` (hrn_pyg.recipe): the recipe file, the commands, and a killed run
+that continues where it stopped without redoing finished work."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hrn_pyg.cli import main
+from hrn_pyg.recipe import (
+    CHECKPOINTS_DIR,
+    MANIFEST_NAME,
+    RUN_RECORD,
+    RunConfig,
+    Runner,
+    load_recipe,
+    option_flags,
+    parse_recipe,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+TINY_MODEL = {"model-hidden": 8, "model-depth": 1, "model-effect-dim": 8, "batch-size": 2,
+              "threads": 1, "warmup": 2, "eval-every": 1000}
+
+
+def _toml_table(name: str, table: dict) -> str:
+    lines = [f"[{name}]"]
+    for key, value in table.items():
+        if isinstance(value, bool):
+            lines.append(f"{key} = {'true' if value else 'false'}")
+        elif isinstance(value, str):
+            lines.append(f'{key} = "{value}"')
+        elif isinstance(value, list):
+            lines.append(f"{key} = [{', '.join(json.dumps(v) for v in value)}]")
+        else:
+            lines.append(f"{key} = {value}")
+    return "\n".join(lines) + "\n"
+
+
+def _write_recipe(path: Path, b_steps: int = 4) -> Path:
+    """Two tiny models on one tiny dataset; ``a`` is long enough to be killed part-way."""
+    text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
+    text += _toml_table("models.a", {"dataset": "tiny", "preset": "hrn"})
+    text += _toml_table("models.a.train", {"steps": 150, "checkpoint-every": 2, **TINY_MODEL})
+    text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours", "aliases": ["b_alias"]})
+    text += _toml_table("models.b.train", {"steps": b_steps, "seq-end": 2, "checkpoint-every": 2, **TINY_MODEL})
+    path.write_text(text)
+    return path
+
+
+def _args(tmp: Path, *extra: str) -> list[str]:
+    return ["checkpoints", "--recipe", str(tmp / "recipes.toml"), "--data-dir", str(tmp / "data"),
+            "--runs-dir", str(tmp / "runs"), "--checkpoints-dir", str(tmp / "ckpt"), *extra]
+
+
+def _record(run: Path) -> dict:
+    return json.loads((run / RUN_RECORD).read_text())
+
+
+def _mtimes(folder: Path, pattern: str) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(folder.glob(pattern))}
+
+
+# --------------------------------------------------------------------------------------------
+# the recipe file
+
+
+def test_option_flags():
+    assert option_flags({"batch-size": 4, "train_dropout": 0.1, "ema": True, "amp": False,
+                         "dropout-modules": "force,collision"}) == [
+        "--batch-size", "4", "--train-dropout", "0.1", "--ema", "--dropout-modules", "force,collision"]
+
+
+def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
+    from hrn_pyg.data.scenes import scene_config
+
+    recipe = load_recipe(REPO / "data" / "recipes.toml")
+    shipped = {p.stem for p in CHECKPOINTS_DIR.glob("*.pt")}
+    made = {n for m in recipe.models for n in (m.name, *m.aliases)}
+    assert made <= shipped
+    assert shipped - made == {"cube_push_policy"}  # the RL policy comes from `hrn-pyg rl`
+    for dataset in recipe.datasets:  # the datasets are the long episodes of the scene defaults
+        assert dataset.steps == scene_config(dataset.scene).steps >= 140
+    wedge = next(m for m in recipe.models if m.name == "wedge")
+    assert wedge.train_args(Path("data"), Path("runs/recipe")) == [
+        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "1500",
+        "--batch-size", "8", "--threads", "1", "--train-dropout", "0.1", "--dropout-modules", "force,collision",
+        "--checkpoint-every", "250", "--eval-every", "250"]
+
+
+@pytest.mark.parametrize("change, word", [
+    (lambda r: r["datasets"]["d"].update(color="red"), "unknown key"),
+    (lambda r: r["datasets"]["d"].pop("steps"), "steps"),
+    (lambda r: r["datasets"]["d"].update(episodes=0), "episodes"),
+    (lambda r: r["models"]["m"].update(dataset="nope"), "nope"),
+    (lambda r: r["models"]["m"]["train"].update(out="x"), "set by"),
+    (lambda r: r["models"]["m"]["train"].update(steps=[1, 2]), "string, number or boolean"),
+    (lambda r: r["models"]["m"].update(aliases=["m"]), "more than once"),
+    (lambda r: r["models"].update({"bad name": {}}), "name"),
+])
+def test_bad_recipes_are_refused(change, word):
+    recipe = {"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3}},
+              "models": {"m": {"dataset": "d", "preset": "ours", "train": {"steps": 2}}}}
+    parse_recipe(recipe)
+    change(recipe)
+    with pytest.raises(ValueError, match=word):
+        parse_recipe(recipe)
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    _write_recipe(tmp_path / "recipes.toml")
+    assert main(_args(tmp_path, "--only", "zzz")) == 2
+    assert main(_args(tmp_path, "--skip-generate")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "zzz" in err[0] and "missing" in err[1]
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "ckpt").exists()
+
+
+def test_dry_run_prints_the_commands_and_writes_nothing(tmp_path):
+    recipe = load_recipe(_write_recipe(tmp_path / "recipes.toml"))
+    lines: list[str] = []
+    config = RunConfig(data_dir=tmp_path / "data", runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt",
+                       device="cpu", dry_run=True)
+    assert Runner(recipe, config, say=lines.append).run() == []
+    assert lines[0].startswith("hrn-pyg generate --scene cube_collision --episodes 3 --out ")
+    trains = [line for line in lines if line.startswith("hrn-pyg train")]
+    assert len(trains) == 2 and all(t.endswith("--device cpu") for t in trains)
+    assert "--model-hidden 8" in trains[0] and "--resume" not in trains[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["recipes.toml"]
+
+
+# --------------------------------------------------------------------------------------------
+# a killed run continues
+
+
+def _kill_once_training(tmp: Path, run: Path) -> None:
+    """Start the recipe in a child process group; SIGKILL the group once ``run`` has a checkpoint."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "-m", "hrn_pyg.cli", *_args(tmp, "--jobs", "1")], cwd=tmp,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=env)
+    try:
+        deadline = time.time() + 300  # generous: a loaded machine starts torch slowly
+        while time.time() < deadline and proc.poll() is None and not (run / "last.pt").exists():
+            time.sleep(0.02)
+    finally:
+        with_group = proc.poll() is None
+        if with_group:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert with_group, "the recipe ended before it could be killed"
+
+
+def test_killed_run_continues_and_finished_work_is_not_redone(tmp_path):
+    from hrn_pyg.utils.device import default_device
+
+    _write_recipe(tmp_path / "recipes.toml")
+    data, runs, ckpt = tmp_path / "data" / "tiny", tmp_path / "runs", tmp_path / "ckpt"
+    # a generation killed after its first episode: the recipe must only add the other two
+    assert main(["generate", "--scene", "cube_collision", "--episodes", "1", "--out", str(data), "--steps", "12",
+                 "--no-progress"]) == 0
+    first = _mtimes(data, "episode_*.npz")
+
+    _kill_once_training(tmp_path, runs / "a")
+    assert sorted(_mtimes(data, "episode_*.npz")) == [f"episode_{s:06d}.npz" for s in range(3)]
+    assert _mtimes(data, "episode_000000.npz") == first
+    assert (runs / "a" / "last.pt").exists() and not (runs / "a" / "model.pt").exists()
+    assert [i["rc"] for i in _record(runs / "a")["invocations"]] == [None]  # killed mid-run
+    episodes = _mtimes(data, "episode_*.npz")
+
+    assert main(_args(tmp_path, "--jobs", "2")) == 0
+    assert _mtimes(data, "episode_*.npz") == episodes
+    calls = _record(runs / "a")["invocations"]
+    assert len(calls) == 2 and calls[1]["command"].endswith("--resume") and calls[1]["rc"] == 0
+    with open(runs / "a" / "metrics.csv") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == list(range(150))  # one history
+    for name, source in (("a", "a"), ("b", "b"), ("b_alias", "b")):
+        assert (ckpt / f"{name}.pt").read_bytes() == (runs / source / "model.pt").read_bytes()
+    manifest = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]
+    assert sorted(manifest) == ["a", "b"]
+    a, b = manifest["a"], manifest["b"]
+    assert a["steps"] == 150 and b["steps"] == 4 and b["aliases"] == ["b_alias"]
+    assert a["train_command"].startswith(f"hrn-pyg train --preset hrn --data {tmp_path / 'data' / 'tiny'} ")
+    assert a["dataset"] == {"name": "tiny", "scene": "cube_collision", "episodes": 3, "steps": 12,
+                            "seed_offset": 0, "pitch": None}
+    assert a["device"] == b["device"] == str(default_device())
+    assert b["wall_seconds"] > 0 and b["train_invocations"] == 1
+
+    # a third run has nothing to do
+    before = {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
+              "calls": {n: len(_record(runs / n)["invocations"]) for n in ("a", "b")}}
+    assert main(_args(tmp_path)) == 0
+    assert before == {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
+                      "calls": {n: len(_record(runs / n)["invocations"]) for n in ("a", "b")}}
+
+    # changed options retrain that model only; the old run folder is kept aside
+    _write_recipe(tmp_path / "recipes.toml", b_steps=5)
+    assert main(_args(tmp_path, "--only", "b")) == 0
+    assert len(list(runs.glob("b.replaced-*"))) == 1
+    manifest = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]
+    assert manifest["b"]["steps"] == 5 and manifest["a"] == a
+    assert (ckpt / "b_alias.pt").read_bytes() == (runs / "b" / "model.pt").read_bytes()
+
+
+def test_time_limit_pauses_a_training_and_the_same_command_continues_it(tmp_path, capsys):
+    _write_recipe(tmp_path / "recipes.toml")
+    runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
+    # a limit far below one step's time: each model stops after its first step, unpublished
+    assert main(_args(tmp_path, "--only", "a", "--time-limit", "0.0001")) == 0
+    out = capsys.readouterr().out
+    assert "paused at the time limit: a" in out and "up to date" not in out
+    assert (runs / "a" / "last.pt").exists() and not (runs / "a" / "model.pt").exists()
+    assert not (ckpt / "a.pt").exists()
+    first = _record(runs / "a")
+    assert first["invocations"][0]["command"].endswith("--time-limit 0.0001") and first["invocations"][0]["rc"] == 0
+
+    # the limit is a property of the sitting, not of the training: no retraining from scratch
+    assert main(_args(tmp_path, "--only", "a")) == 0
+    calls = _record(runs / "a")["invocations"]
+    assert calls[0] == first["invocations"][0] and calls[1]["command"].endswith("--resume")
+    assert not list(runs.glob("a.replaced-*"))
+    with open(runs / "a" / "metrics.csv") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == list(range(150))
+    assert (ckpt / "a.pt").read_bytes() == (runs / "a" / "model.pt").read_bytes()
+
+
+def test_the_ablation_recipe_parses_and_varies_one_factor_at_a_time():
+    recipe = load_recipe(REPO / "data" / "ablation.toml")
+    options = {m.name: dict(m.options) for m in recipe.select(())}
+    base = options.pop("abl_paper")
+    combined = options.pop("abl_all")
+    for name, opts in options.items():
+        extra = {k: v for k, v in opts.items() if base.get(k) != v}
+        assert len(extra) == 1, (name, extra)  # exactly one factor on top of the paper's model
+        assert combined.items() >= extra.items()
