@@ -49,7 +49,7 @@ from hrn_pyg.losses import (
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.rollout import root_of
+from hrn_pyg.rollout import RIGID, root_of
 from hrn_pyg.rollout import step as model_step
 from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from hrn_pyg.utils.device import resolve_device
@@ -58,8 +58,6 @@ from hrn_pyg.utils.metrics import CSVLog, plot_curves
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
 
 PRESETS = ("hrn", "ours")
-#: model settings each preset implies unless given explicitly (``hrn`` is the paper's baseline)
-PRESET_MODEL: dict[str, dict[str, Any]] = {"hrn": {}, "ours": {}}
 SHAPE_LOSSES = ("group", "full")
 #: windows used to fit the normaliser (the statistics converge long before this)
 NORMALIZER_WINDOWS = 256
@@ -243,7 +241,7 @@ def input_noise(window: HeteroData, std: float, generator: torch.Generator | Non
     device = store.pos_seq.device
     steps = torch.randn(n, 3, 3, generator=generator, device="cpu" if generator is not None else device)
     walk = steps.to(device).cumsum(dim=1) * (std / math.sqrt(3.0))
-    rigid = store.material[:, 0].bool()
+    rigid = store.material[:, RIGID].bool()
     walk = torch.where(rigid[:, None, None], walk[root_of(window)], walk)
     return torch.where(store.is_static[:, None, None], torch.zeros_like(walk), walk)
 
@@ -511,9 +509,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, HRNConfig]:
     overrides = {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)
                  if f.name not in ("preset", "data", "out")}
     config = TrainConfig.for_preset(args.preset, data=args.data, out=args.out, **overrides)
-    model_kwargs = dict(PRESET_MODEL[args.preset])
-    model_kwargs.update({f.name: getattr(args, f"model_{f.name}") for f in fields(HRNConfig)
-                         if getattr(args, f"model_{f.name}", None) is not None})
+    model_kwargs = {f.name: getattr(args, f"model_{f.name}") for f in fields(HRNConfig)
+                    if getattr(args, f"model_{f.name}", None) is not None}
     if args.dropout_modules:
         model_kwargs["dropout_modules"] = tuple(m for m in args.dropout_modules.split(",") if m)
     return config, HRNConfig(**model_kwargs)
