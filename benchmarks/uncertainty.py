@@ -24,6 +24,12 @@ Run: ``python benchmarks/uncertainty.py [--scenes wedge,soft_bounce,cube_collisi
 [--out benchmarks/results/uncertainty.json]`` with ``--model-dir`` (default
 ``hrn_pyg/checkpoints``, one ``<scene>.pt`` each). ``--random-init``: untrained models, a
 pipeline check whose numbers mean nothing. Prints a markdown table, writes JSON atomically.
+
+``--calibrated``: each model is scored at its own calibrated setting (the rate and modules
+``hrn-pyg calibrate`` wrote into the checkpoint; model ``calibrated``) instead of ``--rates``;
+a model never calibrated is an error naming the command. ``--quick``: a smoke run (k = 4,
+4 members, 5 steps, the first seed only; JSON to ``uncertainty_quick.json`` unless ``--out``).
+Samples mask the model's ``dropout_modules`` (after calibration: the chosen ones).
 """
 
 from __future__ import annotations
@@ -75,16 +81,17 @@ def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: st
 
 
 def evaluate_scene(model: HRN, scene: str, seed: int, steps: int, members: np.ndarray, episode: dict,
-                   k: int, rates: tuple[float, ...], sample_seed: int) -> list[dict]:
+                   k: int, rates: tuple[float, ...], sample_seed: int, label: str = "dropout") -> list[dict]:
     graph = episode_state(episode, start=HISTORY, steps=steps)
     forces = graph[NODE].force_seq.transpose(0, 1)
     truth = torch.as_tensor(members[:, HISTORY + steps]).float()  # [M, L, 3] at the last step
     rows = []
-    for label, kk, rate in [("deterministic", 1, 0.0)] + [("dropout", k, r) for r in rates]:
+    modules = list(model.config.dropout_modules)
+    for name, kk, rate in [("deterministic", 1, 0.0)] + [(label, k, r) for r in rates]:
         gen = torch.Generator().manual_seed(sample_seed)
         futures = sample(model, graph, kk, steps, rate, forces=forces, generator=gen)[:, -1]  # [K, L, 3]
-        rows.append({"scene": scene, "episode_seed": seed, "model": label, "k": kk, "rate": rate,
-                     **score(futures, truth, episode, scene)})
+        rows.append({"scene": scene, "episode_seed": seed, "model": name, "k": kk, "rate": rate,
+                     "modules": modules if rate > 0 else [], **score(futures, truth, episode, scene)})
     if scene == "wedge":
         obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
         ens_x = object_centres(truth, obj, mass)[:, WEDGE_BALL, 0]
@@ -136,6 +143,15 @@ def markdown_summary(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def calibrated_rate(model: HRN, scene: str, path: str | None) -> float:
+    """The rate ``hrn-pyg calibrate`` wrote into the model's config; ValueError if it has none."""
+    rate = float(model.config.dropout_rate)
+    if not rate > 0:
+        raise ValueError(f"--calibrated: the {scene} model {path or '(random init)'} is not calibrated; run "
+                         f"`hrn-pyg calibrate --scene {scene} --model {path} --in-place` first")
+    return rate
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default="wedge,soft_bounce,cube_collision")
@@ -150,8 +166,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sample-seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--random-init", action="store_true", help="untrained models: pipeline check only")
-    parser.add_argument("--out", default="benchmarks/results/uncertainty.json")
+    parser.add_argument("--calibrated", action="store_true",
+                        help="score each model at its calibrated rate and modules instead of --rates")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: k 4, 4 members, 5 steps, first seed only")
+    parser.add_argument("--out", default=None,
+                        help="JSON (default benchmarks/results/uncertainty.json, uncertainty_quick.json with --quick)")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.k, args.members, args.steps = 4, 4, 5
+        args.seeds = args.seeds.split(",")[0]
+    if args.out is None:
+        args.out = f"benchmarks/results/uncertainty{'_quick' if args.quick else ''}.json"
+    if args.calibrated and args.random_init:
+        raise ValueError("--calibrated needs trained, calibrated checkpoints, not --random-init")
     torch.set_num_threads(args.threads)
     rates = tuple(float(r) for r in args.rates.split(",") if r)
     perturbation = PerturbationConfig(position_std=args.position_std)
@@ -159,17 +187,22 @@ def main(argv: list[str] | None = None) -> dict:
     if not seeds:
         raise ValueError("--seeds must name at least one episode seed")
     rows = []
+    calibrated: dict[str, dict] = {}
     for scene in [s for s in args.scenes.split(",") if s]:
         model = None
+        scene_rates = rates
         for seed in seeds:  # a few test episodes; each is one batched rollout per rate
             episode = simulate_episode(scene, seed, steps=HISTORY + args.steps)
-            members = ground_truth_ensemble(scene, seed, args.members, HISTORY + args.steps, perturbation)
             if model is None:
                 model_path = None if args.random_init else str(Path(args.model_dir) / f"{scene}.pt")
                 model = model_for(scene, model_path, args.random_init, episode_state(episode, HISTORY, args.steps))
-            rows += evaluate_scene(model, scene, seed, args.steps, members, episode, args.k, rates,
-                                   args.sample_seed)
-            print(markdown(rows[-1 - len(rates):]), flush=True)
+                if args.calibrated:  # before the ensemble: an uncalibrated model fails fast
+                    scene_rates = (calibrated_rate(model, scene, model_path),)
+                    calibrated[scene] = {"rate": scene_rates[0], "modules": list(model.config.dropout_modules)}
+            members = ground_truth_ensemble(scene, seed, args.members, HISTORY + args.steps, perturbation)
+            rows += evaluate_scene(model, scene, seed, args.steps, members, episode, args.k, scene_rates,
+                                   args.sample_seed, "calibrated" if args.calibrated else "dropout")
+            print(markdown(rows[-1 - len(scene_rates):]), flush=True)
     table = markdown(rows)
     means = summary(rows)
     mean_table = markdown_summary(means)
@@ -177,7 +210,9 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "what": "dropout samples vs a ground-truth ensemble of perturbed pybullet replays, at the last step",
         "steps": args.steps, "start_step": HISTORY, "episode_seeds": seeds, "members": args.members,
-        "perturbation": perturbation.to_dict(), "k": args.k, "rates": list(rates),
+        "perturbation": perturbation.to_dict(), "k": args.k,
+        "rates": None if args.calibrated else list(rates),
+        "calibrated": calibrated if args.calibrated else None, "quick": args.quick,
         "sample_seed": args.sample_seed, "random_init": args.random_init,
         "model_dir": None if args.random_init else args.model_dir,
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch_threads": args.threads},
@@ -188,4 +223,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as exc:  # one line, like the hrn-pyg commands
+        raise SystemExit(f"uncertainty.py: error: {exc}") from None

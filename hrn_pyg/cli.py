@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("hrn_pyg.train", "train an HRN (presets: hrn, ours)"),
     "evaluate": ("hrn_pyg.evaluate", "Table 1: rollout errors of HRN vs ours on the test split"),
     "sample": ("hrn_pyg.sampling.cli", "sample K futures with Monte Carlo dropout"),
+    "calibrate": ("hrn_pyg.sampling.calibrate",
+                  "choose a model's sampling rate so its spread matches a validation ensemble"),
     "rl": ("hrn_pyg.rl.ppo", "train a PPO agent in the learned environment"),
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
     "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),

@@ -6,7 +6,8 @@ hand:
 1. simulates a few held-out ``soft_bounce`` and ``cube_collision`` episodes in pybullet (test
    seeds, never trained on) and prints a short Table 1 (``hrn-pyg evaluate``), HRN vs ours;
 2. samples 16 futures with Monte Carlo dropout on the wedge and on the soft cube
-   (``hrn-pyg sample``): PNG and GIF each;
+   (``hrn-pyg sample``, at each model's calibrated rate, ``hrn-pyg calibrate``; 0.3 for a model
+   never calibrated): PNG and GIF each;
 3. runs the shipped cube-push policy in the learned environment and replays its actions in
    pybullet (the ground-truth check).
 
@@ -18,6 +19,7 @@ every step.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -90,11 +92,14 @@ def run(args: argparse.Namespace) -> int:
             _note(report, f"skipped sampling on {scene}: {scene}.pt not shipped")
             continue
         target = out / "samples" / scene
-        code = cli(["sample", "--scene", scene, "--k", str(args.k), "--rate", "0.3", "--seed", str(DEMO_SEEDS[0]),
+        # no --rate: the model's calibrated rate (hrn-pyg calibrate), 0.3 if it was never calibrated
+        code = cli(["sample", "--scene", scene, "--k", str(args.k), "--seed", str(DEMO_SEEDS[0]),
                     "--steps", "30", "--out", str(target), "--device", str(device)])
         if code:
             return code
-        _note(report, f"- {scene}: {target / 'samples.png'}, {target / 'samples.gif'}")
+        meta = json.loads((target / "samples.json").read_text())
+        _note(report, f"- {scene}: {target / 'samples.png'}, {target / 'samples.gif'} "
+                      f"(rate {meta['rate']:g}, {meta['rate_source']})")
 
     # 3. a learned cube-push policy ---------------------------------------------------------------
     policy = ckpt / "cube_push_policy.pt"

@@ -1,9 +1,11 @@
-"""Training losses of the HRN: local and global velocity errors and two shape terms.
+"""Training losses of the HRN: local and global velocity errors, two shape terms and a scoring rule.
 
 The group shape loss is the baseline HRN's (distances between siblings of one parent only); the
 fully-connected shape loss is the seed paper's (distances between all leaf pairs of an object),
 computed in row chunks, each under activation checkpointing, so its memory stays bounded by
 ``chunk_size`` times the size of the largest object, in the forward and the backward pass.
+:func:`fair_energy_score` scores K sampled futures against the one observed future (the
+stochastic training mode of :mod:`hrn_pyg.train`, ``sample_copies``).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from hrn_pyg.nn.normalizer import Normalizer
 
 #: rows of the pairwise-distance matrix handled at once by :func:`full_shape_loss`
 DEFAULT_CHUNK_SIZE = 512
+#: smoothing length of the norm in :func:`fair_energy_score` (in the units of its inputs)
+ENERGY_EPSILON = 1e-6
 
 
 def _zero(like: Tensor) -> Tensor:
@@ -171,3 +175,51 @@ def shape_groups(graph: HeteroData) -> tuple[Tensor, Tensor]:
         n_obj = int(store.object.max()) + 1 if store.object.numel() else 1
         obj = store.batch[leaf] * n_obj + obj
     return leaf, obj
+
+
+def _smooth_distance(diff: Tensor, eps: float) -> Tensor:
+    """:math:`\\sqrt{\\lVert d \\rVert^2 + \\epsilon^2} - \\epsilon` over the last dimension: 0 at
+    ``d = 0`` with gradient 0 there (finite), within ``eps`` of the Euclidean norm everywhere."""
+    return torch.sqrt(diff.pow(2).sum(dim=-1) + eps * eps) - eps
+
+
+def fair_energy_score(
+    samples: Tensor,
+    truth: Tensor,
+    scale: Tensor | float = 1.0,
+    eps: float = ENERGY_EPSILON,
+) -> Tensor:
+    r"""Fair (unbiased) energy score of ``K >= 2`` samples against one observation (lower is better).
+
+    With :math:`X_k` the samples and :math:`y` the observation, both divided by ``scale``
+    :math:`\sigma` (a number or a per-axis ``(D,)`` tensor, e.g. the velocity scale):
+
+    .. math::
+        \mathrm{ES} = \frac{1}{K} \sum_{k=1}^{K} \lVert X_k - y \rVert
+            \; - \; \frac{1}{2K(K-1)} \sum_{k \ne l} \lVert X_k - X_l \rVert
+
+    This is the unbiased estimate of :math:`E\lVert X - y\rVert - \tfrac12 E\lVert X - X'\rVert` for
+    :math:`X, X' \sim F` independent: its expectation over the samples is the energy score of
+    their distribution :math:`F` itself, which is proper: in expectation over :math:`y \sim G`
+    it is smallest for :math:`F = G`, so a model trained on it is pulled towards the spread of the
+    data. (The plug-in form with :math:`1/(2K^2)`, :func:`hrn_pyg.sampling.metrics.energy_score`,
+    under-weights the spread by :math:`(K-1)/K` and so rewards too-narrow samples at small K.)
+    The norms are smoothed, :math:`\sqrt{\lVert d\rVert^2 + \epsilon^2} - \epsilon`, so the gradient is
+    finite (zero) where two samples or a sample and the observation coincide; the value moves by
+    less than ``eps`` per norm. Vectorised: every index of the middle dimensions is scored on
+    its own (e.g. one 3-D score per particle).
+
+    **Shapes:** samples ``(K, *, D)``, truth ``(*, D)``, scale a number or ``(D,)``; returns ``(*)``.
+    """
+    if samples.dim() < 2 or samples.shape[0] < 2:
+        raise ValueError(f"fair_energy_score: samples must be [K>=2, ..., D], got {tuple(samples.shape)}")
+    if truth.shape != samples.shape[1:]:
+        raise ValueError(
+            f"fair_energy_score: truth must be {tuple(samples.shape[1:])} (one observation), got {tuple(truth.shape)}"
+        )
+    k = samples.shape[0]
+    x, y = samples / scale, truth / scale
+    to_truth = _smooth_distance(x - y.unsqueeze(0), eps).mean(dim=0)
+    # the diagonal k = l is 0 and drops out of the sum; each unordered pair counted twice
+    pairs = _smooth_distance(x.unsqueeze(0) - x.unsqueeze(1), eps).sum(dim=(0, 1))
+    return to_truth - pairs / (2 * k * (k - 1))

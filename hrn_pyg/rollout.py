@@ -11,7 +11,8 @@ A model step has three named stages, each a function testable on its own (after 
    leaves, ancestor positions re-derived from the leaves; static particles never move.
 
 :func:`step` chains them and also returns the next graph (positions shifted, collision edges
-recomputed at the new positions); :func:`unroll` and :func:`rollout` feed predictions back.
+recomputed at the new positions); :func:`unroll` and :func:`rollout` feed predictions back,
+optionally letting objects at rest sleep (``sleep=``, :mod:`hrn_pyg.sleeping`).
 Everything is differentiable in the positions (the edge sets are not), and vectorised over
 particles.
 """
@@ -19,7 +20,7 @@ particles.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
@@ -40,6 +41,9 @@ from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
 
+if TYPE_CHECKING:
+    from hrn_pyg.sleeping import SleepConfig
+
 #: column of the rigid material in ``graph['particle'].material``
 RIGID = MATERIALS.index("rigid")
 
@@ -55,13 +59,17 @@ class Step(NamedTuple):
         local_velocity: ``[N, 3]`` predicted velocity in the parent's frame (roots global).
         velocity: ``[N, 3]`` predicted global velocity (local summed down the tree).
         graph: the graph at ``t+1``: ``prev_prev_pos, prev_pos, pos = x_{t-1}, x_t, x_{t+1}``,
-            force zero, collision edges of ``x_{t+1}``.
+            force zero, collision edges of ``x_{t+1}`` (an asleep node's three positions are
+            all its held position).
+        asleep: ``[N]`` bool, the nodes held still in this step because their object was asleep
+            (:mod:`hrn_pyg.sleeping`); None when sleeping is off.
     """
 
     pos: Tensor
     local_velocity: Tensor
     velocity: Tensor
     graph: HeteroData
+    asleep: Tensor | None = None
 
 
 def _check_finite(name: str, value: Tensor) -> None:
@@ -164,23 +172,26 @@ def rigid_leaf_positions(graph: HeteroData, pred_pos: Tensor) -> Tensor:
     returned unchanged (ancestor rows still need re-deriving).
 
     An object (of one batch copy) is identified by its root node, so the groups need no host
-    sync; rows other than rigid leaves enter the fit with zero weight.
+    sync; rows other than rigid leaves enter the fit with zero weight, and so do static rows (a
+    sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sleeping`, is rigid and static).
     """
     store = graph[NODE]
-    rigid_leaf = store.is_leaf & store.material[:, RIGID].bool()
+    rigid_leaf = store.is_leaf & store.material[:, RIGID].bool() & ~store.is_static
     weight = torch.where(rigid_leaf, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
     fitted = fit_rigid_motion(store.pos, pred_pos, weight, root_of(graph), store.num_nodes)
     return torch.where(rigid_leaf.unsqueeze(-1), fitted, pred_pos)
 
 
 def root_of(graph: HeteroData) -> Tensor:
-    """``[N]`` long: the root node of every node's tree (a root is its own)."""
+    """``[N]`` long: the root node of every node's tree (a root is its own, and so is a node
+    without ancestors in the graph, e.g. a sleeping object's leaf in a sub-graph of
+    :mod:`hrn_pyg.sleeping`)."""
     store = graph[NODE]
     node, ancestor = graph[LEAF_TO_ANCESTOR].edge_index
     index = torch.arange(store.num_nodes, device=node.device)
     candidate = torch.where(store.is_root[ancestor], ancestor, torch.full_like(ancestor, -1))
     roots = torch.full_like(index, -1).scatter_reduce(0, node, candidate, reduce="amax")
-    return torch.where(store.is_root, index, roots)
+    return torch.where(store.is_root | (roots < 0), index, roots)
 
 
 def target_output(model: HRN, graph: HeteroData, next_pos: Tensor) -> Tensor:
@@ -234,6 +245,7 @@ def unroll(
     steps: int,
     forces: Tensor | None = None,
     masks_fn: MasksFn | None = None,
+    sleep: SleepConfig | None = None,
 ) -> list[Step]:
     """Feed the model its own predictions for ``steps`` steps; every :class:`Step` is kept.
 
@@ -241,16 +253,27 @@ def unroll(
     first step sees the same kind of edges as the later ones. ``forces`` ``[steps, N, 3]`` is the
     external force of each step; None means no external force at any step (the graph's
     ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
-    ``t`` (None: deterministic).
+    ``t`` (None: deterministic); it always sees the whole graph. ``sleep`` lets objects at rest
+    sleep (:mod:`hrn_pyg.sleeping`; every object starts awake); None or ``enabled=False`` runs
+    every object at every step, exactly as without the argument.
     """
     _check_forces(graph, steps, forces)
     store = graph[NODE]
     graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=model.config.collision_radius)
+    sleeping = sleep is not None and sleep.enabled
+    if sleeping:
+        from hrn_pyg import sleeping as sleep_module  # imports this module
+
+        objs = sleep_module.objects(graph)
+        sleep_state = sleep_module.initial_state(objs)
     out: list[Step] = []
     for t in range(steps):  # time steps; each step is vectorised over particles
         force = forces[t] if forces is not None else torch.zeros_like(store.pos)
         masks = masks_fn(t, graph) if masks_fn is not None else None
-        result = step(model, graph, force, masks)
+        if sleeping:
+            result, sleep_state = sleep_module.sleeping_step(model, graph, force, masks, sleep_state, objs, sleep)
+        else:
+            result = step(model, graph, force, masks)
         out.append(result)
         graph = result.graph
     return out
@@ -262,9 +285,10 @@ def rollout(
     steps: int,
     forces: Tensor | None = None,
     masks_fn: MasksFn | None = None,
+    sleep: SleepConfig | None = None,
 ) -> Tensor:
     """Positions of all nodes over ``steps`` predicted steps, ``[steps, N, 3]`` (``x_{t+1..t+steps}``).
 
     See :func:`unroll` for the arguments.
     """
-    return torch.stack([s.pos for s in unroll(model, graph, steps, forces, masks_fn)])
+    return torch.stack([s.pos for s in unroll(model, graph, steps, forces, masks_fn, sleep)])

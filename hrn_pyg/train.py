@@ -16,6 +16,14 @@ uninterrupted run would have had. Under ``torchrun --nproc_per_node N`` the same
 data-parallel (nccl on CUDA, gloo on CPU): each rank draws its own windows and gradients are
 averaged. ``--device`` (default CUDA when available) places the model and every batch;
 ``--workers N`` assembles the batches in N background processes.
+
+``--sample-copies K`` (K >= 2, with ``--train-dropout`` > 0) trains the distribution of the
+futures, not only their mean: every window of the batch is replicated K times into one batched
+graph (the layout of :func:`hrn_pyg.sampling.sample`), each copy unrolled with its own dropout
+mask per step, and the fair energy score of the K copies' leaf positions against the one true
+future (:func:`hrn_pyg.losses.fair_energy_score`) is added with weight ``w_energy`` to the
+usual terms, which are averaged over the copies. The default ``K = 0`` is the seed paper's
+plain dropout training.
 """
 
 from __future__ import annotations
@@ -38,8 +46,10 @@ from tqdm import tqdm
 
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, WITHIN_SIBLINGS, set_state
+from hrn_pyg.data.symmetry import apply_vertical_symmetry, isotropic_horizontal, random_vertical_symmetries
 from hrn_pyg.losses import (
     DEFAULT_CHUNK_SIZE,
+    fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
     group_shape_loss,
@@ -63,7 +73,8 @@ SHAPE_LOSSES = ("group", "full")
 NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
-LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "val_loss", "seconds"]
+#: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2)
+LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "val_loss", "seconds"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +106,14 @@ class TrainConfig:
         workers: background processes assembling batches (0: in the training process).
         time_limit: minutes after which this call stops as if interrupted (checkpoint written,
             ``--resume`` continues); 0: no limit. For fixed-length sittings and lent machines.
+        augment_symmetry: map every training window by a random turn about the vertical axis
+            (and a mirror half the time), one per copy, and give the normaliser the symmetric
+            statistics (no horizontal mean): :mod:`hrn_pyg.data.symmetry`.
+        sample_copies: K >= 2 trains on K dropout-masked copies of every window, scored with the
+            fair energy score against the one true future (needs ``train_dropout`` > 0); 0: off
+            (plain dropout training, the seed paper's). Costs about K times the compute.
+        w_energy: weight of the energy-score term (per unrolled step, mean over the moving
+            leaves, in positions divided by the velocity scale); used when ``sample_copies`` >= 2.
     """
 
     preset: str = "ours"
@@ -122,6 +141,9 @@ class TrainConfig:
     device: str = ""
     workers: int = 0
     time_limit: float = 0.0
+    augment_symmetry: bool = False
+    sample_copies: int = 0
+    w_energy: float = 1.0
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -143,6 +165,14 @@ class TrainConfig:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
         if self.seq_start > self.seq_end:
             raise ValueError(f"seq_start ({self.seq_start}) must be <= seq_end ({self.seq_end})")
+        if self.sample_copies < 0 or self.sample_copies == 1:
+            raise ValueError(f"sample_copies must be 0 (off) or >= 2 (copies scored against each other), "
+                             f"got {self.sample_copies}")
+        if self.sample_copies >= 2 and self.train_dropout == 0:
+            raise ValueError(f"sample_copies={self.sample_copies} needs train_dropout > 0: the copies differ "
+                             f"only by their dropout masks")
+        if not 0.0 <= self.w_energy < math.inf:
+            raise ValueError(f"w_energy must be a finite number >= 0, got {self.w_energy}")
 
     @classmethod
     def for_preset(cls, preset: str, **overrides: Any) -> TrainConfig:
@@ -174,13 +204,21 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
 
     .. math::
         \mathcal{L} = \sum_{k=1}^{T} w_{loc}\mathcal{L}_{loc}^{(k)} + w_{glob}\mathcal{L}_{glob}^{(k)}
-            + w_{shape}\mathcal{L}_{shape}^{(k)}
+            + w_{shape}\mathcal{L}_{shape}^{(k)} \; [+\, w_{energy}\mathcal{L}_{ES}^{(k)}]
 
     Step ``k`` starts from the model's own prediction of step ``k-1`` (ground truth for
     ``k = 1``). The local term compares velocities in the parent's frame, the global term the
     positions of roots and leaves (at ``k = 1`` the same as their global velocity error), both
     divided by the velocity scale; the shape term is the group or fully-connected
     pairwise-distance error. With ``seq_len = 1`` this is the baseline HRN's one-step loss.
+
+    With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
+    :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
+    and each of the ``K B`` copies gets its own dropout mask row at every step; the three terms
+    above are then means over the copies, and
+    :math:`\mathcal{L}_{ES}^{(k)}` is the mean over the moving leaves of all windows of
+    :func:`~hrn_pyg.losses.fair_energy_score` of the leaf's K predicted positions against its true
+    one, divided by the velocity scale. The parts returned then include ``energy``.
     """
     store = window[NODE]
     if "pos_seq" not in store or store.pos_seq.size(1) < seq_len + 3:
@@ -191,6 +229,15 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     inputs = seq[:, :3]
     if config.input_noise > 0:
         inputs = inputs + input_noise(window, config.input_noise, noise_generator)
+    n_samples = config.sample_copies
+    if n_samples >= 2:  # K copies of every window, sharing its (noisy) inputs and its truth
+        one_window_nodes = store.num_nodes
+        moving_leaves = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
+        truth_leaves = seq[moving_leaves]  # [L', T+3, 3]
+        window = replicate_windows(window, n_samples)
+        store = window[NODE]
+        seq, forces = store.pos_seq, store.force_seq
+        inputs = inputs.repeat(n_samples, 1, 1)
     graph = set_state(window, inputs[:, 0], inputs[:, 1], inputs[:, 2], radius=radius)
     norm = model.normalizer
     vel_scale = norm.velocity_std
@@ -199,6 +246,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     leaf_index, groups = shape_groups(window)
     copies = _batch_size_of(window)
     parts = {"local": seq.new_zeros(()), "global": seq.new_zeros(()), "shape": seq.new_zeros(())}
+    if n_samples >= 2:
+        parts["energy"] = seq.new_zeros(())
     total = seq.new_zeros(())
     for k in range(seq_len):  # unrolled time steps
         masks = None
@@ -219,10 +268,35 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["local"] = parts["local"] + loss_local.detach()
         parts["global"] = parts["global"] + loss_global.detach()
         parts["shape"] = parts["shape"] + loss_shape.detach()
+        if n_samples >= 2 and moving_leaves.numel():
+            # copy c of window b holds rows c N + (b's rows): one [K, L', 3] block of samples
+            samples = result.pos.reshape(n_samples, one_window_nodes, 3)[:, moving_leaves]
+            loss_energy = fair_energy_score(samples, truth_leaves[:, k + 3], vel_scale).mean()
+            total = total + config.w_energy * loss_energy
+            parts["energy"] = parts["energy"] + loss_energy.detach()
         graph = result.graph
-    # one host transfer for the three logged parts
+    # one host transfer for the logged parts
     values = torch.stack(list(parts.values())).tolist()
     return total, dict(zip(parts, values))
+
+
+def replicate_windows(window: HeteroData, k: int) -> Batch:
+    """``k`` copies of a (batched) window as one batched graph, copy-major: with ``B`` windows of
+    ``N`` nodes in all, copy ``c`` of window ``b`` is graph ``c B + b`` and holds rows
+    ``c N + (rows of b)`` (so ``x.view(k, N, ...)`` splits any node tensor by copy). Copies share
+    topology; every node attribute (``pos_seq``, ``force_seq``, ...) is repeated.
+
+    **Shapes:** ``N`` nodes in ``B`` graphs -> ``k N`` nodes in ``k B`` graphs.
+    """
+    if int(k) < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    if isinstance(window, Batch):
+        windows = window.to_data_list()
+    elif "batch" in window[NODE] and bool((window[NODE].batch != 0).any()):
+        raise ValueError("replicate_windows: a batched window must be a torch_geometric Batch")
+    else:
+        windows = [window]
+    return Batch.from_data_list(windows * int(k))
 
 
 def input_noise(window: HeteroData, std: float, generator: torch.Generator | None = None) -> Tensor:
@@ -370,6 +444,8 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     else:
         picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(config.seed))
         fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
+        if config.augment_symmetry:
+            isotropic_horizontal(model.normalizer)
 
     model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
@@ -413,11 +489,16 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     noise = torch.Generator().manual_seed(config.seed * 7 + rank + 3) if config.input_noise > 0 else None
     if noise is not None and ckpt is not None:
         noise.manual_seed(config.seed * 7 + rank + 3 + start)  # a resumed run draws fresh noise
+    # the symmetry draws have their own stream too (a resumed run draws fresh ones)
+    turns = torch.Generator().manual_seed(config.seed * 11 + rank + 5 + start) if config.augment_symmetry else None
     model.train()
     try:
         for step_index, batch in bar:
             seq_len = seq_schedule(step_index)
             batch = batch.to(device, non_blocking=True)
+            if turns is not None:
+                batch = apply_vertical_symmetry(
+                    batch, random_vertical_symmetries(_batch_size_of(batch), turns, device=device))
             loss, parts = window_loss(model, batch, seq_len, config, noise_generator=noise)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"loss became {float(loss)} at step {step_index}")
@@ -447,7 +528,8 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
         # that was running when an exception came, so it is not counted as done)
         save(step_index)
         if rank == 0 and (out / "metrics.csv").exists():
-            plot_curves(out / "metrics.csv", out / "loss.png", "step", ["loss", "local", "global", "shape", "val_loss"],
+            plot_curves(out / "metrics.csv", out / "loss.png", "step",
+                        ["loss", "local", "global", "shape", "energy", "val_loss"],
                         title=f"{config.preset} on {Path(config.data).name}")
         if started_distributed:
             dist.destroy_process_group()
@@ -458,12 +540,13 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
 
 @torch.no_grad()
 def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len: int, config: TrainConfig) -> float:
-    """Mean unrolled loss on fixed validation windows (no dropout)."""
+    """Mean unrolled loss on fixed validation windows (no dropout, so no copies: the
+    deterministic model's loss, comparable between plain and ``sample_copies`` runs)."""
     was_training = model.training
     model.eval()
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
-    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0))
+    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0))
     model.train(was_training)
     return float(loss) / seq_len
 
@@ -519,7 +602,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, HRNConfig]:
 def run(args: argparse.Namespace) -> int:
     config, model_config = config_from_args(args)
     summary = train(config, model_config, resume=args.resume, progress=not args.no_progress)
-    if _world()[0] == 0 and summary:
+    # the process group is gone once train() returns: the launcher's RANK says who reports
+    if int(os.environ.get("RANK", "0")) == 0 and summary:
         done = int(summary["step"]) + 1
         if done >= config.steps:
             print(f"trained {config.preset} to step {config.steps}: loss {summary['loss']:.4g}; "

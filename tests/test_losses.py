@@ -2,6 +2,7 @@ import pytest
 import torch
 
 from hrn_pyg.losses import (
+    fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
     group_shape_loss,
@@ -91,3 +92,74 @@ def test_full_shape_covers_more_pairs_than_group_shape():
     leaf_ws = ws[:, s.is_leaf[ws[0]]]
     assert group_shape_loss(pred, s.pos, leaf_ws).item() == pytest.approx(0.0, abs=1e-10)
     assert full_shape_loss(pred[leaf], s.pos[leaf], group).item() > 1e-5
+
+
+def test_fair_energy_score_hand_case():
+    # one 3-D point: samples (0,0,0) and (3,4,0), truth (3,0,0)
+    # mean distance to the truth (3 + 4) / 2 = 3.5; the one pair at distance 5 counted twice:
+    # 2 * 5 / (2 * 2 * 1) = 2.5; ES = 1.0
+    samples = torch.tensor([[[0.0, 0, 0]], [[3.0, 4, 0]]])  # [K=2, 1, 3]
+    truth = torch.tensor([[3.0, 0, 0]])
+    assert fair_energy_score(samples, truth).tolist() == pytest.approx([1.0], abs=1e-5)
+    assert fair_energy_score(samples, truth, scale=2.0).tolist() == pytest.approx([0.5], abs=1e-5)
+    # per-axis scale divides each coordinate: x / 1, y / 4 -> samples (0,0,0), (3,1,0), truth (3,0,0):
+    # (3 + 1) / 2 - sqrt(10) / 2
+    scaled = fair_energy_score(samples, truth, scale=torch.tensor([1.0, 4.0, 1.0]))
+    assert scaled.item() == pytest.approx(2.0 - 10 ** 0.5 / 2, abs=1e-5)
+    # K = 3 on a line, two middle indices scored on their own: X = 0, 1, 3 and y = 2 -> 4/3 - 12/12
+    line = torch.tensor([0.0, 1.0, 3.0])[:, None, None] * torch.tensor([1.0, 0, 0])
+    both = torch.cat([line, samples.new_zeros(3, 1, 3)], dim=1)  # index 1: all at the origin, y there
+    es = fair_energy_score(both, torch.tensor([[2.0, 0, 0], [0.0, 0, 0]]))
+    assert es.shape == (2,) and es.tolist() == pytest.approx([1.0 / 3.0, 0.0], abs=1e-5)
+
+
+def test_fair_energy_score_is_the_plug_in_score_with_the_unbiased_spread():
+    from hrn_pyg.sampling.metrics import energy_score
+
+    gen = torch.Generator().manual_seed(0)
+    samples, truth = torch.randn(5, 7, 3, generator=gen), torch.randn(7, 3, generator=gen)
+    pair_sum = (samples[:, None] - samples[None]).norm(dim=-1).sum(dim=(0, 1))
+    k = 5
+    expected = energy_score(samples, truth[None]) + pair_sum / (2 * k * k) - pair_sum / (2 * k * (k - 1))
+    torch.testing.assert_close(fair_energy_score(samples, truth), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_fair_energy_score_is_minimised_by_the_true_distribution():
+    # truth y ~ N(0, I_3); K = 4 samples ~ N(0, s^2 I_3). In expectation
+    # E|X - y| = sqrt(1 + s^2) c and E|X - X'| = sqrt(2) s c with c = E|N(0, I_3)| = 2 sqrt(2 / pi),
+    # so ES(s) = c (sqrt(1 + s^2) - s / sqrt(2)): smallest at s = 1 (the truth's own spread)
+    n, k = 40_000, 4
+    gen = torch.Generator().manual_seed(0)
+    truth = torch.randn(n, 3, generator=gen)
+    noise = torch.randn(k, n, 3, generator=gen)  # the same draws at every width (less variance)
+    c = 2 * (2 / torch.pi) ** 0.5
+    score = {}
+    for s in (0.5, 1.0, 2.0):
+        score[s] = fair_energy_score(s * noise, truth).mean().item()
+        assert score[s] == pytest.approx(c * ((1 + s * s) ** 0.5 - s / 2 ** 0.5), rel=0.02), s
+    assert score[1.0] < score[0.5] - 0.03 and score[1.0] < score[2.0] - 0.05
+    # the plug-in (biased) form under-weights the spread by (K-1)/K and so prefers narrow samples
+    from hrn_pyg.sampling.metrics import energy_score
+
+    plug_in = {s: energy_score(s * noise, truth[None]).mean().item() for s in (0.5, 1.0)}
+    assert plug_in[0.5] < plug_in[1.0]
+
+
+def test_fair_energy_score_gradient_is_finite_where_samples_coincide():
+    truth = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
+    samples = torch.stack([torch.tensor([[1.0, 2.0, 3.0], [1.0, 0.0, 0.0]])] * 3).requires_grad_(True)
+    es = fair_energy_score(samples, truth, scale=torch.tensor([0.5, 1.0, 2.0]))
+    es.sum().backward()
+    assert torch.isfinite(samples.grad).all()
+    # index 0: every sample on the truth: ES = 0, gradient 0; index 1: all three at (1,0,0), one
+    # away from the truth: ES = |1 / 0.5| = 2, gradient of the mean distance (1/K) * (1/0.5) on x
+    assert es.tolist() == pytest.approx([0.0, 2.0], abs=1e-5)
+    torch.testing.assert_close(samples.grad[:, 0], torch.zeros(3, 3))
+    torch.testing.assert_close(samples.grad[:, 1], torch.tensor([[2.0 / 3.0, 0.0, 0.0]] * 3))
+
+
+def test_fair_energy_score_bad_input_says_which():
+    with pytest.raises(ValueError, match=r"samples must be \[K>=2"):
+        fair_energy_score(torch.zeros(1, 4, 3), torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="one observation"):
+        fair_energy_score(torch.zeros(3, 4, 3), torch.zeros(2, 4, 3))

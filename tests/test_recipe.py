@@ -91,9 +91,9 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
         assert dataset.steps == scene_config(dataset.scene).steps >= 140
     wedge = next(m for m in recipe.models if m.name == "wedge")
     assert wedge.train_args(Path("data"), Path("runs/recipe")) == [
-        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "1500",
-        "--batch-size", "8", "--threads", "1", "--train-dropout", "0.1", "--dropout-modules", "force,collision",
-        "--checkpoint-every", "250", "--eval-every", "250"]
+        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "2000",
+        "--batch-size", "8", "--threads", "1", "--seq-end", "8", "--model-rigid-fit", "true", "--train-dropout", "0.1",
+        "--dropout-modules", "force,collision", "--checkpoint-every", "250", "--eval-every", "250"]
 
 
 @pytest.mark.parametrize("change, word", [
@@ -234,6 +234,10 @@ def test_time_limit_pauses_a_training_and_the_same_command_continues_it(tmp_path
 def test_the_ablation_recipe_parses_and_varies_one_factor_at_a_time():
     recipe = load_recipe(REPO / "data" / "ablation.toml")
     options = {m.name: dict(m.options) for m in recipe.select(())}
+    # the cube_push pair: the symmetry augmentation is the one change on top of its base
+    push_base, push_symmetry = options.pop("abl_push_base"), options.pop("abl_push_symmetry")
+    assert {k: v for k, v in push_symmetry.items() if push_base.get(k) != v} == {"augment-symmetry": "true"}
+    assert push_base.keys() <= push_symmetry.keys()
     base = options.pop("abl_paper")
     combined = options.pop("abl_all")
     for name, opts in options.items():

@@ -195,3 +195,125 @@ def test_boolean_model_options_parse_false(tiny_episodes, tmp_path):
     assert model.config.rigid_fit is False and model.config.ground_contact is True
     with pytest.raises(SystemExit):
         main([*args[:-1], "maybe"])
+
+
+def test_symmetry_augmentation_is_seeded_and_leaves_no_horizontal_mean(tiny_episodes, tmp_path):
+    plain = _config(tiny_episodes, tmp_path / "plain", seq_end=2)
+    turned = _config(tiny_episodes, tmp_path / "a", seq_end=2, augment_symmetry=True)
+    train(plain, SMALL, progress=False)
+    train(turned, SMALL, progress=False)
+    train(_config(tiny_episodes, tmp_path / "b", seq_end=2, augment_symmetry=True), SMALL, progress=False)
+    assert _losses(tmp_path / "a") == _losses(tmp_path / "b")
+    assert _losses(tmp_path / "a") != _losses(tmp_path / "plain")  # the windows were really mapped
+    norm, base = load_model(tmp_path / "a" / "model.pt").normalizer, load_model(tmp_path / "plain" / "model.pt").normalizer
+    for name in ("velocity_mean", "root_mean", "local_mean"):
+        assert torch.equal(getattr(norm, name)[:2], torch.zeros(2)), name
+        assert getattr(norm, name)[2] == getattr(base, name)[2]  # vertical statistics unchanged
+    assert not torch.equal(base.root_mean[:2], torch.zeros(2))
+
+
+def _energy_column(out):
+    with open(out / "metrics.csv") as fh:
+        return [r["energy"] for r in csv.DictReader(fh)]
+
+
+def test_sample_copies_train_seeded_resume_identical_and_log_energy(tiny_episodes, tmp_path):
+    kw = dict(seq_end=3, train_dropout=0.2, sample_copies=3)
+    train(_config(tiny_episodes, tmp_path / "full", **kw), SMALL, progress=False)
+    cfg_part = _config(tiny_episodes, tmp_path / "part", **kw)
+    train(cfg_part, SMALL, progress=False, stop_after=3)
+    train(cfg_part, SMALL, progress=False, resume=True)
+    full, part = _losses(tmp_path / "full"), _losses(tmp_path / "part")
+    # steps 0-2 of the two runs are two seeded runs; steps 3-5 of `part` come after a resume
+    assert [s for s, _ in part] == [s for s, _ in full] == list(range(6))
+    for (s1, l1), (s2, l2) in zip(full, part):
+        assert l1 == pytest.approx(l2, rel=1e-5), f"step {s1}"
+    with open(tmp_path / "full" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    for r in rows:  # the energy term is logged and enters the loss with weight 1
+        assert 0 < float(r["energy"]) < float("inf")
+        parts = sum(float(r[name]) for name in ("local", "global", "shape", "energy"))
+        assert float(r["loss"]) == pytest.approx(parts, rel=1e-4)
+    saved = json.loads((tmp_path / "full" / "config.json").read_text())["train"]
+    assert (saved["sample_copies"], saved["w_energy"]) == (3, 1.0)
+    # plain dropout training (the default) leaves the column empty
+    train(_config(tiny_episodes, tmp_path / "plain", steps=2, seq_end=1, train_dropout=0.2), SMALL, progress=False)
+    assert _energy_column(tmp_path / "plain") == ["", ""]
+
+
+def test_sample_copies_work_with_noise_symmetry_and_rigid_fit(tiny_episodes, tmp_path):
+    rigid = HRNConfig(hidden=16, depth=1, effect_dim=16, rigid_fit=True)
+    kw = dict(steps=3, seq_end=2, train_dropout=0.2, sample_copies=2, w_energy=0.5, input_noise=1e-3,
+              augment_symmetry=True)
+    train(_config(tiny_episodes, tmp_path / "a", **kw), rigid, progress=False)
+    train(_config(tiny_episodes, tmp_path / "b", **kw), rigid, progress=False)
+    assert _losses(tmp_path / "a") == _losses(tmp_path / "b")
+    assert all(0 < float(e) < float("inf") for e in _energy_column(tmp_path / "a"))
+    assert load_model(tmp_path / "a" / "model.pt").config.rigid_fit
+
+
+def test_sample_copies_layout_one_mask_row_per_copy(tiny_episodes):
+    """With every copy given the same (all-ones) mask, the copies are the deterministic model:
+    the usual terms equal the plain loss and the energy score is the mean leaf distance."""
+    from torch_geometric.data import Batch
+
+    from hrn_pyg.data.dataset import EpisodeWindows
+    from hrn_pyg.data.graph import NODE, set_state
+    from hrn_pyg.nn.hrn import HRN
+    from hrn_pyg.nn.normalizer import fit_normalizer
+    from hrn_pyg.rollout import step as model_step
+    from hrn_pyg.train import window_loss
+
+    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=2)
+    torch.manual_seed(0)
+    model = HRN(SMALL)
+    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
+    batch = Batch.from_data_list([windows[2], windows[9]])
+    rows = []
+
+    def same_masks(n, rate=None, generator=None):
+        rows.append(n)
+        return {m: torch.ones(n, SMALL.hidden) for m in SMALL.dropout_modules}
+
+    plain = TrainConfig(data="unused", out="unused")
+    copies = TrainConfig(data="unused", out="unused", train_dropout=0.2, sample_copies=3)
+    _, plain_parts = window_loss(model, batch, 2, plain)
+    model.sample_masks = same_masks
+    _, parts = window_loss(model, batch, 2, copies)
+    assert rows == [6, 6]  # B = 2 windows x K = 3 copies, one row each, at each of the 2 steps
+    for name in ("local", "global", "shape"):
+        assert parts[name] == pytest.approx(plain_parts[name], rel=1e-5), name
+
+    _, one_step = window_loss(model, batch, 1, copies)
+    store = batch[NODE]
+    seq = store.pos_seq
+    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
+    pred = model_step(model, graph, store.force_seq[:, 0], None).pos
+    moving = store.is_leaf & ~store.is_static
+    distance = ((pred - seq[:, 3]) / model.normalizer.velocity_std)[moving].norm(dim=-1).mean()
+    assert one_step["energy"] == pytest.approx(distance.item(), rel=1e-4)
+
+
+def test_sample_copies_need_two_copies_and_dropout(tiny_episodes, tmp_path, capsys):
+    with pytest.raises(ValueError, match=r"sample_copies must be 0 \(off\) or >= 2"):
+        TrainConfig(sample_copies=1, train_dropout=0.2)
+    with pytest.raises(ValueError, match=r"sample_copies must be 0 \(off\) or >= 2"):
+        TrainConfig(sample_copies=-2, train_dropout=0.2)
+    with pytest.raises(ValueError, match="sample_copies=4 needs train_dropout > 0"):
+        TrainConfig.for_preset("ours", sample_copies=4)
+    with pytest.raises(ValueError, match="w_energy must be a finite number >= 0"):
+        TrainConfig(sample_copies=2, train_dropout=0.2, w_energy=-1.0)
+    # the flags come from the dataclass; a bad combination is a one-line CLI error
+    base = ["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(tmp_path / "o")]
+    assert main([*base, "--sample-copies", "2", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs train_dropout > 0" in err[0]
+    import argparse
+
+    from hrn_pyg.train import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    config, _ = config_from_args(parser.parse_args(
+        base[1:] + ["--sample-copies", "4", "--train-dropout", "0.1", "--w-energy", "0.5"]))
+    assert (config.sample_copies, config.train_dropout, config.w_energy) == (4, 0.1, 0.5)

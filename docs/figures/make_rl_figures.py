@@ -28,7 +28,7 @@ import torch
 
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
-from hrn_pyg.rl.ppo import record_episodes, replay_in_pybullet
+from hrn_pyg.rl.evaluate import record_episodes, replay_in_pybullet
 from hrn_pyg.rl.showcase import load_actor
 from hrn_pyg.utils.files import atomic_path
 from hrn_pyg.viz import object_colors, rollout_grid
@@ -41,8 +41,8 @@ GOAL_COLOR = "#D00000"
 FIGURE_ENV_SEED = 123
 #: columns of the picture
 COLUMNS = 4
-#: episodes shorter than this are drawn only if nothing longer qualifies: a goal drawn next to
-#: a cube can be met after one step, which shows no pushing
+#: episodes shorter than this are drawn only if nothing longer qualifies: a very short episode
+#: shows little pushing (goals start at least tasks.goal_margin outside the success radius)
 MIN_STEPS = 3
 
 

@@ -57,11 +57,14 @@ class HRNDynamics:
     """:class:`~hrn_pyg.rl.dynamics.StochasticDynamics` backed by a trained :class:`HRN`.
 
     Dropout masks are sampled for every module the model takes them on (so the random stream
-    does not depend on the task) and applied only on the task's ``dropout_modules``.
+    does not depend on the task) and applied only on :attr:`dropout_modules`: the task's, or,
+    for a model calibrated by ``hrn-pyg calibrate`` (config ``dropout_rate > 0``), the modules
+    its rate was chosen for. :attr:`calibrated_rate` is that rate (None: never calibrated); the
+    PPO trainer uses it when no rate is given.
 
     Args:
-        model: the trained HRN (its normaliser fitted); put in eval mode. It must take dropout
-            on every module of ``task.dropout_modules``.
+        model: the trained HRN (its normaliser fitted); put in eval mode. Uncalibrated, it must
+            take dropout on every module of ``task.dropout_modules``.
         task: the task (its ``name`` is the pybullet scene).
         pool_seeds: pybullet seeds of the initial states :meth:`reset_states` draws from.
 
@@ -79,7 +82,12 @@ class HRNDynamics:
 
         self.task = get_task(task)
         self.model = model.eval()
-        missing = set(self.task.dropout_modules) - set(model.config.dropout_modules)
+        #: the model's calibrated sampling rate (config ``dropout_rate``), None when it has none
+        self.calibrated_rate = float(model.config.dropout_rate) if model.config.dropout_rate > 0 else None
+        #: masked modules: a calibrated model's own (its rate was chosen for them), else the task's
+        self.dropout_modules = tuple(model.config.dropout_modules if self.calibrated_rate is not None
+                                     else self.task.dropout_modules)
+        missing = set(self.dropout_modules) - set(model.config.dropout_modules)
         if missing:
             raise ValueError(f"the model takes no dropout on {sorted(missing)}, which task "
                              f"{self.task.name!r} samples on")
@@ -189,9 +197,9 @@ class HRNDynamics:
                           leaf_pos[:, 2].reshape(-1, 3), radius=self.model.config.collision_radius,
                           force=per_leaf.reshape(-1, 3))
         masks = None
-        if rate > 0:  # one mask per copy on the task's modules only (cube_push: force)
+        if rate > 0:  # one mask per copy on the masked modules only (cube_push: force)
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
-                     if name in self.task.dropout_modules}
+                     if name in self.dropout_modules}
         out = run_network(self.model, build_inputs(self.model, graph), masks)
         next_pos = decode(self.model, graph, out)[0]
         leaves = graph[NODE].is_leaf

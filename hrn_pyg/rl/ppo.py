@@ -9,9 +9,13 @@ single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
 - ``deterministic``: dropout rate 0.
 - ``action_noise``: rate 0, Gaussian noise on the actions (``PPOConfig.action_noise_std`` of
   the force bound), the Plappert et al. baseline.
-- ``stochastic``: the task's dropout rate held constant (cube_push: 0.1 on the force module).
-- ``stochastic_annealed``: the task's rate brought linearly to 0 over ``anneal_updates`` PPO
+- ``stochastic``: the dropout rate held constant (cube_push: 0.1 on the force module).
+- ``stochastic_annealed``: the rate brought linearly to 0 over ``anneal_updates`` PPO
   updates (tower: 0.1 -> 0 over 1200).
+
+The rate of the stochastic modes is ``--dropout-rate`` when given, else the model's calibrated
+rate (``hrn-pyg calibrate``; :attr:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.calibrated_rate`), else
+the task's ``dropout_rate``.
 
 Without ``--model`` the environment steps :class:`~hrn_pyg.rl.dynamics.PointMassDynamics`, an
 analytic **development / smoke-test** dynamics; its curves are not the paper's result.
@@ -27,17 +31,20 @@ Output (``--out``, default ``runs/rl/<task>``)::
                                   with --model, the pybullet ground-truth check
     summary.csv, summary.md       the same per run, and per mode over seeds (median [min, max])
 
-With ``--model``, each run ends with :func:`ground_truth_success`: the final policy's episodes
-in the learned model (dropout 0) are replayed open loop in pybullet from the same start scene
-and goal, and both success rates are reported side by side.
+With ``--model``, each run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
+final policy's episodes in the learned model (dropout 0) are replayed open loop in pybullet
+from the same start scene and goal, and both success rates are reported side by side.
+
+This module holds the training: configuration, mode settings, actor-critic, the PPO loop with
+its log and checkpoint, and the CLI. The evaluation of a policy (learned model and pybullet
+replay) is in :mod:`hrn_pyg.rl.evaluate`; curve metrics, the figure and the summary tables
+are in :mod:`hrn_pyg.rl.curves`.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import math
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -48,31 +55,21 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import Tensor, nn
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve, write_summary
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.tasks import TASKS, TaskConfig, action_to_forces, get_task, goal_reached
+from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
+from hrn_pyg.rl.tasks import MODES, TASKS, TaskConfig, get_task
 from hrn_pyg.utils.checkpoint import save_checkpoint
 from hrn_pyg.utils.device import resolve_device
-from hrn_pyg.utils.files import atomic_path, atomic_write_json, atomic_write_text
+from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog, plot_curves
 from hrn_pyg.utils.schedules import LinearSchedule
-from hrn_pyg.viz import save_figure
 
-MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed")
-#: trailing moving-average window (updates) of the episode-length curve for the summary metrics
-#: and the figure
-SMOOTH_UPDATES = 10
-#: fraction of the last updates whose mean is a run's final average episode length
-FINAL_FRACTION = 0.1
-#: a run "reached its final length" when its smoothed curve has made this part of its drop
-REACHED_FRACTION = 0.9
-#: a drop (steps) smaller than this counts as no learning: updates_to_final is then None
-MIN_DROP = 0.5
 LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
               "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
               "loss_critic", "loss_entropy", "seconds"]
@@ -138,11 +135,14 @@ class PPOConfig:
 
 
 def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
-                  anneal_updates: int | None = None) -> tuple[LinearSchedule, float]:
-    """The dropout schedule over PPO updates and the action-noise level of a mode."""
+                  anneal_updates: int | None = None, rate: float | None = None) -> tuple[LinearSchedule, float]:
+    """The dropout schedule over PPO updates and the action-noise level of a mode; the
+    stochastic modes start at ``rate`` (None: ``task.dropout_rate``)."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
-    rate = task.dropout_rate
+    rate = task.dropout_rate if rate is None else float(rate)
+    if not 0.0 <= rate < 1.0:
+        raise ValueError(f"dropout rate must be in [0, 1), got {rate}")
     steps = task.anneal_updates if anneal_updates is None else anneal_updates
     if steps < 0:
         raise ValueError(f"anneal_updates must be >= 0, got {steps}")
@@ -197,186 +197,25 @@ def load_dynamics(task: TaskConfig, model: str | None,
     return HRNDynamics.from_checkpoint(path, task, device)
 
 
-# ---------------------------------------------------------------------------- evaluation
-@torch.no_grad()
-def evaluate_policy(policy: TensorDictModule, env: HRNEnv, episodes: int) -> tuple[float, float]:
-    """Success rate and mean episode length of the policy's deterministic actions.
-
-    Runs rounds of ``B`` parallel episodes (:func:`record_episodes`), each for up to
-    ``task.max_steps`` steps, and scores the first ``episodes``; an episode that never reaches the
-    goal counts ``max_steps``. The environment is used as configured (set ``dropout_rate = 0``
-    first to judge the deterministic model).
-    """
-    records = record_episodes(policy, env, episodes)
-    success = sum(r["success"] for r in records) / len(records)
-    length = sum(r["length"] for r in records) / len(records)
-    return float(success), float(length)
-
-
-def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
-                       goal: Tensor | None = None, history_steps: int = 0) -> dict:
-    """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
-
-    The ground-truth check of issue 6: builds ``hrn_pyg.data.scenes.make_scene(task, seed)``,
-    applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
-    judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
-    displacement) after every step, stopping at the first success. ``goal`` ``(2,)`` is the
-    episode's goal point; ``None`` is allowed only for ``tower``, whose goal point is the
-    middle cube's initial position. For the comparison to mean anything the learned
-    environment's episode must start from this scene's initial state (the learned dynamics'
-    ``reset_states`` draws scenes by seed). ``history_steps`` zero-force steps are taken after
-    the scene's reset before the first action: :class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`
-    starts its episodes after ``HISTORY_STEPS`` such steps (it needs ``x_{t-2}, x_{t-1}``), so
-    the replay of one of its episodes passes that number.
-
-    Returns ``{"success": bool, "steps": int, "roots": (steps + 1, O, 6) tensor,
-    "leaves": (steps + 1, L, 3) tensor}`` (index 0: the start, after the history steps).
-    """
-    task = get_task(task)
-    if history_steps < 0:
-        raise ValueError(f"history_steps must be >= 0, got {history_steps}")
-    from hrn_pyg.data.scenes import make_scene
-
-    actions = torch.as_tensor(actions, dtype=torch.float32).cpu()  # pybullet takes numpy
-    forces = action_to_forces(task, actions)                                  # (T, O, 3)
-    scene = make_scene(task.name, seed)
-    try:
-        leaves = torch.as_tensor(scene.reset(), dtype=torch.float32)
-        before = leaves
-        for _ in range(history_steps):  # a loop over time steps
-            before, leaves = leaves, torch.as_tensor(scene.step(scene.zero_action()), dtype=torch.float32)
-        obj = torch.as_tensor(scene.leaf_object)
-        mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
-
-        def centres(x: Tensor) -> Tensor:  # (L, 3) -> (O, 3), mass-weighted per object
-            num = torch.zeros(task.num_objects, 3).index_add_(0, obj, x * mass[:, None])
-            den = torch.zeros(task.num_objects).index_add_(0, obj, mass)
-            return num / den[:, None]
-
-        prev = centres(leaves)
-        roots = [torch.cat([prev, prev - centres(before)], -1)]
-        frames = [leaves]
-        if goal is None:
-            if task.goal_kind != "displaced":
-                raise ValueError(f"goal: task {task.name!r} needs the episode's goal point")
-            goal = prev[task.goal_objects[0], :2]
-        goal = torch.as_tensor(goal, dtype=torch.float32).cpu()
-        success = False
-        for f in forces:
-            frames.append(torch.as_tensor(scene.step(f.double().numpy()), dtype=torch.float32))
-            now = centres(frames[-1])
-            roots.append(torch.cat([now, now - prev], -1))
-            prev = now
-            if bool(goal_reached(task, roots[-1], goal)):
-                success = True
-                break
-    finally:
-        scene.close()
-    return {"success": success, "steps": len(roots) - 1, "roots": torch.stack(roots),
-            "leaves": torch.stack(frames)}
-
-
-@torch.no_grad()
-def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> list[dict]:
-    """Run the policy's deterministic actions in ``env`` and keep everything a replay needs.
-
-    The environment is used as configured, on its device; the records are CPU tensors (ready
-    for :func:`replay_in_pybullet` and numpy). Per episode: ``seed`` (the pybullet scene it started
-    from, ``env.dynamics.scene_seeds``; -1 for dynamics without one), ``goal`` ``(2,)``,
-    ``actions`` ``(T, A)`` (clipped to the action bounds, as the environment applies them),
-    ``states`` ``(T + 1, S)`` (start, then after each action), ``success`` (bool: the episode
-    ended by reaching the goal) and ``length`` ``T`` (steps until it ended).
-    """
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    B, bound = env.batch_size[0], env.task.max_force
-    out: list[dict] = []
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        while len(out) < episodes:
-            td = env.reset()
-            seeds = (env.dynamics.scene_seeds(td["state"]) if hasattr(env.dynamics, "scene_seeds")
-                     else torch.full((B,), -1, dtype=torch.long))
-            goal = td["goal"].clone()
-            states, actions = [td["state"].clone()], []
-            finished = torch.zeros(B, dtype=torch.bool, device=env.device)
-            success = torch.zeros_like(finished)
-            length = torch.full((B,), env.task.max_steps, dtype=torch.int64, device=env.device)
-            for _ in range(env.task.max_steps):  # a loop over time steps
-                td = env.step(policy(td))
-                actions.append(td["action"].clamp(-bound, bound).clone())
-                states.append(td["next", "state"].clone())
-                done = td["next", "done"].squeeze(-1) & ~finished
-                success |= done & td["next", "terminated"].squeeze(-1)
-                length = torch.where(done, td["next", "t"].squeeze(-1), length)
-                finished |= done
-                if finished.all():
-                    break
-                td = step_mdp(td)
-            # back to the CPU once per round: (B, T, A), (B, T+1, S)
-            actions_t, states_t = torch.stack(actions, 1).cpu(), torch.stack(states, 1).cpu()
-            seeds, goal, success, length = seeds.cpu(), goal.cpu(), success.cpu(), length.cpu()
-            for i in range(B):  # a loop over finished episodes, to split them by length
-                n = int(length[i])
-                out.append({"seed": int(seeds[i]), "goal": goal[i], "actions": actions_t[i, :n],
-                            "states": states_t[i, :n + 1], "success": bool(success[i]), "length": n})
-    return out[:episodes]
-
-
-def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -> dict[str, float]:
-    """The ground-truth check: the policy's learned-model episodes replayed in pybullet.
-
-    Runs ``episodes`` deterministic episodes in the learned environment with dropout 0 and no
-    action noise (:func:`record_episodes`; the environment's settings are restored after),
-    then replays each episode's actions open loop in the pybullet scene it started from, after
-    the same ``HISTORY_STEPS`` zero-force steps, against the same goal
-    (:func:`replay_in_pybullet`). An episode that failed or ran to ``max_steps`` counts as
-    length ``max_steps`` on either side (the convention of :func:`evaluate_policy`).
-
-    Returns ``model_success_rate``, ``model_mean_length``, ``pybullet_success_rate``,
-    ``pybullet_mean_length`` and ``agreement`` (fraction of episodes where both judge the same),
-    plus ``ground_truth_episodes``.
-    """
-    from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS
-
-    saved = env.dropout_rate, env.action_noise_std
-    env.dropout_rate, env.action_noise_std = 0.0, 0.0
-    try:
-        records = record_episodes(policy, env, episodes)
-    finally:
-        env.dropout_rate, env.action_noise_std = saved
-    max_steps = env.task.max_steps
-    model_ok, model_len, real_ok, real_len = [], [], [], []
-    for rec in records:  # one pybullet scene per episode
-        replay = replay_in_pybullet(rec["actions"], env.task, rec["seed"], rec["goal"],
-                                    history_steps=HISTORY_STEPS)
-        model_ok.append(rec["success"])
-        model_len.append(rec["length"] if rec["success"] else max_steps)
-        real_ok.append(replay["success"])
-        real_len.append(replay["steps"] if replay["success"] else max_steps)
-    n = len(records)
-    return {
-        "ground_truth_episodes": n,
-        "model_success_rate": sum(model_ok) / n,
-        "model_mean_length": sum(model_len) / n,
-        "pybullet_success_rate": sum(real_ok) / n,
-        "pybullet_mean_length": sum(real_len) / n,
-        "agreement": sum(a == b for a, b in zip(model_ok, real_ok)) / n,
-    }
-
 
 # ---------------------------------------------------------------------------- training
 def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
           dynamics: StochasticDynamics | None = None, anneal_updates: int | None = None,
-          progress: bool = True, device: str | torch.device | None = None) -> dict:
+          progress: bool = True, device: str | torch.device | None = None,
+          dropout_rate: float | None = None) -> dict:
     """One PPO run; writes ``log.csv``, ``policy.pt`` and ``curve.png`` under ``out_dir``.
 
     The environment, policy, critic and collector run on ``device`` (None: the dynamics'
     device, the CPU for the default point-mass dynamics), which must be the dynamics' device.
-    Returns the final evaluation in the learned model with dropout off and no action noise.
+    The stochastic modes start at ``dropout_rate``; None: the dynamics' ``calibrated_rate``
+    (a calibrated HRN), else the task's. Returns the final evaluation in the learned model
+    with dropout off and no action noise.
     """
-    schedule, noise = mode_settings(mode, task, config, anneal_updates)
     if dynamics is None:
         dynamics = load_dynamics(task, None, "cpu" if device is None else device)
+    if dropout_rate is None:
+        dropout_rate = getattr(dynamics, "calibrated_rate", None)
+    schedule, noise = mode_settings(mode, task, config, anneal_updates, dropout_rate)
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
     try:
@@ -440,7 +279,7 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
     success, length = evaluate_policy(actor, env, config.eval_episodes)
     result = {"task": task.name, "mode": mode, "seed": seed, "updates": config.updates,
               "success_rate": success, "mean_episode_length": length,
-              **curve_metrics(_read_curve(out_dir / "log.csv"))}
+              **curve_metrics(read_curve(out_dir / "log.csv"))}
     if hasattr(dynamics, "scene_seeds") and config.ground_truth_episodes > 0:
         result.update(ground_truth_success(actor, env, config.ground_truth_episodes))
     result["seconds"] = time.perf_counter() - start
@@ -493,172 +332,6 @@ def _progress(total: int, desc: str, enabled: bool):
     return tqdm(total=total, desc=desc, unit="upd", leave=False)
 
 
-# ---------------------------------------------------------------------------- figure
-def plot_episode_length(out_root: str | Path, png_path: str | Path, title: str = "",
-                        window: int = SMOOTH_UPDATES) -> list[str]:
-    """Average episode length against PPO updates, one line per mode found under ``out_root``.
-
-    Reads ``<mode>/seed*/log.csv`` and smooths each seed's curve with a trailing moving average
-    over ``window`` updates (1: raw); the line is the median over seeds, the shaded band their
-    range (min to max), over the updates every seed has reached. Returns the modes drawn.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_root = Path(out_root)
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=110)
-    drawn = []
-    for mode in MODES:
-        curves = [_read_curve(p) for p in sorted((out_root / mode).glob("seed*/log.csv"))]
-        curves = [smooth(c, window) for c in curves if c]
-        if not curves:
-            continue
-        n = min(len(c) for c in curves)
-        values = torch.tensor([c[:n] for c in curves], dtype=torch.float64)  # (seeds, updates)
-        x = torch.arange(n)
-        med = values.nanmedian(0).values
-        lo = torch.where(values.isnan(), math.inf, values).min(0).values
-        hi = torch.where(values.isnan(), -math.inf, values).max(0).values
-        line, = ax.plot(x, med, lw=1.3, label=f"{mode} (n={len(curves)})")
-        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
-        drawn.append(mode)
-    ax.set_xlabel("PPO update")
-    ax.set_ylabel("average episode length" + (f"\n({window}-update moving average)" if window > 1 else ""))
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    if drawn:
-        ax.legend(frameon=False, fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, png_path)
-    return drawn
-
-
-def _read_curve(path: Path) -> list[float]:
-    with open(path, newline="") as fh:
-        return [float(r["mean_episode_length"]) if r.get("mean_episode_length") else math.nan
-                for r in csv.DictReader(fh)]
-
-
-# ---------------------------------------------------------------------------- summaries
-
-
-def smooth(curve: list[float], window: int = SMOOTH_UPDATES) -> list[float]:
-    """Trailing moving average that skips NaN (updates in which no episode ended)."""
-    out = []
-    for i in range(len(curve)):  # a loop over updates (a few hundred)
-        part = [v for v in curve[max(0, i - window + 1):i + 1] if not math.isnan(v)]
-        out.append(sum(part) / len(part) if part else math.nan)
-    return out
-
-
-def updates_to_reach(curve: list[float], level: float, window: int = SMOOTH_UPDATES) -> int | None:
-    """First update at which the smoothed curve is at or below ``level``; None if never.
-
-    Only full windows count (updates ``window - 1`` on): an average of the first one or two
-    noisy updates would otherwise "reach" a level by chance.
-    """
-    smoothed = smooth(curve, window)
-    for i in range(min(window, len(curve)) - 1, len(curve)):
-        if smoothed[i] <= level:
-            return i
-    return None
-
-
-def curve_metrics(curve: list[float]) -> dict[str, float | int | None]:
-    r"""Final average episode length and the updates taken to reach it.
-
-    With :math:`\bar L` the curve smoothed over :data:`SMOOTH_UPDATES`, :math:`L_0` the mean of
-    its first :data:`SMOOTH_UPDATES` values and :math:`L_f` the mean of the last
-    :data:`FINAL_FRACTION` of updates,
-    ``updates_to_final`` is the first update with
-    :math:`\bar L \le L_f + (1 - \rho)(L_0 - L_f)`, :math:`\rho` = :data:`REACHED_FRACTION`
-    (None when :math:`L_0 - L_f <` :data:`MIN_DROP` steps: the run did not learn).
-    """
-    values = [v for v in curve if not math.isnan(v)]
-    if not values:
-        return {"final_length": None, "start_length": None, "updates_to_final": None}
-    tail = max(1, round(FINAL_FRACTION * len(curve)))
-    last = [v for v in curve[-tail:] if not math.isnan(v)] or values[-1:]
-    final = sum(last) / len(last)
-    head = [v for v in curve[:SMOOTH_UPDATES] if not math.isnan(v)] or values[:1]
-    start = sum(head) / len(head)
-    reached = None
-    if start - final >= MIN_DROP:
-        reached = updates_to_reach(curve, final + (1 - REACHED_FRACTION) * (start - final))
-    return {"final_length": final, "start_length": start, "updates_to_final": reached}
-
-
-SUMMARY_FIELDS = ["task", "mode", "seed", "updates", "start_length", "final_length",
-                  "updates_to_final", "success_rate", "mean_episode_length", "model_success_rate",
-                  "model_mean_length", "pybullet_success_rate", "pybullet_mean_length", "agreement",
-                  "ground_truth_episodes", "seconds"]
-
-
-def _stat(values: list) -> str:
-    """``median [min, max]`` of the non-missing values; ``-`` if none."""
-    vals = sorted(float(v) for v in values if v is not None and not math.isnan(float(v)))
-    if not vals:
-        return "-"
-    n = len(vals)
-    med = vals[n // 2] if n % 2 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
-    return f"{med:.2f} [{vals[0]:.2f}, {vals[-1]:.2f}]"
-
-
-def write_summary(out_root: str | Path, results: list[dict]) -> None:
-    """``summary.csv`` (one row per run) and ``summary.md`` (per mode over seeds) under ``out_root``.
-
-    Curve metrics are recomputed from each run's ``log.csv`` where it exists. The markdown
-    table gives, per mode, the median over seeds with the range: the final average
-    episode length of training, the updates to reach it (:func:`curve_metrics`; seeds whose
-    curve dropped less than :data:`MIN_DROP` are counted as "no drop" and left out of the
-    median), the updates for the smoothed curve to reach the deterministic mode's median final
-    length ("never" counted the same way), and the final
-    policy's success rate and mean length in the learned model and replayed in pybullet.
-    """
-    out_root = Path(out_root)
-    rows = sorted(results, key=lambda r: (MODES.index(r["mode"]) if r["mode"] in MODES else 99,
-                                          r["seed"]))
-    for i, r in enumerate(rows):  # curve metrics from the logs, as they are now
-        log = out_root / r["mode"] / f"seed{r['seed']}" / "log.csv"
-        if log.is_file():
-            rows[i] = {**r, **curve_metrics(_read_curve(log))}
-    with atomic_path(out_root / "summary.csv", suffix=".csv") as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=SUMMARY_FIELDS, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
-    finals = [r.get("final_length") for r in rows if r["mode"] == "deterministic"]
-    level = _stat(finals).split(" ")[0]
-    level_f = float(level) if level != "-" else None
-    lines = [f"# {rows[0]['task'] if rows else ''} RL summary (median [min, max] over seeds)", "",
-             "| mode | seeds | final avg. length | updates to final | updates to det. final"
-             f" ({level}) | success (model) | length (model) | success (pybullet) |"
-             " length (pybullet) |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for mode in MODES:
-        runs = [r for r in rows if r["mode"] == mode]
-        if not runs:
-            continue
-        to_level = []
-        for r in runs:
-            log = out_root / mode / f"seed{r['seed']}" / "log.csv"
-            if level_f is not None and log.is_file():
-                to_level.append(updates_to_reach(_read_curve(log), level_f))
-        never = sum(v is None for v in to_level)
-        reach = _stat(to_level) + (f" ({never} never)" if never else "")
-        no_drop = sum(r.get("updates_to_final") is None for r in runs)
-        flat = f" ({no_drop} no drop)" if no_drop else ""
-        lines.append(
-            f"| {mode} | {len(runs)} | {_stat([r.get('final_length') for r in runs])} | "
-            f"{_stat([r.get('updates_to_final') for r in runs])}{flat} | {reach} | "
-            f"{_stat([r.get('model_success_rate', r.get('success_rate')) for r in runs])} | "
-            f"{_stat([r.get('model_mean_length', r.get('mean_episode_length')) for r in runs])} | "
-            f"{_stat([r.get('pybullet_success_rate') for r in runs])} | "
-            f"{_stat([r.get('pybullet_mean_length') for r in runs])} |")
-    atomic_write_text(out_root / "summary.md", "\n".join(lines) + "\n")
-
 
 # ---------------------------------------------------------------------------- CLI
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -677,6 +350,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=d.threads, help="torch threads per run")
     parser.add_argument("--action-noise-std", type=float, default=d.action_noise_std,
                         help="action_noise mode: noise std as a fraction of the force bound")
+    parser.add_argument("--dropout-rate", type=float, default=None,
+                        help="stochastic modes: dropout rate (default: the model's calibrated rate, "
+                             "else the task's)")
     parser.add_argument("--anneal-updates", type=int, default=None,
                         help="stochastic_annealed: updates to reach rate 0 (default: the task's)")
     parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
@@ -696,6 +372,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     if args.anneal_updates is not None and args.anneal_updates < 0:
         raise ValueError(f"--anneal-updates must be >= 0, got {args.anneal_updates}")
+    if args.dropout_rate is not None and not 0.0 <= args.dropout_rate < 1.0:
+        raise ValueError(f"--dropout-rate must be in [0, 1), got {args.dropout_rate}")
     config = replace(PPOConfig(), updates=args.updates, frames_per_batch=args.frames_per_batch,
                      num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
                      lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
@@ -709,7 +387,8 @@ def run(args: argparse.Namespace) -> int:
     for mode in modes:
         for seed in range(args.seed_start, args.seed_start + args.seeds):
             res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
-                        args.anneal_updates, progress=not args.no_progress, device=device)
+                        args.anneal_updates, progress=not args.no_progress, device=device,
+                        dropout_rate=args.dropout_rate)
             results.append(res)
             truth = (f", pybullet success {res['pybullet_success_rate']:.2f} length "
                      f"{res['pybullet_mean_length']:.2f}" if "pybullet_success_rate" in res else "")

@@ -12,7 +12,8 @@ import torch
 
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
-from hrn_pyg.rl.ppo import build_actor_critic, record_episodes, replay_in_pybullet
+from hrn_pyg.rl.evaluate import record_episodes, replay_in_pybullet
+from hrn_pyg.rl.ppo import build_actor_critic
 from hrn_pyg.utils.checkpoint import load_checkpoint
 from hrn_pyg.utils.files import atomic_write_json
 

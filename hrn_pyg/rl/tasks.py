@@ -12,6 +12,13 @@ collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
 A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``) or the
 tower axis (``displaced``). Goal tests take root states with any leading dimensions, so one call
 judges all ``k`` samples of all ``B`` environments.
+
+**Goals need a policy.** :func:`sample_goal` never returns a goal that is already met at reset:
+every goal starts at least ``goal_margin`` (5 cm, half a cube edge) away from being met
+(:func:`goal_clearance`), whatever the training mode, since every mode draws its goals here.
+
+Also the names of the four training modes (:data:`MODES`), shared by the PPO loop and the
+summaries.
 """
 
 from __future__ import annotations
@@ -24,6 +31,11 @@ from torch import Tensor
 
 #: Size of the goal entry in observations: a point on the ground plane (x, y).
 GOAL_DIM = 2
+#: The training modes (``hrn_pyg.rl.ppo.mode_settings``), in the order of tables and figures.
+MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed")
+#: Candidate goals drawn per environment for a ``region`` task; the first one far enough from
+#: every goal object is kept. A fixed number, so the random stream does not depend on the scene.
+GOAL_CANDIDATES = 128
 
 
 @dataclass(frozen=True)
@@ -47,6 +59,15 @@ class TaskConfig:
         goal_radius: disc radius or displacement threshold, metres.
         goal_distance: for ``region``, the disc centre is drawn at this range of distances from
             the origin, in a uniformly random direction.
+        goal_margin: how far, metres, every goal lies from being met at reset
+            (:func:`goal_clearance` ``> goal_margin``): ``region`` discs are drawn at least
+            ``goal_radius + goal_margin`` from every goal object; a ``displaced`` goal object must
+            start within ``goal_radius - goal_margin`` of the goal point. The default, 5 cm (half
+            a cube edge), is five times what resting cubes drift under a zero action in a whole
+            episode of the learned model (``hrn_pyg/checkpoints/cube_push.pt``: at most 1.1 cm
+            over 10 zero-force steps, any of 5 samples, dropout 0 or 0.1, 16 pool scenes), so no
+            goal is met without acting, yet it takes only a disc of 0.15 m radius around each
+            cube out of the goal ring.
         dropout_modules: HRN modules that get Monte Carlo dropout.
         dropout_rate: rate at the start of training (the ``stochastic`` modes).
         anneal_updates: PPO updates over which ``stochastic_annealed`` brings the rate to 0.
@@ -64,6 +85,7 @@ class TaskConfig:
     goal_objects: tuple[int, ...]
     goal_radius: float
     goal_distance: tuple[float, float] = (0.0, 0.0)
+    goal_margin: float = 0.05
     dropout_modules: tuple[str, ...] = ("force",)
     dropout_rate: float = 0.1
     anneal_updates: int = 0
@@ -85,6 +107,11 @@ class TaskConfig:
             raise ValueError("max_force and goal_radius must be positive")
         if self.goal_kind not in ("region", "displaced"):
             raise ValueError(f"goal_kind must be 'region' or 'displaced', got {self.goal_kind!r}")
+        if self.goal_margin < 0:
+            raise ValueError(f"goal_margin must be >= 0, got {self.goal_margin}")
+        if self.goal_kind == "displaced" and self.goal_margin >= self.goal_radius:
+            raise ValueError(f"goal_margin ({self.goal_margin}) must be below goal_radius "
+                             f"({self.goal_radius}) for a displaced goal")
         if not 0.0 <= self.dropout_rate < 1.0:
             raise ValueError(f"dropout_rate must be in [0, 1), got {self.dropout_rate}")
         if self.anneal_updates < 0 or self.num_samples < 1:
@@ -138,19 +165,59 @@ def action_to_forces(task: TaskConfig, action: Tensor) -> Tensor:
 
 
 def sample_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> Tensor:
-    """A goal for each environment from its initial root states ``(B, O, 6)`` -> ``(B, 2)``.
+    """A goal for each environment from its initial root states ``(B, O, 6)`` -> ``(B, 2)``,
+    never met at reset.
 
-    ``region``: a disc centre at a distance drawn uniformly from ``goal_distance`` in a uniform
-    direction. ``displaced``: the current ground-plane position of the (first) goal object.
-    Drawn on ``generator``'s device, returned on ``roots``'.
+    ``region``: :data:`GOAL_CANDIDATES` disc centres per environment, each at a distance drawn
+    uniformly from ``goal_distance`` in a uniform direction; the first whose
+    :func:`goal_clearance` exceeds ``goal_margin`` (farther than ``goal_radius + goal_margin``
+    from every goal object) is kept. ``displaced``: the current ground-plane position of the
+    (first) goal object. Drawn on ``generator``'s device (always the same number of draws),
+    returned on ``roots``'.
+
+    Raises ``ValueError`` if an environment has no such goal: every candidate lies near a goal
+    object (a ``goal_distance`` range that the reset positions cover), or a displaced goal's
+    objects start apart.
     """
     B = roots.shape[0]
     if task.goal_kind == "displaced":
-        return roots[:, task.goal_objects[0], :2].clone()
+        goal = roots[:, task.goal_objects[0], :2].clone()
+        if not bool((goal_clearance(task, roots, goal) > task.goal_margin).all()):
+            raise ValueError(f"task {task.name!r}: goal objects {task.goal_objects} start more than "
+                             f"goal_radius - goal_margin = {task.goal_radius - task.goal_margin:g} m "
+                             "apart, so the displaced goal would be met at reset")
+        return goal
     lo, hi = task.goal_distance
-    angle = torch.rand(B, generator=generator, device=generator.device) * 2 * math.pi
-    dist = lo + (hi - lo) * torch.rand(B, generator=generator, device=generator.device)
-    return torch.stack([dist * torch.cos(angle), dist * torch.sin(angle)], -1).to(roots.device)
+    shape, dev = (B, GOAL_CANDIDATES), generator.device
+    angle = torch.rand(shape, generator=generator, device=dev) * 2 * math.pi
+    dist = lo + (hi - lo) * torch.rand(shape, generator=generator, device=dev)
+    candidates = torch.stack([dist * torch.cos(angle), dist * torch.sin(angle)], -1)  # (B, C, 2)
+    candidates = candidates.to(roots.device)
+    clear = goal_clearance(task, roots.unsqueeze(1), candidates) > task.goal_margin     # (B, C)
+    if not bool(clear.any(-1).all()):
+        raise ValueError(f"task {task.name!r}: none of {GOAL_CANDIDATES} goals drawn at "
+                         f"{lo:g}-{hi:g} m from the origin lies more than goal_radius + goal_margin "
+                         f"= {task.goal_radius + task.goal_margin:g} m from every goal object; the "
+                         "reset positions leave no goal that needs acting")
+    first = clear.to(torch.int8).argmax(-1)                                             # (B,)
+    return candidates[torch.arange(B, device=roots.device), first]
+
+
+def goal_clearance(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
+    r"""How far, metres, each state is from meeting the goal (``<= 0``: met, for ``region``).
+
+    ``region``: :math:`\min_{i \in G} \lVert x_i^{xy} - g \rVert - r` (distance of the nearest
+    goal object to the disc's rim); ``displaced``: :math:`r - \max_{i \in G} \lVert x_i^{xy} - g
+    \rVert` (room left before an object leaves the disc). :func:`goal_reached` is true exactly
+    when the clearance is ``<= 0`` (``region``) or ``< 0`` (``displaced``).
+
+    **Shapes**: roots ``(*lead, O, 6)``, goal broadcastable to ``(*lead, 2)`` -> ``(*lead,)``.
+    """
+    xy = roots[..., list(task.goal_objects), :2]                # (*lead, G, 2)
+    dist = (xy - goal.unsqueeze(-2)).norm(dim=-1)               # (*lead, G)
+    if task.goal_kind == "region":
+        return dist.amin(-1) - task.goal_radius
+    return task.goal_radius - dist.amax(-1)
 
 
 def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:

@@ -4,6 +4,10 @@ The initial state comes from a test episode of a dataset folder (``--data``) or 
 pybullet episode (``--seed``); the model's K sampled futures are drawn light, the simulator's
 ground truth dark, in a PNG of a few time columns and an animated GIF. Also writes
 ``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]`` from the start state on).
+
+Without ``--rate`` the model's own rate is used: the one ``hrn-pyg calibrate`` chose (its config's
+``dropout_rate``), or :data:`UNCALIBRATED_RATE` for a model never calibrated (rate 0 in its
+config); ``samples.json`` says which (``rate``, ``rate_source``).
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from hrn_pyg.utils.files import atomic_write, atomic_write_json
 CHECKPOINT_DIR = Path(hrn_pyg.__file__).resolve().parent / "checkpoints"
 #: columns of the PNG, as fractions of the horizon (t = 0 is the start state)
 FIGURE_COLUMNS = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: sampling rate of a model that names none (config ``dropout_rate`` 0: never calibrated)
+UNCALIBRATED_RATE = 0.3
 
 
 def default_model_path(scene: str) -> Path:
@@ -53,6 +59,16 @@ def load(path: Path, device: torch.device | str | None = None) -> HRN:
     from hrn_pyg.train import load_model  # the trainer's loader (imports the training stack)
 
     return load_model(path, device)
+
+
+def default_rate(model: HRN, calibrated: bool = False) -> tuple[float, str]:
+    """The rate to sample ``model`` at when the user names none, and where it comes from:
+    ``"calibrated"`` (``hrn-pyg calibrate`` chose it), ``"model config"`` (a ``dropout_rate``
+    set otherwise) or ``"uncalibrated default"`` (:data:`UNCALIBRATED_RATE`)."""
+    rate = float(model.config.dropout_rate)
+    if rate > 0:
+        return rate, "calibrated" if calibrated else "model config"
+    return UNCALIBRATED_RATE, "uncalibrated default"
 
 
 def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroData,
@@ -95,7 +111,9 @@ def initial_state(args: argparse.Namespace, steps: int | None) -> tuple[HeteroDa
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", required=True, help="scene name (picks the default checkpoint)")
     parser.add_argument("--k", type=int, default=16, help="number of sampled futures")
-    parser.add_argument("--rate", type=float, default=0.3, help="dropout rate at test time")
+    parser.add_argument("--rate", type=float, default=None,
+                        help="dropout rate at test time (default: the model's calibrated rate, "
+                             f"or {UNCALIBRATED_RATE} for an uncalibrated model)")
     parser.add_argument("--modules", default=None,
                         help="comma-separated modules to mask (default: the model's dropout_modules)")
     parser.add_argument("--model", default=None, help="checkpoint (default hrn_pyg/checkpoints/<scene>.pt)")
@@ -114,19 +132,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
-    if not 0.0 <= args.rate < 1.0:
+    if args.rate is not None and not 0.0 <= args.rate < 1.0:
         raise ValueError(f"--rate must be in [0, 1), got {args.rate}")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     device = resolve_device(args.device)
-    model = load(resolve_model(args.scene, args.model), device)
+    model_path = resolve_model(args.scene, args.model)
+    model = load(model_path, device)
+    if args.rate is None:
+        from hrn_pyg.sampling.calibrate import calibration_record
+
+        rate, rate_source = default_rate(model, calibration_record(model_path) is not None)
+    else:
+        rate, rate_source = float(args.rate), "--rate"
     graph, origin = initial_state(args, args.steps)
     store = graph[NODE]
     steps = int(store.force_seq.shape[1]) if args.steps is None else int(args.steps)
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
-    samples = sample(model, graph, args.k, steps, args.rate, forces=forces, generator=generator,
+    samples = sample(model, graph, args.k, steps, rate, forces=forces, generator=generator,
                      modules=modules).cpu().numpy()  # [K, steps, L, 3]
 
     leaf = store.is_leaf
@@ -141,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     colors = object_colors(np.asarray(leaf_object), static=np.asarray(store.is_static[leaf]))  # static light grey
     times = sorted({int(round(f * steps)) for f in FIGURE_COLUMNS})
-    title = f"{args.scene}: {args.k} samples, dropout {args.rate}"
+    title = f"{args.scene}: {args.k} samples, dropout {rate:g}"
     samples_figure(truth, paths, times, colors, out / "samples.png", title=title)
     write_gif({"truth (dark) + samples": truth}, colors, out / "samples.gif", samples=paths)
 
@@ -152,9 +177,10 @@ def run(args: argparse.Namespace) -> int:
 
     atomic_write(out / "samples.npz", write_npz)
     atomic_write_json(out / "samples.json", {
-        "k": args.k, "rate": args.rate, "steps": steps, "modules": list(modules or model.config.dropout_modules),
+        "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
         "sample_seed": args.sample_seed, "model": str(args.model or default_model_path(args.scene)),
         "device": str(device), **origin,
     })
-    print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps)")
+    print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "
+          f"rate {rate:g}: {rate_source})")
     return 0

@@ -45,8 +45,34 @@ def _check(batch, frames):
     assert (t >= 1).all() and (t <= 10).all()
 
 
+class RateTaggedDynamics:
+    """Cubes at rest 5 m from any goal; every step records the dropout rate it was called with
+    and writes it into the next state (cube 1's z velocity), so each collected frame names the
+    rate it was stepped at."""
+
+    num_objects, object_dim, state_dim = 2, 6, 12
+
+    def __init__(self):
+        self.rates: list[float] = []
+
+    def reset_states(self, batch, generator):
+        s = torch.zeros(batch, 2, 6)
+        s[:, :, 0] = 5.0
+        return s.reshape(batch, 12)
+
+    def roots(self, states):
+        return states.reshape(*states.shape[:-1], 2, 6)
+
+    def sample_next(self, states, forces, k, rate, generator):
+        self.rates.append(rate)
+        out = states[:, None].repeat(1, k, 1)
+        out[..., 11] = rate
+        return out
+
+
 def test_sync_collector_collects_and_sees_rate_changes():
-    env = make_env()
+    dyn = RateTaggedDynamics()
+    env = HRNEnv("cube_push", dyn, batch_size=2, seed=0, dropout_rate=0.3)
     collector = Collector(env, None, frames_per_batch=24, total_frames=48,
                           auto_register_policy_transforms=False)
     try:
@@ -57,7 +83,13 @@ def test_sync_collector_collects_and_sees_rate_changes():
         assert len(batches) == 2
         for b in batches:
             _check(b, 24)
-        assert collector.env.dropout_rate == 0.0
+        # 12 steps of 2 environments per batch: the dynamics got 0.3 for the first batch's
+        # steps and 0.0 for every step after the change, and the frames say the same
+        assert collector.env.dynamics is dyn
+        assert dyn.rates == [0.3] * 12 + [0.0] * 12
+        tagged = [b["next", "observation"][..., 11] for b in batches]
+        assert torch.equal(tagged[0], torch.full_like(tagged[0], 0.3))
+        assert torch.equal(tagged[1], torch.zeros_like(tagged[1]))
     finally:
         collector.shutdown()
 

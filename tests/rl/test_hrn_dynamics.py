@@ -4,6 +4,7 @@ ground-truth check that replays a policy's episodes in pybullet."""
 import numpy as np
 import pytest
 import torch
+from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import check_env_specs
 
 from hrn_pyg.data.dataset import EpisodeWindows
@@ -15,7 +16,9 @@ from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.rl.dynamics import StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, POOL_SEEDS, HRNDynamics
-from hrn_pyg.rl.ppo import build_actor_critic, ground_truth_success, record_episodes, replay_in_pybullet
+from hrn_pyg.rl.evaluate import ground_truth_success, record_episodes, replay_in_pybullet
+from hrn_pyg.rl.ppo import build_actor_critic
+from hrn_pyg.rl.tasks import get_task, goal_reached
 from hrn_pyg.rollout import step as model_step
 
 POOL = POOL_SEEDS[:4]
@@ -182,8 +185,21 @@ def test_env_specs_and_random_rollout_stay_finite(dynamics):
     assert ((td["next", "t"] >= 1) & (td["next", "t"] <= env.task.max_steps)).all()
 
 
+class SeekNorthGoals(torch.nn.Module):
+    """Pushes both cubes at full force straight at the goal when the goal lies north of the
+    origin (y > 0) and does nothing otherwise: in pybullet it solves about half the episodes
+    (a zero action never does: no goal is met at reset)."""
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        xy = obs[..., :12].reshape(*obs.shape[:-1], 2, 6)[..., :2]          # (..., 2 cubes, 2)
+        to_goal = obs[..., None, 12:14] - xy
+        push = 15.0 * to_goal / to_goal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        return (push * (obs[..., None, 13:14] > 0)).flatten(-2)             # (..., 4)
+
+
 def test_record_episodes_and_ground_truth_check(dynamics):
-    env = HRNEnv("cube_push", dynamics, batch_size=3, seed=1, dropout_rate=0.1)
+    task = get_task("cube_push")
+    env = HRNEnv(task, dynamics, batch_size=3, seed=1, dropout_rate=0.1)
     torch.manual_seed(0)
     actor, _ = build_actor_critic(env, 8)
     records = record_episodes(actor, env, 4)
@@ -194,13 +210,44 @@ def test_record_episodes_and_ground_truth_check(dynamics):
         assert rec["actions"].shape == (n, env.task.action_dim) and rec["states"].shape == (n + 1, dynamics.state_dim)
         assert rec["actions"].abs().max() <= env.task.max_force
         assert int(dynamics.scene_seeds(rec["states"][0])) == rec["seed"]
-    result = ground_truth_success(actor, env, 4)
-    assert result["ground_truth_episodes"] == 4
-    for key in ("model_success_rate", "pybullet_success_rate", "agreement"):
-        assert 0.0 <= result[key] <= 1.0
-    for key in ("model_mean_length", "pybullet_mean_length"):
-        assert 1.0 <= result[key] <= env.task.max_steps
-    assert env.dropout_rate == 0.1  # restored after the check
+        # success is the goal met by the last state and by no earlier one; a failure runs out
+        met = goal_reached(task, dynamics.roots(rec["states"]), rec["goal"])
+        assert rec["success"] == bool(met[-1]) and not met[:-1].any()
+        assert rec["success"] or n == task.max_steps
+
+    # the check, then the same episodes by hand: a fresh environment with the same seed at the
+    # settings the check uses (dropout 0, no action noise), replayed in pybullet one by one
+    policy = TensorDictModule(SeekNorthGoals(), in_keys=["observation"], out_keys=["action"])
+    env = HRNEnv(task, dynamics, batch_size=3, seed=1, dropout_rate=0.1, action_noise_std=0.2)
+    episodes = 6
+    result = ground_truth_success(policy, env, episodes)
+    assert (env.dropout_rate, env.action_noise_std) == (0.1, 0.2)  # restored after the check
+    records = record_episodes(policy, HRNEnv(task, dynamics, batch_size=3, seed=1, dropout_rate=0.0),
+                              episodes)
+    model_ok, model_len, real_ok, real_len = [], [], [], []
+    for rec in records:
+        replay = replay_in_pybullet(rec["actions"], task, rec["seed"], rec["goal"],
+                                    history_steps=HISTORY_STEPS)
+        met = goal_reached(task, replay["roots"], rec["goal"])            # (steps + 1,)
+        assert replay["success"] == bool(met[-1]) and not met[:-1].any()
+        assert replay["steps"] == (int(met.nonzero()[0]) if met.any() else rec["length"])
+        model_ok.append(rec["success"])
+        model_len.append(rec["length"] if rec["success"] else task.max_steps)
+        real_ok.append(replay["success"])
+        real_len.append(replay["steps"] if replay["success"] else task.max_steps)
+    expected = {
+        "ground_truth_episodes": episodes,
+        "model_success_rate": sum(model_ok) / episodes,
+        "model_mean_length": sum(model_len) / episodes,
+        "pybullet_success_rate": sum(real_ok) / episodes,
+        "pybullet_mean_length": sum(real_len) / episodes,
+        "agreement": sum(a == b for a, b in zip(model_ok, real_ok)) / episodes,
+    }
+    assert result == pytest.approx(expected)
+    # the numbers are not trivially 0 or 1: the random model solves none of the episodes,
+    # pybullet the northern ones (3 of these 6), so the two agree on the other half
+    assert 0.0 < expected["pybullet_success_rate"] < 1.0 and 0.0 < expected["agreement"] < 1.0
+    assert sum(real_ok) == sum(bool(rec["goal"][1] > 0) for rec in records)
 
 
 def test_replay_starts_where_the_learned_episode_starts(dynamics):

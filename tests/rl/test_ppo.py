@@ -7,11 +7,13 @@ import torch
 
 from hrn_pyg.cli import main
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.ppo import (MODES, PPOConfig, build_actor_critic, evaluate_policy, mode_settings,
-                            plot_episode_length, train)
+from hrn_pyg.rl import ppo
+from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve
+from hrn_pyg.rl.dynamics import PointMassDynamics
+from hrn_pyg.rl.evaluate import evaluate_policy
+from hrn_pyg.rl.ppo import MODES, PPOConfig, build_actor_critic, mode_settings, train
 from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER
 from hrn_pyg.utils.checkpoint import load_checkpoint
-
 
 
 class FixedDynamics:
@@ -33,6 +35,19 @@ class FixedDynamics:
         out[..., :2] = self.x
         return out
 
+
+class RecordingPointMass(PointMassDynamics):
+    """Point-mass cube_push that records the dropout rate of every step it is asked for."""
+
+    def __init__(self):
+        super().__init__(PointMassDynamics.for_task("cube_push").config)
+        self.rates: list[float] = []
+
+    def sample_next(self, states, forces, k, rate, generator):
+        self.rates.append(rate)
+        return super().sample_next(states, forces, k, rate, generator)
+
+
 TINY = PPOConfig(updates=2, num_envs=4, frames_per_batch=40, epochs=1, minibatch=20, hidden=16,
                  eval_episodes=4)
 
@@ -52,20 +67,70 @@ def test_annealing_schedule_values():
         mode_settings("greedy", TOWER, cfg)
 
 
-def test_tiny_ppo_run_writes_log_and_checkpoint(tmp_path):
-    res = train(CUBE_PUSH, "stochastic_annealed", 0, TINY, tmp_path, anneal_updates=2,
+def _episode_stats_by_hand(batch) -> dict:
+    """Episodes that ended in a collected batch ``(B, T)``, one frame at a time."""
+    done = batch["next", "done"].squeeze(-1).tolist()
+    t = batch["next", "t"].squeeze(-1).tolist()
+    won = batch["next", "terminated"].squeeze(-1).tolist()
+    ended = [(t[b][i], won[b][i]) for b in range(len(done)) for i in range(len(done[b])) if done[b][i]]
+    rewards = [r for row in batch["next", "reward"].squeeze(-1).tolist() for r in row]
+    return {"episodes": len(ended), "mean_episode_length": sum(n for n, _ in ended) / len(ended),
+            "success_rate": sum(w for _, w in ended) / len(ended),
+            "reward_mean": sum(rewards) / len(rewards)}
+
+
+def test_tiny_ppo_run_writes_log_and_checkpoint(tmp_path, monkeypatch):
+    batches, initial = [], {}
+    update, build = ppo._ppo_update, ppo.build_actor_critic
+
+    def keep_batch(batch, *args):  # the batch as collected, before GAE writes into it
+        batches.append(batch.clone())
+        return update(batch, *args)
+
+    def keep_init(env, hidden):
+        actor, critic = build(env, hidden)
+        initial.update({f"actor.{k}": v.clone() for k, v in actor.state_dict().items()})
+        initial.update({f"critic.{k}": v.clone() for k, v in critic.state_dict().items()})
+        return actor, critic
+
+    monkeypatch.setattr(ppo, "_ppo_update", keep_batch)
+    monkeypatch.setattr(ppo, "build_actor_critic", keep_init)
+    dyn = RecordingPointMass()
+    res = train(CUBE_PUSH, "stochastic_annealed", 0, TINY, tmp_path, dyn, anneal_updates=2,
                 progress=False)
     with open(tmp_path / "log.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [int(r["update"]) for r in rows] == [0, 1]
+    assert [int(r["frames"]) for r in rows] == [40, 80]
     assert [float(r["dropout_rate"]) for r in rows] == pytest.approx([0.1, 0.05])
-    assert all(r["loss_objective"] != "" for r in rows)
+    # the dynamics got the logged rate on every step of its batch (10 steps of 4 environments),
+    # then dropout 0 for the final evaluation
+    steps = TINY.frames_per_batch // TINY.num_envs
+    assert dyn.rates[:2 * steps] == pytest.approx([0.1] * steps + [0.05] * steps)
+    assert len(dyn.rates) > 2 * steps and set(dyn.rates[2 * steps:]) == {0.0}
+    # the logged episode statistics are those of the collected batches, recomputed by hand
+    assert len(batches) == 2 and all(b.shape == (TINY.num_envs, steps) for b in batches)
+    for row, batch in zip(rows, batches):
+        expected = _episode_stats_by_hand(batch)
+        assert int(row["episodes"]) == expected.pop("episodes") > 0
+        assert {k: float(row[k]) for k in expected} == pytest.approx(expected)
+        assert row["loss_objective"] != "" and row["loss_critic"] != ""
+    # the checkpoint holds trained weights: every weight and bias of the actor and the critic
+    # moved away from its initial value, in 2 updates x 1 epoch x 2 minibatches = 4 Adam steps
     ckpt = load_checkpoint(tmp_path / "policy.pt")
     assert ckpt["update"] == 2 and json.loads(ckpt["config"])["mode"] == "stochastic_annealed"
+    saved = {f"{net}.{k}": v for net in ("actor", "critic") for k, v in ckpt["model"][net].items()}
+    assert saved.keys() == initial.keys()
+    assert sum(not torch.equal(saved[k], initial[k]) for k in saved) == len(saved)
+    assert {int(s["step"]) for s in ckpt["optimizer"]["state"].values()} == {4}
     env = HRNEnv(CUBE_PUSH, batch_size=2, seed=0)
     actor, critic = build_actor_critic(env, TINY.hidden)
     actor.load_state_dict(ckpt["model"]["actor"])
     critic.load_state_dict(ckpt["model"]["critic"])
+    # the result's curve metrics are those of the written log
+    metrics = curve_metrics(read_curve(tmp_path / "log.csv"))
+    assert {k: res[k] for k in metrics} == metrics
+    assert metrics["final_length"] == float(rows[-1]["mean_episode_length"])
     assert 0.0 <= res["success_rate"] <= 1.0 and 1.0 <= res["mean_episode_length"] <= 10.0
     assert (tmp_path / "curve.png").stat().st_size > 0
 
@@ -134,7 +199,7 @@ def test_cli_unknown_task_or_mode_exits_2():
 
 
 def test_replay_in_pybullet_judges_the_goal_on_ground_truth():
-    from hrn_pyg.rl.ppo import replay_in_pybullet
+    from hrn_pyg.rl.evaluate import replay_in_pybullet
 
     still = torch.zeros(3, CUBE_PUSH.action_dim)
     first = replay_in_pybullet(still[:1], "cube_push", 5, goal=torch.tensor([9.0, 9.0]))
@@ -147,7 +212,7 @@ def test_replay_in_pybullet_judges_the_goal_on_ground_truth():
 
 
 def test_curve_metrics_by_hand():
-    from hrn_pyg.rl.ppo import curve_metrics, smooth, updates_to_reach
+    from hrn_pyg.rl.curves import smooth, updates_to_reach
 
     assert smooth([4.0, float("nan"), 2.0], window=2) == [4.0, 4.0, 2.0]
     # 10 updates at 10, then 90 at 2: final 2, start 10, 90 % of the drop reached when the
@@ -164,7 +229,7 @@ def test_curve_metrics_by_hand():
 
 
 def test_write_summary_tables(tmp_path):
-    from hrn_pyg.rl.ppo import write_summary
+    from hrn_pyg.rl.curves import write_summary
 
     for mode, seed, curve in (("deterministic", 0, [10.0] * 5 + [4.0] * 20),
                               ("stochastic", 0, [10.0, 4.0] + [3.0] * 23)):

@@ -45,8 +45,10 @@ def test_missing_default_checkpoint_names_path_and_command(tmp_path):
     assert code == 2
 
 
-def test_bad_rate_is_a_clean_error(checkpoint):
+def test_bad_rate_is_a_clean_error(checkpoint, capsys):
     assert main(["sample", "--scene", "wedge", "--rate", "1.5", "--model", str(checkpoint)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("hrn-pyg sample: error:") and "rate" in err and "1.5" in err, err
 
 
 def test_device_cpu_runs_and_is_recorded(checkpoint, tmp_path):

@@ -57,14 +57,14 @@ def test_episode_state_matches_the_episode(reference):
 
 
 @pytest.mark.parametrize(
-    "call",
+    ("call", "message"),
     [
-        lambda ep: episode_state(ep, start=1),
-        lambda ep: episode_state(ep, start=2, steps=STEPS),
-        lambda ep: ground_truth_ensemble("wedge", 5, 0, steps=STEPS),
-        lambda ep: PerturbationConfig(position_std=-1.0),
+        (lambda ep: episode_state(ep, start=1), r"start must be in \[2, 3\] for an episode of 4 steps, got 1"),
+        (lambda ep: episode_state(ep, start=2, steps=STEPS), r"steps must be in \[1, 2\] from start 2, got 4"),
+        (lambda ep: ground_truth_ensemble("wedge", 5, 0, steps=STEPS), r"members must be an integer >= 1, got 0"),
+        (lambda ep: PerturbationConfig(position_std=-1.0), r"position_std must be finite and >= 0, got -1.0"),
     ],
 )
-def test_bad_input_raises(reference, call):
-    with pytest.raises(ValueError):
+def test_bad_input_raises(reference, call, message):
+    with pytest.raises(ValueError, match=message):
         call(reference)

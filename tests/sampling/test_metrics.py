@@ -93,17 +93,20 @@ def test_side_fractions():
 
 
 @pytest.mark.parametrize(
-    "call",
+    ("call", "message"),
     [
-        lambda: energy_score(torch.zeros(2, 3), torch.zeros(1, 4)),
-        lambda: best_of_k_error(torch.zeros(2, 4, 2), torch.zeros(1, 4, 2)),
-        lambda: coverage(torch.zeros(2, 3), torch.zeros(1, 3), per="all"),
-        lambda: object_centres(torch.zeros(3, 3), torch.tensor([0, 1]), torch.ones(3)),
-        lambda: root_spread(torch.zeros(2, 2)),
-        lambda: side_fractions(torch.tensor([float("nan")])),
-        lambda: side_fractions(torch.zeros(0)),
+        (lambda: energy_score(torch.zeros(2, 3), torch.zeros(1, 4)), r"truth must be \[M>=1, 3\], got \(1, 4\)"),
+        (lambda: best_of_k_error(torch.zeros(2, 4, 2), torch.zeros(1, 4, 2)),
+         r"samples must be \[K, \.\.\., L, 3\], got \(2, 4, 2\)"),
+        (lambda: coverage(torch.zeros(2, 3), torch.zeros(1, 3), per="all"),
+         r"per must be 'coordinate' or 'member', got 'all'"),
+        (lambda: object_centres(torch.zeros(3, 3), torch.tensor([0, 1]), torch.ones(3)),
+         r"leaf_object and leaf_mass must be \[3\], got \(2,\), \(3,\)"),
+        (lambda: root_spread(torch.zeros(2, 2)), r"centres must be \[K>=1, \.\.\., 3\], got \(2, 2\)"),
+        (lambda: side_fractions(torch.tensor([float("nan")])), r"coordinate contains NaN or infinite values"),
+        (lambda: side_fractions(torch.zeros(0)), r"coordinate must be \[K>=1\], got \(0,\)"),
     ],
 )
-def test_bad_input_raises(call):
-    with pytest.raises(ValueError):
+def test_bad_input_raises(call, message):
+    with pytest.raises(ValueError, match=message):
         call()

@@ -1,0 +1,247 @@
+"""Objects at rest sleep, measured: time per step and accuracy, sleeping on against all awake.
+
+Cases (all on the CPU, shipped checkpoints, the pybullet episode's own forces):
+
+* ``tower`` (``hrn_pyg/checkpoints/tower.pt``) and ``multi_material`` (``multi_material.pt``):
+  full pybullet test episodes (``seed % 10 == 9``; ``--seeds``, default 9, 19, 29), rolled out
+  from step 2 (:func:`hrn_pyg.sampling.ensemble.episode_state`) to the episode's end;
+* ``field``: one pybullet world of 64 objects, sixteen of the ``tower`` scene's towers (three
+  stacked cubes and a ball each, drawn as in :class:`hrn_pyg.data.scenes.Tower`) on a 4 x 4 grid
+  ``--field-spacing`` (1.5 m) apart, rolled out with ``tower.pt`` (the model of exactly this
+  neighbourhood; it sees only relative positions, so the grid offsets do not matter to it).
+  Only the balls of the first ``--field-moving`` (2) towers are pushed, by the tower scene's
+  random forces aimed at their own tower; the other 14 towers and balls rest from the start.
+  So a few objects move (2 balls and whatever they topple) and most rest, the case sleeping
+  is for. The grid is wide enough that the other towers are out of the moving balls' reach.
+
+For each case: a rollout with every object awake (``sleep=None``) and one with
+``SleepConfig()`` (the defaults of :mod:`hrn_pyg.sleeping`), ``--repeats`` >= 3 times each in one
+process, the two settings interleaved so they see the same machine load (one torch thread by
+default). Reported: the median over repeats of the time per step (rollout time / steps), the
+ratio, the position MSE against pybullet (``hrn_pyg.evaluate``'s definition: squared error
+per coordinate over the movable leaves) at ``t+15`` and at the episode's end for both settings,
+the mean fraction of movable objects asleep, and whether ``SleepConfig(enabled=False)`` gives the
+plain rollout bit for bit.
+
+Run: ``python benchmarks/sleeping.py [--seeds 9,19,29] [--repeats 5] [--threads 1]``; a smoke run
+on a busy machine: ``python benchmarks/sleeping.py --quick`` (one seed, 40-step episodes, three
+repeats). Prints a markdown table and writes ``benchmarks/results/sleeping.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import statistics
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.scenes import SCENES, Tower, TowerConfig, _yaw_quaternion, simulate_episode
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.rollout import rollout, unroll
+from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sleeping import SleepConfig
+from hrn_pyg.train import load_model
+from hrn_pyg.utils.files import atomic_write_json
+
+CHECKPOINTS = {"tower": "hrn_pyg/checkpoints/tower.pt", "multi_material": "hrn_pyg/checkpoints/multi_material.pt",
+               "field": "hrn_pyg/checkpoints/tower.pt"}
+#: the horizon of Table 1's long error
+HORIZON = 15
+#: model steps of the --quick episodes (pybullet steps 0..40, the rollout starts at step 2)
+QUICK_STEPS = 40
+
+
+@dataclass(frozen=True)
+class TowerFieldConfig(TowerConfig):
+    """``towers`` towers of the tower scene on a square grid ``spacing`` apart; the balls of the
+    first ``moving`` towers are pushed (the tower scene's schedule), the rest stay at rest."""
+
+    towers: int = 16
+    spacing: float = 1.5
+    moving: int = 2
+
+
+class TowerField(Tower):
+    """Many independent towers in one world: objects ``4 k .. 4 k + 2`` are tower ``k``'s cubes
+    (bottom to top), ``4 k + 3`` its ball."""
+
+    name = "tower_field"
+    config_cls = TowerFieldConfig
+
+    def __init__(self, seed: int, config: TowerFieldConfig | None = None) -> None:
+        super().__init__(seed, config)
+        self.actuated = tuple(4 * k + 3 for k in range(self.config.moving))
+
+    def draw_params(self, rng):
+        towers = [{k: v for k, v in super(TowerField, self).draw_params(rng).items() if k != "last_push_step"}
+                  for _ in range(self.config.towers)]
+        return {"towers": towers, **self._schedule_params(rng)}
+
+    def build(self):
+        cfg = self.config
+        side = math.ceil(math.sqrt(cfg.towers))
+        for k, pr in enumerate(self.params["towers"]):  # a few towers, each a handful of bodies
+            ox, oy = cfg.spacing * (k % side), cfg.spacing * (k // side)
+            for level, (mass, yaw) in enumerate(zip(pr["cube_masses"], pr["yaws"])):
+                self._add_rigid("box", cfg.cube_side, mass, (ox, oy, cfg.cube_side * (level + 0.5)),
+                                _yaw_quaternion(yaw))
+            d, h = pr["ball_distance"], pr["ball_heading"]
+            self._add_rigid("sphere", cfg.ball_radius, pr["ball_mass"],
+                            (ox + d * math.cos(h), oy + d * math.sin(h), cfg.ball_radius))
+
+    def _aim(self, index):
+        ball = self._object_positions(self._objects[index]).mean(axis=0)
+        base = self._object_positions(self._objects[index - 3]).mean(axis=0)
+        to_tower = base - ball
+        return math.atan2(to_tower[1], to_tower[0]) + float(self.rng.uniform(*self.config.aim_noise_range))
+
+
+def make_case(scene: str, seed: int, steps: int | None, moving: int, spacing: float) -> tuple[HeteroData, torch.Tensor]:
+    """The initial graph (step 2 of the pybullet episode, with its ground truth) and the forces
+    ``[S, N, 3]`` of the steps to the end."""
+    if scene == "field":
+        SCENES.setdefault(TowerField.name, TowerField)  # simulate_episode looks scenes up by name
+        episode = simulate_episode(TowerField.name, seed, steps,
+                                   TowerFieldConfig(moving=moving, spacing=spacing))
+    else:
+        episode = simulate_episode(scene, seed, steps)
+    graph = episode_state(episode, start=2)
+    return graph, graph[NODE].force_seq.transpose(0, 1).contiguous()
+
+
+def position_mse(pred: torch.Tensor, truth: torch.Tensor, graph: HeteroData) -> float:
+    """Mean squared error per coordinate over the movable leaves (``hrn_pyg.evaluate``'s)."""
+    store = graph[NODE]
+    moving = store.is_leaf & ~store.is_static
+    return float((pred - truth)[moving].pow(2).mean())
+
+
+def timed(model: HRN, graph: HeteroData, forces: torch.Tensor, sleep: SleepConfig | None) -> tuple[float, torch.Tensor]:
+    steps = forces.shape[0]
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        pos = rollout(model, graph, steps, forces, sleep=sleep)
+        return (time.perf_counter() - t0) / steps, pos
+
+
+def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
+    t0 = time.perf_counter()
+    graph, forces = make_case(scene, seed, QUICK_STEPS if args.quick else None, args.field_moving, args.field_spacing)
+    simulated = time.perf_counter() - t0
+    model = load_model(CHECKPOINTS[scene])
+    store = graph[NODE]
+    steps = forces.shape[0]
+    truth = store.pos_seq[:, 3:].transpose(0, 1)  # [steps, N, 3]: x_3 .. x_S
+    settings = {"all_awake": None, "sleeping": SleepConfig()}
+    del store.pos_seq, store.force_seq
+
+    with torch.no_grad():
+        asleep = torch.stack([s.asleep for s in unroll(model, graph, steps, forces, sleep=settings["sleeping"])])
+        off = rollout(model, graph, steps, forces, sleep=SleepConfig(enabled=False))
+    movable_root = store.is_root & ~store.is_static
+    asleep_fraction = asleep[:, movable_root].float().mean(1)  # [steps]
+    leaves_run = (~asleep[:, store.is_leaf]).float().sum(1)  # awake leaves per step
+
+    times: dict[str, list[float]] = {k: [] for k in settings}
+    preds: dict[str, torch.Tensor] = {}
+    for k, sleep in settings.items():  # warm-up
+        preds[k] = timed(model, graph, forces, sleep)[1]
+    for _ in range(args.repeats):  # interleaved: both settings see the same load
+        for k, sleep in settings.items():
+            times[k].append(timed(model, graph, forces, sleep)[0])
+    med = {k: statistics.median(v) for k, v in times.items()}
+    horizon = min(HORIZON, steps)
+    return {
+        "scene": scene, "seed": seed, "steps": steps,
+        "objects": int(store.is_root.sum()), "leaves": int(store.is_leaf.sum()), "nodes": int(store.num_nodes),
+        "ms_per_step": {k: 1e3 * v for k, v in med.items()},
+        "ms_per_step_runs": {k: [1e3 * t for t in v] for k, v in times.items()},
+        "all_awake_over_sleeping": med["all_awake"] / med["sleeping"],
+        "position_mse": {k: {f"t+{horizon}": position_mse(p[horizon - 1], truth[horizon - 1], graph),
+                             "end": position_mse(p[-1], truth[-1], graph)} for k, p in preds.items()},
+        "asleep_fraction_mean": float(asleep_fraction.mean()),
+        "asleep_fraction_last_step": float(asleep_fraction[-1]),
+        "first_step_all_asleep": (int(torch.nonzero(asleep_fraction == 1).min())
+                                  if bool((asleep_fraction == 1).any()) else None),
+        "awake_leaves_per_step_mean": float(leaves_run.mean()),
+        "sleep_off_bit_identical": bool(torch.equal(off, preds["all_awake"])),
+        "simulate_seconds": simulated,
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="9,19,29", help="test seeds (seed %% 10 == 9) of tower and multi_material")
+    parser.add_argument("--field-seed", type=int, default=9)
+    parser.add_argument("--field-moving", type=int, default=2, help="towers whose ball is pushed (of 16)")
+    parser.add_argument("--field-spacing", type=float, default=1.5, help="distance between towers (m)")
+    parser.add_argument("--cases", default="tower,multi_material,field")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--quick", action="store_true",
+                        help=f"smoke run: first seed only, {QUICK_STEPS}-step episodes, 3 repeats")
+    parser.add_argument("--out", default="benchmarks/results/sleeping.json")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.repeats = 3
+    if args.repeats < 3:
+        raise SystemExit("--repeats must be >= 3 (median of at least 3 runs)")
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    if any(s % 10 != 9 for s in seeds):
+        raise SystemExit(f"--seeds must be test seeds (seed % 10 == 9), got {seeds}")
+    if args.quick:
+        seeds = seeds[:1]
+    torch.set_num_threads(args.threads)
+
+    rows = []
+    for scene in (c for c in args.cases.split(",") if c):
+        if scene not in CHECKPOINTS:
+            raise SystemExit(f"unknown case {scene!r}; choose from {sorted(CHECKPOINTS)}")
+        for seed in ([args.field_seed] if scene == "field" else seeds):
+            row = bench_case(scene, seed, args)
+            rows.append(row)
+            ms = row["ms_per_step"]
+            print(f"{scene} seed {seed}: all awake {ms['all_awake']:.2f} ms, sleeping {ms['sleeping']:.2f} ms "
+                  f"(x{row['all_awake_over_sleeping']:.2f}), asleep {100 * row['asleep_fraction_mean']:.0f}% of "
+                  f"object-steps", flush=True)
+
+    print()
+    print("| case | seed | objects | leaves | steps | all awake ms/step | sleeping ms/step | speed-up | "
+          "asleep (mean) | pos MSE t+15 awake / sleeping | pos MSE end awake / sleeping | off = plain |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|")
+    for r in rows:
+        ms, err = r["ms_per_step"], r["position_mse"]
+        h = next(k for k in err["all_awake"] if k != "end")
+        print(f"| {r['scene']} | {r['seed']} | {r['objects']} | {r['leaves']} | {r['steps']} | "
+              f"{ms['all_awake']:.2f} | {ms['sleeping']:.2f} | x{r['all_awake_over_sleeping']:.2f} | "
+              f"{100 * r['asleep_fraction_mean']:.0f}% | {err['all_awake'][h]:.3g} / {err['sleeping'][h]:.3g} | "
+              f"{err['all_awake']['end']:.3g} / {err['sleeping']['end']:.3g} | "
+              f"{'yes' if r['sleep_off_bit_identical'] else 'NO'} |")
+    result = {
+        "what": "objects at rest sleep: rollout with SleepConfig() against every object awake",
+        "sleep_config": SleepConfig().to_dict(),
+        "quick": args.quick, "repeats": args.repeats,
+        "statistic": "median over repeats of (rollout time / steps); settings interleaved, one process",
+        "error": "position MSE per coordinate over movable leaves against pybullet, at t+15 and the episode end",
+        "field": {"towers": TowerFieldConfig.towers, "moving": args.field_moving, "spacing": args.field_spacing,
+                  "model": CHECKPOINTS["field"]},
+        "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
+                    "torch": torch.__version__, "numpy": np.__version__, "torch_threads": args.threads,
+                    "load_average_1m": os.getloadavg()[0]},
+        "rows": rows,
+    }
+    atomic_write_json(args.out, result)
+    print(f"wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

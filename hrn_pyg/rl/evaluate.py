@@ -1,0 +1,192 @@
+"""Ground-truth evaluation of a trained policy: its episodes in the learned environment and the
+same actions replayed in pybullet.
+
+- :func:`record_episodes` runs the policy's deterministic actions in an
+  :class:`~hrn_pyg.rl.env.HRNEnv` and keeps everything a replay needs (start scene seed, goal,
+  actions, states, outcome).
+- :func:`evaluate_policy` scores those episodes: success rate and mean length in the
+  environment as configured.
+- :func:`replay_in_pybullet` applies one episode's actions open loop in the pybullet scene it
+  started from and judges the task's goal there.
+- :func:`ground_truth_success` puts the two side by side (the check ``hrn-pyg rl --model`` runs
+  after training).
+
+Training lives in :mod:`hrn_pyg.rl.ppo`, learning curves and summaries in
+:mod:`hrn_pyg.rl.curves`.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import Tensor
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from hrn_pyg.rl.env import HRNEnv
+from hrn_pyg.rl.tasks import TaskConfig, action_to_forces, get_task, goal_reached
+
+
+@torch.no_grad()
+def evaluate_policy(policy: TensorDictModule, env: HRNEnv, episodes: int) -> tuple[float, float]:
+    """Success rate and mean episode length of the policy's deterministic actions.
+
+    Runs rounds of ``B`` parallel episodes (:func:`record_episodes`), each for up to
+    ``task.max_steps`` steps, and scores the first ``episodes``; an episode that never reaches the
+    goal counts ``max_steps``. The environment is used as configured (set ``dropout_rate = 0``
+    first to judge the deterministic model).
+    """
+    records = record_episodes(policy, env, episodes)
+    success = sum(r["success"] for r in records) / len(records)
+    length = sum(r["length"] for r in records) / len(records)
+    return float(success), float(length)
+
+
+def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
+                       goal: Tensor | None = None, history_steps: int = 0) -> dict:
+    """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
+
+    The ground-truth check of issue 6: builds ``hrn_pyg.data.scenes.make_scene(task, seed)``,
+    applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
+    judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
+    displacement) after every step, stopping at the first success. ``goal`` ``(2,)`` is the
+    episode's goal point; ``None`` is allowed only for ``tower``, whose goal point is the
+    middle cube's initial position. For the comparison to mean anything the learned
+    environment's episode must start from this scene's initial state (the learned dynamics'
+    ``reset_states`` draws scenes by seed). ``history_steps`` zero-force steps are taken after
+    the scene's reset before the first action: :class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`
+    starts its episodes after ``HISTORY_STEPS`` such steps (it needs ``x_{t-2}, x_{t-1}``), so
+    the replay of one of its episodes passes that number.
+
+    Returns ``{"success": bool, "steps": int, "roots": (steps + 1, O, 6) tensor,
+    "leaves": (steps + 1, L, 3) tensor}`` (index 0: the start, after the history steps).
+    """
+    task = get_task(task)
+    if history_steps < 0:
+        raise ValueError(f"history_steps must be >= 0, got {history_steps}")
+    from hrn_pyg.data.scenes import make_scene
+
+    actions = torch.as_tensor(actions, dtype=torch.float32).cpu()  # pybullet takes numpy
+    forces = action_to_forces(task, actions)                                  # (T, O, 3)
+    scene = make_scene(task.name, seed)
+    try:
+        leaves = torch.as_tensor(scene.reset(), dtype=torch.float32)
+        before = leaves
+        for _ in range(history_steps):  # a loop over time steps
+            before, leaves = leaves, torch.as_tensor(scene.step(scene.zero_action()), dtype=torch.float32)
+        obj = torch.as_tensor(scene.leaf_object)
+        mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
+
+        def centres(x: Tensor) -> Tensor:  # (L, 3) -> (O, 3), mass-weighted per object
+            num = torch.zeros(task.num_objects, 3).index_add_(0, obj, x * mass[:, None])
+            den = torch.zeros(task.num_objects).index_add_(0, obj, mass)
+            return num / den[:, None]
+
+        prev = centres(leaves)
+        roots = [torch.cat([prev, prev - centres(before)], -1)]
+        frames = [leaves]
+        if goal is None:
+            if task.goal_kind != "displaced":
+                raise ValueError(f"goal: task {task.name!r} needs the episode's goal point")
+            goal = prev[task.goal_objects[0], :2]
+        goal = torch.as_tensor(goal, dtype=torch.float32).cpu()
+        success = False
+        for f in forces:
+            frames.append(torch.as_tensor(scene.step(f.double().numpy()), dtype=torch.float32))
+            now = centres(frames[-1])
+            roots.append(torch.cat([now, now - prev], -1))
+            prev = now
+            if bool(goal_reached(task, roots[-1], goal)):
+                success = True
+                break
+    finally:
+        scene.close()
+    return {"success": success, "steps": len(roots) - 1, "roots": torch.stack(roots),
+            "leaves": torch.stack(frames)}
+
+
+@torch.no_grad()
+def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> list[dict]:
+    """Run the policy's deterministic actions in ``env`` and keep everything a replay needs.
+
+    The environment is used as configured, on its device; the records are CPU tensors (ready
+    for :func:`replay_in_pybullet` and numpy). Per episode: ``seed`` (the pybullet scene it started
+    from, ``env.dynamics.scene_seeds``; -1 for dynamics without one), ``goal`` ``(2,)``,
+    ``actions`` ``(T, A)`` (clipped to the action bounds, as the environment applies them),
+    ``states`` ``(T + 1, S)`` (start, then after each action), ``success`` (bool: the episode
+    ended by reaching the goal) and ``length`` ``T`` (steps until it ended).
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    B, bound = env.batch_size[0], env.task.max_force
+    out: list[dict] = []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        while len(out) < episodes:
+            td = env.reset()
+            seeds = (env.dynamics.scene_seeds(td["state"]) if hasattr(env.dynamics, "scene_seeds")
+                     else torch.full((B,), -1, dtype=torch.long))
+            goal = td["goal"].clone()
+            states, actions = [td["state"].clone()], []
+            finished = torch.zeros(B, dtype=torch.bool, device=env.device)
+            success = torch.zeros_like(finished)
+            length = torch.full((B,), env.task.max_steps, dtype=torch.int64, device=env.device)
+            for _ in range(env.task.max_steps):  # a loop over time steps
+                td = env.step(policy(td))
+                actions.append(td["action"].clamp(-bound, bound).clone())
+                states.append(td["next", "state"].clone())
+                done = td["next", "done"].squeeze(-1) & ~finished
+                success |= done & td["next", "terminated"].squeeze(-1)
+                length = torch.where(done, td["next", "t"].squeeze(-1), length)
+                finished |= done
+                if finished.all():
+                    break
+                td = step_mdp(td)
+            # back to the CPU once per round: (B, T, A), (B, T+1, S)
+            actions_t, states_t = torch.stack(actions, 1).cpu(), torch.stack(states, 1).cpu()
+            seeds, goal, success, length = seeds.cpu(), goal.cpu(), success.cpu(), length.cpu()
+            for i in range(B):  # a loop over finished episodes, to split them by length
+                n = int(length[i])
+                out.append({"seed": int(seeds[i]), "goal": goal[i], "actions": actions_t[i, :n],
+                            "states": states_t[i, :n + 1], "success": bool(success[i]), "length": n})
+    return out[:episodes]
+
+
+def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -> dict[str, float]:
+    """The ground-truth check: the policy's learned-model episodes replayed in pybullet.
+
+    Runs ``episodes`` deterministic episodes in the learned environment with dropout 0 and no
+    action noise (:func:`record_episodes`; the environment's settings are restored after),
+    then replays each episode's actions open loop in the pybullet scene it started from, after
+    the same ``HISTORY_STEPS`` zero-force steps, against the same goal
+    (:func:`replay_in_pybullet`). An episode that failed or ran to ``max_steps`` counts as
+    length ``max_steps`` on either side (the convention of :func:`evaluate_policy`).
+
+    Returns ``model_success_rate``, ``model_mean_length``, ``pybullet_success_rate``,
+    ``pybullet_mean_length`` and ``agreement`` (fraction of episodes where both judge the same),
+    plus ``ground_truth_episodes``.
+    """
+    from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS
+
+    saved = env.dropout_rate, env.action_noise_std
+    env.dropout_rate, env.action_noise_std = 0.0, 0.0
+    try:
+        records = record_episodes(policy, env, episodes)
+    finally:
+        env.dropout_rate, env.action_noise_std = saved
+    max_steps = env.task.max_steps
+    model_ok, model_len, real_ok, real_len = [], [], [], []
+    for rec in records:  # one pybullet scene per episode
+        replay = replay_in_pybullet(rec["actions"], env.task, rec["seed"], rec["goal"],
+                                    history_steps=HISTORY_STEPS)
+        model_ok.append(rec["success"])
+        model_len.append(rec["length"] if rec["success"] else max_steps)
+        real_ok.append(replay["success"])
+        real_len.append(replay["steps"] if replay["success"] else max_steps)
+    n = len(records)
+    return {
+        "ground_truth_episodes": n,
+        "model_success_rate": sum(model_ok) / n,
+        "model_mean_length": sum(model_len) / n,
+        "pybullet_success_rate": sum(real_ok) / n,
+        "pybullet_mean_length": sum(real_len) / n,
+        "agreement": sum(a == b for a, b in zip(model_ok, real_ok)) / n,
+    }

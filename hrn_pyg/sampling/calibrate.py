@@ -1,0 +1,445 @@
+"""``hrn-pyg calibrate``: choose a model's sampling rate so its spread matches the physics'.
+
+On a few **validation** starts (episode seeds with ``seed % 10 == 8``; test seeds are refused)
+the ground truth is a perturbed-start pybullet ensemble
+(:func:`hrn_pyg.sampling.ensemble.ground_truth_ensemble`, 2 mm by default): the spread the
+simulator itself shows when the initial state is known to that precision. For every candidate
+(dropout rate, set of masked modules) the model draws ``k`` futures from step 2 of each start
+(:func:`hrn_pyg.sampling.sample.sample`, mask generator seeded with ``--sample-seed``), and
+at the last predicted step
+
+* the **spread ratio** of a start is the mean over moving leaves of the samples' RMS distance
+  from their mean, over the same for the ensemble members
+  (:func:`~hrn_pyg.sampling.metrics.root_spread`, as ``benchmarks/uncertainty.py`` scores it);
+* the **energy score** is :func:`~hrn_pyg.sampling.metrics.energy_score` per moving leaf,
+  averaged over leaves and starts.
+
+The chosen candidate is the one whose median ``log(spread ratio)`` over the starts is closest
+to 0 (a ratio closest to 1 on the log scale: 0.5 and 2 are equally far); ties go to the lower
+energy score. Static leaves are left out (they never move).
+
+The choice is written into a copy of the checkpoint (default ``<name>.calibrated.pt`` beside
+the input; ``--in-place`` replaces the input; always atomically): the JSON config's
+``model.dropout_rate`` / ``model.dropout_modules`` become the chosen rate and modules, and a
+``calibration`` record beside ``model`` and ``train`` keeps how (scene, seeds, every candidate
+with its numbers, the date). :func:`hrn_pyg.train.load_model` reads such a file like any
+other; ``hrn-pyg sample``, the demo and the RL environment use its rate when given none.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.dataset import EPISODE_PATTERN, SPLIT_MODULUS, TEST_RESIDUE, VAL_RESIDUE, read_episode
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.metrics import energy_score, root_spread
+from hrn_pyg.sampling.sample import sample
+from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
+
+#: candidate dropout rates tried by default
+DEFAULT_RATES = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
+#: validation seeds used when neither ``--seeds`` nor ``--data`` is given
+DEFAULT_SEEDS = (8, 18, 28)
+#: default output: ``<stem>.calibrated.pt`` beside the input
+CALIBRATED_SUFFIX = ".calibrated.pt"
+#: key of the calibration record in a checkpoint's JSON config
+RECORD_KEY = "calibration"
+#: what the choice minimises, as written into the record
+CRITERION = "median over starts of |log(spread ratio samples / ensemble)| at the last step; ties: lower energy score"
+
+
+# ----------------------------------------------------------------------------- argument checks
+def check_seeds(seeds: list[int] | tuple[int, ...]) -> list[int]:
+    """The seeds, each a validation seed (``seed % 10 == 8``); ValueError naming the first that is not.
+
+    Test seeds (``seed % 10 == 9``) are refused outright: the benchmark scores on them, so
+    choosing the rate there would fit the test.
+    """
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("--seeds must name at least one validation seed (seed % 10 == 8), e.g. 8,18,28")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"--seeds has duplicates: {seeds}")
+    for seed in seeds:
+        if seed < 0:
+            raise ValueError(f"--seeds: seed {seed} is negative")
+        residue = seed % SPLIT_MODULUS
+        if residue == TEST_RESIDUE:
+            raise ValueError(f"--seeds: {seed} is a test seed (seed % 10 == 9); calibrate on validation "
+                             f"seeds only (seed % 10 == 8, e.g. 8,18,28), never on the test split")
+        if residue != VAL_RESIDUE:
+            raise ValueError(f"--seeds: {seed} is a training seed; calibrate on validation seeds only "
+                             f"(seed % 10 == 8, e.g. 8,18,28)")
+    return seeds
+
+
+def parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise ValueError(f"--seeds must be comma-separated integers, got {text!r}") from None
+    return check_seeds(seeds)
+
+
+def parse_rates(text: str) -> tuple[float, ...]:
+    """Comma-separated rates, each in ``[0, 1)``, at least one, no duplicates."""
+    rates = []
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        try:
+            rate = float(item)
+        except ValueError:
+            raise ValueError(f"--rates: {item!r} is not a number") from None
+        if not 0.0 <= rate < 1.0:  # also refuses nan
+            raise ValueError(f"--rates: every rate must be in [0, 1), got {item}")
+        rates.append(rate)
+    if not rates:
+        raise ValueError("--rates must name at least one rate in [0, 1)")
+    if len(set(rates)) != len(rates):
+        raise ValueError(f"--rates has duplicates: {text}")
+    return tuple(rates)
+
+
+def default_module_sets(allowed: tuple[str, ...]) -> list[tuple[str, ...]]:
+    """The full set of modules the model masks, then each of them alone."""
+    sets = [tuple(allowed)] + [(m,) for m in allowed]
+    return list(dict.fromkeys(sets))
+
+
+def parse_module_sets(values: list[str] | None, allowed: tuple[str, ...]) -> list[tuple[str, ...]]:
+    """``["force", "force,collision"]`` -> module sets; each module must be one ``allowed``.
+
+    None gives :func:`default_module_sets`.
+    """
+    if not allowed:
+        raise ValueError("the model takes dropout on no module (its dropout_modules is empty): nothing to calibrate")
+    if values is None:
+        return default_module_sets(allowed)
+    sets: list[tuple[str, ...]] = []
+    for value in values:
+        names = tuple(dict.fromkeys(m.strip() for m in value.split(",") if m.strip()))
+        if not names:
+            raise ValueError(f"--modules: empty module set {value!r}")
+        unknown = [m for m in names if m not in allowed]
+        if unknown:
+            raise ValueError(f"--modules: unknown module(s) {', '.join(unknown)}; this model takes "
+                             f"dropout on {', '.join(allowed)}")
+        ordered = tuple(m for m in allowed if m in names)  # one spelling per set
+        if ordered not in sets:
+            sets.append(ordered)
+    return sets
+
+
+def default_output(model_path: Path) -> Path:
+    """``dir/name.pt`` -> ``dir/name.calibrated.pt`` (a ``.calibrated.pt`` input maps to itself)."""
+    name = model_path.name
+    if name.endswith(CALIBRATED_SUFFIX):
+        return model_path
+    stem = name[:-3] if name.endswith(".pt") else name
+    return model_path.with_name(stem + CALIBRATED_SUFFIX)
+
+
+# ----------------------------------------------------------------------------- starts
+@dataclass
+class Start:
+    """One validation start: the model's initial state and the ensemble at the last step."""
+
+    seed: int
+    graph: HeteroData  # state at step HISTORY, carrying pos_seq / force_seq
+    forces: Tensor  # [steps, N, 3]
+    truth: Tensor  # [M, L, 3] ensemble leaf positions at the last predicted step
+    moving: Tensor  # [L] bool, leaves of non-static objects
+
+
+def build_start(scene: str, seed: int, steps: int, members: int,
+                perturbation: PerturbationConfig = PerturbationConfig(),
+                config: Any = None, episode: dict | None = None) -> Start:
+    """Simulate (or take) episode ``(scene, seed)`` and its perturbed-start ensemble.
+
+    The start is step :data:`~hrn_pyg.sampling.ensemble.HISTORY` of the unperturbed episode;
+    the truth is the ``members`` ensemble's leaves at step ``HISTORY + steps``.
+    """
+    from hrn_pyg.data.scenes import STATIC, simulate_episode
+
+    if episode is None:
+        episode = simulate_episode(scene, seed, steps=HISTORY + steps, config=config)
+    ensemble = ground_truth_ensemble(scene, seed, members, HISTORY + steps, perturbation, config)
+    graph = episode_state(episode, start=HISTORY, steps=steps)
+    forces = graph[NODE].force_seq.transpose(0, 1)
+    truth = torch.as_tensor(ensemble[:, HISTORY + steps]).float()
+    obj = torch.as_tensor(np.asarray(episode["leaf_object"]), dtype=torch.long)
+    moving = torch.as_tensor(np.asarray(episode["object_material"]))[obj] != STATIC
+    if not bool(moving.any()):
+        raise ValueError(f"{scene} seed {seed}: no moving object to calibrate on")
+    return Start(int(seed), graph, forces, truth, moving)
+
+
+def data_starts(folder: str | Path, scene: str, limit: int) -> tuple[list[int], Any, dict[int, Path]]:
+    """Validation seeds (at most ``limit``, lowest first), scene config and episode files of a
+    folder written by ``hrn-pyg generate``."""
+    from hrn_pyg.data.scenes import scene_config
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"--data: no folder {folder}")
+    config = None
+    meta_path = folder / "meta.json"
+    if meta_path.is_file():
+        meta = json.loads(meta_path.read_text())
+        if meta.get("scene") not in (None, scene):
+            raise ValueError(f"--data: {folder} holds {meta['scene']!r} episodes, not {scene!r}")
+        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
+        config = scene_config(scene, **fields) if fields else None
+    files = {}
+    for path in folder.iterdir():
+        match = EPISODE_PATTERN.match(path.name)
+        if match and int(match.group(1)) % SPLIT_MODULUS == VAL_RESIDUE:
+            files[int(match.group(1))] = path
+    if not files:
+        raise ValueError(f"--data: no validation episodes (seed % 10 == 8) in {folder}")
+    seeds = sorted(files)[:limit]
+    return seeds, config, {s: files[s] for s in seeds}
+
+
+# ----------------------------------------------------------------------------- scoring
+def score(model: HRN, start: Start, k: int, steps: int, rate: float, modules: tuple[str, ...],
+          sample_seed: int = 0) -> tuple[float, float]:
+    """Spread ratio samples / ensemble and energy score (m) of one candidate on one start.
+
+    The ``k`` futures come from :func:`~hrn_pyg.sampling.sample.sample` with a CPU generator
+    seeded ``sample_seed`` (the same for every candidate and start).
+    """
+    gen = torch.Generator().manual_seed(int(sample_seed))
+    futures = sample(model, start.graph, k, steps, rate, forces=start.forces, generator=gen,
+                     modules=modules)[:, -1].cpu()  # [k, L, 3]
+    moving = start.moving
+    spread = float(root_spread(futures[:, moving]).mean())
+    ensemble_spread = float(root_spread(start.truth[:, moving]).mean())
+    if not ensemble_spread > 0:
+        raise ValueError(f"the ensemble of seed {start.seed} does not spread (all members end equal); "
+                         "choose other seeds or a larger perturbation")
+    es = float(energy_score(futures[:, moving], start.truth[:, moving]).mean())
+    return spread / ensemble_spread, es
+
+
+def _log(ratio: float) -> float:
+    return math.log(ratio) if ratio > 0 else -math.inf
+
+
+def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energies: list[float]) -> dict:
+    """One candidate's row: per-start numbers and their summaries (JSON-safe: no infinities)."""
+    log_median = float(np.median([_log(r) for r in ratios]))
+    return {
+        "rate": float(rate), "modules": list(modules),
+        "spread_ratios": [float(r) for r in ratios],
+        "spread_ratio_median": float(math.exp(log_median)) if math.isfinite(log_median) else 0.0,
+        "spread_ratio_min": float(min(ratios)), "spread_ratio_max": float(max(ratios)),
+        "log_ratio_median": log_median if math.isfinite(log_median) else None,
+        "energy_scores_m": [float(e) for e in energies],
+        "energy_score_m": float(np.mean(energies)),
+    }
+
+
+def choose(candidates: list[dict]) -> int:
+    """Index of the candidate whose median log spread ratio is closest to 0; ties: lower energy
+    score, then the first (e.g. a module set with an idle module scores exactly like the set
+    without it). ValueError when no candidate spreads at all."""
+    def key(i: int) -> tuple[float, float]:
+        lr = candidates[i]["log_ratio_median"]
+        return (math.inf if lr is None else abs(lr), candidates[i]["energy_score_m"])
+
+    best = min(range(len(candidates)), key=key)
+    if candidates[best]["log_ratio_median"] is None:
+        raise ValueError("no candidate spreads the samples at all (ratio 0 on every one): try higher "
+                         "--rates or other --modules")
+    return best
+
+
+def grid_edge(chosen: dict, rates: tuple[float, ...]) -> str | None:
+    """A warning when the chosen rate is the lowest candidate and still spreads too much, or the
+    highest and still spreads too little (the match may lie outside the grid); else None."""
+    ratio = chosen["spread_ratio_median"]
+    if chosen["rate"] == min(rates) and ratio > 1:
+        return (f"the chosen rate is the lowest candidate and the samples still spread {ratio:.3g}x "
+                "the ensemble; lower --rates may match better")
+    if chosen["rate"] == max(rates) and ratio < 1:
+        return (f"the chosen rate is the highest candidate and the samples spread only {ratio:.3g}x "
+                "the ensemble; higher --rates may match better")
+    return None
+
+
+def calibrate(model: HRN, starts: list[Start], rates: tuple[float, ...], module_sets: list[tuple[str, ...]],
+              k: int, steps: int, sample_seed: int = 0, progress: bool = False) -> list[dict]:
+    """Score every (rate, module set) on every start; one :func:`summarise` row per candidate,
+    in the order module set, then rate."""
+    from tqdm import tqdm
+
+    pairs = [(rate, modules) for modules in module_sets for rate in rates]
+    bar = tqdm(total=len(pairs) * len(starts), desc="calibrate", unit="rollout", disable=not progress,
+               file=sys.stderr, leave=False)
+    candidates = []
+    try:
+        for rate, modules in pairs:
+            ratios, energies = [], []
+            for start in starts:
+                ratio, es = score(model, start, k, steps, rate, modules, sample_seed)
+                ratios.append(ratio)
+                energies.append(es)
+                bar.update(1)
+            candidates.append(summarise(rate, modules, ratios, energies))
+            bar.set_postfix(rate=rate, modules="+".join(modules), ratio=f"{candidates[-1]['spread_ratio_median']:.2f}")
+    finally:
+        bar.close()
+    return candidates
+
+
+def markdown(candidates: list[dict], chosen: int | None = None) -> str:
+    """The candidates as a markdown table; the chosen one is marked."""
+    lines = ["| rate | modules | spread ratio median | range | energy score (mm) | chosen |",
+             "|---:|---|---:|---|---:|:---:|"]
+    for i, c in enumerate(candidates):
+        lines.append(f"| {c['rate']:g} | {','.join(c['modules'])} | {c['spread_ratio_median']:.3g} | "
+                     f"{c['spread_ratio_min']:.3g} - {c['spread_ratio_max']:.3g} | "
+                     f"{1e3 * c['energy_score_m']:.2f} | {'<-' if i == chosen else ''} |")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- checkpoint
+def calibration_record(path: str | Path) -> dict | None:
+    """The ``calibration`` record of a checkpoint's JSON config, or None (never calibrated)."""
+    config = json.loads(load_checkpoint(path)["config"])
+    record = config.get(RECORD_KEY)
+    return record if isinstance(record, dict) else None
+
+
+def write_calibrated(src: str | Path, dst: str | Path, rate: float, modules: tuple[str, ...],
+                     record: dict) -> None:
+    """Copy checkpoint ``src`` to ``dst`` (atomically; ``dst`` may be ``src``) with the model
+    config's ``dropout_rate`` / ``dropout_modules`` set and ``record`` stored under
+    :data:`RECORD_KEY` in the JSON config. Read with a weights-only load."""
+    ckpt = load_checkpoint(src)
+    config = json.loads(ckpt["config"])
+    if not isinstance(config.get("model"), dict):
+        raise ValueError(f"{src} has no model config to calibrate")
+    model_config = dict(config["model"], dropout_rate=float(rate), dropout_modules=list(modules))
+    HRNConfig.from_dict(model_config)  # validates before anything is written
+    config["model"] = model_config
+    config[RECORD_KEY] = record
+    payload = {key: value for key, value in ckpt.items() if key != "format"}
+    payload["config"] = json.dumps(config, allow_nan=False)
+    save_checkpoint(dst, payload)
+
+
+def allowed_modules(model: HRN, record: dict | None) -> tuple[str, ...]:
+    """Modules the model may be masked on: those it allowed before any earlier calibration."""
+    if record and isinstance(record.get("model_dropout_modules"), list):
+        return tuple(record["model_dropout_modules"])
+    return tuple(model.config.dropout_modules)
+
+
+# ----------------------------------------------------------------------------- CLI
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", required=True, help="scene the model simulates (picks the default checkpoint)")
+    parser.add_argument("--model", default=None, help="checkpoint (default hrn_pyg/checkpoints/<scene>.pt)")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--data", default=None,
+                        help="episode folder from `hrn-pyg generate`: its validation episodes are the starts")
+    source.add_argument("--seeds", default=None,
+                        help="comma-separated validation seeds (seed %% 10 == 8) simulated fresh (default 8,18,28)")
+    parser.add_argument("--starts", type=int, default=4, help="with --data: at most this many validation episodes")
+    parser.add_argument("--rates", default=",".join(f"{r:g}" for r in DEFAULT_RATES),
+                        help="comma-separated candidate dropout rates, each in [0, 1)")
+    parser.add_argument("--modules", nargs="+", default=None, metavar="SET",
+                        help="candidate module sets, each comma-separated, e.g. force force,collision "
+                             "(default: all the model's dropout_modules, then each alone)")
+    parser.add_argument("--k", type=int, default=16, help="samples per candidate and start")
+    parser.add_argument("--members", type=int, default=16, help="ground-truth ensemble members per start")
+    parser.add_argument("--steps", type=int, default=20, help="predicted steps; scored at the last")
+    parser.add_argument("--position-std", type=float, default=PerturbationConfig().position_std,
+                        help="ensemble start perturbation, metres (default 0.002)")
+    parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
+    target = parser.add_mutually_exclusive_group()
+    target.add_argument("--out", default=None, help="calibrated checkpoint to write (default <model>.calibrated.pt)")
+    target.add_argument("--in-place", action="store_true", help="write the choice into --model itself")
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda (default: cuda if available, else cpu)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hrn_pyg.sampling.cli import load, resolve_model
+    from hrn_pyg.utils.device import resolve_device
+
+    # --- everything cheap is checked before anything is simulated ----------------------------
+    rates = parse_rates(args.rates)
+    for name in ("k", "members"):
+        if getattr(args, name) < 2:
+            raise ValueError(f"--{name} must be >= 2 (one trajectory has no spread), got {getattr(args, name)}")
+    if args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    if args.starts < 1:
+        raise ValueError(f"--starts must be >= 1, got {args.starts}")
+    perturbation = PerturbationConfig(position_std=args.position_std)
+    seeds = parse_seeds(args.seeds) if args.seeds is not None else list(DEFAULT_SEEDS) if args.data is None else None
+    model_path = resolve_model(args.scene, args.model)
+    out = model_path if args.in_place else Path(args.out) if args.out else default_output(model_path)
+    if out.resolve() == model_path.resolve() and not args.in_place:
+        raise ValueError(f"the output {out} is the input checkpoint; pass --in-place to overwrite it, "
+                         "or another --out")
+    device = resolve_device(args.device)
+    model = load(model_path, device)
+    record_before = calibration_record(model_path)
+    allowed = allowed_modules(model, record_before)
+    module_sets = parse_module_sets(args.modules, allowed)
+    model.config = replace(model.config, dropout_modules=allowed)  # masks on any allowed module
+
+    # --- starts: episode and perturbed ensemble --------------------------------------------------
+    config, files = None, {}
+    if args.data is not None:
+        seeds, config, files = data_starts(args.data, args.scene, args.starts)
+    starts = []
+    for seed in seeds:
+        episode = read_episode(files[seed]) if seed in files else None
+        print(f"simulating {args.scene} seed {seed}: {args.members} perturbed replays of "
+              f"{HISTORY + args.steps} steps", file=sys.stderr, flush=True)
+        starts.append(build_start(args.scene, seed, args.steps, args.members, perturbation, config, episode))
+
+    # --- candidates ---------------------------------------------------------------------------
+    candidates = calibrate(model, starts, rates, module_sets, args.k, args.steps, args.sample_seed,
+                           progress=not args.no_progress)
+    best = choose(candidates)
+    chosen = candidates[best]
+    print(markdown(candidates, best))
+    edge = grid_edge(chosen, rates)
+    if edge:
+        print(f"note: {edge}")
+    record = {
+        "rate": chosen["rate"], "modules": chosen["modules"],
+        "spread_ratio_median": chosen["spread_ratio_median"], "energy_score_m": chosen["energy_score_m"],
+        "criterion": CRITERION, "scene": args.scene, "seeds": seeds,
+        "data": None if args.data is None else str(args.data),
+        "start_step": HISTORY, "steps": args.steps, "k": args.k, "members": args.members,
+        "perturbation": perturbation.to_dict(), "sample_seed": args.sample_seed,
+        "model_dropout_modules": list(allowed), "source": str(model_path), "note": edge,
+        "candidates": candidates,
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    write_calibrated(model_path, out, chosen["rate"], tuple(chosen["modules"]), record)
+    print(f"chose rate {chosen['rate']:g} on {','.join(chosen['modules'])} (spread ratio "
+          f"{chosen['spread_ratio_median']:.3g}, median over {len(starts)} start(s)); wrote {out}")
+    return 0

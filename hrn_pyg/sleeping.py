@@ -1,0 +1,396 @@
+r"""Objects at rest sleep: a step runs the network only on what moves (as Bullet and PhysX do).
+
+An *object* is one root's tree of one batch copy (:func:`hrn_pyg.rollout.root_of`), so the
+copies of :func:`hrn_pyg.data.graph.replicate` sleep independently. Each object carries two
+numbers across the steps of a rollout (:class:`SleepState`): whether it is asleep, and for how
+many consecutive steps it has been still. At the start of step :math:`t` (graph at
+:math:`x_t`, external force :math:`f_t`, collision edges of :math:`x_t`), with
+:math:`\tau` = ``threshold`` and :math:`P` = ``patience``:
+
+.. math::
+    \mathrm{still}_o &\iff \max_{l \in o} \lVert x_l(t) - x_l(t-1) \rVert < \tau
+        \ \wedge\ f_l(t) = 0 \ \forall l \in o \\
+    \mathrm{moving}_o &\iff \mathrm{awake}_o \wedge \neg \mathrm{still}_o, \qquad
+    \mathrm{pushed}_o \iff \exists l \in o: f_l(t) \ne 0 \\
+    \mathrm{active} &= \text{the smallest set} \supseteq \{o : \mathrm{moving}_o \vee \mathrm{pushed}_o\}
+        \text{ closed under contact: } o \in \mathrm{active},\ (o, o') \in \mathcal{E}_C
+        \Rightarrow o' \in \mathrm{active} \\
+    c_o &\leftarrow \begin{cases} c_o + 1 & \mathrm{awake}_o \wedge \mathrm{still}_o \\
+        0 & \text{otherwise} \end{cases} \\
+    \mathrm{asleep}_o &\leftarrow \bigl(\mathrm{asleep}_o \wedge o \notin \mathrm{active}\bigr)
+        \ \vee\ \bigl(\mathrm{awake}_o \wedge o \notin \mathrm{active} \wedge c_o \ge P\bigr)
+        \ \vee\ \mathrm{static}_o
+
+(static objects never enter ``active``: a contact with the wedge wakes nothing). In words: an
+object falls asleep once its leaves have moved less than ``threshold`` per step for ``patience``
+consecutive steps, with no force on it and no contact with a moving or pushed object; a force
+on any of its leaves, or a contact (collision edge) that joins it to a moving object, directly
+or through a chain of touching objects (a *simulation island*, as in Bullet), wakes it. A new
+contact can only form when something moves, so "no new collision edge" is this contact rule;
+sub-threshold creep counts as rest. Woken objects take part in the same step, with zero
+velocity (an asleep object's ``prev_pos`` and ``prev_prev_pos`` equal its ``pos``).
+
+The step itself (:func:`sleeping_step`) runs :func:`hrn_pyg.rollout.build_inputs`,
+:func:`~hrn_pyg.rollout.run_network` and :func:`~hrn_pyg.rollout.decode` on a sub-graph: every
+node of the awake objects, then the asleep (or static) leaves that are sources of collision
+edges into awake leaves, flagged ``is_static`` (they act on their neighbours but are not moved).
+The network is local to an object's tree plus its collision sources, so the awake objects see
+exactly what they would see in the whole graph. Asleep objects keep ``pos`` bit for bit. The
+next graph's collision edges (:func:`next_collision_edges`) are the full set, but searched only
+around awake leaves: an edge between two asleep leaves cannot change and is carried over, and a
+sleeping object still notices a newcomer. When no movable object is asleep the step is
+:func:`hrn_pyg.rollout.step` on the whole graph (bit-identical to a rollout without sleeping);
+when every object is asleep the network is not run at all.
+
+Defaults, from per-step leaf displacements (the largest over an object's leaves) of pybullet
+episodes and of the shipped models; units are metres per model step (1/30 s):
+
+* pybullet's resting rigid bodies move < 1e-4 (``tower``, last 30 steps of 40 episodes: 99 %
+  below 5e-5, all below 9e-5); its resting soft cubes and cloth jitter at 1-10 mm per step
+  (``multi_material``: medians 2-3 mm), so "pybullet at rest" is not one number;
+* real motion is far above: a pushed ball moves 1-4 cm per step, and anything in free flight
+  changes its displacement by :math:`g\,\Delta t^2` = 1.1 cm per step, so it cannot stay under
+  a few mm per step for two steps running;
+* the trained models never hold an object exactly still: ``tower.pt`` lets a resting tower creep
+  by 0.1-1 mm per step from the first steps on, ``multi_material.pt`` its settled objects by
+  0.7-1.4 mm per step (last 40 steps; both looked at on episodes 9 and 19, not used to choose);
+* a sweep on the validation episodes (``seed % 10 == 8``: 8, 18, 28, 38, 48) of both models,
+  threshold 1e-3 / 2e-3 / 4e-3 with patience 10: at 1e-3 the ``multi_material`` objects fall
+  asleep in 2 of 5 episodes, at 2e-3 in all 5 (by step 30-40), and the position error at the
+  episode's end drops in every one of them (e.g. 7.4e-3 -> 1.2e-3 m^2 on seed 28; held objects
+  stop creeping) while the t+15 error is unchanged; 4e-3 gives the same errors.
+
+So ``threshold = 2e-3`` (6 cm/s): the smallest of the sweep that puts the models' resting
+objects to sleep, below Bullet's 0.8 m/s and PhysX's about 0.1 m/s (a mass-normalised kinetic
+energy of 5e-5 x (10 m/s)^2). ``patience = 10`` steps (1/3 s, PhysX's wake counter is 0.4 s) is
+longer than any turning point of a real motion.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import (
+    ANCESTOR_TO_DESCENDANT,
+    CHILD_TO_PARENT,
+    COLLISION,
+    LEAF_TO_ANCESTOR,
+    NODE,
+    WITHIN_SIBLINGS,
+)
+from hrn_pyg.data.radius import CELL_MARGIN, MAX_KEYS, collision_edges
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.rollout import Step, build_inputs, decode, root_of, run_network, step
+
+#: node attributes a model step reads (:func:`~hrn_pyg.rollout.build_inputs`, ``decode``), the
+#: ones a sub-graph carries; ``batch`` and ``rest_pos`` only where the graph has them
+NODE_ATTRIBUTES = ("mass", "material", "stiffness", "object", "depth", "is_leaf", "is_root", "is_static",
+                   "pos", "prev_pos", "prev_prev_pos", "batch", "rest_pos")
+#: the hierarchy's edge sets: within one object, so a sub-graph keeps those of its awake objects
+HIERARCHY_EDGES = (CHILD_TO_PARENT, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
+
+
+@dataclass(frozen=True)
+class SleepConfig:
+    """When an object at rest falls asleep (see the module docstring for the rule).
+
+    Attributes:
+        enabled: False runs every object at every step (the plain rollout, bit for bit).
+        threshold: metres per step; an object whose leaves all moved less than this in a step
+            (and had no external force) was still in that step. Default 2e-3 (6 cm/s at 30 steps
+            per second): above the creep of the shipped models at rest, below real motion.
+        patience: consecutive still steps after which an object falls asleep (>= 1).
+    """
+
+    enabled: bool = True
+    threshold: float = 2e-3
+    patience: int = 10
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"SleepConfig.enabled must be a bool, got {self.enabled!r}")
+        threshold = self.threshold
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (
+                math.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"SleepConfig.threshold must be a finite number > 0 (metres per step), got {threshold!r}")
+        patience = self.patience
+        if isinstance(patience, bool) or not isinstance(patience, int) or patience < 1:
+            raise ValueError(f"SleepConfig.patience must be an integer >= 1 (steps), got {patience!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class Objects(NamedTuple):
+    """The objects of a graph, fixed for a rollout (the tree does not change).
+
+    Attributes:
+        of_node: ``[N]`` long, the object ``0..R-1`` of every node (objects numbered in the
+            order of their root nodes, so one per root per batch copy).
+        static: ``[R]`` bool, static objects (never moved, always asleep).
+        count: ``R``, the number of objects.
+    """
+
+    of_node: Tensor
+    static: Tensor
+    count: int
+
+
+class SleepState(NamedTuple):
+    """What sleeping carries from one step to the next, per object ``[R]``.
+
+    Attributes:
+        asleep: bool; asleep objects are held still and not run through the network.
+        still: long; consecutive still steps so far (0 after a motion, a force or a wake-up).
+    """
+
+    asleep: Tensor
+    still: Tensor
+
+
+def objects(graph: HeteroData) -> Objects:
+    """The :class:`Objects` of ``graph``: one per root node, numbered in root order."""
+    store = graph[NODE]
+    rank = torch.cumsum(store.is_root.long(), 0) - 1  # [N]: the rank of each root among the roots
+    of_node = rank[root_of(graph)]
+    count = int(store.is_root.sum())
+    static = torch.zeros(count, dtype=torch.bool, device=of_node.device).index_fill(
+        0, of_node[store.is_static & store.is_root], True)
+    return Objects(of_node=of_node, static=static, count=count)
+
+
+def initial_state(objs: Objects) -> SleepState:
+    """Every movable object awake with no still steps yet; static objects asleep."""
+    return SleepState(asleep=objs.static.clone(), still=torch.zeros(objs.count, dtype=torch.long,
+                                                                     device=objs.static.device))
+
+
+def object_any(flag: Tensor, objs: Objects) -> Tensor:
+    """``[N]`` bool -> ``[R]`` bool: does any node of the object have the flag."""
+    out = torch.zeros(objs.count, dtype=torch.long, device=flag.device)
+    return out.scatter_reduce(0, objs.of_node, flag.long(), reduce="amax").bool()
+
+
+def object_max(value: Tensor, objs: Objects) -> Tensor:
+    """``[N]`` float (>= 0) -> ``[R]``: the largest value over the object's nodes."""
+    out = torch.zeros(objs.count, dtype=value.dtype, device=value.device)
+    return out.scatter_reduce(0, objs.of_node, value, reduce="amax")
+
+
+def touched_by(edge_index: Tensor, objs: Objects, source: Tensor) -> Tensor:
+    r"""``[R]`` bool: objects with a collision edge from a leaf of an object in ``source`` ``[R]``.
+
+    .. math:: \mathrm{touched}_o = \exists (j, i) \in \mathcal{E}_C : o(i) = o,\ \mathrm{source}_{o(j)}
+    """
+    src, dst = objs.of_node[edge_index[0]], objs.of_node[edge_index[1]]
+    out = torch.zeros(objs.count, dtype=torch.long, device=source.device)
+    return out.scatter_reduce(0, dst, source[src].long(), reduce="amax").bool()
+
+
+def update(
+    config: SleepConfig, state: SleepState, graph: HeteroData, force: Tensor, objs: Objects
+) -> SleepState:
+    """The sleep state of step ``t`` from the graph at ``t`` and the step's force ``[N, 3]``.
+
+    Applies the rule of the module docstring: still counters, the active set grown through
+    collision edges to a fixed point (one scatter per link of the longest contact chain, and one
+    host sync each to test for the fixed point), wake-ups, then sleep.
+    """
+    store = graph[NODE]
+    leaf = store.is_leaf
+    disp = (store.pos - store.prev_pos).norm(dim=-1)
+    moved = object_max(torch.where(leaf, disp, torch.zeros_like(disp)), objs) >= config.threshold
+    pushed = object_any(leaf & force.ne(0).any(dim=-1), objs) & ~objs.static
+    awake = ~state.asleep
+    still = ~moved & ~pushed
+    active = (awake & moved) | pushed
+    edges = graph[COLLISION].edge_index if COLLISION in graph.edge_types else force.new_empty(2, 0, dtype=torch.long)
+    movable = ~objs.static
+    for _ in range(objs.count):  # links of the longest contact chain, not objects; usually 0-2
+        grown = active | (movable & touched_by(edges, objs, active))
+        if bool((grown == active).all()):
+            break
+        active = grown
+    counter = torch.where(awake & still, state.still + 1, torch.zeros_like(state.still))
+    falls = awake & ~active & (counter >= config.patience)
+    asleep = (state.asleep & ~active) | falls | objs.static
+    return SleepState(asleep=asleep, still=counter)
+
+
+def freeze(graph: HeteroData, asleep_node: Tensor) -> tuple[Tensor, Tensor]:
+    """``(prev_pos, prev_prev_pos)`` ``[N, 3]`` with the rows of asleep nodes set to ``pos``
+    (zero velocity now and before, so a woken object starts from rest)."""
+    store = graph[NODE]
+    held = asleep_node.unsqueeze(-1)
+    return torch.where(held, store.pos, store.prev_pos), torch.where(held, store.pos, store.prev_prev_pos)
+
+
+def subgraph(graph: HeteroData, asleep_node: Tensor, prev_pos: Tensor, prev_prev_pos: Tensor
+             ) -> tuple[HeteroData, Tensor, Tensor]:
+    """The nodes a step with sleeping objects has to run, as a graph of their own.
+
+    Nodes: every node of an awake object (``~asleep_node``), in node order, then every asleep
+    leaf that is the source of a collision edge into an awake leaf, in node order, flagged
+    ``is_static`` (a collision source that is not moved). Edges: the hierarchy's edges of the
+    awake objects and the collision edges into awake leaves, renumbered. Node attributes keep
+    their values (``batch`` ids included, so dropout masks ``[B, H]`` look up the same rows);
+    ``prev_pos``, ``prev_prev_pos`` are the frozen ones of :func:`freeze`.
+
+    Returns ``(sub, index, awake_rows)``: ``index`` ``[n]`` the full-graph node of every
+    sub-graph node, ``awake_rows`` ``[n]`` bool, the rows that belong to awake objects.
+
+    **Shapes:** asleep_node ``(N,)`` bool; ``sub`` has ``n <= N`` nodes.
+    """
+    store = graph[NODE]
+    n = store.num_nodes
+    awake = ~asleep_node
+    src, dst = graph[COLLISION].edge_index
+    into_awake = awake[dst]
+    source = torch.zeros(n, dtype=torch.bool, device=awake.device).index_fill(0, src[into_awake], True) & asleep_node
+    index = torch.cat([torch.nonzero(awake).flatten(), torch.nonzero(source).flatten()])
+    new_id = torch.full((n,), -1, dtype=torch.long, device=awake.device)
+    new_id[index] = torch.arange(index.numel(), device=awake.device)
+    awake_rows = awake[index]
+
+    sub = HeteroData()
+    part = sub[NODE]
+    part.num_nodes = int(index.numel())
+    values = {k: store[k] for k in NODE_ATTRIBUTES if k in store}
+    values.update(prev_pos=prev_pos, prev_prev_pos=prev_prev_pos)
+    for key, value in values.items():
+        part[key] = value.index_select(0, index)
+    part.is_static = part.is_static | ~awake_rows
+    for edge_type in HIERARCHY_EDGES:
+        edge_index = graph[edge_type].edge_index
+        sub[edge_type].edge_index = new_id[edge_index[:, awake[edge_index[1]]]]
+    sub[COLLISION].edge_index = new_id[torch.stack([src[into_awake], dst[into_awake]])]
+    return sub, index, awake_rows
+
+
+def sleeping_step(
+    model: HRN,
+    graph: HeteroData,
+    force: Tensor,
+    masks: Mapping[str, Tensor] | None,
+    state: SleepState,
+    objs: Objects,
+    config: SleepConfig,
+) -> tuple[Step, SleepState]:
+    """One model step in which objects at rest sleep; returns the step and the new sleep state.
+
+    ``force`` ``[N, 3]`` is the step's external force (zero on ancestors); ``state`` the sleep
+    state carried from the previous step (:func:`initial_state` at the start). The returned
+    :class:`~hrn_pyg.rollout.Step` has zero velocities on asleep nodes, ``asleep`` ``[N]`` the
+    nodes held still in this step, and the next graph (:func:`advance`): asleep nodes with
+    ``pos``, ``prev_pos`` and ``prev_prev_pos`` all equal to the held position, the collision
+    edges of all leaves at ``x_{t+1}``.
+    """
+    state = update(config, state, graph, force, objs)
+    asleep_node = state.asleep[objs.of_node]
+    store = graph[NODE]
+    radius = model.config.collision_radius
+    if not bool((asleep_node & ~store.is_static).any()):  # nothing movable sleeps: the plain step
+        result = step(model, graph, force, masks)
+        return result._replace(asleep=store.is_static), state
+
+    prev_pos, prev_prev_pos = freeze(graph, asleep_node)
+    zero = torch.zeros_like(store.pos)
+    if bool(asleep_node.all()):  # nothing to run: the scene holds still
+        pos, local, velocity = store.pos, zero, zero
+    else:
+        sub, index, awake_rows = subgraph(graph, asleep_node, prev_pos, prev_prev_pos)
+        out = run_network(model, build_inputs(model, sub, force.index_select(0, index)), masks)
+        sub_pos, sub_local, sub_velocity = decode(model, sub, out)
+        keep = awake_rows.unsqueeze(-1)
+        pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
+        local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))
+        velocity = zero.index_copy(0, index, torch.where(keep, sub_velocity, zero.index_select(0, index)))
+    nxt = advance(graph, asleep_node, pos, radius)
+    return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
+
+
+def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> HeteroData:
+    """The graph at ``t+1`` after a step with sleeping objects (what
+    :func:`hrn_pyg.data.graph.set_state` gives, without its redundant work).
+
+    ``pos`` ``[N, 3]`` is ``x_{t+1}`` with ancestors derived (the awake objects' from the
+    sub-graph's decode, the asleep nodes' rows equal to ``x_t``), so nothing is re-derived and
+    the held rows stay bit for bit. ``prev_pos = x_t``, ``prev_prev_pos = x_{t-1}`` (``x_t`` on
+    asleep nodes), force zero, collision edges of :func:`next_collision_edges`.
+    """
+    if not bool(torch.isfinite(pos).all()):
+        raise ValueError("set_state: pos contains NaN or infinite values")
+    store = graph[NODE]
+    out = copy.copy(graph)
+    part = out[NODE]
+    part.prev_prev_pos = torch.where(asleep_node.unsqueeze(-1), store.pos, store.prev_pos)
+    part.prev_pos = store.pos
+    part.pos = pos
+    part.force = torch.zeros_like(pos)
+    out[COLLISION].edge_index = next_collision_edges(graph, asleep_node, pos, radius)
+    return out
+
+
+def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> Tensor:
+    r"""The collision edges of ``pos`` (``x_{t+1}``), searched only where something moved.
+
+    Asleep leaves do not move, so an edge between two of them is the same at :math:`x_{t+1}` as
+    in the graph at :math:`x_t` and is kept from there. Every other edge has an awake end: the
+    search (:func:`hrn_pyg.data.radius.collision_edges`) runs on the awake leaves and the asleep
+    leaves in the cells (side ``radius``) around them, :func:`near_awake`, and keeps the edges
+    with an awake end. The union, sorted by destination then source, is exactly the full
+    search's edge set. When more than half of the leaves are awake the full search is cheaper
+    and is what runs.
+
+    **Shapes:** asleep_node ``(N,)`` bool, pos ``(N, 3)``; returns ``(2, |E_C|)``.
+    """
+    store = graph[NODE]
+    leaf = store.is_leaf
+    n = store.num_nodes
+    if radius is None or radius <= 0:
+        return torch.empty(2, 0, dtype=torch.long, device=pos.device)
+    batch = store.batch if "batch" in store else torch.zeros_like(store.object)
+    awake_leaf = leaf & ~asleep_node
+    if int(awake_leaf.sum()) * 2 > int(leaf.sum()):
+        index = torch.nonzero(leaf).flatten()
+        return index[collision_edges(pos[index], store.object[index], radius, batch[index])]
+    old = graph[COLLISION].edge_index
+    kept = old[:, asleep_node[old[0]] & asleep_node[old[1]]]
+    index = torch.nonzero(leaf & (awake_leaf | near_awake(pos, batch, leaf, awake_leaf, radius))).flatten()
+    found = index[collision_edges(pos[index], store.object[index], radius, batch[index])]
+    found = found[:, ~(asleep_node[found[0]] & asleep_node[found[1]])]
+    edges = torch.cat([kept, found], dim=1)
+    return edges[:, torch.argsort(edges[1] * n + edges[0])]
+
+
+def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float) -> Tensor:
+    r"""``[N]`` bool: the leaves in a grid cell next to (or in) a cell holding an awake leaf of
+    the same batch copy, with cells of side :math:`h \ge r`: every leaf within ``radius`` of an
+    awake leaf is among them. All leaves are returned when the grid would overflow int64 keys
+    (a scene some :math:`10^6` radii wide, e.g. a diverged rollout).
+
+    **Shapes:** pos ``(N, 3)``, batch ``(N,)``, leaf / awake_leaf ``(N,)`` bool.
+    """
+    x = pos.detach().to(torch.float64)
+    lowest = torch.where(leaf.unsqueeze(-1), x, torch.full_like(x, math.inf)).amin(0)
+    cell = torch.floor((x - lowest) / (radius * (1.0 + CELL_MARGIN))).clamp_min(0) + 1  # neighbours stay >= 0
+    cell = torch.where(leaf.unsqueeze(-1), cell, torch.zeros_like(cell))
+    dims = (cell.amax(0) + 2).tolist()
+    copies = int(batch.max()) + 1
+    if copies * dims[0] * dims[1] * dims[2] >= MAX_KEYS:
+        return leaf.clone()
+    cell = cell.long()
+    size = int(dims[0] * dims[1] * dims[2])
+    key = (cell[:, 0] * int(dims[1]) + cell[:, 1]) * int(dims[2]) + cell[:, 2] + batch.long() * size
+    offsets = torch.cartesian_prod(*(torch.tensor([-1, 0, 1], device=pos.device),) * 3)
+    offset_key = (offsets[:, 0] * int(dims[1]) + offsets[:, 1]) * int(dims[2]) + offsets[:, 2]
+    around = torch.unique((torch.unique(key[awake_leaf])[:, None] + offset_key[None]).flatten())
+    return leaf & torch.isin(key, around)
