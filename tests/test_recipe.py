@@ -91,9 +91,9 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
         assert dataset.steps == scene_config(dataset.scene).steps >= 140
     wedge = next(m for m in recipe.models if m.name == "wedge")
     assert wedge.train_args(Path("data"), Path("runs/recipe")) == [
-        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "2000",
-        "--batch-size", "8", "--threads", "1", "--seq-end", "8", "--model-rigid-fit", "true", "--train-dropout", "0.1",
-        "--dropout-modules", "force,collision", "--checkpoint-every", "250", "--eval-every", "250"]
+        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "1500",
+        "--batch-size", "8", "--threads", "1", "--train-dropout", "0.1", "--dropout-modules", "force,collision",
+        "--checkpoint-every", "250", "--eval-every", "250"]
 
 
 @pytest.mark.parametrize("change, word", [
