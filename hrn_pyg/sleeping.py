@@ -86,7 +86,7 @@ from hrn_pyg.data.graph import (
     NODE,
     WITHIN_SIBLINGS,
 )
-from hrn_pyg.data.radius import CELL_MARGIN, MAX_KEYS, collision_edges
+from hrn_pyg.data.radius import cell_keys, collision_edges
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.rollout import Step, build_inputs, decode, root_of, run_network, step
 
@@ -327,7 +327,7 @@ def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float |
     asleep nodes), force zero, collision edges of :func:`next_collision_edges`.
     """
     if not bool(torch.isfinite(pos).all()):
-        raise ValueError("set_state: pos contains NaN or infinite values")
+        raise ValueError("advance: pos contains NaN or infinite values")
     store = graph[NODE]
     out = copy.copy(graph)
     part = out[NODE]
@@ -373,24 +373,13 @@ def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, ra
 
 def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float) -> Tensor:
     r"""``[N]`` bool: the leaves in a grid cell next to (or in) a cell holding an awake leaf of
-    the same batch copy, with cells of side :math:`h \ge r`: every leaf within ``radius`` of an
-    awake leaf is among them. All leaves are returned when the grid would overflow int64 keys
-    (a scene some :math:`10^6` radii wide, e.g. a diverged rollout).
+    the same batch copy, on the collision search's own grid
+    (:func:`hrn_pyg.data.radius.cell_keys`, cells of side :math:`h \ge r`): every leaf within
+    ``radius`` of an awake leaf is among them.
 
     **Shapes:** pos ``(N, 3)``, batch ``(N,)``, leaf / awake_leaf ``(N,)`` bool.
     """
-    x = pos.detach().to(torch.float64)
-    lowest = torch.where(leaf.unsqueeze(-1), x, torch.full_like(x, math.inf)).amin(0)
-    cell = torch.floor((x - lowest) / (radius * (1.0 + CELL_MARGIN))).clamp_min(0) + 1  # neighbours stay >= 0
-    cell = torch.where(leaf.unsqueeze(-1), cell, torch.zeros_like(cell))
-    dims = (cell.amax(0) + 2).tolist()
-    copies = int(batch.max()) + 1
-    if copies * dims[0] * dims[1] * dims[2] >= MAX_KEYS:
-        return leaf.clone()
-    cell = cell.long()
-    size = int(dims[0] * dims[1] * dims[2])
-    key = (cell[:, 0] * int(dims[1]) + cell[:, 1]) * int(dims[2]) + cell[:, 2] + batch.long() * size
-    offsets = torch.cartesian_prod(*(torch.tensor([-1, 0, 1], device=pos.device),) * 3)
-    offset_key = (offsets[:, 0] * int(dims[1]) + offsets[:, 1]) * int(dims[2]) + offsets[:, 2]
-    around = torch.unique((torch.unique(key[awake_leaf])[:, None] + offset_key[None]).flatten())
-    return leaf & torch.isin(key, around)
+    index = torch.nonzero(leaf).flatten()
+    key, offset_key = cell_keys(pos[index], radius, batch[index])
+    around = torch.unique((torch.unique(key[awake_leaf[index]])[:, None] + offset_key[None]).flatten())
+    return torch.zeros_like(leaf).index_fill(0, index[torch.isin(key, around)], True)

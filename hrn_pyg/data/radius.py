@@ -72,6 +72,27 @@ def _empty(device: torch.device) -> Tensor:
     return torch.empty(2, 0, dtype=torch.long, device=device)
 
 
+def cell_keys(pos: Tensor, radius: float, batch: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Step 1 of the search: the int64 key of each point's cell (side ``h`` just above
+    ``radius``, coordinates compressed per axis, batch copy included) and the key offsets of the
+    27 neighbour cells, so ``key + offset`` are the keys of the cells around a point.
+
+    **Shapes**: pos ``(L, 3)`` (L >= 1), batch ``(L,)`` -> ``(L,)`` long, ``(27,)`` long.
+    """
+    # float64 for the cell assignment: robust for large scenes relative to the radius
+    x = pos.detach().to(torch.float64)
+    cell = _compress_cells(torch.floor((x - x.amin(dim=0)) / (radius * (1.0 + CELL_MARGIN))).long()) + 1
+    dims = (cell.amax(dim=0) + 2).tolist()  # +1 shift and +1 margin: neighbours never wrap
+    n_copies = 1 if batch is None else int(batch.max()) + 1
+    if n_copies * dims[0] * dims[1] * dims[2] >= MAX_KEYS:
+        raise ValueError(f"radius {radius} is too small for the extent of the scene (cell grid overflows)")
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    if batch is not None:
+        key = key + batch.long() * (dims[0] * dims[1] * dims[2])
+    offsets = _OFFSETS.to(pos.device)
+    return key, (offsets[:, 0] * dims[1] + offsets[:, 1]) * dims[2] + offsets[:, 2]
+
+
 def collision_edges(
     leaf_pos: Tensor,
     leaf_object: Tensor,
@@ -107,17 +128,7 @@ def collision_edges(
     if n < 2 or radius == 0.0:
         return _empty(device)
 
-    # float64 for the cell assignment: robust for large scenes relative to the radius
-    pos = leaf_pos.detach().to(torch.float64)
-    cell = _compress_cells(torch.floor((pos - pos.amin(dim=0)) / (radius * (1.0 + CELL_MARGIN))).long()) + 1
-    dims = (cell.amax(dim=0) + 2).tolist()  # +1 shift and +1 margin: neighbours never wrap
-    n_copies = 1 if batch is None else int(batch.max()) + 1
-    if n_copies * dims[0] * dims[1] * dims[2] >= MAX_KEYS:
-        raise ValueError(f"radius {radius} is too small for the extent of the scene (cell grid overflows)")
-
-    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    if batch is not None:
-        key = key + batch.long() * (dims[0] * dims[1] * dims[2])
+    key, offset_key = cell_keys(leaf_pos, radius, batch)
     sorted_key, order = torch.sort(key, stable=True)
 
     # occupied cells: their keys, point runs in sorted order, and the objects they hold
@@ -132,8 +143,6 @@ def collision_edges(
     obj_max = obj_max.scatter_reduce(0, point_cell, sorted_object, reduce="amax")
 
     # occupied neighbour cells of every occupied cell
-    offsets = _OFFSETS.to(device)
-    offset_key = (offsets[:, 0] * dims[1] + offsets[:, 1]) * dims[2] + offsets[:, 2]
     neighbour_key = (cell_key[:, None] + offset_key[None, :]).reshape(-1)  # [C * 27]
     found_at = torch.searchsorted(cell_key, neighbour_key).clamp_(max=n_cells - 1)
     found = cell_key[found_at] == neighbour_key
