@@ -213,7 +213,7 @@ def score_point(point: Point, model_path: Path, data: Path, repeats: int, k_rate
 
         def run_once() -> None:
             with torch.no_grad():
-                rollout(model, Batch.from_data_list([one]), steps, forces_one)
+                rollout(model, Batch.from_data_list([one]), steps, forces_one, sleep=None)
     else:
         summary = _sample_errors(model, windows, point.k, k_rate, steps)
         gen = torch.Generator().manual_seed(1)

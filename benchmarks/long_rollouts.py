@@ -103,7 +103,7 @@ def main() -> int:
             t0 = time.perf_counter()
             with torch.no_grad():
                 try:
-                    traj = rollout(model, graph, args.steps)
+                    traj = rollout(model, graph, args.steps, sleep=None)  # the network alone: nothing held still
                 except ValueError as exc:  # a rollout that left the finite numbers
                     rows.append({"scene": scene, "model": label or path, "seed": seed, "finite": False,
                                  "passes_check": False, "error": str(exc).splitlines()[0]})

@@ -14,7 +14,8 @@ Cases (all on the CPU, shipped checkpoints, the pybullet episode's own forces):
   So a few objects move (2 balls and whatever they topple) and most rest, the case sleeping
   is for. The grid is wide enough that the other towers are out of the moving balls' reach.
 
-For each case: a rollout with every object awake (``sleep=None``) and one with
+Both settings get the scene's declared effects (:func:`hrn_pyg.data.scenes.scene_effects`; the
+field: the tower's). For each case: a rollout with every object awake (``sleep=None``) and one with
 ``SleepConfig()`` (the defaults of :mod:`hrn_pyg.sleeping`), ``--repeats`` >= 3 times each in one
 process, the two settings interleaved so they see the same machine load (one torch thread by
 default). Reported: the median over repeats of the time per step (rollout time / steps), the
@@ -43,7 +44,8 @@ import torch
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import SCENES, Tower, TowerConfig, _yaw_quaternion, simulate_episode
+from hrn_pyg.data.scenes import SCENES, Tower, TowerConfig, _yaw_quaternion, scene_effects, simulate_episode
+from hrn_pyg.effects import SceneEffects
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.rollout import rollout, unroll
 from hrn_pyg.sampling.ensemble import episode_state
@@ -124,11 +126,12 @@ def position_mse(pred: torch.Tensor, truth: torch.Tensor, graph: HeteroData) -> 
     return float((pred - truth)[moving].pow(2).mean())
 
 
-def timed(model: HRN, graph: HeteroData, forces: torch.Tensor, sleep: SleepConfig | None) -> tuple[float, torch.Tensor]:
+def timed(model: HRN, graph: HeteroData, forces: torch.Tensor, sleep: SleepConfig | None,
+          effects: SceneEffects | None = None) -> tuple[float, torch.Tensor]:
     steps = forces.shape[0]
     with torch.no_grad():
         t0 = time.perf_counter()
-        pos = rollout(model, graph, steps, forces, sleep=sleep)
+        pos = rollout(model, graph, steps, forces, sleep=sleep, effects=effects)
         return (time.perf_counter() - t0) / steps, pos
 
 
@@ -141,11 +144,13 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     steps = forces.shape[0]
     truth = store.pos_seq[:, 3:].transpose(0, 1)  # [steps, N, 3]: x_3 .. x_S
     settings = {"all_awake": None, "sleeping": SleepConfig()}
+    effects = scene_effects("tower" if scene == "field" else scene)  # the same for both settings
     del store.pos_seq, store.force_seq
 
     with torch.no_grad():
-        asleep = torch.stack([s.asleep for s in unroll(model, graph, steps, forces, sleep=settings["sleeping"])])
-        off = rollout(model, graph, steps, forces, sleep=SleepConfig(enabled=False))
+        asleep = torch.stack([s.asleep for s in unroll(model, graph, steps, forces, sleep=settings["sleeping"],
+                                                       effects=effects)])
+        off = rollout(model, graph, steps, forces, sleep=SleepConfig(enabled=False), effects=effects)
     movable_root = store.is_root & ~store.is_static
     asleep_fraction = asleep[:, movable_root].float().mean(1)  # [steps]
     leaves_run = (~asleep[:, store.is_leaf]).float().sum(1)  # awake leaves per step
@@ -153,10 +158,10 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     times: dict[str, list[float]] = {k: [] for k in settings}
     preds: dict[str, torch.Tensor] = {}
     for k, sleep in settings.items():  # warm-up
-        preds[k] = timed(model, graph, forces, sleep)[1]
+        preds[k] = timed(model, graph, forces, sleep, effects)[1]
     for _ in range(args.repeats):  # interleaved: both settings see the same load
         for k, sleep in settings.items():
-            times[k].append(timed(model, graph, forces, sleep)[0])
+            times[k].append(timed(model, graph, forces, sleep, effects)[0])
     med = {k: statistics.median(v) for k, v in times.items()}
     horizon = min(HORIZON, steps)
     return {

@@ -95,7 +95,7 @@ def evaluate_model(model, windows: list, horizons: tuple[int, ...],
     store = graph[NODE]
     steps = max(horizons)
     forces = store.force_seq[:, :steps].transpose(0, 1)  # [steps, N, 3]
-    pred = rollout(model, graph, steps, forces)  # [steps, N, 3]: x_{t+1..t+steps}
+    pred = rollout(model, graph, steps, forces, sleep=None)  # [steps, N, 3]: x_{t+1..t+steps}; the network alone
     truth = store.pos_seq.transpose(0, 1)  # [steps+3, N, 3]: x_{t-2..t+steps}
     result: dict[str, dict[int, np.ndarray]] = {m: {} for m in METRICS}
     for h in horizons:
@@ -193,7 +193,7 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
         graph = Batch.from_data_list([windows[i] for i in members]).to(device)
         store = graph[NODE]
         forces = store.force_seq.transpose(0, 1)  # [T, N, 3]
-        pred = torch.cat([store.pos[None], rollout(model, graph, length, forces)])  # [T+1, N, 3]: x_2..x_S
+        pred = torch.cat([store.pos[None], rollout(model, graph, length, forces, sleep=None)])  # [T+1, N, 3]: x_2..x_S
         truth = store.pos_seq[:, HISTORY:].transpose(0, 1)  # [T+1, N, 3]: x_2..x_S
         for h in horizons:
             s = min(h, length)
@@ -310,7 +310,7 @@ def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 1
     rows = {"ground truth": truth}
     for name, model in models.items():
         with torch.no_grad():
-            pred = rollout(model, graph, steps, forces)
+            pred = rollout(model, graph, steps, forces, sleep=None)
         rows[name] = torch.cat([store.pos[None], pred])[:, leaves].cpu().numpy()
     rollout_grid(rows, list(times), object_colors(store.object[leaves].cpu().numpy()), path)
 

@@ -14,9 +14,14 @@ One run does, for the selected models (``--only``, default all):
    in its own process: skipped when ``model.pt`` exists and the run's ``recipe.json`` records the
    same preset, options and dataset; ``--resume`` when ``last.pt`` exists; a run folder made
    with other options is renamed aside (``<model>.replaced-<time>``), never deleted;
-3. copies ``model.pt`` to ``<checkpoints-dir>/<model>.pt`` (and each alias) atomically and
-   refreshes the model's entry in ``<checkpoints-dir>/manifest.json`` (dataset recipe, the exact
-   commands, training steps, device, wall seconds of the training invocations).
+3. for a model with a ``[models.<name>.calibrate]`` table (``hrn-pyg calibrate`` options; a
+   list of strings becomes one flag with several values, e.g. ``modules``): calibrates the
+   run's ``model.pt`` into ``model.calibrated.pt`` (validation seeds only; redone only when
+   ``model.pt`` or the options change, ``calibration.json``);
+4. copies ``model.pt`` (the calibrated copy when there is one) to
+   ``<checkpoints-dir>/<model>.pt`` (and each alias) atomically and refreshes the model's entry
+   in ``<checkpoints-dir>/manifest.json`` (dataset recipe, the exact commands, training steps,
+   device, wall seconds of the training invocations, the calibrated rate and modules).
 
 Every step is idempotent, so after a kill at any point the same command continues where it
 stopped. ``--dry-run`` prints what would run and writes nothing.
@@ -58,8 +63,13 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 OPTION_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")
 #: train options the runner sets itself; a recipe may not
 RESERVED_OPTIONS = frozenset({"preset", "data", "out", "resume", "no-progress", "device", "time-limit"})
-DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch"})
-MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "train"})
+DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch", "set"})
+MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "train", "calibrate"})
+#: calibrate options the runner sets itself; a recipe may not
+RESERVED_CALIBRATE_OPTIONS = frozenset({"scene", "model", "out", "in-place", "device", "no-progress", "data"})
+#: the calibrated copy of a run's model.pt, and the record of what it was calibrated from
+CALIBRATED_NAME = "model.calibrated.pt"
+CALIBRATION_RECORD = "calibration.json"
 
 OptionValue = str | int | float | bool
 
@@ -78,9 +88,20 @@ class DatasetRecipe:
     steps: int
     seed_offset: int = 0
     pitch: float | None = None
+    #: other scene-config fields (``hrn-pyg generate --set FIELD=VALUE``), e.g. a narrower range
+    overrides: tuple[tuple[str, Any], ...] = ()
 
     def folder(self, data_dir: Path) -> Path:
         return data_dir / self.name
+
+    def to_dict(self) -> dict[str, Any]:
+        """The recipe as recorded in run records and the manifest (``overrides`` only when set,
+        so datasets without them keep the records they had)."""
+        d = asdict(self)
+        overrides = d.pop("overrides")
+        if overrides:
+            d["set"] = {k: list(v) if isinstance(v, tuple) else v for k, v in overrides}
+        return d
 
     def generate_args(self, data_dir: Path) -> list[str]:
         """``hrn-pyg generate`` arguments (no worker count: it does not change the bytes)."""
@@ -89,6 +110,8 @@ class DatasetRecipe:
                 "--seed-offset", str(self.seed_offset)]
         if self.pitch is not None:
             args += ["--pitch", repr(float(self.pitch))]
+        for key, value in self.overrides:
+            args += ["--set", f"{key}={json.dumps(list(value) if isinstance(value, tuple) else value)}"]
         return args
 
     def episode_files(self, data_dir: Path) -> list[Path]:
@@ -105,16 +128,26 @@ class ModelRecipe:
     preset: str
     options: tuple[tuple[str, OptionValue], ...] = ()
     aliases: tuple[str, ...] = ()
+    calibrate: tuple[tuple[str, OptionValue | tuple[str, ...]], ...] = ()
 
     def identity(self, dataset: DatasetRecipe) -> dict[str, Any]:
         """What makes two trainings the same (paths and device do not)."""
         return {"preset": self.preset, "options": [list(o) for o in self.options],
-                "dataset": asdict(dataset)}
+                "dataset": dataset.to_dict()}
 
     def train_args(self, data_dir: Path, runs_dir: Path) -> list[str]:
         """``hrn-pyg train`` arguments, without ``--device``, ``--resume``, ``--no-progress``."""
         return ["train", "--preset", self.preset, "--data", str(data_dir / self.dataset),
                 "--out", str(runs_dir / self.name), *option_flags(dict(self.options))]
+
+    def calibrate_args(self, scene: str, runs_dir: Path) -> list[str]:
+        """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
+        model.pt into its calibrated copy; empty when the recipe has no calibrate table."""
+        if not self.calibrate:
+            return []
+        run = runs_dir / self.name
+        return ["calibrate", "--scene", scene, "--model", str(run / "model.pt"), "--out", str(run / CALIBRATED_NAME),
+                *option_flags(dict(self.calibrate))]
 
 
 @dataclass(frozen=True)
@@ -144,6 +177,8 @@ def option_flags(options: Mapping[str, OptionValue]) -> list[str]:
         flag = "--" + key.replace("_", "-")
         if isinstance(value, bool):
             flags += [flag] if value else []
+        elif isinstance(value, tuple):  # a list in the recipe: one flag, several values
+            flags += [flag, *map(str, value)]
         else:
             flags += [flag, str(value)]
     return flags
@@ -183,8 +218,15 @@ def _parse_dataset(name: str, table: Mapping[str, Any]) -> DatasetRecipe:
         raise ValueError(f"{where}: seed_offset must be an integer >= 0, got {seed_offset!r}")
     if pitch is not None and (isinstance(pitch, bool) or not isinstance(pitch, (int, float)) or pitch <= 0):
         raise ValueError(f"{where}: pitch must be a number > 0, got {pitch!r}")
+    overrides = table.get("set", {})
+    if not isinstance(overrides, Mapping) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool)
+            or isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+            for v in overrides.values()):
+        raise ValueError(f"{where}: 'set' must be a table of scene-config fields, each a number or a list of numbers")
     return DatasetRecipe(name, _require(table, "scene", str, where), episodes, steps, seed_offset,
-                         None if pitch is None else float(pitch))
+                         None if pitch is None else float(pitch),
+                         tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in overrides.items()))
 
 
 def _parse_options(table: Any, where: str) -> tuple[tuple[str, OptionValue], ...]:
@@ -202,6 +244,25 @@ def _parse_options(table: Any, where: str) -> tuple[tuple[str, OptionValue], ...
     return tuple(options)
 
 
+def _parse_calibrate(table: Any, where: str) -> tuple[tuple[str, OptionValue | tuple[str, ...]], ...]:
+    if not isinstance(table, Mapping):
+        raise ValueError(f"{where}: 'calibrate' must be a table of calibrate options")
+    options: list[tuple[str, OptionValue | tuple[str, ...]]] = []
+    for key, value in table.items():
+        if not OPTION_PATTERN.fullmatch(key):
+            raise ValueError(f"{where}.calibrate: {key!r} is not an option name")
+        if key.replace("_", "-") in RESERVED_CALIBRATE_OPTIONS:
+            raise ValueError(f"{where}.calibrate: {key!r} is set by `hrn-pyg checkpoints` itself")
+        if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
+            options.append((key, tuple(value)))
+        elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            options.append((key, value))
+        else:
+            raise ValueError(f"{where}.calibrate: {key!r} must be a string, a number or a list of strings, "
+                             f"got {value!r}")
+    return tuple(options)
+
+
 def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> ModelRecipe:
     where = f"models.{_check_name(name, 'models')}"
     _check_keys(table, MODEL_KEYS, where)
@@ -213,7 +274,8 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
         raise ValueError(f"{where}: aliases must be a list of names")
     return ModelRecipe(name, dataset, _require(table, "preset", str, where),
                        _parse_options(table.get("train", {}), where),
-                       tuple(_check_name(a, f"{where}.aliases") for a in aliases))
+                       tuple(_check_name(a, f"{where}.aliases") for a in aliases),
+                       _parse_calibrate(table["calibrate"], where) if "calibrate" in table else ())
 
 
 def parse_recipe(data: Mapping[str, Any]) -> Recipe:
@@ -470,14 +532,42 @@ class Runner:
         return str(resolve_device(self.config.device))
 
     # -- publishing ----------------------------------------------------------------------------
+    def calibrate_command(self, model: ModelRecipe) -> list[str]:
+        scene = self.recipe.dataset(model.dataset).scene
+        args = model.calibrate_args(scene, self.config.runs_dir)
+        return args + (["--device", self.config.device] if args and self.config.device else [])
+
+    def calibrate(self, model: ModelRecipe) -> None:
+        """``hrn-pyg calibrate`` the run's model.pt into ``model.calibrated.pt`` when the recipe
+        asks for it; skipped when the copy exists and was made from this model.pt with these
+        options (``calibration.json``). Raises ``RuntimeError`` when calibrate fails."""
+        args = self.calibrate_command(model)
+        if not args:
+            return
+        run = self.config.runs_dir / model.name
+        if self.config.dry_run:
+            self.say(shown(args))
+            return
+        record = {"model_sha256": _sha256(run / "model.pt"), "options": [list(o) if not isinstance(o[1], tuple)
+                                                                          else [o[0], list(o[1])] for o in model.calibrate]}
+        if (run / CALIBRATED_NAME).is_file() and _read_json(run / CALIBRATION_RECORD) == record:
+            return
+        self.say(f"model {model.name}: {shown(args)}")
+        with open(run / "calibrate.log", "w") as log:
+            rc = self.call([*args, "--no-progress"], stdout=log, stderr=subprocess.STDOUT)
+        if rc != 0 or not (run / CALIBRATED_NAME).is_file():
+            raise RuntimeError(f"model {model.name}: `{shown(args)}` exited with {rc} (log: {run / 'calibrate.log'})")
+        atomic_write_json(run / CALIBRATION_RECORD, record)
+
     def publish(self, model: ModelRecipe) -> None:
-        """Copy the run's model.pt to the checkpoints folder and refresh the manifest."""
+        """Copy the run's model.pt (its calibrated copy when the recipe calibrates it) to the
+        checkpoints folder and refresh the manifest."""
         cfg, run = self.config, self.config.runs_dir / model.name
+        source = run / (CALIBRATED_NAME if model.calibrate else "model.pt")
         if cfg.dry_run:
-            self.say(f"copy {run / 'model.pt'} -> {cfg.checkpoints_dir / (model.name + '.pt')}"
+            self.say(f"copy {source} -> {cfg.checkpoints_dir / (model.name + '.pt')}"
                      + "".join(f", {a}.pt" for a in model.aliases) + f"; refresh {MANIFEST_NAME}")
             return
-        source = run / "model.pt"
         digest = _sha256(source)
         for name in (model.name, *model.aliases):
             target = cfg.checkpoints_dir / f"{name}.pt"
@@ -497,7 +587,7 @@ class Runner:
         return {
             "name": model.name,
             "aliases": list(model.aliases),
-            "dataset": asdict(dataset),
+            "dataset": dataset.to_dict(),
             "generate_command": shown(dataset.generate_args(self.config.data_dir)),
             "train_command": shown([a for a in last_args if a != "--resume"]),
             "steps": train_config.get("steps"),
@@ -505,7 +595,18 @@ class Runner:
             "wall_seconds": round(sum(i["seconds"] for i in invocations), 3),
             "train_invocations": len(invocations),
             "sha256": digest,
+            **self._calibration_entry(model, run),
         }
+
+    def _calibration_entry(self, model: ModelRecipe, run: Path) -> dict[str, Any]:
+        """The manifest's calibration fields: the command and the chosen rate and modules."""
+        if not model.calibrate:
+            return {}
+        from hrn_pyg.sampling.calibrate import calibration_record  # imports torch
+
+        record = calibration_record(run / CALIBRATED_NAME) or {}
+        chosen = {k: record.get(k) for k in ("rate", "modules", "spread_ratio_median", "seeds")}
+        return {"calibrate_command": shown(self.calibrate_command(model)), "calibrated": chosen}
 
     def _update_manifest(self, model: ModelRecipe, run: Path, digest: str) -> None:
         entry = self.manifest_entry(model, run, digest)
@@ -524,6 +625,7 @@ class Runner:
     # -- everything ----------------------------------------------------------------------------
     def build(self, model: ModelRecipe) -> None:
         self.train(model)
+        self.calibrate(model)
         self.publish(model)
 
     def run(self) -> list[str]:

@@ -12,15 +12,16 @@ A model step has three named stages, each a function testable on its own (after 
 
 :func:`step` chains them and also returns the next graph (positions shifted, collision edges
 recomputed at the new positions); :func:`unroll` and :func:`rollout` feed predictions back,
-optionally letting objects at rest sleep (``sleep=``, :mod:`hrn_pyg.sleeping`).
+letting objects at rest sleep unless told not to (``sleep=``, :mod:`hrn_pyg.sleeping`).
 Everything is differentiable in the positions (the edge sets are not), and vectorised over
 particles.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -37,12 +38,13 @@ from hrn_pyg.data.graph import (
     leaf_to_ancestor_mean,
     set_state,
 )
+from hrn_pyg.data.radius import collision_edges
+from hrn_pyg.effects import SceneEffects, plan_effects
 from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
+from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
 
-if TYPE_CHECKING:
-    from hrn_pyg.sleeping import SleepConfig
 
 #: column of the rigid material in ``graph['particle'].material``
 RIGID = MATERIALS.index("rigid")
@@ -89,14 +91,17 @@ def _node_force(graph: HeteroData, force: Tensor | None) -> Tensor:
     return torch.where(store.is_leaf.unsqueeze(-1), force, torch.zeros_like(force))
 
 
-def build_inputs(model: HRN, graph: HeteroData, force: Tensor | None = None) -> HRNInputs:
+def build_inputs(
+    model: HRN, graph: HeteroData, force: Tensor | None = None, force_active: bool | None = None
+) -> HRNInputs:
     r"""Stage 1: normalised network inputs of the graph's current state.
 
     States :math:`s(t)` from :math:`v_t = x_t - x_{t-1}` and :math:`z_t`, :math:`s(t-1)` from
     :math:`v_{t-1} = x_{t-1} - x_{t-2}` and :math:`z_{t-1}`, plus the static attributes;
     positions divided by the length scale (edges only see differences); force divided by its
     scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
-    collision edges are read from the graph as they are.
+    collision edges are read from the graph as they are. ``force_active`` (optional) says
+    whether the force is nonzero, so the network need not ask (:mod:`hrn_pyg.effects`).
     """
     store = graph[NODE]
     for name in ("pos", "prev_pos", "prev_prev_pos"):
@@ -129,6 +134,7 @@ def build_inputs(model: HRN, graph: HeteroData, force: Tensor | None = None) -> 
         within_siblings=graph[WITHIN_SIBLINGS].edge_index,
         ancestor_to_descendant=graph[ANCESTOR_TO_DESCENDANT].edge_index,
         rest_pos=rest_pos,
+        force_active=force_active,
     )
 
 
@@ -171,15 +177,27 @@ def rigid_leaf_positions(graph: HeteroData, pred_pos: Tensor) -> Tensor:
     motion of their current positions (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`); other rows are
     returned unchanged (ancestor rows still need re-deriving).
 
-    An object (of one batch copy) is identified by its root node, so the groups need no host
-    sync; rows other than rigid leaves enter the fit with zero weight, and so do static rows (a
-    sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sleeping`, is rigid and static).
+    An object (of one batch copy) is identified by its root node (:func:`object_of`, one fit per
+    object rather than per node); rows other than rigid leaves enter the fit with zero weight,
+    and so do static rows (a sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sleeping`, is
+    rigid and static).
     """
     store = graph[NODE]
     rigid_leaf = store.is_leaf & store.material[:, RIGID].bool() & ~store.is_static
     weight = torch.where(rigid_leaf, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
-    fitted = fit_rigid_motion(store.pos, pred_pos, weight, root_of(graph), store.num_nodes)
+    group, count = object_of(graph)
+    fitted = fit_rigid_motion(store.pos, pred_pos, weight, group, count)
     return torch.where(rigid_leaf.unsqueeze(-1), fitted, pred_pos)
+
+
+def object_of(graph: HeteroData) -> tuple[Tensor, int]:
+    """``([N] long, R)``: every node's object ``0..R-1``, numbered in the order of the objects'
+    root nodes (:func:`root_of`; a node without ancestors in the graph is an object of its own),
+    and the number of objects ``R`` (one host read)."""
+    root = root_of(graph)
+    is_own_root = root == torch.arange(root.numel(), device=root.device)
+    rank = torch.cumsum(is_own_root.long(), 0) - 1
+    return rank[root], int(is_own_root.sum())
 
 
 def root_of(graph: HeteroData) -> Tensor:
@@ -211,6 +229,9 @@ def step(
     graph: HeteroData,
     force: Tensor | None = None,
     masks: Mapping[str, Tensor] | None = None,
+    *,
+    force_active: bool | None = None,
+    collisions: bool = True,
 ) -> Step:
     """One model step: build inputs, run the network, decode, and advance the graph.
 
@@ -220,13 +241,58 @@ def step(
         force: ``[N, 3]`` external force during ``t -> t+1``; None uses ``graph['particle'].force``
             (zero if absent).
         masks: dropout masks ``{module: [B, H]}``; None is the deterministic model.
+        force_active, collisions: the step's part of an :class:`~hrn_pyg.effects.EffectPlan`:
+            whether the force is nonzero (None: the network checks), and whether the next
+            graph gets a collision search (False: no collision edges).
     """
-    inputs = build_inputs(model, graph, force)
+    inputs = build_inputs(model, graph, force, force_active)
     out = run_network(model, inputs, masks)
     pos, local, velocity = decode(model, graph, out)
-    store = graph[NODE]
-    nxt = set_state(graph, store.prev_pos, store.pos, pos, radius=model.config.collision_radius)
+    nxt = advance(graph, pos, model.config.collision_radius if collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
+
+
+def advance(
+    graph: HeteroData,
+    pos: Tensor,
+    radius: float | None,
+    held: Tensor | None = None,
+    edges: Tensor | None = None,
+) -> HeteroData:
+    """The graph at ``t+1``: a shallow copy of ``graph`` (at ``t``) with ``prev_prev_pos, prev_pos,
+    pos = x_{t-1}, x_t, x_{t+1}``, force zero and the collision edges of ``x_{t+1}``.
+
+    What :func:`hrn_pyg.data.graph.set_state` gives for a graph whose ancestor rows are already
+    derived (every graph of a rollout, and ``pos`` from :func:`decode`), without re-deriving
+    them: the rows are moved, not recomputed, so they stay bit for bit. ``held`` ``[N]`` bool
+    (optional): nodes held still in this step (:mod:`hrn_pyg.sleeping`), whose
+    ``prev_prev_pos`` becomes ``x_t`` so they start from rest when they wake. ``edges``
+    ``(2, |E_C|)`` (optional): the collision edges of ``x_{t+1}`` when the caller has them
+    (the sleeping step searches only where something moved); else all leaves are searched.
+
+    **Shapes:** pos ``(N, 3)``; returns a graph with ``collision`` ``(2, |E_C|)``.
+    """
+    _check_finite("advance: pos", pos)
+    store = graph[NODE]
+    out = copy.copy(graph)
+    part = out[NODE]
+    part.prev_prev_pos = store.prev_pos if held is None else torch.where(held.unsqueeze(-1), store.pos, store.prev_pos)
+    part.prev_pos = store.pos
+    part.pos = pos
+    part.force = torch.zeros_like(pos)
+    out[COLLISION].edge_index = leaf_collision_edges(out, pos, radius) if edges is None else edges
+    return out
+
+
+def leaf_collision_edges(graph: HeteroData, pos: Tensor, radius: float | None) -> Tensor:
+    """Collision edges (node indices) of the leaves of ``graph`` at positions ``pos`` ``[N, 3]``,
+    grouped by batch copy; none when ``radius`` is None or 0 (:func:`~hrn_pyg.data.radius.collision_edges`)."""
+    store = graph[NODE]
+    if radius is None or radius <= 0:
+        return torch.empty(2, 0, dtype=torch.long, device=pos.device)
+    leaf_index = torch.nonzero(store.is_leaf).flatten()
+    batch = store.batch[leaf_index] if "batch" in store else None
+    return leaf_index[collision_edges(pos[leaf_index], store.object[leaf_index], radius, batch)]
 
 
 def _check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:
@@ -245,7 +311,8 @@ def unroll(
     steps: int,
     forces: Tensor | None = None,
     masks_fn: MasksFn | None = None,
-    sleep: SleepConfig | None = None,
+    sleep: SleepConfig | None = DEFAULT_SLEEP,
+    effects: SceneEffects | None = None,
 ) -> list[Step]:
     """Feed the model its own predictions for ``steps`` steps; every :class:`Step` is kept.
 
@@ -254,12 +321,19 @@ def unroll(
     external force of each step; None means no external force at any step (the graph's
     ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
     ``t`` (None: deterministic); it always sees the whole graph. ``sleep`` lets objects at rest
-    sleep (:mod:`hrn_pyg.sleeping`; every object starts awake); None or ``enabled=False`` runs
-    every object at every step, exactly as without the argument.
+    sleep (:mod:`hrn_pyg.sleeping`; every object starts awake), on by default
+    (:data:`~hrn_pyg.sleep_config.DEFAULT_SLEEP`); ``sleep=None`` or ``enabled=False`` runs
+    every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
+    ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.effects.SceneEffects`;
+    None: what the data show): before the first step it becomes an
+    :class:`~hrn_pyg.effects.EffectPlan`, so no step asks the device whether its force is zero,
+    and a scene in which nothing can touch gets no collision search at all.
     """
     _check_forces(graph, steps, forces)
+    plan = plan_effects(graph, steps, forces, effects)
     store = graph[NODE]
-    graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=model.config.collision_radius)
+    radius = model.config.collision_radius if plan.collisions else None
+    graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=radius)
     sleeping = sleep is not None and sleep.enabled
     if sleeping:
         from hrn_pyg import sleeping as sleep_module  # imports this module
@@ -270,10 +344,12 @@ def unroll(
     for t in range(steps):  # time steps; each step is vectorised over particles
         force = forces[t] if forces is not None else torch.zeros_like(store.pos)
         masks = masks_fn(t, graph) if masks_fn is not None else None
+        active = plan.force_active[t]
         if sleeping:
-            result, sleep_state = sleep_module.sleeping_step(model, graph, force, masks, sleep_state, objs, sleep)
+            result, sleep_state = sleep_module.sleeping_step(model, graph, force, masks, sleep_state, objs, sleep,
+                                                             force_active=active, collisions=plan.collisions)
         else:
-            result = step(model, graph, force, masks)
+            result = step(model, graph, force, masks, force_active=active, collisions=plan.collisions)
         out.append(result)
         graph = result.graph
     return out
@@ -285,10 +361,11 @@ def rollout(
     steps: int,
     forces: Tensor | None = None,
     masks_fn: MasksFn | None = None,
-    sleep: SleepConfig | None = None,
+    sleep: SleepConfig | None = DEFAULT_SLEEP,
+    effects: SceneEffects | None = None,
 ) -> Tensor:
     """Positions of all nodes over ``steps`` predicted steps, ``[steps, N, 3]`` (``x_{t+1..t+steps}``).
 
     See :func:`unroll` for the arguments.
     """
-    return torch.stack([s.pos for s in unroll(model, graph, steps, forces, masks_fn, sleep)])
+    return torch.stack([s.pos for s in unroll(model, graph, steps, forces, masks_fn, sleep, effects)])

@@ -42,6 +42,10 @@ sleeping object still notices a newcomer. When no movable object is asleep the s
 :func:`hrn_pyg.rollout.step` on the whole graph (bit-identical to a rollout without sleeping);
 when every object is asleep the network is not run at all.
 
+Callers that carry no state between steps (the RL environment, :mod:`hrn_pyg.rl.hrn_dynamics`)
+start each step from :func:`state_from_history`: an object still over the two steps its
+three positions span is asleep; :func:`update` and :func:`predict_awake` then do the rest.
+
 Defaults, from per-step leaf displacements (the largest over an object's leaves) of pybullet
 episodes and of the shipped models; units are metres per model step (1/30 s):
 
@@ -68,11 +72,8 @@ longer than any turning point of a real motion.
 
 from __future__ import annotations
 
-import copy
-import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -89,44 +90,18 @@ from hrn_pyg.data.graph import (
 from hrn_pyg.data.radius import cell_keys, collision_edges
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.rollout import Step, build_inputs, decode, root_of, run_network, step
+from hrn_pyg.rollout import advance as advance_graph
+from hrn_pyg.sleep_config import SleepConfig
 
 #: node attributes a model step reads (:func:`~hrn_pyg.rollout.build_inputs`, ``decode``), the
 #: ones a sub-graph carries; ``batch`` and ``rest_pos`` only where the graph has them
 NODE_ATTRIBUTES = ("mass", "material", "stiffness", "object", "depth", "is_leaf", "is_root", "is_static",
                    "pos", "prev_pos", "prev_prev_pos", "batch", "rest_pos")
+#: largest leaves x awake-object boxes test of :func:`near_awake` (about 16 MB of booleans);
+#: beyond it the grid cells are used
+BOX_TEST_LIMIT = 2**24
 #: the hierarchy's edge sets: within one object, so a sub-graph keeps those of its awake objects
 HIERARCHY_EDGES = (CHILD_TO_PARENT, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
-
-
-@dataclass(frozen=True)
-class SleepConfig:
-    """When an object at rest falls asleep (see the module docstring for the rule).
-
-    Attributes:
-        enabled: False runs every object at every step (the plain rollout, bit for bit).
-        threshold: metres per step; an object whose leaves all moved less than this in a step
-            (and had no external force) was still in that step. Default 2e-3 (6 cm/s at 30 steps
-            per second): above the creep of the shipped models at rest, below real motion.
-        patience: consecutive still steps after which an object falls asleep (>= 1).
-    """
-
-    enabled: bool = True
-    threshold: float = 2e-3
-    patience: int = 10
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.enabled, bool):
-            raise ValueError(f"SleepConfig.enabled must be a bool, got {self.enabled!r}")
-        threshold = self.threshold
-        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (
-                math.isfinite(threshold) and threshold > 0):
-            raise ValueError(f"SleepConfig.threshold must be a finite number > 0 (metres per step), got {threshold!r}")
-        patience = self.patience
-        if isinstance(patience, bool) or not isinstance(patience, int) or patience < 1:
-            raise ValueError(f"SleepConfig.patience must be an integer >= 1 (steps), got {patience!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 class Objects(NamedTuple):
@@ -283,6 +258,9 @@ def sleeping_step(
     state: SleepState,
     objs: Objects,
     config: SleepConfig,
+    *,
+    force_active: bool | None = None,
+    collisions: bool = True,
 ) -> tuple[Step, SleepState]:
     """One model step in which objects at rest sleep; returns the step and the new sleep state.
 
@@ -291,52 +269,76 @@ def sleeping_step(
     :class:`~hrn_pyg.rollout.Step` has zero velocities on asleep nodes, ``asleep`` ``[N]`` the
     nodes held still in this step, and the next graph (:func:`advance`): asleep nodes with
     ``pos``, ``prev_pos`` and ``prev_prev_pos`` all equal to the held position, the collision
-    edges of all leaves at ``x_{t+1}``.
+    edges of all leaves at ``x_{t+1}``. ``force_active`` and ``collisions`` are the step's part
+    of the rollout's :class:`~hrn_pyg.effects.EffectPlan` (as for :func:`hrn_pyg.rollout.step`).
     """
     state = update(config, state, graph, force, objs)
     asleep_node = state.asleep[objs.of_node]
     store = graph[NODE]
-    radius = model.config.collision_radius
+    radius = model.config.collision_radius if collisions else None
     if not bool((asleep_node & ~store.is_static).any()):  # nothing movable sleeps: the plain step
-        result = step(model, graph, force, masks)
+        result = step(model, graph, force, masks, force_active=force_active, collisions=collisions)
         return result._replace(asleep=store.is_static), state
 
-    prev_pos, prev_prev_pos = freeze(graph, asleep_node)
-    zero = torch.zeros_like(store.pos)
-    if bool(asleep_node.all()):  # nothing to run: the scene holds still
-        pos, local, velocity = store.pos, zero, zero
-    else:
-        sub, index, awake_rows = subgraph(graph, asleep_node, prev_pos, prev_prev_pos)
-        out = run_network(model, build_inputs(model, sub, force.index_select(0, index)), masks)
-        sub_pos, sub_local, sub_velocity = decode(model, sub, out)
-        keep = awake_rows.unsqueeze(-1)
-        pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
-        local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))
-        velocity = zero.index_copy(0, index, torch.where(keep, sub_velocity, zero.index_select(0, index)))
+    pos, local, velocity = predict_awake(model, graph, force, masks, asleep_node, force_active)
     nxt = advance(graph, asleep_node, pos, radius)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 
 
+def predict_awake(
+    model: HRN,
+    graph: HeteroData,
+    force: Tensor,
+    masks: Mapping[str, Tensor] | None,
+    asleep_node: Tensor,
+    force_active: bool | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(pos, local_velocity, velocity)`` ``[N, 3]`` of a step in which the ``asleep_node``
+    rows are held: the network runs on the :func:`subgraph` of the awake objects (with frozen
+    asleep collision sources), asleep rows keep ``pos`` bit for bit with zero velocity. The
+    prediction part of :func:`sleeping_step`, without the next graph (the RL environment
+    builds its own)."""
+    store = graph[NODE]
+    zero = torch.zeros_like(store.pos)
+    if bool(asleep_node.all()):  # nothing to run: the scene holds still
+        return store.pos, zero, zero
+    prev_pos, prev_prev_pos = freeze(graph, asleep_node)
+    sub, index, awake_rows = subgraph(graph, asleep_node, prev_pos, prev_prev_pos)
+    out = run_network(model, build_inputs(model, sub, force.index_select(0, index), force_active), masks)
+    sub_pos, sub_local, sub_velocity = decode(model, sub, out)
+    keep = awake_rows.unsqueeze(-1)
+    pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
+    local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))
+    velocity = zero.index_copy(0, index, torch.where(keep, sub_velocity, zero.index_select(0, index)))
+    return pos, local, velocity
+
+
+def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) -> SleepState:
+    """The sleep state a graph's own three positions imply, for callers that carry no state
+    between steps (the RL environment): an object whose leaves moved less than ``threshold`` in
+    both steps ``x_{t-2} -> x_{t-1} -> x_t`` is asleep, with its still counter at ``patience``
+    (so the two steps of history stand for the patience a rollout would have waited);
+    :func:`update` then wakes whatever a force or a moving neighbour reaches."""
+    store = graph[NODE]
+    leaf = store.is_leaf
+    zero = torch.zeros_like(store.pos[:, 0])
+    disp = torch.maximum((store.pos - store.prev_pos).norm(dim=-1), (store.prev_pos - store.prev_prev_pos).norm(dim=-1))
+    still = object_max(torch.where(leaf, disp, zero), objs) < config.threshold
+    asleep = still | objs.static
+    return SleepState(asleep=asleep, still=torch.where(still, config.patience, 0).to(torch.long))
+
+
 def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> HeteroData:
-    """The graph at ``t+1`` after a step with sleeping objects (what
-    :func:`hrn_pyg.data.graph.set_state` gives, without its redundant work).
+    """The graph at ``t+1`` after a step with sleeping objects: :func:`hrn_pyg.rollout.advance`
+    with the asleep nodes held (all three positions equal to the held one) and the collision
+    edges of :func:`next_collision_edges`.
 
     ``pos`` ``[N, 3]`` is ``x_{t+1}`` with ancestors derived (the awake objects' from the
-    sub-graph's decode, the asleep nodes' rows equal to ``x_t``), so nothing is re-derived and
-    the held rows stay bit for bit. ``prev_pos = x_t``, ``prev_prev_pos = x_{t-1}`` (``x_t`` on
-    asleep nodes), force zero, collision edges of :func:`next_collision_edges`.
+    sub-graph's decode, the asleep nodes' rows equal to ``x_t``), so the held rows stay bit for bit.
     """
-    if not bool(torch.isfinite(pos).all()):
+    if not bool(torch.isfinite(pos).all()):  # before the search reads it
         raise ValueError("advance: pos contains NaN or infinite values")
-    store = graph[NODE]
-    out = copy.copy(graph)
-    part = out[NODE]
-    part.prev_prev_pos = torch.where(asleep_node.unsqueeze(-1), store.pos, store.prev_pos)
-    part.prev_pos = store.pos
-    part.pos = pos
-    part.force = torch.zeros_like(pos)
-    out[COLLISION].edge_index = next_collision_edges(graph, asleep_node, pos, radius)
-    return out
+    return advance_graph(graph, pos, radius, held=asleep_node, edges=next_collision_edges(graph, asleep_node, pos, radius))
 
 
 def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> Tensor:
@@ -345,7 +347,7 @@ def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, ra
     Asleep leaves do not move, so an edge between two of them is the same at :math:`x_{t+1}` as
     in the graph at :math:`x_t` and is kept from there. Every other edge has an awake end: the
     search (:func:`hrn_pyg.data.radius.collision_edges`) runs on the awake leaves and the asleep
-    leaves in the cells (side ``radius``) around them, :func:`near_awake`, and keeps the edges
+    leaves near them (:func:`near_awake`), and keeps the edges
     with an awake end. The union, sorted by destination then source, is exactly the full
     search's edge set. When more than half of the leaves are awake the full search is cheaper
     and is what runs.
@@ -364,14 +366,42 @@ def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, ra
         return index[collision_edges(pos[index], store.object[index], radius, batch[index])]
     old = graph[COLLISION].edge_index
     kept = old[:, asleep_node[old[0]] & asleep_node[old[1]]]
-    index = torch.nonzero(leaf & (awake_leaf | near_awake(pos, batch, leaf, awake_leaf, radius))).flatten()
+    index = torch.nonzero(leaf & (awake_leaf | near_awake(pos, batch, leaf, awake_leaf, radius, store.object))).flatten()
     found = index[collision_edges(pos[index], store.object[index], radius, batch[index])]
     found = found[:, ~(asleep_node[found[0]] & asleep_node[found[1]])]
     edges = torch.cat([kept, found], dim=1)
     return edges[:, torch.argsort(edges[1] * n + edges[0])]
 
 
-def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float) -> Tensor:
+def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float,
+               leaf_object: Tensor) -> Tensor:
+    r"""``[N]`` bool: the leaves inside the bounding box of an awake object of their own batch
+    copy, grown by ``radius`` on every side: a superset of the leaves within ``radius`` of an
+    awake leaf (a distance below :math:`r` is below :math:`r` on every axis).
+
+    A few ops for the whole scene (a scatter for the boxes, one broadcast test), where the
+    cells of the collision grid cost a sort of every leaf; when the test would exceed
+    :data:`BOX_TEST_LIMIT` comparisons (many awake objects in a large scene) it falls back to
+    the cells (:func:`near_awake_cells`).
+
+    **Shapes:** pos ``(N, 3)``, batch / leaf_object ``(N,)``, leaf / awake_leaf ``(N,)`` bool.
+    """
+    index = torch.nonzero(leaf).flatten()
+    awake = torch.nonzero(awake_leaf).flatten()
+    span = int(leaf_object.max()) + 1
+    box_key, box_of = torch.unique(batch[awake] * span + leaf_object[awake], return_inverse=True)
+    if box_key.numel() * index.numel() > BOX_TEST_LIMIT:
+        return near_awake_cells(pos, batch, leaf, awake_leaf, radius)
+    spread = box_of[:, None].expand(-1, 3)
+    low = pos.new_full((box_key.numel(), 3), float("inf")).scatter_reduce(0, spread, pos[awake], reduce="amin")
+    high = pos.new_full((box_key.numel(), 3), float("-inf")).scatter_reduce(0, spread, pos[awake], reduce="amax")
+    x = pos[index][:, None, :]  # [L, 1, 3] against [B, 3] boxes
+    inside = ((x >= low - radius) & (x <= high + radius)).all(dim=-1)
+    inside &= batch[index][:, None] == torch.div(box_key, span, rounding_mode="floor")[None, :]
+    return torch.zeros_like(leaf).index_fill(0, index[inside.any(dim=1)], True)
+
+
+def near_awake_cells(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float) -> Tensor:
     r"""``[N]`` bool: the leaves in a grid cell next to (or in) a cell holding an awake leaf of
     the same batch copy, on the collision search's own grid
     (:func:`hrn_pyg.data.radius.cell_keys`, cells of side :math:`h \ge r`): every leaf within

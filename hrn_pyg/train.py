@@ -52,6 +52,7 @@ from hrn_pyg.losses import (
     fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
+    rest_velocity_loss,
     group_shape_loss,
     local_velocity_loss,
     shape_groups,
@@ -73,8 +74,9 @@ SHAPE_LOSSES = ("group", "full")
 NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
-#: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2)
-LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "val_loss", "seconds"]
+#: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2,
+#: ``rest`` unless ``w_rest`` > 0)
+LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,9 @@ class TrainConfig:
             (plain dropout training, the seed paper's). Costs about K times the compute.
         w_energy: weight of the energy-score term (per unrolled step, mean over the moving
             leaves, in positions divided by the velocity scale); used when ``sample_copies`` >= 2.
+        w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
+            of the objects the ground truth has at rest (0: off, the seed paper's loss).
+        rest_threshold: metres per step under which a root's true velocity counts as rest.
     """
 
     preset: str = "ours"
@@ -144,6 +149,8 @@ class TrainConfig:
     augment_symmetry: bool = False
     sample_copies: int = 0
     w_energy: float = 1.0
+    w_rest: float = 0.0
+    rest_threshold: float = 1e-3
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -173,6 +180,10 @@ class TrainConfig:
                              f"only by their dropout masks")
         if not 0.0 <= self.w_energy < math.inf:
             raise ValueError(f"w_energy must be a finite number >= 0, got {self.w_energy}")
+        if not 0.0 <= self.w_rest < math.inf:
+            raise ValueError(f"w_rest must be a finite number >= 0, got {self.w_rest}")
+        if not 0.0 < self.rest_threshold < math.inf:
+            raise ValueError(f"rest_threshold must be a finite number > 0 (metres per step), got {self.rest_threshold}")
 
     @classmethod
     def for_preset(cls, preset: str, **overrides: Any) -> TrainConfig:
@@ -205,12 +216,16 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     .. math::
         \mathcal{L} = \sum_{k=1}^{T} w_{loc}\mathcal{L}_{loc}^{(k)} + w_{glob}\mathcal{L}_{glob}^{(k)}
             + w_{shape}\mathcal{L}_{shape}^{(k)} \; [+\, w_{energy}\mathcal{L}_{ES}^{(k)}]
+            \; [+\, w_{rest}\mathcal{L}_{rest}^{(k)}]
 
     Step ``k`` starts from the model's own prediction of step ``k-1`` (ground truth for
     ``k = 1``). The local term compares velocities in the parent's frame, the global term the
     positions of roots and leaves (at ``k = 1`` the same as their global velocity error), both
     divided by the velocity scale; the shape term is the group or fully-connected
     pairwise-distance error. With ``seq_len = 1`` this is the baseline HRN's one-step loss.
+    With ``config.w_rest > 0``, :func:`~hrn_pyg.losses.rest_velocity_loss` adds the absolute
+    velocity error of the objects at rest in the truth (step ``k``'s own prediction against the
+    true displacement ``x_{k+1} - x_k``).
 
     With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
     :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
@@ -248,6 +263,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     parts = {"local": seq.new_zeros(()), "global": seq.new_zeros(()), "shape": seq.new_zeros(())}
     if n_samples >= 2:
         parts["energy"] = seq.new_zeros(())
+    if config.w_rest > 0:
+        parts["rest"] = seq.new_zeros(())
     total = seq.new_zeros(())
     for k in range(seq_len):  # unrolled time steps
         masks = None
@@ -268,6 +285,11 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["local"] = parts["local"] + loss_local.detach()
         parts["global"] = parts["global"] + loss_global.detach()
         parts["shape"] = parts["shape"] + loss_shape.detach()
+        if config.w_rest > 0:  # objects the truth has still: their own velocity error, absolute
+            loss_rest = rest_velocity_loss(result.pos - graph[NODE].pos, true_next - seq[:, k + 2], store.is_root,
+                                           store.is_static, config.rest_threshold, vel_scale)
+            total = total + config.w_rest * loss_rest
+            parts["rest"] = parts["rest"] + loss_rest.detach()
         if n_samples >= 2 and moving_leaves.numel():
             # copy c of window b holds rows c N + (b's rows): one [K, L', 3] block of samples
             samples = result.pos.reshape(n_samples, one_window_nodes, 3)[:, moving_leaves]
@@ -529,7 +551,7 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
         save(step_index)
         if rank == 0 and (out / "metrics.csv").exists():
             plot_curves(out / "metrics.csv", out / "loss.png", "step",
-                        ["loss", "local", "global", "shape", "energy", "val_loss"],
+                        ["loss", "local", "global", "shape", "energy", "rest", "val_loss"],
                         title=f"{config.preset} on {Path(config.data).name}")
         if started_distributed:
             dist.destroy_process_group()
@@ -546,7 +568,7 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
     model.eval()
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
-    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0))
+    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0))
     model.train(was_training)
     return float(loss) / seq_len
 

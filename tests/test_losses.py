@@ -163,3 +163,22 @@ def test_fair_energy_score_bad_input_says_which():
         fair_energy_score(torch.zeros(1, 4, 3), torch.zeros(4, 3))
     with pytest.raises(ValueError, match="one observation"):
         fair_energy_score(torch.zeros(3, 4, 3), torch.zeros(2, 4, 3))
+
+
+def test_rest_velocity_loss_counts_only_the_objects_at_rest():
+    from hrn_pyg.losses import rest_velocity_loss
+
+    true = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    pred = torch.tensor([[3e-4, -1e-4, 0.0], [0.2, 0.0, 0.0], [5.0, 5.0, 5.0], [1.0, 1.0, 1.0]])
+    is_root = torch.tensor([True, True, False, True])
+    is_static = torch.tensor([False, False, False, True])
+    # only node 0 is a movable root with a true speed under 1 mm: |3e-4| + |-1e-4| + 0 over 3, / 0.01
+    loss = rest_velocity_loss(pred, true, is_root, is_static, 1e-3, 0.01)
+    assert loss.item() == pytest.approx((3e-4 + 1e-4) / 3 / 0.01)
+    # an absolute error: the pull towards zero creep does not fade as the creep shrinks
+    small = pred.clone().requires_grad_(True)
+    rest_velocity_loss(small, true, is_root, is_static, 1e-3, 0.01).backward()
+    assert small.grad[0].tolist() == pytest.approx([1 / 0.03, -1 / 0.03, 0.0])
+    assert small.grad[1:].abs().sum() == 0
+    nothing_rests = rest_velocity_loss(pred, true + 1.0, is_root, is_static, 1e-3, 0.01)
+    assert nothing_rests.item() == 0.0

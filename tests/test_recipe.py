@@ -244,3 +244,60 @@ def test_the_ablation_recipe_parses_and_varies_one_factor_at_a_time():
         extra = {k: v for k, v in opts.items() if base.get(k) != v}
         assert len(extra) == 1, (name, extra)  # exactly one factor on top of the paper's model
         assert combined.items() >= extra.items()
+
+
+def test_a_calibrate_table_ships_the_calibrated_copy_and_is_not_redone(tmp_path):
+    """``[models.b.calibrate]``: the published file is model.pt calibrated on a validation seed
+    (rate and modules in its config and in the manifest); a rerun does not calibrate again."""
+    from hrn_pyg.sampling.calibrate import calibration_record
+    from hrn_pyg.train import load_model
+
+    text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
+    text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours"})
+    text += _toml_table("models.b.train", {"steps": 2, "checkpoint-every": 2, **TINY_MODEL})
+    text += _toml_table("models.b.calibrate", {"seeds": "8", "rates": "0.05,0.2", "modules": ["force", "collision"],
+                                               "k": 2, "members": 2, "steps": 2})
+    (tmp_path / "recipes.toml").write_text(text)
+    recipe = load_recipe(tmp_path / "recipes.toml")
+    assert option_flags(dict(recipe.models[0].calibrate)) == [
+        "--seeds", "8", "--rates", "0.05,0.2", "--modules", "force", "collision", "--k", "2", "--members", "2",
+        "--steps", "2"]
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
+    shipped = ckpt / "b.pt"
+    assert shipped.read_bytes() == (runs / "b" / "model.calibrated.pt").read_bytes()
+    record = calibration_record(shipped)
+    assert record is not None and record["rate"] in (0.05, 0.2) and record["seeds"] == [8]
+    model = load_model(shipped)
+    assert model.config.dropout_rate == record["rate"] and list(model.config.dropout_modules) == record["modules"]
+    entry = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]["b"]
+    assert entry["calibrated"]["rate"] == record["rate"] and entry["calibrate_command"].startswith(
+        f"hrn-pyg calibrate --scene cube_collision --model {runs / 'b' / 'model.pt'} ")
+    before = _mtimes(runs / "b", "model*.pt")
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert _mtimes(runs / "b", "model*.pt") == before
+
+
+def test_bad_calibrate_tables_are_refused():
+    base = {"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3}},
+            "models": {"m": {"dataset": "d", "preset": "ours"}}}
+    for table, word in (({"out": "x"}, "set by"), ({"k": True}, "string, a number or a list"),
+                        ({"modules": [1]}, "string, a number or a list"), ("x", "table")):
+        recipe = json.loads(json.dumps(base))
+        recipe["models"]["m"]["calibrate"] = table
+        with pytest.raises(ValueError, match=word):
+            parse_recipe(recipe)
+
+
+def test_a_dataset_can_set_scene_fields_and_old_records_are_unchanged():
+    recipe = parse_recipe({"datasets": {"ridge": {"scene": "wedge", "episodes": 2, "steps": 3,
+                                                  "set": {"offset_range": [-0.003, 0.003]}},
+                                        "plain": {"scene": "wedge", "episodes": 2, "steps": 3}},
+                           "models": {"m": {"dataset": "ridge", "preset": "ours"}}})
+    ridge, plain = recipe.dataset("ridge"), recipe.dataset("plain")
+    assert ridge.generate_args(Path("data"))[-2:] == ["--set", "offset_range=[-0.003, 0.003]"]
+    assert ridge.to_dict()["set"] == {"offset_range": [-0.003, 0.003]}
+    assert "set" not in plain.to_dict()  # records of datasets without overrides keep their old form
+    with pytest.raises(ValueError, match="'set' must be a table"):
+        parse_recipe({"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3, "set": {"x": "a"}}},
+                      "models": {"m": {"dataset": "d", "preset": "ours"}}})

@@ -88,7 +88,7 @@ def test_sleep_off_is_bit_identical_to_plain_rollout(config):
         with torch.no_grad():
             return unroll(model, graph, 6, forces, masks_fn, **kw)
 
-    ref = run()
+    ref = run(sleep=None)
     assert all(s.asleep is None for s in ref)
     ref_pos = torch.stack([s.pos for s in ref])
     for kw in ({"sleep": None}, {"sleep": SleepConfig(enabled=False)},
@@ -100,7 +100,30 @@ def test_sleep_off_is_bit_identical_to_plain_rollout(config):
         assert all(torch.equal(a.graph[COLLISION].edge_index, b.graph[COLLISION].edge_index) for a, b in zip(out, ref))
     with torch.no_grad():
         assert torch.equal(rollout(model, graph, 3, forces, sleep=SleepConfig(enabled=False)),
-                           rollout(model, graph, 3, forces))
+                           rollout(model, graph, 3, forces, sleep=None))
+
+
+def test_sleeping_is_the_default_of_rollout_and_sample():
+    """``rollout`` and ``sample`` let objects at rest sleep unless given ``sleep=None``."""
+    from hrn_pyg.sampling.sample import sample
+    from hrn_pyg.sleep_config import DEFAULT_SLEEP
+
+    model = toy_model()
+    graph = scene({CUBE: (5e-4, 0.0, 0.0)})  # creeps below the threshold: falls asleep
+    steps = DEFAULT_SLEEP.patience + 5
+    with torch.no_grad():
+        default = rollout(model, graph, steps)
+        explicit = rollout(model, graph, steps, sleep=SleepConfig())
+        awake = rollout(model, graph, steps, sleep=None)
+        sampled = sample(model, graph, 2, steps, 0.0)
+        sampled_awake = sample(model, graph, 2, steps, 0.0, sleep=None)
+    assert torch.equal(default, explicit)
+    cube = nodes_of(graph, CUBE)
+    assert torch.equal(default[-1, cube], default[-2, cube])  # held still
+    assert not torch.equal(awake[-1, cube], awake[-2, cube])  # the network alone keeps creeping
+    leaves = graph[NODE].is_leaf
+    assert torch.equal(sampled, default[:, leaves].expand(2, -1, -1, -1))
+    assert torch.equal(sampled_awake, awake[:, leaves].expand(2, -1, -1, -1))
 
 
 # (2) a resting object falls asleep and holds still ---------------------------------------------
@@ -112,7 +135,7 @@ def test_creeping_object_falls_asleep_after_patience_steps_and_holds_exactly_sti
     cube = nodes_of(graph, CUBE)
     with torch.no_grad():
         steps = unroll(model, graph, 30, sleep=SleepConfig(patience=patience))
-        free = rollout(model, graph, 30)
+        free = rollout(model, graph, 30, sleep=None)
     pos = torch.stack([s.pos for s in steps])
     # still for `patience` observed steps: the initial velocity and patience - 1 predicted ones
     for t in range(patience - 1):
@@ -343,3 +366,24 @@ def test_update_wakes_through_contacts_with_moving_objects_only():
     assert out.asleep.tolist() == [False, False, True]
     out = update(config, state([True, True, True]), apart, push, objs)  # no contact: the cube sleeps on
     assert out.asleep.tolist() == [True, False, True]
+
+
+@pytest.mark.parametrize("limit", [None, 0])  # the box test, and the fallback to grid cells
+def test_near_awake_holds_every_leaf_within_reach_of_an_awake_one(limit, monkeypatch):
+    from hrn_pyg import sleeping
+
+    if limit is not None:
+        monkeypatch.setattr(sleeping, "BOX_TEST_LIMIT", limit)
+    gen = torch.Generator().manual_seed(0)
+    n, radius = 400, 0.08
+    pos = torch.rand(n, 3, generator=gen)
+    leaf = torch.rand(n, generator=gen) < 0.9
+    obj = torch.randint(0, 12, (n,), generator=gen)
+    batch = torch.randint(0, 2, (n,), generator=gen)
+    awake = leaf & (obj < 2)
+    near = sleeping.near_awake(pos, batch, leaf, awake, radius, obj)
+    d = torch.cdist(pos, pos)
+    reach = ((d < radius) & awake[None, :] & (batch[:, None] == batch[None, :])).any(dim=1) & leaf
+    assert bool((near | ~reach).all())  # a superset of what can touch an awake leaf
+    assert not bool((near & ~leaf).any())
+    assert 0 < int(near.sum()) < int(leaf.sum())  # and not everything

@@ -317,3 +317,40 @@ def test_sample_copies_need_two_copies_and_dropout(tiny_episodes, tmp_path, caps
     config, _ = config_from_args(parser.parse_args(
         base[1:] + ["--sample-copies", "4", "--train-dropout", "0.1", "--w-energy", "0.5"]))
     assert (config.sample_copies, config.train_dropout, config.w_energy) == (4, 0.1, 0.5)
+
+
+def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
+    """``w_rest``: the logged ``rest`` part of a one-step loss, recomputed by hand from the step,
+    and the total grows by exactly ``w_rest`` times it; bad settings are refused."""
+    from torch_geometric.data import Batch
+
+    from hrn_pyg.data.dataset import EpisodeWindows
+    from hrn_pyg.data.graph import NODE, set_state
+    from hrn_pyg.nn.hrn import HRN
+    from hrn_pyg.nn.normalizer import fit_normalizer
+    from hrn_pyg.rollout import step as model_step
+    from hrn_pyg.train import window_loss
+
+    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
+    torch.manual_seed(0)
+    model = HRN(SMALL)
+    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
+    batch = Batch.from_data_list([windows[i] for i in range(len(windows))])
+    store = batch[NODE]
+    seq = store.pos_seq
+    true_v = seq[:, 3] - seq[:, 2]
+    threshold = float(true_v[store.is_root & ~store.is_static].norm(dim=-1).median())  # half the roots rest
+    plain, _ = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused"))
+    config = TrainConfig(data="unused", out="unused", w_rest=2.0, rest_threshold=threshold)
+    total, parts = window_loss(model, batch, 1, config)
+    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
+    pred_v = model_step(model, graph, store.force_seq[:, 0], None).pos - seq[:, 2]
+    resting = store.is_root & ~store.is_static & (true_v.norm(dim=-1) < threshold)
+    assert 0 < int(resting.sum()) < int((store.is_root & ~store.is_static).sum())
+    by_hand = ((pred_v - true_v) / model.normalizer.velocity_std)[resting].abs().mean()
+    assert parts["rest"] == pytest.approx(by_hand.item(), rel=1e-5)
+    assert total.item() == pytest.approx(plain.item() + 2.0 * by_hand.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="w_rest must be a finite number >= 0"):
+        TrainConfig(w_rest=-1.0)
+    with pytest.raises(ValueError, match="rest_threshold must be a finite number > 0"):
+        TrainConfig(rest_threshold=0.0)

@@ -34,7 +34,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--substeps", type=int, default=None, help="physics steps per model step")
     parser.add_argument("--physics-hz", type=float, default=None, help="physics rate (Hz)")
     parser.add_argument("--pitch", type=float, default=None, help="voxel size of the leaves (m)")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides",
+                        help="any other field of the scene's config, VALUE as JSON, e.g. "
+                             "offset_range=[-0.003,0.003] (repeatable)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def parse_overrides(items: list[str], scene: str) -> dict:
+    """``["offset_range=[-0.003,0.003]", ...]`` -> ``{"offset_range": (-0.003, 0.003)}``: each
+    VALUE read as JSON, lists becoming tuples (the configs' ranges); the field names are checked
+    against the scene's config by :func:`~hrn_pyg.data.scenes.scene_config`."""
+    overrides = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--set: expected FIELD=VALUE, got {item!r}")
+        if name in ("steps", "substeps", "physics_hz", "pitch"):
+            raise ValueError(f"--set: {name} has its own option (--{name.replace('_', '-')})")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            raise ValueError(f"--set {name}: VALUE must be JSON (a number or a list such as [0.1,0.2]), "
+                             f"got {text!r}") from None
+        overrides[name] = tuple(value) if isinstance(value, list) else value
+    scene_config(scene, **overrides)  # unknown fields and bad values fail here, before any work
+    return overrides
 
 
 def parse_shard(spec: str) -> tuple[int, int]:
@@ -74,8 +98,9 @@ def run(args: argparse.Namespace) -> int:
     if args.seed_offset < 0:
         raise ValueError(f"seed-offset: must be >= 0, got {args.seed_offset}")
     shard_index, shard_count = parse_shard(args.shard)
+    overrides = parse_overrides(getattr(args, "overrides", []), args.scene)
     config = scene_config(args.scene, steps=args.steps, substeps=args.substeps,
-                          physics_hz=args.physics_hz, pitch=args.pitch)
+                          physics_hz=args.physics_hz, pitch=args.pitch, **overrides)
     config_fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
 
     os.makedirs(args.out, exist_ok=True)

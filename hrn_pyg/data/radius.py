@@ -1,8 +1,9 @@
 """Collision edges: leaf pairs of different objects closer than the collision radius.
 
 PyG's ``radius`` needs pyg-lib or torch-cluster, which are not installed here, so this module
-does its own fixed-radius neighbour search on a uniform cell grid, fully vectorised in torch
-(no Python loop over particles), on whatever device the positions live on:
+does its own fixed-radius neighbour search, fully vectorised in torch (no Python loop over
+particles), on whatever device the positions live on. Up to :data:`DENSE_MAX_POINTS` points it
+tests every pair (:func:`dense_collision_edges`); above, it uses a uniform cell grid:
 
 1. every leaf gets an integer cell ``c = floor((x - x_min) / h)`` with cell size ``h >= r``
    (occupied coordinates renumbered per axis, adjacency kept, so far-apart points cannot
@@ -28,6 +29,12 @@ CELL_MARGIN = 1e-6
 
 #: Keys are int64; the grid (batch copies x cells per axis) must fit well below 2**63.
 MAX_KEYS = 2**62
+
+#: Up to this many points the search tests every pair (:func:`dense_collision_edges`); above,
+#: the cell grid. Timed on one CPU thread (random scenes of 27-point objects, median of 5):
+#: dense / grid 0.30 / 2.2 ms at 50 points, 1.9 / 4.3 ms at 200, 5.2 / 6.4 ms at 300, 7.1 / 5.4 ms
+#: at 400; the dense test's memory at 256 points is under 1 MB.
+DENSE_MAX_POINTS = 256
 
 #: The 27 neighbour offsets (dx, dy, dz) in {-1, 0, 1}^3.
 _OFFSETS = torch.cartesian_prod(*(torch.tensor([-1, 0, 1]),) * 3)
@@ -66,6 +73,24 @@ def _compress_cells(cell: Tensor) -> Tensor:
         steps = torch.diff(values).clamp_(max=2)
         out[:, axis] = torch.cat([steps.new_zeros(1), torch.cumsum(steps, 0)])[inverse]
     return out
+
+
+def dense_collision_edges(leaf_pos: Tensor, leaf_object: Tensor, radius: float,
+                          batch: Tensor | None = None) -> Tensor:
+    """:func:`collision_edges` by testing every pair: ``L^2`` distances in a handful of ops,
+    which for a few hundred leaves is cheaper than the grid's sorting and bookkeeping. The same
+    edge set in the same order, decided by the same float expression per pair.
+
+    **Shapes**: as :func:`collision_edges`; memory ``O(L^2)``.
+    """
+    pos = leaf_pos.detach()
+    diff = pos[:, None, :] - pos[None, :, :]  # [dst, src, 3]
+    near = (diff * diff).sum(dim=-1) < radius * radius
+    near &= leaf_object[:, None] != leaf_object[None, :]
+    if batch is not None:
+        near &= batch[:, None] == batch[None, :]
+    dst, src = torch.nonzero(near, as_tuple=True)  # row-major: by destination, then source
+    return torch.stack([src, dst])
 
 
 def _empty(device: torch.device) -> Tensor:
@@ -127,6 +152,8 @@ def collision_edges(
     radius = float(radius)
     if n < 2 or radius == 0.0:
         return _empty(device)
+    if n <= DENSE_MAX_POINTS:
+        return dense_collision_edges(leaf_pos, leaf_object, radius, batch)
 
     key, offset_key = cell_keys(leaf_pos, radius, batch)
     sorted_key, order = torch.sort(key, stable=True)

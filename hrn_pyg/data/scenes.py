@@ -76,6 +76,7 @@ from hrn_pyg.data.voxelise import (
     write_obj,
     write_tetrahedral_vtk,
 )
+from hrn_pyg.effects import SceneEffects
 
 #: Material codes of ``object_material`` (architecture.md).
 RIGID, SOFT, CLOTH, STATIC = 0, 1, 2, 3
@@ -360,6 +361,9 @@ class Scene:
     config_cls: ClassVar[type[SceneConfig]]
     #: objects an agent may push (indices); scripted scenes push whatever their script says.
     actuated: ClassVar[tuple[int, ...]] = ()
+    #: the effects a model of this scene has to simulate (:mod:`hrn_pyg.effects`); None in a
+    #: field: the data decide
+    effects: ClassVar[SceneEffects] = SceneEffects()
 
     def __init__(self, seed: int, config: SceneConfig | None = None) -> None:
         config = self.config_cls() if config is None else config
@@ -666,6 +670,7 @@ class SoftBounce(Scene):
     """Soft cube kicked up (with spin) once, flies, lands and deforms."""
 
     name = "soft_bounce"
+    effects = SceneEffects(forces=True, collisions=False)  # one body: nothing to collide with
     config_cls = SoftBounceConfig
     uses_deformables = True
 
@@ -702,6 +707,7 @@ class CubeCollision(Scene):
     """Two rigid cubes, repeatedly given impulses towards each other."""
 
     name = "cube_collision"
+    effects = SceneEffects(forces=True, collisions=True)
     config_cls = CubeCollisionConfig
 
     def draw_params(self, rng):
@@ -741,6 +747,7 @@ class Wedge(Scene):
     """A ball dropped onto a static wedge's ridge; the sign of a small offset picks a side."""
 
     name = "wedge"
+    effects = SceneEffects(forces=False, collisions=True)  # dropped, never pushed
     config_cls = WedgeConfig
 
     def draw_params(self, rng):
@@ -766,6 +773,7 @@ class MultiMaterial(Scene):
     """A rigid cube and a soft cube fall onto the ground, then a cloth drapes over them."""
 
     name = "multi_material"
+    effects = SceneEffects(forces=False, collisions=True)  # falling, never pushed
     config_cls = MultiMaterialConfig
     uses_deformables = True
 
@@ -843,6 +851,9 @@ class CubePush(_RandomForces):
     """Two rigid cubes that do not collide with each other, pushed by random forces."""
 
     name = "cube_push"
+    # pybullet lets the cubes pass through each other, but the models were trained with the
+    # collision edges the data graphs have when they overlap, so the search stays on
+    effects = SceneEffects(forces=True, collisions=None)
     config_cls = CubePushConfig
     actuated = (0, 1)
 
@@ -867,6 +878,7 @@ class Tower(_RandomForces):
     """Three stacked rigid cubes and a ball pushed by random forces aimed roughly at them."""
 
     name = "tower"
+    effects = SceneEffects(forces=True, collisions=True)
     config_cls = TowerConfig
     actuated = (3,)
 
@@ -910,6 +922,11 @@ def scene_config(scene: str, **overrides) -> SceneConfig:
     if unknown:
         raise ValueError(f"config: unknown field(s) {unknown} for scene {scene!r}")
     return cls.config_cls(**{k: v for k, v in overrides.items() if v is not None})
+
+
+def scene_effects(scene: str) -> SceneEffects:
+    """The :class:`~hrn_pyg.effects.SceneEffects` scene ``scene`` declares (what to simulate)."""
+    return _scene_class(scene).effects
 
 
 def make_scene(scene: str, seed: int, config: SceneConfig | None = None) -> Scene:

@@ -117,7 +117,9 @@ class HRNInputs(NamedTuple):
     positions divided by the length scale (only differences are used); ``force`` ``[N, 3]``
     normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
     the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided by the
-    length scale, or None (models without ``rest_offsets``).
+    length scale, or None (models without ``rest_offsets``). ``force_active``: whether the
+    force module runs, decided by the caller (:mod:`hrn_pyg.effects`: one host read per
+    rollout); None asks the force tensor in this pass (a host sync on a GPU).
     """
 
     state: Tensor
@@ -132,6 +134,7 @@ class HRNInputs(NamedTuple):
     within_siblings: Tensor
     ancestor_to_descendant: Tensor
     rest_pos: Tensor | None = None
+    force_active: bool | None = None
 
 
 def state_features(
@@ -249,7 +252,10 @@ class HRN(nn.Module):
             raise ValueError("HRN: config.rest_offsets needs inputs.rest_pos (the rest shape)")
         skip = self.config.skip_idle_modules
         effect = self.history(s, inputs.prev_state, masks.get("history"), b)
-        if not (skip and not bool(inputs.force.ne(0).any())):
+        force_active = inputs.force_active
+        if force_active is None:
+            force_active = bool(inputs.force.ne(0).any())
+        if not (skip and not force_active):
             effect = effect + self.force(s, inputs.force, masks.get("force"), b)
         if not (skip and inputs.collision.size(1) == 0):
             effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b)

@@ -9,7 +9,11 @@ previous fitted step), so its shape holds at every horizon; gradients pass throu
 The rotation is the orthogonal polar factor of the 3x3 cross-covariance, computed with the
 scaled Newton iteration :math:`X \\leftarrow \\tfrac12(\\gamma X + \\gamma^{-1} X^{-\\top})`
 rather than an SVD: a cube's covariance has three equal singular values, where the SVD's
-gradient is undefined but the Newton iteration's is not.
+gradient is undefined but the Newton iteration's is not. :math:`X^{-\\top}` is the cofactor
+matrix over the determinant (:func:`inverse_transpose`), in float64: a few elementwise ops on
+the whole batch and no host synchronisation, where a batched LAPACK inverse of 3x3 matrices
+costs about 40 dispatched ops and checks its pivots on the host (525 -> about 300 ops for the
+8 iterations, counted with ``torch.profiler``).
 """
 
 from __future__ import annotations
@@ -17,12 +21,29 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-#: Newton iterations of the polar decomposition (quadratic convergence; 3x3 matrices near a
-#: rotation converge to float32 precision in 4-6)
-POLAR_ITERATIONS = 8
+#: Newton iterations of the polar decomposition (quadratic convergence). Measured on 2000 random
+#: rotations times SPD factors of condition number 1 to 1e9, float32 in, float64 inside: 5
+#: iterations are within 6e-8 of 12, 6 and more equal 12 exactly; 6 keeps one to spare
+POLAR_ITERATIONS = 6
 #: regulariser added to the cross-covariance, relative to its scale: keeps a one-leaf or
 #: collinear object (singular covariance) well-defined, turning its rotation towards identity
 COVARIANCE_EPS = 1e-6
+
+
+def inverse_transpose(matrix: Tensor) -> Tensor:
+    r""":math:`M^{-\top} = \mathrm{cof}(M) / \det M` of each 3x3 matrix, in closed form.
+
+    The rows of the cofactor matrix are the cross products of the rows :math:`a, b, c` of
+    :math:`M`: :math:`(b \times c,\ c \times a,\ a \times b)`, and
+    :math:`\det M = a \cdot (b \times c)`. A singular matrix gives non-finite entries (callers
+    regularise first).
+
+    **Shapes:** matrix ``(..., 3, 3)``; returns ``(..., 3, 3)``.
+    """
+    a, b, c = matrix.unbind(-2)
+    bc = torch.linalg.cross(b, c)
+    cofactor = torch.stack([bc, torch.linalg.cross(c, a), torch.linalg.cross(a, b)], dim=-2)
+    return cofactor / (a * bc).sum(-1)[..., None, None]
 
 
 def polar_rotation(matrix: Tensor, iterations: int = POLAR_ITERATIONS) -> Tensor:
@@ -33,14 +54,17 @@ def polar_rotation(matrix: Tensor, iterations: int = POLAR_ITERATIONS) -> Tensor
     """
     if matrix.dim() != 3 or matrix.shape[-2:] != (3, 3):
         raise ValueError(f"polar_rotation: matrix must be [G, 3, 3], got {tuple(matrix.shape)}")
-    scale = matrix.flatten(1).norm(dim=1).clamp_min(torch.finfo(matrix.dtype).tiny)[:, None, None]
-    eye = torch.eye(3, dtype=matrix.dtype, device=matrix.device)
-    x = matrix / scale + COVARIANCE_EPS * eye
+    # float64: the closed-form determinant of a nearly singular covariance (a collinear object,
+    # regularised by COVARIANCE_EPS) cancels to ~1e-12, below float32's rounding of its terms
+    dtype = matrix.dtype
+    x = matrix.to(torch.float64)
+    scale = x.flatten(1).norm(dim=1).clamp_min(torch.finfo(dtype).tiny)[:, None, None]
+    x = x / scale + COVARIANCE_EPS * torch.eye(3, dtype=x.dtype, device=x.device)
     for _ in range(iterations):  # fixed count: no host sync on a convergence test
-        inv_t = torch.linalg.inv(x).transpose(-1, -2)
+        inv_t = inverse_transpose(x)
         gamma = (inv_t.flatten(1).norm(dim=1) / x.flatten(1).norm(dim=1)).sqrt()[:, None, None]
         x = 0.5 * (gamma * x + inv_t / gamma)
-    return x
+    return x.to(dtype)
 
 
 def fit_rigid_motion(

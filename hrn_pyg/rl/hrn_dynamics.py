@@ -26,6 +26,7 @@ once per environment and repeated. The model stages are called directly
 from __future__ import annotations
 
 import copy
+import hashlib
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -42,6 +43,8 @@ from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.rollout import build_inputs, decode, run_network
 from hrn_pyg.sampling.sample import draw_masks, model_device
+from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
+from hrn_pyg.sleeping import Objects, objects, predict_awake, state_from_history, update
 
 #: seeds of the initial-state pool; far from the generated datasets' seeds (0..199), so the
 #: agent starts from scenes the model never saw in training
@@ -77,10 +80,14 @@ class HRNDynamics:
 
     object_dim = ROOT_DIM
 
-    def __init__(self, model: HRN, task: str | TaskConfig, pool_seeds: Sequence[int] = POOL_SEEDS) -> None:
+    def __init__(self, model: HRN, task: str | TaskConfig, pool_seeds: Sequence[int] = POOL_SEEDS,
+                 sleep: SleepConfig | None = DEFAULT_SLEEP) -> None:
         from hrn_pyg.data.scenes import make_scene  # pybullet only where a pool is built
 
         self.task = get_task(task)
+        #: objects at rest sleep (:func:`hrn_pyg.sleeping.state_from_history`); None: all awake
+        self.sleep = sleep if sleep is not None and sleep.enabled else None
+        self._objects: dict[int, Objects] = {}
         self.model = model.eval()
         #: the model's calibrated sampling rate (config ``dropout_rate``), None when it has none
         self.calibrated_rate = float(model.config.dropout_rate) if model.config.dropout_rate > 0 else None
@@ -137,11 +144,19 @@ class HRNDynamics:
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, task: str | TaskConfig,
                         device: str | torch.device | None = None,
-                        pool_seeds: Sequence[int] = POOL_SEEDS) -> HRNDynamics:
+                        pool_seeds: Sequence[int] = POOL_SEEDS,
+                        sleep: SleepConfig | None = DEFAULT_SLEEP) -> HRNDynamics:
         """The dynamics of a checkpoint's model on ``device`` (None: the CPU)."""
         from hrn_pyg.train import load_model
 
-        return cls(load_model(path, device), task, pool_seeds)
+        return cls(load_model(path, device), task, pool_seeds, sleep)
+
+    def __repr__(self) -> str:
+        """Names the model by its weights (a digest), so a run's record says which model it used
+        and a resumed run can tell whether it steps the same one."""
+        return (f"{type(self).__name__}(task={self.task.name!r}, model={self.model!r}, "
+                f"weights={weights_digest(self.model)}, pool={len(self.pool_seeds)} scenes, "
+                f"dropout_modules={self.dropout_modules}, sleep={self.sleep})")
 
     # -- state layout -------------------------------------------------------------------------
     def _split(self, states: Tensor) -> tuple[Tensor, Tensor]:
@@ -200,8 +215,15 @@ class HRNDynamics:
         if rate > 0:  # one mask per copy on the masked modules only (cube_push: force)
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.dropout_modules}
-        out = run_network(self.model, build_inputs(self.model, graph), masks)
-        next_pos = decode(self.model, graph, out)[0]
+        if self.sleep is None:
+            next_pos = decode(self.model, graph, run_network(self.model, build_inputs(self.model, graph), masks))[0]
+        else:  # the objects the state shows at rest, unless pushed or touched, are held
+            objs = self._objects.get(n)
+            if objs is None:
+                objs = self._objects.setdefault(n, objects(graph))
+            force = graph[NODE].force
+            state = update(self.sleep, state_from_history(self.sleep, graph, objs), graph, force, objs)
+            next_pos = predict_awake(self.model, graph, force, masks, state.asleep[objs.of_node])[0]
         leaves = graph[NODE].is_leaf
         nxt = next_pos[leaves].reshape(n, 1, self.num_leaves, 3)
         new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
@@ -232,6 +254,16 @@ class HRNDynamics:
     def structure_graph(self, index: int = 0) -> HeteroData:
         """The static graph of pool entry ``index`` (for pictures and tests)."""
         return self._structures[index]
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    """A short SHA-256 of a model's parameters and buffers (names, shapes and values)."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(str(tuple(tensor.shape)).encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:12]
 
 
 def _varying_node_attributes(structures: Sequence[HeteroData]) -> dict[str, Tensor]:

@@ -23,7 +23,9 @@ analytic **development / smoke-test** dynamics; its curves are not the paper's r
 Output (``--out``, default ``runs/rl/<task>``)::
 
     <mode>/seed<k>/log.csv        one row per PPO update (CSVLog)
-    <mode>/seed<k>/policy.pt      actor + critic + optimiser (atomic, weights-only)
+    <mode>/seed<k>/policy.pt      actor, critic, optimiser, random states and the update count
+                                  (atomic, weights-only); running the command again continues
+                                  each run from it (``--restart``: afresh)
     <mode>/seed<k>/curve.png      this run's average episode length
     episode_length.png            every mode found under --out: median over seeds, range shaded
     summary.json                  per run: final evaluation in the learned model (dropout off),
@@ -64,7 +66,7 @@ from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
 from hrn_pyg.rl.tasks import MODES, TASKS, TaskConfig, get_task
-from hrn_pyg.utils.checkpoint import save_checkpoint
+from hrn_pyg.utils.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog, plot_curves
@@ -181,9 +183,9 @@ def build_actor_critic(env: EnvBase, hidden: int) -> tuple[ProbabilisticActor, V
 
 
 def load_dynamics(task: TaskConfig, model: str | None,
-                  device: str | torch.device = "cpu") -> StochasticDynamics:
-    """``None``: the point-mass development dynamics; a path: the learned HRN (when built); on
-    ``device``."""
+                  device: str | torch.device = "cpu", sleep: bool = True) -> StochasticDynamics:
+    """``None``: the point-mass development dynamics; a path: the learned HRN, on ``device``,
+    with objects at rest asleep unless ``sleep=False`` (:class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`)."""
     if model is None:
         return PointMassDynamics.for_task(task.name, task.dropout_modules, device)
     path = Path(model)
@@ -194,7 +196,9 @@ def load_dynamics(task: TaskConfig, model: str | None,
     except ModuleNotFoundError as exc:
         raise ValueError("--model needs hrn_pyg.rl.hrn_dynamics (the learned HRN dynamics), "
                          "which is not available in this version") from exc
-    return HRNDynamics.from_checkpoint(path, task, device)
+    from hrn_pyg.sleep_config import DEFAULT_SLEEP
+
+    return HRNDynamics.from_checkpoint(path, task, device, sleep=DEFAULT_SLEEP if sleep else None)
 
 
 
@@ -202,7 +206,7 @@ def load_dynamics(task: TaskConfig, model: str | None,
 def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
           dynamics: StochasticDynamics | None = None, anneal_updates: int | None = None,
           progress: bool = True, device: str | torch.device | None = None,
-          dropout_rate: float | None = None) -> dict:
+          dropout_rate: float | None = None, restart: bool = False) -> dict:
     """One PPO run; writes ``log.csv``, ``policy.pt`` and ``curve.png`` under ``out_dir``.
 
     The environment, policy, critic and collector run on ``device`` (None: the dynamics'
@@ -210,6 +214,10 @@ def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Pa
     The stochastic modes start at ``dropout_rate``; None: the dynamics' ``calibrated_rate``
     (a calibrated HRN), else the task's. Returns the final evaluation in the learned model
     with dropout off and no action noise.
+
+    A run continues from ``out_dir/policy.pt`` when that holds the same run (:func:`resume_run`;
+    written every ``checkpoint_every`` updates), also to extend a finished run to more
+    ``updates``; ``restart=True`` starts afresh.
     """
     if dynamics is None:
         dynamics = load_dynamics(task, None, "cpu" if device is None else device)
@@ -219,21 +227,18 @@ def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Pa
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
     try:
-        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress, device)
+        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress, device, restart)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
            dynamics: StochasticDynamics, schedule: LinearSchedule, noise: float,
-           progress: bool, device: str | torch.device | None) -> dict:
+           progress: bool, device: str | torch.device | None, restart: bool = False) -> dict:
     torch.manual_seed(seed)
     env = HRNEnv(task, dynamics, batch_size=config.num_envs, dropout_rate=schedule(0),
                  action_noise_std=noise, seed=seed, device=device)
     actor, critic = build_actor_critic(env, config.hidden)
-    collector = Collector(env, actor, frames_per_batch=config.frames_per_batch,
-                          total_frames=config.frames_per_batch * config.updates,
-                          device=env.device, auto_register_policy_transforms=False)
     gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=True)
     loss_module = ClipPPOLoss(actor, critic, clip_epsilon=config.clip_epsilon,
                               entropy_bonus=config.entropy_coef > 0,
@@ -241,49 +246,98 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
                               loss_critic_type="smooth_l1")
     optim = torch.optim.Adam(loss_module.parameters(), lr=config.lr)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "log.csv").unlink(missing_ok=True)
+    identity = run_identity(task, mode, seed, config, schedule, noise, dynamics)
+    meta = json.dumps({**identity, "ppo": asdict(config)}, sort_keys=True)
+    start_update = 0 if restart else resume_run(out_dir / "policy.pt", identity, actor, critic, optim, env)
+    if start_update == 0:
+        (out_dir / "log.csv").unlink(missing_ok=True)
     log = CSVLog(out_dir / "log.csv", LOG_FIELDS)
-    meta = json.dumps({"task": task.to_dict(), "mode": mode, "seed": seed, "ppo": asdict(config),
-                       "schedule": asdict(schedule), "action_noise_std": noise,
-                       "dynamics": repr(dynamics)}, sort_keys=True)
+    log.truncate_after(start_update - 1)  # rows past the checkpoint were never saved in it
 
     def checkpoint(update: int) -> None:
         save_checkpoint(out_dir / "policy.pt", {
             "model": {"actor": actor.state_dict(), "critic": critic.state_dict()},
-            "optimizer": optim.state_dict(), "config": meta, "update": update})
+            "optimizer": optim.state_dict(), "config": meta, "update": update,
+            "rng": rng_state(), "env_rng": env.rng.get_state()})
 
     bar = _progress(config.updates, f"{task.name}/{mode}/seed{seed}", progress)
+    if bar is not None:
+        bar.update(start_update)
     start = time.perf_counter()
-    try:
-        for update, batch in enumerate(collector):
-            rate = schedule(update)
-            stats = _ppo_update(batch, gae, loss_module, optim, config)
-            row = {"step": update, "update": update, "frames": (update + 1) * config.frames_per_batch,
-                   "dropout_rate": rate, "action_noise_std": noise,
-                   **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
-            log.append(row)
-            env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
-            if (update + 1) % config.checkpoint_every == 0:
-                checkpoint(update + 1)
+    env.dropout_rate = schedule(start_update)
+    remaining = config.updates - start_update
+    if remaining > 0:
+        collector = Collector(env, actor, frames_per_batch=config.frames_per_batch,
+                              total_frames=config.frames_per_batch * remaining,
+                              device=env.device, auto_register_policy_transforms=False)
+        try:
+            for update, batch in enumerate(collector, start=start_update):
+                rate = schedule(update)
+                stats = _ppo_update(batch, gae, loss_module, optim, config)
+                row = {"step": update, "update": update, "frames": (update + 1) * config.frames_per_batch,
+                       "dropout_rate": rate, "action_noise_std": noise,
+                       **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
+                log.append(row)
+                env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
+                if (update + 1) % config.checkpoint_every == 0:
+                    checkpoint(update + 1)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(len=row.get("mean_episode_length", ""), p=f"{rate:.3f}")
+        finally:
+            collector.shutdown()
             if bar is not None:
-                bar.update(1)
-                bar.set_postfix(len=row.get("mean_episode_length", ""), p=f"{rate:.3f}")
-    finally:
-        collector.shutdown()
-        if bar is not None:
-            bar.close()
-    checkpoint(config.updates)
+                bar.close()
+        checkpoint(config.updates)
+    elif bar is not None:
+        bar.close()
     plot_curves(out_dir / "log.csv", out_dir / "curve.png", x="update", ys=["mean_episode_length"],
                 title=f"{task.name} / {mode} / seed {seed}", logy=False)
     env.dropout_rate, env.action_noise_std = 0.0, 0.0
     success, length = evaluate_policy(actor, env, config.eval_episodes)
     result = {"task": task.name, "mode": mode, "seed": seed, "updates": config.updates,
+              "resumed_at": start_update,
               "success_rate": success, "mean_episode_length": length,
               **curve_metrics(read_curve(out_dir / "log.csv"))}
     if hasattr(dynamics, "scene_seeds") and config.ground_truth_episodes > 0:
         result.update(ground_truth_success(actor, env, config.ground_truth_episodes))
     result["seconds"] = time.perf_counter() - start
     return result
+
+
+def run_identity(task: TaskConfig, mode: str, seed: int, config: PPOConfig, schedule: LinearSchedule,
+                 noise: float, dynamics: StochasticDynamics) -> dict:
+    """What a run is, for resuming: everything but the number of updates (so a finished run can
+    be extended) and the evaluation sizes (they do not change training)."""
+    ppo = {k: v for k, v in asdict(config).items()
+           if k not in ("updates", "eval_episodes", "ground_truth_episodes", "checkpoint_every")}
+    return {"task": task.to_dict(), "mode": mode, "seed": seed, "ppo_training": ppo,
+            "schedule": asdict(schedule), "action_noise_std": noise, "dynamics": repr(dynamics)}
+
+
+def resume_run(path: Path, identity: dict, actor: nn.Module, critic: nn.Module,
+               optim: torch.optim.Optimizer, env: HRNEnv) -> int:
+    """Load the checkpoint at ``path`` into the run when it is the same run (``identity``), and
+    return the number of updates it holds; 0 (a fresh start) when there is none, it is another
+    run's, or it predates resumable checkpoints.
+
+    Restored: actor, critic, Adam state, torch's random state and the environment's generator.
+    Not restored: the episodes in flight when it was written. Like TorchRL's own collector
+    (``Collector.load_state_dict``), a resumed run starts fresh episodes, so it is the same run
+    in distribution, not bit for bit.
+    """
+    if not path.is_file():
+        return 0
+    ckpt = load_checkpoint(path)
+    saved = json.loads(ckpt["config"])
+    if "rng" not in ckpt or {k: saved.get(k) for k in identity} != json.loads(json.dumps(identity, sort_keys=True)):
+        return 0
+    actor.load_state_dict(ckpt["model"]["actor"])
+    critic.load_state_dict(ckpt["model"]["critic"])
+    optim.load_state_dict(ckpt["optimizer"])
+    set_rng_state(ckpt["rng"])
+    env.rng.set_state(ckpt["env_rng"])
+    return int(ckpt["update"])
 
 
 def _ppo_update(batch: TensorDictBase, gae: GAE, loss_module: ClipPPOLoss,
@@ -364,6 +418,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-sleep", action="store_true",
+                        help="with --model: every object runs at every step (default: objects the state "
+                             "shows at rest sleep until pushed or touched)")
+    parser.add_argument("--restart", action="store_true",
+                        help="start every run afresh (default: continue each run from its policy.pt)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -381,14 +440,14 @@ def run(args: argparse.Namespace) -> int:
                      ground_truth_episodes=args.ground_truth_episodes)
     device = resolve_device(args.device)
     modes = list(dict.fromkeys(args.mode))
-    dynamics = load_dynamics(task, args.model, device)
+    dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep)
     out = Path(args.out) if args.out else Path("runs/rl") / task.name
     results = []
     for mode in modes:
         for seed in range(args.seed_start, args.seed_start + args.seeds):
             res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
                         args.anneal_updates, progress=not args.no_progress, device=device,
-                        dropout_rate=args.dropout_rate)
+                        dropout_rate=args.dropout_rate, restart=args.restart)
             results.append(res)
             truth = (f", pybullet success {res['pybullet_success_rate']:.2f} length "
                      f"{res['pybullet_mean_length']:.2f}" if "pybullet_success_rate" in res else "")

@@ -22,9 +22,11 @@ from torch_geometric.data import HeteroData
 
 import hrn_pyg
 from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.scenes import scene_effects
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import HISTORY, episode_state
 from hrn_pyg.sampling.sample import sample
+from hrn_pyg.sleep_config import DEFAULT_SLEEP
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
 
@@ -127,6 +129,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, help="output folder (default runs/sample/<scene>)")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
+    parser.add_argument("--no-sleep", action="store_true",
+                        help="run every object at every step (default: objects at rest sleep, hrn_pyg.sleeping)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,8 +155,10 @@ def run(args: argparse.Namespace) -> int:
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
+    sleep = None if args.no_sleep else DEFAULT_SLEEP
     samples = sample(model, graph, args.k, steps, rate, forces=forces, generator=generator,
-                     modules=modules).cpu().numpy()  # [K, steps, L, 3]
+                     modules=modules, sleep=sleep, effects=scene_effects(args.scene)
+                     ).cpu().numpy()  # [K, steps, L, 3]
 
     leaf = store.is_leaf
     truth = store.pos_seq[leaf][:, HISTORY:].transpose(0, 1).numpy()  # [steps+1, L, 3], t = 0..steps
@@ -178,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write(out / "samples.npz", write_npz)
     atomic_write_json(out / "samples.json", {
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
-        "sample_seed": args.sample_seed, "model": str(args.model or default_model_path(args.scene)),
+        "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or default_model_path(args.scene)),
         "device": str(device), **origin,
     })
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "

@@ -22,6 +22,8 @@ from hrn_pyg.data.graph import NODE, replicate
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.nn.mlp import dropout_mask
 from hrn_pyg.rollout import MasksFn, rollout
+from hrn_pyg.effects import SceneEffects
+from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
 
 #: the state a scene must carry to be rolled out (``x_{t-2}, x_{t-1}, x_t``)
 STATE_FIELDS = ("prev_prev_pos", "prev_pos", "pos")
@@ -149,6 +151,8 @@ def sample(
     forces: Tensor | None = None,
     generator: torch.Generator | None = None,
     modules: tuple[str, ...] | None = None,
+    sleep: SleepConfig | None = DEFAULT_SLEEP,
+    effects: SceneEffects | None = None,
 ) -> Tensor:
     r"""Sample ``k`` futures of one scene with Monte Carlo graph-convolutional dropout.
 
@@ -179,6 +183,10 @@ def sample(
             a CPU generator also serves a model on another device (:func:`draw_masks`).
         modules: modules to mask (default: the model's ``config.dropout_modules``; each must be
             in it).
+        sleep: objects at rest sleep, each copy's on its own (:mod:`hrn_pyg.sleeping`; on by
+            default); None runs every object of every copy at every step.
+        effects: what the scene needs simulated (:class:`~hrn_pyg.effects.SceneEffects`, e.g.
+            :func:`hrn_pyg.data.scenes.scene_effects`); None: what the data show.
 
     Returns:
         Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps``. Only leaves are returned
@@ -203,5 +211,5 @@ def sample(
     batched = replicate(graph, k)
     masks_fn = make_masks_fn(model, k, rate, generator, modules)
     with torch.no_grad():
-        pos = rollout(model, batched, steps, copies_forces, masks_fn)  # [steps, k N, 3]
+        pos = rollout(model, batched, steps, copies_forces, masks_fn, sleep, effects)  # [steps, k N, 3]
     return pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()

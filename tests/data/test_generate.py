@@ -94,6 +94,11 @@ def test_resume_after_kill(tmp_path):
         (["--scene", "wedge", "--shard", "x"], "shard"),
         (["--scene", "wedge", "--steps", "0"], "steps"),
         (["--scene", "wedge", "--episodes", "0"], "episodes"),
+        (["--scene", "wedge", "--set", "offset_range"], "FIELD=VALUE"),
+        (["--scene", "wedge", "--set", "offset_range=[0.1,"], "must be JSON"),
+        (["--scene", "wedge", "--set", "colour=3"], "unknown field"),
+        (["--scene", "wedge", "--set", "offset_range=[0.01,-0.01]"], "offset_range"),
+        (["--scene", "wedge", "--set", "pitch=0.1"], "own option"),
     ],
 )
 def test_cli_errors(tmp_path, capsys, extra, word):
@@ -112,3 +117,17 @@ def test_other_config_in_same_folder_is_refused(tmp_path, capsys):
     assert main(["generate", "--scene", "cube_collision", "--episodes", "3", "--out",
                  str(tmp_path), "--steps", "5", "--no-progress"]) == 2
     assert "another scene/config" in capsys.readouterr().err
+
+
+def test_set_overrides_a_scene_field_and_is_recorded(tmp_path):
+    """``--set offset_range=[...]``: the wedge ball starts within 1 mm of the ridge (x = 0), and
+    meta.json records the field."""
+    out = tmp_path / "ridge"
+    assert main(["generate", "--scene", "wedge", "--episodes", "3", "--out", str(out), "--steps", "2",
+                 "--set", "offset_range=[-0.001,0.001]", "--no-progress"]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["config"]["offset_range"] == [-0.001, 0.001]
+    for seed in range(3):
+        ep = load_episode(out / f"episode_{seed:06d}.npz")
+        ball = ep["leaf_object"] == 0
+        assert abs(float(ep["positions"][0][ball, 0].mean())) <= 0.001 + 1e-6

@@ -1,11 +1,20 @@
-"""The cell-grid collision search against an O(L^2) brute force."""
+"""The collision search against an O(L^2) brute force, on both of its paths: the cell grid and
+the every-pair test it uses for small scenes (each test runs once per path)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
+from hrn_pyg.data import radius
 from hrn_pyg.data.radius import collision_edges
+
+
+@pytest.fixture(autouse=True, params=["grid", "dense"])
+def search_path(request, monkeypatch):
+    """Force one path whatever the size: the grid (threshold 0) or the dense test (no limit)."""
+    monkeypatch.setattr(radius, "DENSE_MAX_POINTS", 0 if request.param == "grid" else 10**9)
+    return request.param
 
 
 def brute_force(leaf_pos: torch.Tensor, leaf_object: torch.Tensor, radius: float, batch=None) -> torch.Tensor:

@@ -277,3 +277,27 @@ def test_from_checkpoint_on_an_explicit_device(model, dynamics, tmp_path):
     a = loaded.sample_next(states, _forces(2), 2, 0.2, torch.Generator().manual_seed(1))
     b = dynamics.sample_next(states, _forces(2), 2, 0.2, torch.Generator().manual_seed(1))
     assert torch.equal(a, b)
+
+
+def test_an_object_the_state_shows_at_rest_sleeps_unless_pushed(dynamics, model):
+    """Reset states are pybullet scenes at rest; with a push on cube 0 only, cube 1 (untouched)
+    is held exactly where it is, while the same model with sleeping off lets it creep, and the
+    pushed cube moves as it does with sleeping off."""
+    from hrn_pyg.sleep_config import SleepConfig
+
+    awake = HRNDynamics(model, "cube_push", pool_seeds=POOL, sleep=None)
+    B, L = 3, dynamics.num_leaves
+    states = dynamics.reset_states(B, torch.Generator().manual_seed(5))
+    forces = torch.zeros(B, 2, 3)
+    forces[:, 0, 0] = 10.0
+    held = dynamics.sample_next(states, forces, 2, 0.0, torch.Generator())
+    free = awake.sample_next(states, forces, 2, 0.0, torch.Generator())
+    cube1 = dynamics.leaf_object == 1
+    now = states[:, :-1].reshape(B, 3, L, 3)[:, 2]
+    nxt_held = held[:, 0, :-1].reshape(B, 3, L, 3)[:, 2]
+    nxt_free = free[:, 0, :-1].reshape(B, 3, L, 3)[:, 2]
+    assert torch.equal(nxt_held[:, cube1], now[:, cube1])
+    assert not torch.equal(nxt_free[:, cube1], now[:, cube1])
+    torch.testing.assert_close(nxt_held[:, ~cube1], nxt_free[:, ~cube1], rtol=1e-5, atol=1e-6)
+    assert "sleep=SleepConfig" in repr(dynamics) and "sleep=None" in repr(awake)
+    assert HRNDynamics(model, "cube_push", pool_seeds=POOL, sleep=SleepConfig(enabled=False)).sleep is None

@@ -252,3 +252,76 @@ def test_write_summary_tables(tmp_path):
     # the stochastic curve's trailing mean is <= 4 from update 7 on, (10 + 4 + 6 * 3) / 8, but
     # only full ten-update windows count: update 9
     assert "| 9.00 [9.00, 9.00] |" in sto and "0.50 [0.50, 0.50]" in sto
+
+
+class Interrupt(Exception):
+    """Stands for a run killed between two updates."""
+
+
+def test_a_killed_run_continues_from_its_last_checkpoint(tmp_path, monkeypatch):
+    """Killed after update 3 with a checkpoint every 2 updates: the rerun starts at update 2 from
+    the saved weights, Adam state and random state, and the log is one history 0..3."""
+    cfg = dataclasses.replace(TINY, updates=4, checkpoint_every=2)
+    update = ppo._ppo_update
+    done = []
+
+    def killed_after_three(batch, *args):
+        if len(done) == 3:
+            raise Interrupt
+        done.append(1)
+        return update(batch, *args)
+
+    monkeypatch.setattr(ppo, "_ppo_update", killed_after_three)
+    with pytest.raises(Interrupt):
+        train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path, RecordingPointMass(), progress=False)
+    saved = load_checkpoint(tmp_path / "policy.pt")
+    assert saved["update"] == 2
+    assert [int(r["update"]) for r in read_curve_rows(tmp_path)] == [0, 1, 2]  # update 2 was logged, not saved
+
+    loaded = {}
+    resume = ppo.resume_run
+
+    def spy(path, identity, actor, critic, optim, env):
+        start = resume(path, identity, actor, critic, optim, env)
+        loaded.update(actor={k: v.clone() for k, v in actor.state_dict().items()},
+                      adam_steps={int(s["step"]) for s in optim.state_dict()["state"].values()},
+                      torch_rng=torch.get_rng_state().clone(), env_rng=env.rng.get_state().clone())
+        return start
+
+    monkeypatch.setattr(ppo, "_ppo_update", update)
+    monkeypatch.setattr(ppo, "resume_run", spy)
+    res = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path, RecordingPointMass(), progress=False)
+    assert res["resumed_at"] == 2
+    assert all(torch.equal(loaded["actor"][k], v) for k, v in saved["model"]["actor"].items())
+    assert loaded["adam_steps"] == {2 * 2}  # 2 updates x 2 minibatches before the kill
+    assert torch.equal(loaded["torch_rng"], saved["rng"]["torch"])
+    assert torch.equal(loaded["env_rng"], saved["env_rng"])
+    rows = read_curve_rows(tmp_path)
+    assert [int(r["update"]) for r in rows] == [0, 1, 2, 3]
+    assert [float(r["frames"]) for r in rows] == [40, 80, 120, 160]
+    final = load_checkpoint(tmp_path / "policy.pt")
+    assert final["update"] == 4 and {int(s["step"]) for s in final["optimizer"]["state"].values()} == {8}
+
+
+def test_a_finished_run_is_extended_not_repeated_and_restart_starts_afresh(tmp_path, monkeypatch):
+    train(CUBE_PUSH, "deterministic", 0, TINY, tmp_path, RecordingPointMass(), progress=False)
+    calls = []
+    update = ppo._ppo_update
+    monkeypatch.setattr(ppo, "_ppo_update", lambda batch, *a: calls.append(1) or update(batch, *a))
+    again = train(CUBE_PUSH, "deterministic", 0, TINY, tmp_path, RecordingPointMass(), progress=False)
+    assert again["resumed_at"] == 2 and calls == []  # nothing left to train: only the evaluation
+    more = train(CUBE_PUSH, "deterministic", 0, dataclasses.replace(TINY, updates=3), tmp_path,
+                 RecordingPointMass(), progress=False)
+    assert more["resumed_at"] == 2 and len(calls) == 1
+    assert [int(r["update"]) for r in read_curve_rows(tmp_path)] == [0, 1, 2]
+    other = train(CUBE_PUSH, "deterministic", 0, dataclasses.replace(TINY, lr=1e-4), tmp_path,
+                  RecordingPointMass(), progress=False)  # another run's checkpoint: not resumed
+    assert other["resumed_at"] == 0
+    fresh = train(CUBE_PUSH, "deterministic", 0, TINY, tmp_path, RecordingPointMass(), progress=False,
+                  restart=True)
+    assert fresh["resumed_at"] == 0 and [int(r["update"]) for r in read_curve_rows(tmp_path)] == [0, 1]
+
+
+def read_curve_rows(folder):
+    with open(folder / "log.csv", newline="") as fh:
+        return list(csv.DictReader(fh))

@@ -49,7 +49,7 @@ def _scene(objects: list[np.ndarray], masses: list[float], radius: float = 0.08,
 
 def _assert_finite_rollout(model, graph, steps=STEPS, bound=1e3):
     with torch.no_grad():
-        traj = rollout(model, graph, steps)
+        traj = rollout(model, graph, steps, sleep=None)
     assert torch.isfinite(traj).all()
     assert traj.abs().max() < bound
     return traj
@@ -57,7 +57,7 @@ def _assert_finite_rollout(model, graph, steps=STEPS, bound=1e3):
 
 def _grads_finite(model, graph, steps=5):
     model.zero_grad()
-    results = unroll(model, graph, steps)
+    results = unroll(model, graph, steps, sleep=None)
     loss = sum(r.pos.pow(2).mean() for r in results)
     loss.backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
@@ -155,7 +155,7 @@ def test_scale_equivariance_at_very_small_and_large_scales(scale):
         for key in ("pos", "prev_pos", "prev_prev_pos", "mass", "stiffness", "material", "force"):
             g[NODE][key] = g[NODE][key].double()
         with torch.no_grad():
-            trajs.append(rollout(model, g, STEPS) / s)
+            trajs.append(rollout(model, g, STEPS, sleep=None) / s)
     assert torch.isfinite(trajs[1]).all()
     torch.testing.assert_close(trajs[1], trajs[0], rtol=1e-5, atol=1e-5 * float(trajs[0].abs().max()))
 
@@ -165,10 +165,10 @@ def test_dropout_zero_is_deterministic_and_point_nine_stays_finite():
     g = toy_scene(force=True)
     forces = torch.zeros(STEPS, 14, 3)
     with torch.no_grad():
-        reference = rollout(model, g, STEPS)[:, g[NODE].is_leaf]
-    zero = sample(model, g, 3, STEPS, 0.0)
+        reference = rollout(model, g, STEPS, sleep=None)[:, g[NODE].is_leaf]
+    zero = sample(model, g, 3, STEPS, 0.0, sleep=None)
     torch.testing.assert_close(zero, reference.expand(3, -1, -1, -1), rtol=0, atol=0)
-    high = sample(model, g, 4, STEPS, 0.9, forces=forces, generator=torch.Generator().manual_seed(0))
+    high = sample(model, g, 4, STEPS, 0.9, forces=forces, generator=torch.Generator().manual_seed(0), sleep=None)
     assert torch.isfinite(high).all() and high.abs().max() < 1e3
     assert not torch.equal(high[0], high[1])  # the masks did differ
 
@@ -181,7 +181,7 @@ def test_float32_matches_float64():
     for key in ("pos", "prev_pos", "prev_prev_pos", "mass", "stiffness", "material", "force"):
         g64[NODE][key] = g64[NODE][key].double()
     with torch.no_grad():
-        a, b = rollout(m32, g32, STEPS), rollout(m64, g64, STEPS)
+        a, b = rollout(m32, g32, STEPS, sleep=None), rollout(m64, g64, STEPS, sleep=None)
     assert a.dtype == torch.float32 and b.dtype == torch.float64
     assert torch.isfinite(a).all()
     torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-5)
@@ -227,7 +227,7 @@ def test_impact_at_ten_times_the_training_speed():
     assert _min_distance_between_objects(g) > radius and g[COLLISION].edge_index.size(1) == 0  # no contact yet
 
     with torch.no_grad():
-        steps = unroll(model, g, 30)
+        steps = unroll(model, g, 30, sleep=None)
     traj = torch.stack([s.pos for s in steps])
     assert torch.isfinite(traj).all() and traj.abs().max() < 1e3
 

@@ -79,7 +79,7 @@ def test_ballistic_rollout_of_the_toy_scene_is_exact():
     model = ballistic(fitted_model(dtype=torch.float64))
     g = _double(toy_scene())
     with torch.no_grad():
-        traj = rollout(model, g, steps)
+        traj = rollout(model, g, steps, sleep=None)
     assert torch.isfinite(traj).all()
     torch.testing.assert_close(traj, closed_form(model, g, steps), rtol=1e-9, atol=1e-9)
     s = g[NODE]
@@ -91,7 +91,7 @@ def test_random_network_stays_finite_for_a_short_horizon():
     """The honest claim for untrained weights: finite over 100 steps (not over 1000)."""
     model = fitted_model()
     with torch.no_grad():
-        traj = rollout(model, toy_scene(), 100)
+        traj = rollout(model, toy_scene(), 100, sleep=None)
     assert torch.isfinite(traj).all()
 
 
@@ -110,7 +110,7 @@ def test_thousand_step_ballistic_rollout_of_every_scene(scene):
     model = ballistic(model.double().eval())
     g = _double(window)
     with torch.no_grad():
-        traj = rollout(model, g, LONG_STEPS)
+        traj = rollout(model, g, LONG_STEPS, sleep=None)
     assert torch.isfinite(traj).all()
     expected = closed_form(model, g, LONG_STEPS)
     torch.testing.assert_close(traj, expected, rtol=1e-7, atol=1e-6)
@@ -142,7 +142,7 @@ def test_thousand_steps_of_a_trained_model_stay_above_the_ground(scene):
     g = window.clone()
     del g[NODE].pos_seq, g[NODE].force_seq
     with torch.no_grad():
-        traj = rollout(model, g, LONG_STEPS)
+        traj = rollout(model, g, LONG_STEPS, sleep=None)
     leaves = g[NODE].is_leaf
     assert torch.isfinite(traj).all()
     assert (traj[:, leaves] - g[NODE].pos[leaves]).abs().max() < TRAINED_BOUND
@@ -169,7 +169,7 @@ def test_trained_model_survives_an_impact_at_ten_times_the_training_speed():
     g[NODE].prev_prev_pos = store.pos - 2 * v
     del g[NODE].pos_seq, g[NODE].force_seq
     with torch.no_grad():
-        traj = rollout(model, g, 100)
+        traj = rollout(model, g, 100, sleep=None)
     assert torch.isfinite(traj).all()
     assert (traj - store.pos).abs().max() < TRAINED_BOUND
 
@@ -189,7 +189,7 @@ RESTING_SCENES = ("cube_collision", "cube_push", "soft_bounce", "tower")
 REST_DRIFT_FAILURES = {
     "cube_push": "the cubes slide 0.10-0.12 m between steps 200 and 1000",
     "soft_bounce": "the soft cube slides 5.7 cm (goal: 5 cm)",
-    "tower": "the ball and cubes slide 1.0 m",
+    "tower": "the cubes slide 0.29-0.36 m (validation seeds 8, 18, 28; 0.70-1.13 m before the 6000-step CPU retrain)",
 }
 
 
@@ -206,7 +206,7 @@ def _resting_rollout(scene):
     g = window.clone()
     del g[NODE].pos_seq, g[NODE].force_seq
     with torch.no_grad():
-        traj = rollout(load_model(path), g, LONG_STEPS)
+        traj = rollout(load_model(path), g, LONG_STEPS, sleep=None)
     store = g[NODE]
     return traj, store, torch.nonzero(store.is_leaf & ~store.is_static).flatten()
 

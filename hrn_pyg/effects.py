@@ -1,0 +1,112 @@
+r"""What a scene needs simulated: :class:`SceneEffects`, and the per-rollout plan built from it.
+
+A step of the HRN sums three kinds of effect on a particle (Fig. 2 of the seed paper): history,
+external force :math:`e_F` and collision :math:`e_C`. Many scenes need fewer: a lone soft cube
+bouncing on the ground has nothing to collide with, a ball dropped on a wedge is never pushed.
+A scene says so once (:class:`SceneEffects`, the ``effects`` of every scene class of
+:mod:`hrn_pyg.data.scenes`), and :func:`plan_effects` turns the declaration, the graph and the
+rollout's forces into an :class:`EffectPlan` *before* the first step:
+
+* ``force_active[t]``: does step :math:`t` run the force module. Read from the force tensor
+  ``[S, N, 3]`` in one host transfer for the whole rollout, so no step has to ask the device
+  whether its force is zero (the per-step ``force.ne(0).any()`` of
+  :meth:`hrn_pyg.nn.hrn.HRN.forward` when nothing is planned);
+* ``collisions``: is there a collision search and a collision module at all. False when the
+  scene declares it, or when no batch copy holds two objects that can touch (a lone body; its
+  copies never collide with each other).
+
+A module or an edge set that is not needed is not built and not run; the result is the same as
+running it on empty input (the force module of a zero force and the collision module of no edge
+add nothing), which the tests check. A declaration that the data contradict (``forces=False``
+with a nonzero force) is an error rather than a silent change of the physics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import NODE
+
+
+@dataclass(frozen=True)
+class SceneEffects:
+    """The effects a scene can call for; None leaves the choice to the data (the default).
+
+    Attributes:
+        forces: True: external forces act (the force module runs on the steps whose force is
+            nonzero); False: never (the force module never runs; a nonzero force is an error).
+        collisions: True: objects can touch (collision search and module every step); False:
+            they cannot (no search, no collision module), e.g. a scene of one object.
+    """
+
+    forces: bool | None = None
+    collisions: bool | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("forces", "collisions"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, bool):
+                raise ValueError(f"SceneEffects.{name} must be True, False or None, got {value!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class EffectPlan(NamedTuple):
+    """What each step of one rollout runs (:func:`plan_effects`).
+
+    Attributes:
+        force_active: one flag per step: run the force module.
+        collisions: search collision edges and run the collision module.
+    """
+
+    force_active: tuple[bool, ...]
+    collisions: bool
+
+
+def can_collide(graph: HeteroData) -> bool:
+    """Whether any batch copy of ``graph`` holds leaves of two different objects, at least one of
+    them movable (two static bodies never need a collision: neither moves)."""
+    store = graph[NODE]
+    leaf = store.is_leaf
+    if "batch" in store:
+        copy_id = store.batch[leaf]
+    else:
+        copy_id = torch.zeros_like(store.object[leaf])
+    obj, static = store.object[leaf], store.is_static[leaf]
+    if obj.numel() == 0:
+        return False
+    key = copy_id * (int(obj.max()) + 1) + obj  # one id per (copy, object)
+    pairs, first = torch.unique(key, return_inverse=True)
+    movable = torch.zeros(pairs.numel(), dtype=torch.bool, device=key.device).index_fill(0, first[~static], True)
+    copies = torch.div(pairs, int(obj.max()) + 1, rounding_mode="floor")
+    counts = torch.zeros(int(copies.max()) + 1, dtype=torch.long, device=key.device).index_add(
+        0, copies, torch.ones_like(copies))
+    has_movable = torch.zeros_like(counts).index_add(0, copies, movable.long())
+    return bool(((counts >= 2) & (has_movable >= 1)).any())
+
+
+def plan_effects(graph: HeteroData, steps: int, forces: Tensor | None,
+                 declared: SceneEffects | None = None) -> EffectPlan:
+    """The :class:`EffectPlan` of a rollout of ``steps`` steps under ``forces`` ``[S, N, 3]``
+    (None: no force), honouring what the scene ``declared``.
+
+    Raises ValueError when the declaration and the data disagree (``forces=False`` with a
+    nonzero force).
+    """
+    declared = declared or SceneEffects()
+    if forces is None:
+        active = [False] * steps
+    else:
+        active = forces[:steps].ne(0).flatten(1).any(dim=1).tolist()  # one host read per rollout
+    if declared.forces is False and any(active):
+        first = active.index(True)
+        raise ValueError(f"the scene declares no external forces (SceneEffects.forces=False), but step {first} "
+                         "has a nonzero force")
+    collisions = declared.collisions if declared.collisions is not None else can_collide(graph)
+    return EffectPlan(force_active=tuple(bool(a) for a in active), collisions=bool(collisions))
