@@ -16,6 +16,10 @@ Leaves of static objects are left out of every score.
 
 * spread: RMS distance of each moving leaf from its mean, for the samples and for the ensemble
   (:func:`~hrn_pyg.sampling.metrics.root_spread`, mean over leaves; metres),
+* shape error: for each sample, the mean squared difference of its pairwise leaf distances within
+  each moving object from the unperturbed pybullet episode's at the same step, mean over objects
+  and samples (m^2; the seed's claim is that sampling does not spoil roll-out quality: issue 13
+  asks for at most 1.5x the deterministic rollout's),
 * wedge only: fraction of trajectories whose ball centre ends at ``x < 0`` / ``x >= 0``
   (:func:`~hrn_pyg.sampling.metrics.side_fractions`), samples against the ensemble.
 
@@ -57,11 +61,25 @@ from hrn_pyg.utils.files import atomic_write_json
 WEDGE_BALL, WEDGE_RIDGE_X = 0, 0.0
 
 
-def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: str) -> dict:
+def shape_error(futures: torch.Tensor, truth: torch.Tensor, obj: torch.Tensor, moving: torch.Tensor) -> float:
+    """Mean over the samples ``[K, L, 3]`` and the moving objects of the squared error of the
+    pairwise leaf distances within each object, against ``truth`` ``[L, 3]`` (m^2)."""
+    errors = []
+    for o in torch.unique(obj[moving]).tolist():  # a few objects per scene
+        rows = obj == o
+        pred = torch.cdist(futures[:, rows], futures[:, rows])  # [K, n, n]
+        true = torch.cdist(truth[rows][None], truth[rows][None])  # [1, n, n]
+        errors.append((pred - true).pow(2).flatten(1).mean(dim=1))  # [K]
+    return float(torch.stack(errors).mean())
+
+
+def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: str,
+          truth: torch.Tensor | None = None) -> dict:
     """Scores of futures ``[K, L, 3]`` against members ``[M, L, 3]`` (one time step).
 
     Leaves of static objects (the wedge) never move in either, so they are left out: they would
-    only dilute every score.
+    only dilute every score. ``truth`` ``[L, 3]``: the unperturbed episode at the same step, for
+    the shape error (left out when None).
     """
     obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
     moving = torch.as_tensor(episode["object_material"])[obj] != STATIC
@@ -74,6 +92,8 @@ def score(futures: torch.Tensor, members: torch.Tensor, episode: dict, scene: st
         "spread_m": float(root_spread(futures[:, moving]).mean()),
         "ensemble_spread_m": float(root_spread(members[:, moving]).mean()),
     }
+    if truth is not None:
+        row["shape_mse_m2"] = shape_error(futures, truth, obj, moving)
     if scene == "wedge":
         x = object_centres(futures, obj, mass)[:, WEDGE_BALL, 0]
         row["side_fractions"] = side_fractions(x, WEDGE_RIDGE_X).tolist()
@@ -85,13 +105,14 @@ def evaluate_scene(model: HRN, scene: str, seed: int, steps: int, members: np.nd
     graph = episode_state(episode, start=HISTORY, steps=steps)
     forces = graph[NODE].force_seq.transpose(0, 1)
     truth = torch.as_tensor(members[:, HISTORY + steps]).float()  # [M, L, 3] at the last step
+    unperturbed = torch.as_tensor(episode["positions"][HISTORY + steps]).float()  # [L, 3]
     rows = []
     modules = list(model.config.dropout_modules)
     for name, kk, rate in [("deterministic", 1, 0.0)] + [(label, k, r) for r in rates]:
         gen = torch.Generator().manual_seed(sample_seed)
         futures = sample(model, graph, kk, steps, rate, forces=forces, generator=gen)[:, -1]  # [K, L, 3]
         rows.append({"scene": scene, "episode_seed": seed, "model": name, "k": kk, "rate": rate,
-                     "modules": modules if rate > 0 else [], **score(futures, truth, episode, scene)})
+                     "modules": modules if rate > 0 else [], **score(futures, truth, episode, scene, unperturbed)})
     if scene == "wedge":
         obj, mass = torch.as_tensor(episode["leaf_object"]), torch.as_tensor(episode["leaf_mass"])
         ens_x = object_centres(truth, obj, mass)[:, WEDGE_BALL, 0]
@@ -118,14 +139,14 @@ def markdown(rows: list[dict]) -> str:
 
 def summary(rows: list[dict]) -> list[dict]:
     """Mean of every score over the episode seeds, per (scene, model, rate)."""
-    keys = ("energy_score_m", "best_of_k_m", "coverage", "spread_m", "ensemble_spread_m")
+    keys = ("energy_score_m", "best_of_k_m", "coverage", "spread_m", "ensemble_spread_m", "shape_mse_m2")
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["scene"], r["model"], r["k"], r["rate"]), []).append(r)
     out = []
     for (scene, model, k, rate), group in groups.items():
         row = {"scene": scene, "model": model, "k": k, "rate": rate, "seeds": len(group)}
-        row.update({key: float(np.mean([g[key] for g in group])) for key in keys})
+        row.update({key: float(np.mean([g[key] for g in group])) for key in keys if key in group[0]})
         for key in ("side_fractions", "ensemble_side_fractions"):
             if key in group[0]:
                 row[key] = np.mean([g[key] for g in group], axis=0).tolist()
@@ -134,12 +155,16 @@ def summary(rows: list[dict]) -> list[dict]:
 
 
 def markdown_summary(rows: list[dict]) -> str:
-    lines = ["| scene | model | k | rate | seeds | energy score (mm) | best-of-k (mm) | coverage | spread samples / ensemble (mm) |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| scene | model | k | rate | seeds | energy score (mm) | best-of-k (mm) | coverage | spread samples / ensemble (mm) | shape MSE (mm^2) | shape / deterministic |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    deterministic = {r["scene"]: r.get("shape_mse_m2") for r in rows if r["model"] == "deterministic"}
     for r in rows:
+        shape, base = r.get("shape_mse_m2"), deterministic.get(r["scene"])
+        ratio = f"{shape / base:.2f}" if shape is not None and base else "-"
         lines.append(f"| {r['scene']} | {r['model']} | {r['k']} | {r['rate']} | {r['seeds']} | "
                      f"{1e3 * r['energy_score_m']:.1f} | {1e3 * r['best_of_k_m']:.1f} | {r['coverage']:.2f} | "
-                     f"{1e3 * r['spread_m']:.1f} / {1e3 * r['ensemble_spread_m']:.1f} |")
+                     f"{1e3 * r['spread_m']:.1f} / {1e3 * r['ensemble_spread_m']:.1f} | "
+                     f"{'-' if shape is None else f'{1e6 * shape:.3g}'} | {ratio} |")
     return "\n".join(lines)
 
 
