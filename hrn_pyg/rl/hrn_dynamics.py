@@ -215,20 +215,26 @@ class HRNDynamics:
         if rate > 0:  # one mask per copy on the masked modules only (cube_push: force)
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.dropout_modules}
-        if self.sleep is None:
+        asleep_node = self._asleep(graph, n) if self.sleep is not None else None
+        if asleep_node is None or not bool((asleep_node & ~graph[NODE].is_static).any()):
             next_pos = decode(self.model, graph, run_network(self.model, build_inputs(self.model, graph), masks))[0]
         else:  # the objects the state shows at rest, unless pushed or touched, are held
-            objs = self._objects.get(n)
-            if objs is None:
-                objs = self._objects.setdefault(n, objects(graph))
-            force = graph[NODE].force
-            state = update(self.sleep, state_from_history(self.sleep, graph, objs), graph, force, objs)
-            next_pos = predict_awake(self.model, graph, force, masks, state.asleep[objs.of_node])[0]
+            next_pos = predict_awake(self.model, graph, graph[NODE].force, masks, asleep_node)[0]
         leaves = graph[NODE].is_leaf
         nxt = next_pos[leaves].reshape(n, 1, self.num_leaves, 3)
         new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
         new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
         return self._join(new_pos, index[:, None].expand(B, k))
+
+    def _asleep(self, graph: HeteroData, n: int) -> Tensor:
+        """``[N]`` bool: the nodes held in this step (:func:`hrn_pyg.sleeping.state_from_history`,
+        then the wake-up rule of :func:`hrn_pyg.sleeping.update`); the objects of ``n`` copies
+        are cached per ``n``."""
+        objs = self._objects.get(n)
+        if objs is None:
+            objs = self._objects.setdefault(n, objects(graph))
+        state = update(self.sleep, state_from_history(self.sleep, graph, objs), graph, graph[NODE].force, objs)
+        return state.asleep[objs.of_node]
 
     def _batched_structure(self, copies: Tensor) -> HeteroData:
         """Pool entries ``copies`` ``[n]`` as one batched static graph (a shallow copy).
