@@ -35,10 +35,10 @@ from hrn_pyg.data.graph import (
     MATERIALS,
     NODE,
     WITHIN_SIBLINGS,
+    leaf_collision_edges,
     leaf_to_ancestor_mean,
     set_state,
 )
-from hrn_pyg.data.radius import collision_edges
 from hrn_pyg.effects import SceneEffects, plan_effects
 from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
@@ -282,17 +282,6 @@ def advance(
     part.force = torch.zeros_like(pos)
     out[COLLISION].edge_index = leaf_collision_edges(out, pos, radius) if edges is None else edges
     return out
-
-
-def leaf_collision_edges(graph: HeteroData, pos: Tensor, radius: float | None) -> Tensor:
-    """Collision edges (node indices) of the leaves of ``graph`` at positions ``pos`` ``[N, 3]``,
-    grouped by batch copy; none when ``radius`` is None or 0 (:func:`~hrn_pyg.data.radius.collision_edges`)."""
-    store = graph[NODE]
-    if radius is None or radius <= 0:
-        return torch.empty(2, 0, dtype=torch.long, device=pos.device)
-    leaf_index = torch.nonzero(store.is_leaf).flatten()
-    batch = store.batch[leaf_index] if "batch" in store else None
-    return leaf_index[collision_edges(pos[leaf_index], store.object[leaf_index], radius, batch)]
 
 
 def _check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:

@@ -89,7 +89,7 @@ from hrn_pyg.data.graph import (
 )
 from hrn_pyg.data.radius import cell_keys, collision_edges
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.rollout import Step, build_inputs, decode, root_of, run_network, step
+from hrn_pyg.rollout import Step, build_inputs, decode, object_of, run_network, step
 from hrn_pyg.rollout import advance as advance_graph
 from hrn_pyg.sleep_config import SleepConfig
 
@@ -132,13 +132,11 @@ class SleepState(NamedTuple):
 
 
 def objects(graph: HeteroData) -> Objects:
-    """The :class:`Objects` of ``graph``: one per root node, numbered in root order."""
-    store = graph[NODE]
-    rank = torch.cumsum(store.is_root.long(), 0) - 1  # [N]: the rank of each root among the roots
-    of_node = rank[root_of(graph)]
-    count = int(store.is_root.sum())
+    """The :class:`Objects` of ``graph``: one per root node, numbered in root order
+    (:func:`hrn_pyg.rollout.object_of`)."""
+    of_node, count = object_of(graph)
     static = torch.zeros(count, dtype=torch.bool, device=of_node.device).index_fill(
-        0, of_node[store.is_static & store.is_root], True)
+        0, of_node[graph[NODE].is_static], True)
     return Objects(of_node=of_node, static=static, count=count)
 
 

@@ -291,14 +291,23 @@ def set_state(
     else:
         store.force = torch.where(is_leaf, _to_nodes("force", force, out), 0.0)
 
-    leaf_index = torch.nonzero(store.is_leaf).flatten()
-    if radius is None:
-        edges = torch.empty(2, 0, dtype=torch.long, device=leaf_index.device)
-    else:
-        batch = store.batch[leaf_index] if "batch" in store else None
-        edges = leaf_index[collision_edges(store.pos[leaf_index], store.object[leaf_index], radius, batch)]
-    out[COLLISION].edge_index = edges
+    out[COLLISION].edge_index = leaf_collision_edges(out, store.pos, radius)
     return out
+
+
+def leaf_collision_edges(graph: HeteroData, pos: Tensor, radius: float | None) -> Tensor:
+    """Collision edges (node indices) of the leaves of ``graph`` at positions ``pos`` ``[N, 3]``
+    (:func:`hrn_pyg.data.radius.collision_edges`), grouped by ``graph['particle'].batch`` when
+    present so copies never collide; none when ``radius`` is None or 0.
+
+    **Shapes**: pos ``(N, 3)``; returns ``(2, |E_C|)``.
+    """
+    store = graph[NODE]
+    if radius is None or radius <= 0:
+        return torch.empty(2, 0, dtype=torch.long, device=pos.device)
+    leaf_index = torch.nonzero(store.is_leaf).flatten()
+    batch = store.batch[leaf_index] if "batch" in store else None
+    return leaf_index[collision_edges(pos[leaf_index], store.object[leaf_index], radius, batch)]
 
 
 def replicate(graph: HeteroData, k: int) -> HeteroData:
