@@ -32,6 +32,9 @@ Output (``--out``, default ``runs/rl/<task>``)::
                                   curve metrics (final average length, updates to reach it) and,
                                   with --model, the pybullet ground-truth check
     summary.csv, summary.md       the same per run, and per mode over seeds (median [min, max])
+    comparison.json, .md          per mode: updates to fixed episode lengths, final length and
+                                  success, median over seeds with bootstrap 95 % intervals, and
+                                  each mode's difference from deterministic (rl/stats.py)
 
 With ``--model``, each run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
 final policy's episodes in the learned model (dropout 0) are replayed open loop in pybullet
@@ -62,6 +65,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve, write_summary
+from hrn_pyg.rl.stats import write_comparison
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
@@ -460,6 +464,7 @@ def run(args: argparse.Namespace) -> int:
             {(r2["mode"], r2["seed"]) for r2 in results}]
     atomic_write_json(summary_path, keep + results)
     write_summary(out, keep + results)
+    write_comparison(out, keep + results, task.name, task.max_steps)
     drawn = plot_episode_length(out, out / "episode_length.png",
                                 title=f"{task.name}: average episode length"
                                 + ("" if args.model else " (point-mass dynamics)"))

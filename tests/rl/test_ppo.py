@@ -154,6 +154,10 @@ def test_cli_runs_and_draws_the_figure(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert sorted(r["mode"] for r in summary) == ["action_noise", "deterministic"]
     assert plot_episode_length(out, tmp_path / "again.png") == ["deterministic", "action_noise"]
+    comparison = json.loads((out / "comparison.json").read_text())
+    assert sorted(comparison["modes"]) == ["action_noise", "deterministic"]
+    assert comparison["levels"] == [11.25, 7.5]  # three quarters and half of the tower's 15 steps
+    assert list(comparison["versus_deterministic"]) == ["action_noise"]
 
 
 @pytest.mark.parametrize("argv", [
