@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 from torch_geometric.nn import MessagePassing
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig
+from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree
 
 #: added under the square root of a squared distance so that its gradient stays finite when two
 #: particles coincide (d|x|/dx is undefined at 0)
@@ -76,8 +76,10 @@ class CollisionModule(MessagePassing):
         w_dst, w_src, w_offset, w_dist = self.phi.split_first_weight((self.state_dim, self.state_dim, 3, 1))
         from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
         from_src = state @ w_src.T
-        return self.propagate(edge_index, a=from_dst, b=from_src, x=pos, w_offset=w_offset, w_dist=w_dist,
-                              edge_batch=edge_batch, mask=mask, size=(n, n))
+        # phi_C's last hidden layer is summed per destination; its output layer runs once per node
+        hidden_sum = self.propagate(edge_index, a=from_dst, b=from_src, x=pos, w_offset=w_offset,
+                                    w_dist=w_dist, edge_batch=edge_batch, mask=mask, size=(n, n))
+        return self.phi.output_of_sum(hidden_sum, in_degree(edge_index, n))
 
     def message(
         self, a_i: Tensor, b_j: Tensor, x_i: Tensor, x_j: Tensor, w_offset: Tensor, w_dist: Tensor,
@@ -86,7 +88,7 @@ class CollisionModule(MessagePassing):
         # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks
         offset = x_i - x_j
         pre = a_i + b_j + offset @ w_offset.T + safe_norm(offset) @ w_dist.T
-        return self.phi.forward_from_first(pre, mask, edge_batch)
+        return self.phi.last_hidden_from_first(pre, mask, edge_batch)
 
     def __repr__(self) -> str:
         return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"

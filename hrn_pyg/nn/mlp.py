@@ -75,6 +75,11 @@ def dropout_mask(
     return (u >= rate).to(torch.float32) / (1.0 - rate)
 
 
+def in_degree(edge_index: Tensor, num_nodes: int) -> Tensor:
+    """Number of edges into each node, ``[num_nodes]`` long (``edge_index[1]`` are destinations)."""
+    return torch.bincount(edge_index[1], minlength=num_nodes)
+
+
 class MLP(nn.Module):
     r"""Fully connected network with an optional per-trajectory mask on its hidden activations.
 
@@ -133,6 +138,14 @@ class MLP(nn.Module):
         **Shapes:** ``pre`` :math:`(M, H)`; mask and index as in :meth:`forward`; output
         :math:`(M, F_{out})`.
         """
+        return self.output_layer(self.last_hidden_from_first(pre, mask, index))
+
+    def last_hidden_from_first(self, pre: Tensor, mask: Tensor | None = None,
+                               index: Tensor | None = None) -> Tensor:
+        """The last (masked) hidden activation :math:`h_D` from the first layer's pre-activation.
+
+        **Shapes:** ``pre`` :math:`(M, H)`; output :math:`(M, H)`.
+        """
         row_mask = None
         if mask is not None:
             if index is None:
@@ -147,7 +160,24 @@ class MLP(nn.Module):
             h = self.activation(h if k == 0 else layer(h))
             if row_mask is not None:
                 h = h * row_mask
-        return self.output_layer(h)
+        return h
+
+    def output_of_sum(self, hidden_sum: Tensor, count: Tensor) -> Tensor:
+        r"""The output layer applied to a sum of ``count`` last hidden activations.
+
+        The output layer is affine, so a sum of MLP outputs over a node's incoming edges equals
+
+        .. math::
+            \sum_{e \to i} (W h_e + b) = W \Bigl(\sum_{e \to i} h_e\Bigr) + n_i\, b,
+
+        with :math:`n_i` the number of edges into :math:`i`. A message-passing layer that sums
+        can therefore aggregate :math:`h` (:meth:`last_hidden_from_first`) and run the output
+        layer once per node instead of once per edge; a node with no edge gets an exact zero.
+
+        **Shapes:** ``hidden_sum`` :math:`(N, H)`, ``count`` :math:`(N,)`; output :math:`(N, F_{out})`.
+        """
+        bias = count.to(hidden_sum.dtype).unsqueeze(1) * self.output_layer.bias
+        return torch.addmm(bias, hidden_sum, self.output_layer.weight.T)
 
     def __repr__(self) -> str:
         c = self.config

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 from torch_geometric.nn import MessagePassing
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig
+from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree
 
 
 class PropagationModule(MessagePassing):
@@ -87,8 +87,10 @@ class PropagationModule(MessagePassing):
             (self.state_dim, self.state_dim, self.effect_dim, self.offset_dim))
         from_src = state @ w_src.T + effect @ w_effect.T
         from_dst = torch.addmm(self.eta.first_bias, state, w_dst.T)
-        return self.propagate(edge_index, a=from_src, b=from_dst, x=pos, w_offset=w_offset,
-                              edge_batch=edge_batch, mask=mask, size=(n, n))
+        # eta's last hidden layer is summed per destination; its output layer runs once per node
+        hidden_sum = self.propagate(edge_index, a=from_src, b=from_dst, x=pos, w_offset=w_offset,
+                                    edge_batch=edge_batch, mask=mask, size=(n, n))
+        return self.eta.output_of_sum(hidden_sum, in_degree(edge_index, n))
 
     def message(
         self,
@@ -102,7 +104,7 @@ class PropagationModule(MessagePassing):
     ) -> Tensor:
         # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks
         pre = a_j + b_i + (x_j - x_i) @ w_offset.T
-        return self.eta.forward_from_first(pre, mask, edge_batch)
+        return self.eta.last_hidden_from_first(pre, mask, edge_batch)
 
     def __repr__(self) -> str:
         tag = f"{self.name}, " if self.name else ""

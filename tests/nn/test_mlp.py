@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig, dropout_mask
+from hrn_pyg.nn.mlp import MLP, MLPConfig, dropout_mask, in_degree
 
 
 def test_layers_and_config_errors():
@@ -34,3 +34,22 @@ def test_mask_scales_hidden_units_per_row():
     torch.testing.assert_close(out[[0, 2]], m(x[[0, 2]]))
     h = torch.relu(m.hidden_layers[0](x[[1, 3]]))
     torch.testing.assert_close(out[[1, 3]], m.output_layer(2.0 * h))
+
+
+def test_output_of_a_sum_equals_the_sum_of_outputs():
+    # what the message-passing layers rely on: aggregate the last hidden layer, then apply the
+    # affine output layer once per node with the edge count times the bias
+    torch.manual_seed(0)
+    m = MLP(5, 3, MLPConfig(hidden=8, depth=2))
+    x = torch.randn(6, 5)
+    dst = torch.tensor([2, 0, 2, 2, 0, 3])
+    edge_index = torch.stack([torch.arange(6), dst])
+    count = in_degree(edge_index, 5)
+    assert count.tolist() == [2, 0, 3, 1, 0]
+    per_row = m(x)
+    expected = torch.zeros(5, 3).index_add_(0, dst, per_row)
+    hidden = m.last_hidden_from_first(m.hidden_layers[0](x))
+    summed = m.output_of_sum(torch.zeros(5, 8).index_add_(0, dst, hidden), count)
+    torch.testing.assert_close(summed, expected)
+    assert torch.equal(summed[[1, 4]], torch.zeros(2, 3))  # no edge: exact zero
+    assert torch.equal(m.output_layer(hidden), m.forward_from_first(m.hidden_layers[0](x)))
