@@ -66,6 +66,7 @@ from torchrl.objectives.value import GAE
 
 from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve, write_summary
 from hrn_pyg.rl.stats import write_comparison
+from hrn_pyg.utils.stop import StopRequest
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
@@ -274,24 +275,29 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
         collector = Collector(env, actor, frames_per_batch=config.frames_per_batch,
                               total_frames=config.frames_per_batch * remaining,
                               device=env.device, auto_register_policy_transforms=False)
-        try:
-            for update, batch in enumerate(collector, start=start_update):
-                rate = schedule(update)
-                stats = _ppo_update(batch, gae, loss_module, optim, config)
-                row = {"step": update, "update": update, "frames": (update + 1) * config.frames_per_batch,
-                       "dropout_rate": rate, "action_noise_std": noise,
-                       **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
-                log.append(row)
-                env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
-                if (update + 1) % config.checkpoint_every == 0:
-                    checkpoint(update + 1)
+        # SIGINT / SIGTERM: finish the update under way, save it, then stop (rerun continues)
+        with StopRequest() as stop:
+            try:
+                for update, batch in enumerate(collector, start=start_update):
+                    rate = schedule(update)
+                    stats = _ppo_update(batch, gae, loss_module, optim, config)
+                    row = {"step": update, "update": update,
+                           "frames": (update + 1) * config.frames_per_batch,
+                           "dropout_rate": rate, "action_noise_std": noise,
+                           **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
+                    log.append(row)
+                    env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
+                    if (update + 1) % config.checkpoint_every == 0 or stop.requested:
+                        checkpoint(update + 1)
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(len=row.get("mean_episode_length", ""), p=f"{rate:.3f}")
+                    if stop.requested:
+                        raise KeyboardInterrupt(f"stopped after update {update + 1}; policy.pt holds it")
+            finally:
+                collector.shutdown()
                 if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(len=row.get("mean_episode_length", ""), p=f"{rate:.3f}")
-        finally:
-            collector.shutdown()
-            if bar is not None:
-                bar.close()
+                    bar.close()
         checkpoint(config.updates)
     elif bar is not None:
         bar.close()

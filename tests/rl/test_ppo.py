@@ -1,6 +1,8 @@
 import csv
 import dataclasses
 import json
+import os
+import signal
 
 import pytest
 import torch
@@ -305,6 +307,33 @@ def test_a_killed_run_continues_from_its_last_checkpoint(tmp_path, monkeypatch):
     assert [float(r["frames"]) for r in rows] == [40, 80, 120, 160]
     final = load_checkpoint(tmp_path / "policy.pt")
     assert final["update"] == 4 and {int(s["step"]) for s in final["optimizer"]["state"].values()} == {8}
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_mid_update_saves_that_update_and_stops(tmp_path, monkeypatch, signum):
+    """kill (SIGTERM) or Ctrl-C (SIGINT) during update 1, with checkpoints only every 50
+    updates: the update under way finishes, policy.pt holds 2 updates, the run stops with
+    KeyboardInterrupt and the handlers are restored; the rerun continues at update 2."""
+    cfg = dataclasses.replace(TINY, updates=4, checkpoint_every=50)
+    update = ppo._ppo_update
+    done = []
+
+    def signalled_in_second(batch, *args):
+        done.append(1)
+        if len(done) == 2:
+            os.kill(os.getpid(), signum)  # arrives inside the update, as from outside
+        return update(batch, *args)
+
+    monkeypatch.setattr(ppo, "_ppo_update", signalled_in_second)
+    before = signal.getsignal(signum)
+    with pytest.raises(KeyboardInterrupt, match="after update 2"):
+        train(CUBE_PUSH, "deterministic", 0, cfg, tmp_path, RecordingPointMass(), progress=False)
+    assert signal.getsignal(signum) is before
+    assert load_checkpoint(tmp_path / "policy.pt")["update"] == 2 and len(done) == 2
+    monkeypatch.setattr(ppo, "_ppo_update", update)
+    res = train(CUBE_PUSH, "deterministic", 0, cfg, tmp_path, RecordingPointMass(), progress=False)
+    assert res["resumed_at"] == 2
+    assert [int(r["update"]) for r in read_curve_rows(tmp_path)] == [0, 1, 2, 3]
 
 
 def test_a_finished_run_is_extended_not_repeated_and_restart_starts_afresh(tmp_path, monkeypatch):
