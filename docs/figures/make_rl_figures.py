@@ -9,7 +9,9 @@ stochastic policy solves in both the learned model and pybullet (failing that, i
 model; failing that, the first).
 
 Also copies ``<runs>/episode_length.png`` to ``docs/figures/rl_<task>_episode_length.png`` and
-``<runs>/summary.{json,md}`` to ``docs/results/rl_<task>_summary.{json,md}``.
+``<runs>/summary.{json,md}`` to ``docs/results/rl_<task>_summary.{json,md}`` and
+``<runs>/comparison.{json,md}`` (bootstrap intervals, :mod:`hrn_pyg.rl.stats`) to
+``docs/results/rl_<task>_comparison.{json,md}``.
 
 Run: ``python docs/figures/make_rl_figures.py --task cube_push --runs runs/rl/cube_push
 --model hrn_pyg/checkpoints/cube_push.pt [--seed 0] [--episodes 32]``.
@@ -103,7 +105,9 @@ def copy_artefacts(task: str, runs: Path) -> list[Path]:
     pairs = [(runs / "episode_length.png", HERE / f"rl_{task}_episode_length.png"),
              (runs / "summary.json", results / f"rl_{task}_summary.json"),
              (runs / "summary.md", results / f"rl_{task}_summary.md"),
-             (runs / "summary.csv", results / f"rl_{task}_summary.csv")]
+             (runs / "summary.csv", results / f"rl_{task}_summary.csv"),
+             (runs / "comparison.json", results / f"rl_{task}_comparison.json"),
+             (runs / "comparison.md", results / f"rl_{task}_comparison.md")]
     written = []
     for src, dst in pairs:
         if src.is_file():

@@ -18,8 +18,8 @@ from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE
 from hrn_pyg.nn.state import to_local_velocity
 
 #: a column whose training values span at most this fraction of their largest magnitude "never
-#: varies" (e.g. one mass for every particle; a few float32 rounding steps) and gets scale 1, so an
-#: unseen value is not blown up by 1/0. Relative, not absolute: a scene in micrometres has real
+#: varies" (e.g. one mass for every particle; a few float32 rounding steps) and gets the scale of
+#: its quantity's other columns (1 if it has none), so an unseen value is not blown up by 1/0. Relative, not absolute: a scene in micrometres has real
 #: velocity spreads far below any fixed epsilon, and forcing them to 1 m/step made a fitted model
 #: fly apart (tests/stability, small scales)
 STD_EPSILON = 5e-7
@@ -113,8 +113,14 @@ class _Moments:
         return (self.s / self.n).float() if self.n else torch.zeros_like(self.s, dtype=torch.float32)
 
     def std(self, centred: bool = True, fallback: Tensor | None = None) -> Tensor:
-        """Standard deviation per column (root mean square if not ``centred``); a column that
-        never varies gets ``fallback`` (default 1)."""
+        """Standard deviation per column (root mean square if not ``centred``).
+
+        A column that never varies takes the mean scale of the columns that do: the axes of a
+        vector keep one scale, so the unused axis of a planar scene (the wedge's y: the ball
+        never moves along the ridge) is not decoded at 1 m/step, which turned every small
+        output error on that axis into centimetres of motion. When no column varies, each
+        takes ``fallback`` (default 1).
+        """
         fallback = torch.ones_like(self.s, dtype=torch.float32) if fallback is None else fallback.float()
         if self.n == 0:
             return fallback
@@ -125,7 +131,10 @@ class _Moments:
             constant = std == 0
         else:
             constant = (self.hi - self.lo) <= STD_EPSILON * torch.maximum(self.hi.abs(), self.lo.abs())
-        return torch.where(constant | (std == 0), fallback.to(std.dtype), std).float()
+        degenerate = constant | (std == 0)
+        if bool(degenerate.all()):
+            return fallback.clone()
+        return torch.where(degenerate, std[~degenerate].mean(), std).float()
 
 
 def _positions(store) -> Tensor:

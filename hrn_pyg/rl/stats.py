@@ -201,8 +201,11 @@ def _fmt(stat: dict | None, digits: int = 0) -> str:
 
 
 def _fmt_diff(stat: dict | None, digits: int = 0) -> str:
+    """``difference [low, high]``; "both never" when neither median is finite (inf - inf)."""
     if not stat:
         return "-"
+    if math.isnan(stat["difference"]):
+        return "both never"
 
     def one(v):
         if math.isinf(v):

@@ -21,9 +21,24 @@ def test_fit_matches_brute_force_statistics():
     v = (s.pos_seq[:, 1:] - s.pos_seq[:, :-1])[moving].reshape(-1, 3)
     torch.testing.assert_close(n.velocity_mean, v.mean(0))
     torch.testing.assert_close(n.velocity_std, v.std(0, unbiased=False), rtol=1e-4, atol=1e-7)
-    torch.testing.assert_close(n.force_std, torch.tensor([3.0, 1.0, 4.0]))  # rms; y never varies -> 1
+    # rms per axis; y never varies and takes the mean of the axes that do (not 1 / STD_EPSILON)
+    torch.testing.assert_close(n.force_std, torch.tensor([3.0, 3.5, 4.0]))
     assert bool(n.fitted) and n.extra_repr() == "fitted=True"
-    # a component that never varies gets scale 1, not 1 / STD_EPSILON
-    assert STD_EPSILON < 1e-6 and n.force_std[1] == 1.0
+    assert STD_EPSILON < 1e-6
     # the statistics are buffers: they travel with a state_dict
     assert {"velocity_std", "local_std", "root_std", "length_scale", "fitted"} <= set(n.state_dict())
+
+
+def test_a_planar_scene_keeps_its_unused_axis_at_the_scale_of_the_others():
+    # the wedge: nothing ever moves along y. That axis must not be decoded at 1 m/step (what a
+    # fallback of 1 gave): the target scale along y is the mean of x and z's
+    w = toy_window(4)
+    s = w["particle"]
+    s.pos_seq[..., 1] = s.pos_seq[:, :1, 1]  # freeze y over time
+    n = fit_normalizer([w])
+    for name in ("velocity_std", "root_std", "local_std"):
+        std = getattr(n, name)
+        torch.testing.assert_close(std[1], std[[0, 2]].mean(), msg=name)
+        assert std[1] < 0.5
+    # a quantity with no varying column at all keeps the fallback: no force anywhere -> 1
+    assert torch.equal(n.force_std, torch.ones(3))

@@ -113,6 +113,7 @@ def test_comparison_from_logs_by_hand(tmp_path):
     assert cmp["modes"]["deterministic"]["n"] == 3 and cmp["modes"]["stochastic"]["updates"] == 50
     text = comparison_markdown(cmp, "toy")
     assert "never" in text and "| stochastic | 3 | 50 |" in text
+    assert "both never" not in text  # stochastic reaches 5, deterministic never: +inf, not NaN
     written = write_comparison(tmp_path, results, "toy", max_steps=10)
     loaded = json.loads((tmp_path / "comparison.json").read_text())  # strict JSON: no Infinity
     assert loaded["modes"]["deterministic"]["updates_to_5"]["median"] is None
