@@ -39,26 +39,16 @@ import numpy as np
 import torch
 
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import config_to_dict, scene_config, simulate_episode
+from hrn_pyg.data.scenes import config_to_dict, simulate_episode
 from hrn_pyg.sampling.cli import load
 from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
-from hrn_pyg.sampling.metrics import energy_score, object_centres
+from hrn_pyg.sampling.metrics import energy_score
+from hrn_pyg.sampling.sides import RIDGE_X, ball_centres, brier_score, ridge_config, share_below, split_difference
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json
 
-#: the ball is object 0; the ridge runs along y at x = 0
-BALL, RIDGE_X = 0, 0.0
 #: seed residues of the splits (hrn_pyg.data.dataset)
 SPLITS = {"val": 8, "test": 9}
-
-
-def ridge_config(folder: str | Path):
-    """The wedge scene config recorded in a generated folder's ``meta.json``."""
-    meta = json.loads((Path(folder) / "meta.json").read_text())
-    if meta.get("scene", "wedge") != "wedge":
-        raise ValueError(f"{folder} holds {meta.get('scene')!r} episodes, not wedge")
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["config"].items()}
-    return scene_config("wedge", **fields)
 
 
 def split_seeds(split: str, count: int, first: int = 0) -> list[int]:
@@ -66,29 +56,6 @@ def split_seeds(split: str, count: int, first: int = 0) -> list[int]:
     residue = SPLITS[split]
     start = first + (residue - first) % 10
     return list(range(start, start + 10 * count, 10))
-
-
-def ball_x(positions: torch.Tensor, episode: dict) -> torch.Tensor:
-    """x of the ball's centre in each trajectory, positions ``[T, L, 3]`` -> ``[T]``."""
-    obj = torch.as_tensor(np.asarray(episode["leaf_object"]))
-    mass = torch.as_tensor(np.asarray(episode["leaf_mass"]))
-    return object_centres(positions, obj, mass)[:, BALL, 0]
-
-
-def ball_centres(positions: torch.Tensor, episode: dict) -> torch.Tensor:
-    obj = torch.as_tensor(np.asarray(episode["leaf_object"]))
-    mass = torch.as_tensor(np.asarray(episode["leaf_mass"]))
-    return object_centres(positions, obj, mass)[:, BALL]
-
-
-def brier(p_model: np.ndarray, p_truth: np.ndarray) -> float:
-    """Mean squared difference of two per-episode probabilities."""
-    return float(np.mean((np.asarray(p_model) - np.asarray(p_truth)) ** 2))
-
-
-def split_difference(p_model: np.ndarray, p_truth: np.ndarray) -> float:
-    """Mean absolute difference of two per-episode probabilities."""
-    return float(np.mean(np.abs(np.asarray(p_model) - np.asarray(p_truth))))
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -138,19 +105,25 @@ def main(argv: list[str] | None = None) -> dict:
         coarse_end = torch.as_tensor(coarse[:, HISTORY + steps]).float()
         graph = episode_state(episode, start=HISTORY, steps=steps)
         forces = graph[NODE].force_seq.transpose(0, 1)
-        truth_x = float(ball_x(torch.as_tensor(episode["positions"][HISTORY + steps]).float()[None], episode)[0])
+        def centres(positions):  # [T, L, 3] -> [T, 3]
+            return ball_centres(positions, episode["leaf_object"], episode["leaf_mass"])
+
+        truth_x = float(centres(torch.as_tensor(episode["positions"][HISTORY + steps]).float()[None])[0, 0])
+        fine_centres = centres(fine_end)  # [M, 3]
         row = {"seed": seed, "truth_below": truth_x < RIDGE_X,
-               "fine_below": float((ball_x(fine_end, episode) < RIDGE_X).float().mean()),
-               "coarse_below": float((ball_x(coarse_end, episode) < RIDGE_X).float().mean())}
-        fine_centres = ball_centres(fine_end, episode)  # [M, 3]
-        det = sample(model, graph, 1, steps, 0.0, forces=forces)[:, -1]
-        row["deterministic_below"] = float((ball_x(det, episode) < RIDGE_X).float().mean())
-        row["deterministic_es_m"] = float(energy_score(ball_centres(det, episode), fine_centres))
+               "fine_below": share_below(fine_centres[:, 0]),
+               "coarse_below": share_below(centres(coarse_end)[:, 0])}
+        det = centres(sample(model, graph, 1, steps, 0.0, forces=forces)[:, -1])
+        row["deterministic_below"] = share_below(det[:, 0])
+        row["deterministic_es_m"] = float(energy_score(det, fine_centres))
         for rate in rates:
             gen = torch.Generator().manual_seed(args.sample_seed)
-            futures = sample(model, graph, args.k, steps, rate, forces=forces, generator=gen)[:, -1]
-            row[f"below@{rate:g}"] = float((ball_x(futures, episode) < RIDGE_X).float().mean())
-            row[f"es_m@{rate:g}"] = float(energy_score(ball_centres(futures, episode), fine_centres))
+            futures = centres(sample(model, graph, args.k, steps, rate, forces=forces, generator=gen)[:, -1])
+            row[f"below@{rate:g}"] = share_below(futures[:, 0])
+            row[f"es_m@{rate:g}"] = float(energy_score(futures, fine_centres))
+            row[f"final_x@{rate:g}"] = futures[:, 0].tolist()
+        row["fine_final_x"] = fine_centres[:, 0].tolist()
+        row["coarse_final_x"] = centres(coarse_end)[:, 0].tolist()
         rows.append(row)
         print(f"[{i + 1}/{len(seeds)}] seed {seed}: p(x<0) fine {row['fine_below']:.2f} coarse "
               f"{row['coarse_below']:.2f} det {row['deterministic_below']:.0f} "
@@ -158,16 +131,16 @@ def main(argv: list[str] | None = None) -> dict:
               + f" ({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
     fine_p = np.array([r["fine_below"] for r in rows])
     coarse_p = np.array([r["coarse_below"] for r in rows])
-    results = [{"model": "constant 1/2", "rate": None, "brier_fine": brier(np.full_like(fine_p, 0.5), fine_p),
+    results = [{"model": "constant 1/2", "rate": None, "brier_fine": brier_score(np.full_like(fine_p, 0.5), fine_p),
                 "split_difference_coarse": split_difference(np.full_like(coarse_p, 0.5), coarse_p),
                 "energy_score_m": None}]
     det_p = np.array([r["deterministic_below"] for r in rows])
-    results.append({"model": "deterministic", "rate": 0.0, "brier_fine": brier(det_p, fine_p),
+    results.append({"model": "deterministic", "rate": 0.0, "brier_fine": brier_score(det_p, fine_p),
                     "split_difference_coarse": split_difference(det_p, coarse_p),
                     "energy_score_m": float(np.mean([r["deterministic_es_m"] for r in rows]))})
     for rate in rates:
         p = np.array([r[f"below@{rate:g}"] for r in rows])
-        results.append({"model": "samples", "rate": rate, "brier_fine": brier(p, fine_p),
+        results.append({"model": "samples", "rate": rate, "brier_fine": brier_score(p, fine_p),
                         "split_difference_coarse": split_difference(p, coarse_p),
                         "energy_score_m": float(np.mean([r[f"es_m@{rate:g}"] for r in rows])),
                         "share_below": float(p.mean())})
