@@ -90,10 +90,17 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
     for dataset in recipe.datasets:  # the datasets are the long episodes of the scene defaults
         assert dataset.steps == scene_config(dataset.scene).steps >= 140
     wedge = next(m for m in recipe.models if m.name == "wedge")
-    assert wedge.train_args(Path("data"), Path("runs/recipe")) == [
-        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "1500",
-        "--batch-size", "8", "--threads", "1", "--train-dropout", "0.1", "--dropout-modules", "force,collision",
-        "--checkpoint-every", "250", "--eval-every", "250"]
+    args = wedge.train_args(Path("data"), Path("runs/recipe"))
+    assert args == [
+        "train", "--preset", "ours", "--data", "data/wedge_ridge", "--out", "runs/recipe/wedge", "--steps", "3000",
+        "--batch-size", "8", "--threads", "1", "--seq-end", "8", "--model-rigid-fit", "true",
+        "--model-ground-contact", "true", "--train-dropout", "0.1", "--dropout-modules", "force,collision",
+        "--checkpoint-every", "100", "--eval-every", "500"]
+    ridge = recipe.dataset("wedge_ridge")
+    assert ridge.scene == "wedge" and dict(ridge.overrides)["offset_range"] == (-0.003, 0.003)
+    # the shipped file is what that command made
+    manifest = json.loads((CHECKPOINTS_DIR / "manifest.json").read_text())["checkpoints"]["wedge"]
+    assert manifest["train_command"].startswith("hrn-pyg " + " ".join(args))
 
 
 @pytest.mark.parametrize("change, word", [

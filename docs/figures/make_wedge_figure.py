@@ -10,8 +10,8 @@ re-simulated for the paths:
 (c) every episode of the JSON: the model's share of samples ending at x < 0 against the 2 mm
     and the 1 cm ensembles' shares; the diagonal is a perfect match.
 
-Run: ``python docs/figures/make_wedge_figure.py --sides benchmarks/results/wedge_sides_test.json
-[--seed 19] [--out docs/figures/sampling_wedge_sides.png]``.
+Run: ``python docs/figures/make_wedge_figure.py --sides benchmarks/results/wedge_sides_val.json
+[--seed 18] [--rate 0.5] [--out docs/figures/sampling_wedge_sides.png]``.
 """
 
 from __future__ import annotations
@@ -55,14 +55,17 @@ def paths(model, episode: dict, config, k: int, members: int, std: float, rate: 
     return ball_centres(futures, obj, mass).numpy(), ball_centres(ens, obj, mass).numpy()
 
 
-def draw(sides: dict, seed: int, model_path: str, data: str, out: Path, members: int, std: float) -> None:
+def draw(sides: dict, seed: int, model_path: str, data: str, out: Path, members: int, std: float,
+         rate: float | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     config = ridge_config(data)
-    rate = float(sides["rates"][0])
+    rate = float(sides["rates"][0] if rate is None else rate)
+    if f"below@{rate:g}" not in sides["episodes"][0]:
+        raise ValueError(f"--rate {rate:g} was not scored in the JSON (rates {sides['rates']})")
     episode = simulate_episode("wedge", seed, config=config)
     params = json.loads(str(episode["params"]))["params"]
     samples, ensemble = paths(load(model_path), episode, config, sides["k"], members, std, rate, seed)
@@ -115,23 +118,24 @@ def draw(sides: dict, seed: int, model_path: str, data: str, out: Path, members:
     ax.set_xlabel("pybullet: share ending at x < 0")
     ax.set_ylabel("model: share of samples at x < 0")
     ax.set_title(f"(c) {len(rows)} {sides['split']} drops")
-    ax.legend(frameon=False, fontsize=8, loc="upper left")
+    ax.legend(frameon=False, fontsize=8, loc="lower right")
     fig.tight_layout()
     save_figure(fig, out)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sides", default="benchmarks/results/wedge_sides_test.json",
+    parser.add_argument("--sides", default="benchmarks/results/wedge_sides_val.json",
                         help="JSON written by benchmarks/wedge_sides.py")
     parser.add_argument("--seed", type=int, default=None, help="episode drawn in (a) and (b) (default: the JSON's first)")
     parser.add_argument("--members", type=int, default=16)
     parser.add_argument("--std", type=float, default=0.01, help="start perturbation of the drawn ensemble (m)")
+    parser.add_argument("--rate", type=float, default=None, help="one of the JSON's rates (default: its first)")
     parser.add_argument("--out", default=str(HERE / "sampling_wedge_sides.png"))
     args = parser.parse_args()
     sides = json.loads(Path(args.sides).read_text())
     seed = args.seed if args.seed is not None else sides["seeds"][0]
-    draw(sides, seed, sides["model"], sides["data"], Path(args.out), args.members, args.std)
+    draw(sides, seed, sides["model"], sides["data"], Path(args.out), args.members, args.std, args.rate)
     print(f"wrote {args.out}")
 
 

@@ -181,9 +181,7 @@ REST_DRIFT = 0.05
 #: step after which every object of a resting start must hold still (the model may settle first)
 SETTLE = 200
 #: shipped models that keep no rigid shape (trained before the rigid fit existed)
-RIGID_SHAPE_FAILURES = {
-    "wedge": "no rigid fit (a wedge model with it was 5x worse at t+15 and not shipped): the ball changes by 18 %",
-}
+RIGID_SHAPE_FAILURES: dict[str, str] = {}  # every shipped model with a rigid object has the rigid fit
 #: scenes at rest at step 2 with no force, and the shipped models that still slide there
 RESTING_SCENES = ("cube_collision", "cube_push", "soft_bounce", "tower")
 REST_DRIFT_FAILURES = {
