@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from hrn_pyg.rl.curves import FINAL_FRACTION, read_curve, updates_to_reach
+from hrn_pyg.rl.curves import curve_metrics, read_curve, updates_to_reach
 from hrn_pyg.rl.tasks import MODES
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
@@ -120,14 +120,6 @@ def reference_levels(max_steps: int) -> list[float]:
     return [round(f * max_steps, 2) for f in REFERENCE_FRACTIONS]
 
 
-def final_length(curve: list[float]) -> float:
-    """Mean average episode length over the last :data:`~hrn_pyg.rl.curves.FINAL_FRACTION` of
-    updates (NaN updates skipped)."""
-    tail = max(1, round(FINAL_FRACTION * len(curve)))
-    last = [v for v in curve[-tail:] if not math.isnan(v)]
-    return sum(last) / len(last) if last else math.nan
-
-
 def run_table(out_root: str | Path, results: list[dict], max_steps: int) -> list[dict]:
     """One row per run: updates to each reference level (inf if never), final length,
     pybullet and learned-model success, read from the logs under ``out_root``."""
@@ -138,8 +130,9 @@ def run_table(out_root: str | Path, results: list[dict], max_steps: int) -> list
         if not log.is_file():
             continue
         curve = read_curve(log)
+        final = curve_metrics(curve)["final_length"]
         row = {"mode": r["mode"], "seed": r["seed"], "updates": len(curve),
-               "final_length": final_length(curve),
+               "final_length": math.nan if final is None else final,
                "pybullet_success_rate": r.get("pybullet_success_rate"),
                "model_success_rate": r.get("model_success_rate", r.get("success_rate"))}
         for level in reference_levels(max_steps):
@@ -185,36 +178,33 @@ def compare_modes(rows: list[dict], max_steps: int, baseline: str = "determinist
     return out
 
 
+def _number(v: float, digits: int, signed: bool = False) -> str:
+    """One bound or median: an infinite update count is "never" (+inf) for a median and "+inf"
+    for a difference; NaN (undefined) is "?"."""
+    if math.isinf(v):
+        return ("+inf" if signed else "never") if v > 0 else "-inf"
+    if math.isnan(v):
+        return "?"
+    return f"{v:{'+' if signed else ''}.{digits}f}"
+
+
 def _fmt(stat: dict | None, digits: int = 0) -> str:
-    """``median [low, high]`` with infinities written as "never" / "> n"."""
+    """``median [low, high]`` of :func:`bootstrap_median`; ``-`` when there is none."""
     if not stat:
         return "-"
-
-    def one(v):
-        if math.isinf(v):
-            return "never" if v > 0 else "-inf"
-        if math.isnan(v):
-            return "?"
-        return f"{v:.{digits}f}"
-
-    return f"{one(stat['median'])} [{one(stat['low'])}, {one(stat['high'])}]"
+    return " ".join([_number(stat["median"], digits),
+                     f"[{_number(stat['low'], digits)}, {_number(stat['high'], digits)}]"])
 
 
 def _fmt_diff(stat: dict | None, digits: int = 0) -> str:
-    """``difference [low, high]``; "both never" when neither median is finite (inf - inf)."""
+    """``difference [low, high]`` of :func:`bootstrap_median_difference`; "both never" when
+    neither median is finite (inf - inf)."""
     if not stat:
         return "-"
     if math.isnan(stat["difference"]):
         return "both never"
-
-    def one(v):
-        if math.isinf(v):
-            return "+inf" if v > 0 else "-inf"
-        if math.isnan(v):
-            return "?"
-        return f"{v:+.{digits}f}"
-
-    return f"{one(stat['difference'])} [{one(stat['low'])}, {one(stat['high'])}]"
+    return " ".join([_number(stat["difference"], digits, signed=True),
+                     f"[{_number(stat['low'], digits, True)}, {_number(stat['high'], digits, True)}]"])
 
 
 def comparison_markdown(comparison: dict, task: str, baseline: str = "deterministic") -> str:
