@@ -28,12 +28,10 @@ Prints markdown tables and writes JSON atomically.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
