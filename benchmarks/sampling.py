@@ -55,16 +55,6 @@ def build(steps: int) -> tuple[HRN, object, torch.Tensor]:
     return model, window, forces
 
 
-def time_call(fn, repeats: int) -> list[float]:
-    fn()  # warm-up (allocator, lazy imports)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return times
-
-
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=8)
@@ -98,30 +88,47 @@ def main(argv: list[str] | None = None) -> dict:
 
         return run
 
+    # interleaved: every round times each k once, batched then sequential, so a slow phase of a
+    # shared machine lands on all of them alike; the k = 8 / k = 1 ratio is taken per round
+    calls = {(k, mode): make(k) for k in ks for mode, make in (("batched", batched), ("sequential", sequential))}
+    for fn in calls.values():
+        fn()  # warm-up (allocator, lazy imports)
+    runs: dict[tuple[int, str], list[float]] = {key: [] for key in calls}
+    for _ in range(args.repeats):
+        for key, fn in calls.items():
+            start = time.perf_counter()
+            fn()
+            runs[key].append((time.perf_counter() - start) / args.steps)
     rows = []
     for k in ks:
-        b = statistics.median(time_call(batched(k), args.repeats)) / args.steps
-        s = statistics.median(time_call(sequential(k), args.repeats)) / args.steps
-        rows.append({"k": k, "batched_ms_per_step": 1e3 * b, "sequential_ms_per_step": 1e3 * s})
+        b, s = statistics.median(runs[k, "batched"]), statistics.median(runs[k, "sequential"])
+        rows.append({"k": k, "batched_ms_per_step": 1e3 * b, "sequential_ms_per_step": 1e3 * s,
+                     "batched_ms_per_step_runs": [1e3 * t for t in runs[k, "batched"]]})
         print(f"k={k:3d}  batched {1e3 * b:8.2f} ms/step   sequential {1e3 * s:8.2f} ms/step", flush=True)
     base = next((r["batched_ms_per_step"] for r in rows if r["k"] == 1), None)
     for r in rows:
         r["batched_over_k1"] = r["batched_ms_per_step"] / base if base else None
         r["sequential_over_batched"] = r["sequential_ms_per_step"] / r["batched_ms_per_step"]
-    ratio8 = next((r["batched_over_k1"] for r in rows if r["k"] == 8), None)
+        if base:
+            r["batched_over_k1_per_round"] = [t / t1 for t, t1 in zip(runs[r["k"], "batched"], runs[1, "batched"])]
+            r["batched_over_k1_median_of_rounds"] = statistics.median(r["batched_over_k1_per_round"])
+    ratio8 = next((r.get("batched_over_k1_median_of_rounds") for r in rows if r["k"] == 8), None)
 
     print()
     print(f"{SCENE} seed {SEED}: {n_leaves} leaves, {n_nodes} nodes; {args.steps} steps; dropout {RATE} "
           f"on force+collision; torch threads {args.threads}; median of {args.repeats}")
     print()
-    print("| k | batched ms/step | sequential ms/step | batched / batched k=1 | sequential / batched |")
-    print("|---:|---:|---:|---:|---:|")
+    print("| k | batched ms/step | sequential ms/step | batched / batched k=1 | same, median of rounds | sequential / batched |")
+    print("|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['k']} | {r['batched_ms_per_step']:.2f} | {r['sequential_ms_per_step']:.2f} | "
-              f"{r['batched_over_k1']:.2f} | {r['sequential_over_batched']:.2f} |")
+              f"{r['batched_over_k1']:.2f} | {r.get('batched_over_k1_median_of_rounds', float('nan')):.2f} | "
+              f"{r['sequential_over_batched']:.2f} |")
     if ratio8 is not None:
         verdict = "meets" if ratio8 <= GOAL_RATIO else "misses"
-        print(f"\nbatched k=8 / k=1 = {ratio8:.2f} ({verdict} the goal <= {GOAL_RATIO})")
+        spread = sorted(next(r["batched_over_k1_per_round"] for r in rows if r["k"] == 8))
+        print(f"\nbatched k=8 / k=1 = {ratio8:.2f}, median of {args.repeats} interleaved rounds "
+              f"(range {spread[0]:.2f}-{spread[-1]:.2f}; {verdict} the goal <= {GOAL_RATIO})")
 
     profile = None
     if args.profile:
@@ -140,7 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
         "what": "time per rollout step of hrn_pyg.sampling.sample, batched k copies vs k sequential rollouts",
         "scene": SCENE, "seed": SEED, "leaves": n_leaves, "nodes": n_nodes,
         "effects": None if effects is None else effects.to_dict(),
-        "steps": args.steps, "repeats": args.repeats, "statistic": "median over repeats, divided by steps",
+        "steps": args.steps, "repeats": args.repeats, "statistic": "median over interleaved rounds (each k once a round), divided by steps; the goal ratio is the median of the per-round ratios",
         "rate": RATE, "dropout_modules": list(model.config.dropout_modules),
         "model": model.config.to_dict(), "weights": "random init (seed 0), normaliser fitted on the window",
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
@@ -148,6 +155,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "load_average_1m": os.getloadavg()[0],
                     "note": "2 shared cores; other jobs may run at the same time"},
         "goal": f"batched k=8 <= {GOAL_RATIO} x batched k=1", "batched_k8_over_k1": ratio8,
+        "meets_goal": None if ratio8 is None else ratio8 <= GOAL_RATIO,
         "rows": rows,
         "profile_k8_top": profile,
     }

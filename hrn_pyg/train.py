@@ -119,6 +119,9 @@ class TrainConfig:
         w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
             of the objects the ground truth has at rest (0: off, the seed paper's loss).
         rest_threshold: metres per step under which a root's true velocity counts as rest.
+        init_from: a model checkpoint (``model.pt``) to start from instead of a fresh network:
+            its weights, normaliser and model settings are kept, the optimiser starts anew
+            (fine-tuning); "" : a fresh network. Ignored when a run resumes.
     """
 
     preset: str = "ours"
@@ -151,6 +154,7 @@ class TrainConfig:
     w_energy: float = 1.0
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
+    init_from: str = ""
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -425,6 +429,21 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
     return model.to(resolve_device(device)) if device is not None else model
 
 
+def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
+    """The model of checkpoint ``path``, in training mode, for ``init_from``.
+
+    Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
+    that differs from both the defaults and the checkpoint) is an error, not silently ignored.
+    """
+    model = load_model(path)
+    saved, given, default = model.config.to_dict(), model_config.to_dict(), HRNConfig().to_dict()
+    clashes = sorted(k for k in given if given[k] != default.get(k) and given[k] != saved.get(k))
+    if clashes:
+        raise ValueError(f"init_from={path!r} keeps that model's settings; these model options "
+                         f"differ from it: {', '.join(clashes)}")
+    return model.train()
+
+
 def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,
           progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
     """Run (or continue) one training job; returns the last logged row.
@@ -464,8 +483,11 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     elif resume:
         raise FileNotFoundError(f"--resume: no checkpoint at {last}")
     else:
-        picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(config.seed))
-        fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
+        if config.init_from:
+            model = _fine_tuned_start(config.init_from, model_config)
+        else:
+            picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(config.seed))
+            fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
         if config.augment_symmetry:
             isotropic_horizontal(model.normalizer)
 

@@ -354,3 +354,23 @@ def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
         TrainConfig(w_rest=-1.0)
     with pytest.raises(ValueError, match="rest_threshold must be a finite number > 0"):
         TrainConfig(rest_threshold=0.0)
+
+
+def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes, tmp_path):
+    train(_config(tiny_episodes, tmp_path / "base", steps=4), SMALL, progress=False)
+    base = tmp_path / "base" / "model.pt"
+    # zero steps of learning: lr tiny and one step, so the weights must match the checkpoint's
+    tuned = _config(tiny_episodes, tmp_path / "tuned", steps=1, lr=1e-30, init_from=str(base))
+    train(tuned, HRNConfig(), progress=False)  # default options: the checkpoint's settings hold
+    before, after = load_model(base), load_model(tmp_path / "tuned" / "model.pt")
+    assert after.config == before.config and after.config.hidden == 16
+    for (name, a), b in zip(before.state_dict().items(), after.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-12), name
+    # a fresh network of the same settings differs: the start really came from the checkpoint
+    fresh = _config(tiny_episodes, tmp_path / "fresh", steps=1, lr=1e-30, seed=5)
+    train(fresh, SMALL, progress=False)
+    weights = load_model(tmp_path / "fresh" / "model.pt").state_dict()
+    assert any(not torch.allclose(a, weights[k]) for k, a in before.state_dict().items() if a.is_floating_point())
+    with pytest.raises(ValueError, match="hidden"):
+        train(_config(tiny_episodes, tmp_path / "clash", steps=1, init_from=str(base)),
+              HRNConfig(hidden=32), progress=False)

@@ -87,8 +87,8 @@ class CollisionModule(MessagePassing):
     ) -> Tensor:
         # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks
         offset = x_i - x_j
-        pre = a_i + b_j + offset @ w_offset.T + safe_norm(offset) @ w_dist.T
-        return self.phi.last_hidden_from_first(pre, mask, edge_batch)
+        pre = torch.addmm(a_i + b_j, offset, w_offset.T).addmm_(safe_norm(offset), w_dist.T)
+        return self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
 
     def __repr__(self) -> str:
         return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"

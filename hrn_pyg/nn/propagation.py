@@ -103,8 +103,8 @@ class PropagationModule(MessagePassing):
         mask: Tensor | None,
     ) -> Tensor:
         # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks
-        pre = a_j + b_i + (x_j - x_i) @ w_offset.T
-        return self.eta.last_hidden_from_first(pre, mask, edge_batch)
+        pre = torch.addmm(a_j + b_i, x_j - x_i, w_offset.T)
+        return self.eta.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
 
     def __repr__(self) -> str:
         tag = f"{self.name}, " if self.name else ""

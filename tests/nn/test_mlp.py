@@ -53,3 +53,22 @@ def test_output_of_a_sum_equals_the_sum_of_outputs():
     torch.testing.assert_close(summed, expected)
     assert torch.equal(summed[[1, 4]], torch.zeros(2, 3))  # no edge: exact zero
     assert torch.equal(m.output_layer(hidden), m.forward_from_first(m.hidden_layers[0](x)))
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh", "silu", "gelu"])
+def test_in_place_inference_path_equals_the_autograd_path(activation):
+    torch.manual_seed(0)
+    mlp = MLP(5, 3, MLPConfig(hidden=16, depth=3, activation=activation))
+    x = torch.randn(40, 5)
+    mask = dropout_mask(4, 16, 0.3, torch.Generator().manual_seed(1))
+    index = torch.randint(0, 4, (40,))
+    with_grad = mlp(x, mask, index)
+    pre = mlp.hidden_layers[0](x)
+    kept = pre.clone()
+    with torch.no_grad():
+        assert torch.equal(mlp(x, mask, index), with_grad.detach())
+        # a caller's tensor that is not marked scratch is left as it was
+        assert torch.equal(mlp.last_hidden_from_first(pre.detach(), mask, index), mlp.last_hidden_from_first(kept.detach(), mask, index))
+    assert torch.equal(pre, kept)
+    with_grad.sum().backward()  # the autograd path still records a graph
+    assert mlp.hidden_layers[0].weight.grad is not None
