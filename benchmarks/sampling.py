@@ -12,7 +12,9 @@ collision search; what ``hrn-pyg sample`` passes) unless ``--no-effects``.
 Run: ``python benchmarks/sampling.py [--steps 8] [--repeats 5] [--threads 1] [--profile]
 [--out benchmarks/results/sampling.json]``. Median over repeats, one process, torch intra-op
 threads fixed by ``--threads``. Prints a markdown table and writes JSON (atomically); the goal is
-``batched k=8 <= 2.5 x k=1`` (issue 15; an earlier one asked for 2). ``--profile`` adds a cProfile of one batched k=8 rollout.
+``batched k=8 <= 2.5 x k=1`` (issue 15; an earlier one asked for 2). ``--profile`` adds a cProfile of one batched k=8 rollout;
+``--compile`` times the network after ``Module.compile()`` (the compile happens in the warm-up,
+whose length is recorded), e.g. ``--compile --out benchmarks/results/sampling_compiled.json``.
 """
 
 from __future__ import annotations
@@ -64,6 +66,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--no-effects", action="store_true",
                         help="no declared effects: the data decide (a collision search every step)")
+    parser.add_argument("--compile", action="store_true",
+                        help="time the network through torch.compile (compiled during the warm-up)")
     parser.add_argument("--out", default="benchmarks/results/sampling.json")
     args = parser.parse_args(argv)
     effects = None if args.no_effects else scene_effects(SCENE)
@@ -72,6 +76,8 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     ks = [int(k) for k in args.ks.split(",") if k]
     model, window, forces = build(args.steps)
+    if args.compile:
+        model.compile()
     n_nodes = window[NODE].num_nodes
     n_leaves = int(window[NODE].is_leaf.sum())
 
@@ -91,8 +97,10 @@ def main(argv: list[str] | None = None) -> dict:
     # interleaved: every round times each k once, batched then sequential, so a slow phase of a
     # shared machine lands on all of them alike; the k = 8 / k = 1 ratio is taken per round
     calls = {(k, mode): make(k) for k in ks for mode, make in (("batched", batched), ("sequential", sequential))}
+    warm_start = time.perf_counter()
     for fn in calls.values():
-        fn()  # warm-up (allocator, lazy imports)
+        fn()  # warm-up (allocator, lazy imports, and the compile with --compile)
+    warm_up_seconds = time.perf_counter() - warm_start
     runs: dict[tuple[int, str], list[float]] = {key: [] for key in calls}
     for _ in range(args.repeats):
         for key, fn in calls.items():
@@ -149,6 +157,7 @@ def main(argv: list[str] | None = None) -> dict:
         "effects": None if effects is None else effects.to_dict(),
         "steps": args.steps, "repeats": args.repeats, "statistic": "median over interleaved rounds (each k once a round), divided by steps; the goal ratio is the median of the per-round ratios",
         "rate": RATE, "dropout_modules": list(model.config.dropout_modules),
+        "compiled": bool(args.compile), "warm_up_seconds": warm_up_seconds,
         "model": model.config.to_dict(), "weights": "random init (seed 0), normaliser fitted on the window",
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
                     "torch": torch.__version__, "torch_threads": args.threads,

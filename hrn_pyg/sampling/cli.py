@@ -131,6 +131,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--no-sleep", action="store_true",
                         help="run every object at every step (default: objects at rest sleep, hrn_pyg.sleeping)")
+    parser.add_argument("--compile", action="store_true",
+                        help="run the network through torch.compile (Module.compile): a compile of "
+                             "tens of seconds first, then fused steps while the graph's shapes hold")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -143,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     model_path = resolve_model(args.scene, args.model)
     model = load(model_path, device)
+    if args.compile:
+        model.compile()  # same numbers; shapes that change (new contacts) compile once more
     if args.rate is None:
         from hrn_pyg.sampling.calibrate import calibration_record
 
@@ -185,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_json(out / "samples.json", {
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
         "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or default_model_path(args.scene)),
-        "device": str(device), **origin,
+        "device": str(device), "compiled": bool(args.compile), **origin,
     })
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "
           f"rate {rate:g}: {rate_source})")
