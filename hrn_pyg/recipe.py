@@ -14,6 +14,10 @@ One run does, for the selected models (``--only``, default all):
    in its own process: skipped when ``model.pt`` exists and the run's ``recipe.json`` records the
    same preset, options and dataset; ``--resume`` when ``last.pt`` exists; a run folder made
    with other options is renamed aside (``<model>.replaced-<time>``), never deleted;
+2b. for a model with ``[[models.<name>.finetune]]`` tables (each a table of train options, in
+   order): fine-tunes stage by stage, each ``hrn-pyg train --init-from`` the previous stage's
+   ``model.pt`` into ``<runs-dir>/<model>.ft<i>``, with the same rules (skip, resume, replace;
+   a stage is redone when anything before it changes); the last stage is the model;
 3. for a model with a ``[models.<name>.calibrate]`` table (``hrn-pyg calibrate`` options; a
    list of strings becomes one flag with several values, e.g. ``modules``): calibrates the
    run's ``model.pt`` into ``model.calibrated.pt`` (validation seeds only; redone only when
@@ -62,9 +66,10 @@ STOP_GRACE_S = 30.0
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 OPTION_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")
 #: train options the runner sets itself; a recipe may not
-RESERVED_OPTIONS = frozenset({"preset", "data", "out", "resume", "no-progress", "device", "time-limit"})
+RESERVED_OPTIONS = frozenset({"preset", "data", "out", "resume", "no-progress", "device", "time-limit",
+                              "init-from"})
 DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch", "set"})
-MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "train", "calibrate"})
+MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "train", "calibrate", "finetune"})
 #: calibrate options the runner sets itself; a recipe may not
 RESERVED_CALIBRATE_OPTIONS = frozenset({"scene", "model", "out", "in-place", "device", "no-progress", "data"})
 #: the calibrated copy of a run's model.pt, and the record of what it was calibrated from
@@ -129,23 +134,47 @@ class ModelRecipe:
     options: tuple[tuple[str, OptionValue], ...] = ()
     aliases: tuple[str, ...] = ()
     calibrate: tuple[tuple[str, OptionValue | tuple[str, ...]], ...] = ()
+    #: fine-tuning stages after the first training, each its train options
+    finetune: tuple[tuple[tuple[str, OptionValue], ...], ...] = ()
 
-    def identity(self, dataset: DatasetRecipe) -> dict[str, Any]:
-        """What makes two trainings the same (paths and device do not)."""
-        return {"preset": self.preset, "options": [list(o) for o in self.options],
-                "dataset": dataset.to_dict()}
+    @property
+    def num_stages(self) -> int:
+        return 1 + len(self.finetune)
 
-    def train_args(self, data_dir: Path, runs_dir: Path) -> list[str]:
-        """``hrn-pyg train`` arguments, without ``--device``, ``--resume``, ``--no-progress``."""
-        return ["train", "--preset", self.preset, "--data", str(data_dir / self.dataset),
-                "--out", str(runs_dir / self.name), *option_flags(dict(self.options))]
+    def run_name(self, stage: int = 0) -> str:
+        """The run folder of a stage: ``<name>``, then ``<name>.ft1``, ``<name>.ft2`` ..."""
+        return self.name if stage == 0 else f"{self.name}.ft{stage}"
+
+    @property
+    def final_run(self) -> str:
+        """The run folder whose ``model.pt`` is the model (the last stage's)."""
+        return self.run_name(self.num_stages - 1)
+
+    def identity(self, dataset: DatasetRecipe, stage: int = 0) -> dict[str, Any]:
+        """What makes two trainings the same (paths and device do not); a fine-tuning stage is
+        the same only when every stage before it is too."""
+        identity: dict[str, Any] = {"preset": self.preset, "options": [list(o) for o in self.options],
+                                    "dataset": dataset.to_dict()}
+        if stage > 0:
+            identity["finetune"] = [[list(o) for o in opts] for opts in self.finetune[:stage]]
+        return identity
+
+    def train_args(self, data_dir: Path, runs_dir: Path, stage: int = 0) -> list[str]:
+        """``hrn-pyg train`` arguments of a stage, without ``--device``, ``--resume``,
+        ``--no-progress``."""
+        args = ["train", "--preset", self.preset, "--data", str(data_dir / self.dataset),
+                "--out", str(runs_dir / self.run_name(stage))]
+        if stage == 0:
+            return args + option_flags(dict(self.options))
+        return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"),
+                       *option_flags(dict(self.finetune[stage - 1]))]
 
     def calibrate_args(self, scene: str, runs_dir: Path) -> list[str]:
         """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
         model.pt into its calibrated copy; empty when the recipe has no calibrate table."""
         if not self.calibrate:
             return []
-        run = runs_dir / self.name
+        run = runs_dir / self.final_run
         return ["calibrate", "--scene", scene, "--model", str(run / "model.pt"), "--out", str(run / CALIBRATED_NAME),
                 *option_flags(dict(self.calibrate))]
 
@@ -229,17 +258,17 @@ def _parse_dataset(name: str, table: Mapping[str, Any]) -> DatasetRecipe:
                          tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in overrides.items()))
 
 
-def _parse_options(table: Any, where: str) -> tuple[tuple[str, OptionValue], ...]:
+def _parse_options(table: Any, where: str, kind: str = "train") -> tuple[tuple[str, OptionValue], ...]:
     if not isinstance(table, Mapping):
-        raise ValueError(f"{where}: 'train' must be a table of train options")
+        raise ValueError(f"{where}: '{kind}' must be a table of train options")
     options = []
     for key, value in table.items():
         if not OPTION_PATTERN.fullmatch(key):
-            raise ValueError(f"{where}.train: {key!r} is not an option name")
+            raise ValueError(f"{where}.{kind}: {key!r} is not an option name")
         if key.replace("_", "-") in RESERVED_OPTIONS:
-            raise ValueError(f"{where}.train: {key!r} is set by `hrn-pyg checkpoints` itself")
+            raise ValueError(f"{where}.{kind}: {key!r} is set by `hrn-pyg checkpoints` itself")
         if not isinstance(value, (str, int, float, bool)):
-            raise ValueError(f"{where}.train: {key!r} must be a string, number or boolean, got {value!r}")
+            raise ValueError(f"{where}.{kind}: {key!r} must be a string, number or boolean, got {value!r}")
         options.append((key, value))
     return tuple(options)
 
@@ -272,10 +301,14 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
     aliases = table.get("aliases", [])
     if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
         raise ValueError(f"{where}: aliases must be a list of names")
+    stages = table.get("finetune", [])
+    if not isinstance(stages, list) or not stages and "finetune" in table:
+        raise ValueError(f"{where}: 'finetune' must be a list of tables ([[{where}.finetune]])")
     return ModelRecipe(name, dataset, _require(table, "preset", str, where),
                        _parse_options(table.get("train", {}), where),
                        tuple(_check_name(a, f"{where}.aliases") for a in aliases),
-                       _parse_calibrate(table["calibrate"], where) if "calibrate" in table else ())
+                       _parse_calibrate(table["calibrate"], where) if "calibrate" in table else (),
+                       tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)))
 
 
 def parse_recipe(data: Mapping[str, Any]) -> Recipe:
@@ -453,20 +486,20 @@ class Runner:
             raise RuntimeError(f"dataset {dataset.name}: `{shown(args)}` exited with {rc}")
 
     # -- training ------------------------------------------------------------------------------
-    def train_command(self, model: ModelRecipe) -> list[str]:
-        args = model.train_args(self.config.data_dir, self.config.runs_dir)
+    def train_command(self, model: ModelRecipe, stage: int = 0) -> list[str]:
+        args = model.train_args(self.config.data_dir, self.config.runs_dir, stage)
         args += ["--device", self.config.device] if self.config.device else []
         # a sitting's time limit is how long this call may run, not part of the training
         return args + (["--time-limit", str(self.config.time_limit)] if self.config.time_limit > 0 else [])
 
-    def plan(self, model: ModelRecipe) -> str:
+    def plan(self, model: ModelRecipe, stage: int = 0) -> str:
         """``"done"`` (model.pt of these options), ``"resume"``, ``"fresh"`` or ``"replace"``
         (the run folder holds another training: it is renamed aside, then fresh)."""
-        run = self.config.runs_dir / model.name
+        run = self.config.runs_dir / model.run_name(stage)
         if not run.exists():
             return "fresh"
         record = _read_json(run / RUN_RECORD)
-        identity = model.identity(self.recipe.dataset(model.dataset))
+        identity = model.identity(self.recipe.dataset(model.dataset), stage)
         if record is None or record.get("identity") != identity:
             return "replace"
         if (run / "model.pt").is_file():
@@ -474,17 +507,23 @@ class Runner:
         return "resume" if (run / "last.pt").is_file() else "fresh"
 
     def train(self, model: ModelRecipe) -> None:
-        """Train (or finish training) one model; raises ``RuntimeError`` when train fails."""
-        cfg, run = self.config, self.config.runs_dir / model.name
-        plan = self.plan(model)
-        args = self.train_command(model) + (["--resume"] if plan == "resume" else [])
+        """Train (or finish training) one model, stage by stage; raises ``RuntimeError`` when
+        train fails."""
+        for stage in range(model.num_stages):
+            self._train_stage(model, stage)
+
+    def _train_stage(self, model: ModelRecipe, stage: int) -> None:
+        cfg, run = self.config, self.config.runs_dir / model.run_name(stage)
+        plan = self.plan(model, stage)
+        label = model.run_name(stage)
+        args = self.train_command(model, stage) + (["--resume"] if plan == "resume" else [])
         if plan == "done":
-            self.say(f"model {model.name}: trained already ({run / 'model.pt'})")
+            self.say(f"model {label}: trained already ({run / 'model.pt'})")
             return
         if plan == "replace":
             aside = _free_name(run.with_name(f"{run.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}"))
             verb = "would move" if cfg.dry_run else "moved"
-            self.say(f"model {model.name}: {run} holds a training with other options; {verb} it to {aside}")
+            self.say(f"model {label}: {run} holds a training with other options; {verb} it to {aside}")
             if not cfg.dry_run:
                 run.rename(aside)
         self.say(shown(args))
@@ -492,7 +531,7 @@ class Runner:
             return
         if plan == "fresh":  # rows a run killed before its first checkpoint left behind
             (run / "metrics.csv").unlink(missing_ok=True)
-        record = self._start_record(model, run, args)
+        record = self._start_record(model, run, args, stage)
         quiet = cfg.jobs > 1  # parallel runs log to files instead of sharing the terminal
         start = time.perf_counter()
         rc: int | None = None
@@ -507,17 +546,17 @@ class Runner:
                                              rc=-int(signal.SIGINT) if rc is None else rc)
             atomic_write_json(run / RUN_RECORD, record)
         if rc == 0 and cfg.time_limit > 0 and not (run / "model.pt").is_file() and (run / "last.pt").is_file():
-            raise Paused(f"model {model.name}: stopped at the {cfg.time_limit:g}-minute time limit; "
+            raise Paused(f"model {label}: stopped at the {cfg.time_limit:g}-minute time limit; "
                          "run the command again to continue")
         if rc != 0 or not (run / "model.pt").is_file():
             where = f" (log: {run / 'train.log'})" if quiet else ""
-            raise RuntimeError(f"model {model.name}: `{shown(args)}` exited with {rc}{where}")
-        self.say(f"model {model.name}: trained in {record['invocations'][-1]['seconds']:.0f} s")
+            raise RuntimeError(f"model {label}: `{shown(args)}` exited with {rc}{where}")
+        self.say(f"model {label}: trained in {record['invocations'][-1]['seconds']:.0f} s")
 
-    def _start_record(self, model: ModelRecipe, run: Path, args: list[str]) -> dict[str, Any]:
+    def _start_record(self, model: ModelRecipe, run: Path, args: list[str], stage: int = 0) -> dict[str, Any]:
         """Write the run's record (before training, so a killed run is recognised as ours)."""
         record = _read_json(run / RUN_RECORD) or {}
-        record = {"identity": model.identity(self.recipe.dataset(model.dataset)),
+        record = {"identity": model.identity(self.recipe.dataset(model.dataset), stage),
                   "invocations": [*record.get("invocations", []),
                                   {"command": shown(args), "args": list(args), "device": self.device_name(),
                                    "seconds": None, "rc": None}]}
@@ -544,7 +583,7 @@ class Runner:
         args = self.calibrate_command(model)
         if not args:
             return
-        run = self.config.runs_dir / model.name
+        run = self.config.runs_dir / model.final_run
         if self.config.dry_run:
             self.say(shown(args))
             return
@@ -562,7 +601,7 @@ class Runner:
     def publish(self, model: ModelRecipe) -> None:
         """Copy the run's model.pt (its calibrated copy when the recipe calibrates it) to the
         checkpoints folder and refresh the manifest."""
-        cfg, run = self.config, self.config.runs_dir / model.name
+        cfg, run = self.config, self.config.runs_dir / model.final_run
         source = run / (CALIBRATED_NAME if model.calibrate else "model.pt")
         if cfg.dry_run:
             self.say(f"copy {source} -> {cfg.checkpoints_dir / (model.name + '.pt')}"
@@ -583,7 +622,18 @@ class Runner:
         train_config = (_read_json(run / "config.json") or {}).get("train", {})
         devices = sorted({i["device"] for i in invocations})
         # the command that made this model.pt (its last invocation), as one would type it afresh
-        last_args = invocations[-1]["args"] if invocations else self.train_command(model)
+        last_args = invocations[-1]["args"] if invocations else self.train_command(model, model.num_stages - 1)
+        stages = {}
+        if model.num_stages > 1:  # every stage's command and time; the model is the last one's
+            records = [_read_json(self.config.runs_dir / model.run_name(i) / RUN_RECORD) or {}
+                       for i in range(model.num_stages)]
+            done = [[i for i in r.get("invocations", []) if i.get("seconds") is not None] for r in records]
+            stages = {"stage_commands": [shown([a for a in (d[-1]["args"] if d else self.train_command(model, i))
+                                                if a != "--resume"]) for i, d in enumerate(done)],
+                      "stage_steps": [(_read_json(self.config.runs_dir / model.run_name(i) / "config.json") or {})
+                                      .get("train", {}).get("steps") for i in range(model.num_stages)]}
+            invocations = [i for d in done for i in d]
+            devices = sorted({i["device"] for i in invocations})
         return {
             "name": model.name,
             "aliases": list(model.aliases),
@@ -595,6 +645,7 @@ class Runner:
             "wall_seconds": round(sum(i["seconds"] for i in invocations), 3),
             "train_invocations": len(invocations),
             "sha256": digest,
+            **stages,
             **self._calibration_entry(model, run),
         }
 

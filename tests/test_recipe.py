@@ -308,3 +308,44 @@ def test_a_dataset_can_set_scene_fields_and_old_records_are_unchanged():
     with pytest.raises(ValueError, match="'set' must be a table"):
         parse_recipe({"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3, "set": {"x": "a"}}},
                       "models": {"m": {"dataset": "d", "preset": "ours"}}})
+
+
+def test_finetune_stages_start_from_the_stage_before_and_ship_the_last(tmp_path):
+    text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
+    text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours"})
+    text += _toml_table("models.b.train", {"steps": 2, "checkpoint-every": 2, **TINY_MODEL})
+    text += "[[models.b.finetune]]\n" + "\n".join(_toml_table("x", {"steps": 3, "seq-start": 3, "seq-end": 3,
+                                                                     "lr": 1e-4, "threads": 1}).splitlines()[1:]) + "\n"
+    (tmp_path / "recipes.toml").write_text(text)
+    recipe = load_recipe(tmp_path / "recipes.toml")
+    model = recipe.models[0]
+    assert model.num_stages == 2 and model.final_run == "b.ft1"
+    runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
+    assert model.train_args(Path("d"), runs, 1)[-12:] == [
+        "--init-from", str(runs / "b" / "model.pt"), "--steps", "3", "--seq-start", "3", "--seq-end", "3",
+        "--lr", "0.0001", "--threads", "1"]
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert (ckpt / "b.pt").read_bytes() == (runs / "b.ft1" / "model.pt").read_bytes()
+    tuned = json.loads((runs / "b.ft1" / "config.json").read_text())["train"]
+    assert tuned["init_from"] == str(runs / "b" / "model.pt") and tuned["seq_end"] == 3
+    entry = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]["b"]
+    assert entry["stage_steps"] == [2, 3] and entry["train_invocations"] == 2
+    assert entry["stage_commands"][1] == entry["train_command"] and "--init-from" in entry["train_command"]
+    # nothing to redo; a changed first stage redoes both (the fine-tune's start changed)
+    before = _mtimes(runs, "*/model.pt")
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert _mtimes(runs, "*/model.pt") == before
+    (tmp_path / "recipes.toml").write_text(text.replace("steps = 2\n", "steps = 4\n", 1))
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert len(list(runs.glob("b.replaced-*"))) == 1 and len(list(runs.glob("b.ft1.replaced-*"))) == 1
+
+
+def test_bad_finetune_tables_are_refused():
+    base = {"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3}},
+            "models": {"m": {"dataset": "d", "preset": "ours"}}}
+    for stages, word in (({"steps": 2}, "list of tables"), ([], "list of tables"),
+                         ([{"init-from": "x.pt"}], "set by"), ([{"steps": [1]}], "string, number or boolean")):
+        recipe = json.loads(json.dumps(base))
+        recipe["models"]["m"]["finetune"] = stages
+        with pytest.raises(ValueError, match=word):
+            parse_recipe(recipe)
