@@ -504,8 +504,7 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     log = CSVLog(out / "metrics.csv", LOG_FIELDS) if rank == 0 else None
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(out / "config.json", {"model": model_config.to_dict() if ckpt is None else
-                                                json.loads(ckpt["config"])["model"], "train": asdict(config),
+        atomic_write_json(out / "config.json", {"model": model.config.to_dict(), "train": asdict(config),
                                                 "world_size": world})
         if ckpt is not None:
             log.truncate_after(start - 1)

@@ -364,6 +364,8 @@ def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes
     train(tuned, HRNConfig(), progress=False)  # default options: the checkpoint's settings hold
     before, after = load_model(base), load_model(tmp_path / "tuned" / "model.pt")
     assert after.config == before.config and after.config.hidden == 16
+    recorded = json.loads((tmp_path / "tuned" / "config.json").read_text())
+    assert recorded["model"] == before.config.to_dict() and recorded["train"]["init_from"] == str(base)
     for (name, a), b in zip(before.state_dict().items(), after.state_dict().values()):
         assert torch.allclose(a, b, atol=1e-12), name
     # a fresh network of the same settings differs: the start really came from the checkpoint
