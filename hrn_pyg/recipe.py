@@ -302,7 +302,7 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
     if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
         raise ValueError(f"{where}: aliases must be a list of names")
     stages = table.get("finetune", [])
-    if not isinstance(stages, list) or not stages and "finetune" in table:
+    if not isinstance(stages, list) or ("finetune" in table and not stages):
         raise ValueError(f"{where}: 'finetune' must be a list of tables ([[{where}.finetune]])")
     return ModelRecipe(name, dataset, _require(table, "preset", str, where),
                        _parse_options(table.get("train", {}), where),
@@ -617,31 +617,24 @@ class Runner:
 
     def manifest_entry(self, model: ModelRecipe, run: Path, digest: str) -> dict[str, Any]:
         dataset = self.recipe.dataset(model.dataset)
-        record = _read_json(run / RUN_RECORD) or {}
-        invocations = [i for i in record.get("invocations", []) if i.get("seconds") is not None]
-        train_config = (_read_json(run / "config.json") or {}).get("train", {})
-        devices = sorted({i["device"] for i in invocations})
-        # the command that made this model.pt (its last invocation), as one would type it afresh
-        last_args = invocations[-1]["args"] if invocations else self.train_command(model, model.num_stages - 1)
-        stages = {}
-        if model.num_stages > 1:  # every stage's command and time; the model is the last one's
-            records = [_read_json(self.config.runs_dir / model.run_name(i) / RUN_RECORD) or {}
-                       for i in range(model.num_stages)]
-            done = [[i for i in r.get("invocations", []) if i.get("seconds") is not None] for r in records]
-            stages = {"stage_commands": [shown([a for a in (d[-1]["args"] if d else self.train_command(model, i))
-                                                if a != "--resume"]) for i, d in enumerate(done)],
-                      "stage_steps": [(_read_json(self.config.runs_dir / model.run_name(i) / "config.json") or {})
-                                      .get("train", {}).get("steps") for i in range(model.num_stages)]}
-            invocations = [i for d in done for i in d]
-            devices = sorted({i["device"] for i in invocations})
+        folders = [self.config.runs_dir / model.run_name(i) for i in range(model.num_stages)]
+        # per stage: the invocations that ended, and the command that made its model.pt (its
+        # last invocation), as one would type it afresh
+        done = [[i for i in (_read_json(f / RUN_RECORD) or {}).get("invocations", []) if i.get("seconds") is not None]
+                for f in folders]
+        commands = [shown([a for a in (d[-1]["args"] if d else self.train_command(model, i)) if a != "--resume"])
+                    for i, d in enumerate(done)]
+        steps = [(_read_json(f / "config.json") or {}).get("train", {}).get("steps") for f in folders]
+        invocations = [i for d in done for i in d]
+        stages = {"stage_commands": commands, "stage_steps": steps} if model.num_stages > 1 else {}
         return {
             "name": model.name,
             "aliases": list(model.aliases),
             "dataset": dataset.to_dict(),
             "generate_command": shown(dataset.generate_args(self.config.data_dir)),
-            "train_command": shown([a for a in last_args if a != "--resume"]),
-            "steps": train_config.get("steps"),
-            "device": ",".join(devices),
+            "train_command": commands[-1],
+            "steps": steps[-1],
+            "device": ",".join(sorted({i["device"] for i in invocations})),
             "wall_seconds": round(sum(i["seconds"] for i in invocations), 3),
             "train_invocations": len(invocations),
             "sha256": digest,

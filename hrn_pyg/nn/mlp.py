@@ -122,8 +122,7 @@ class MLP(nn.Module):
         self.output_layer.reset_parameters()
 
     def forward(self, x: Tensor, mask: Tensor | None = None, index: Tensor | None = None) -> Tensor:
-        return self.output_layer(self.last_hidden_from_first(self.hidden_layers[0](x), mask, index,
-                                                             pre_is_scratch=True))
+        return self.forward_from_first(self.hidden_layers[0](x), mask, index, pre_is_scratch=True)
 
     def split_first_weight(self, sizes: Sequence[int]) -> tuple[Tensor, ...]:
         r"""The first layer's weight cut by input columns, :math:`W_1 = [W_1^{(1)} | W_1^{(2)} | \dots]`.
@@ -140,13 +139,14 @@ class MLP(nn.Module):
     def first_bias(self) -> Tensor:
         return self.hidden_layers[0].bias
 
-    def forward_from_first(self, pre: Tensor, mask: Tensor | None = None, index: Tensor | None = None) -> Tensor:
+    def forward_from_first(self, pre: Tensor, mask: Tensor | None = None, index: Tensor | None = None,
+                           pre_is_scratch: bool = False) -> Tensor:
         """The MLP from the first layer's pre-activation :math:`W_1 x + b_1` onwards.
 
         **Shapes:** ``pre`` :math:`(M, H)`; mask and index as in :meth:`forward`; output
-        :math:`(M, F_{out})`.
+        :math:`(M, F_{out})`; ``pre_is_scratch`` as in :meth:`last_hidden_from_first`.
         """
-        return self.output_layer(self.last_hidden_from_first(pre, mask, index))
+        return self.output_layer(self.last_hidden_from_first(pre, mask, index, pre_is_scratch))
 
     def last_hidden_from_first(self, pre: Tensor, mask: Tensor | None = None,
                                index: Tensor | None = None, pre_is_scratch: bool = False) -> Tensor:
@@ -168,14 +168,15 @@ class MLP(nn.Module):
                     f"MLP: mask must be [B, {self.config.hidden}], got {tuple(mask.shape)}"
                 )
             row_mask = mask.index_select(0, index)
-        in_place = not torch.is_grad_enabled()
+        no_grad = not torch.is_grad_enabled()
         h = pre
         for k, layer in enumerate(self.hidden_layers):
             if k > 0:
                 h = layer(h)
-            h = self._activate(h, in_place and (k > 0 or pre_is_scratch))
+            in_place = no_grad and (k > 0 or pre_is_scratch)  # h is a tensor nobody else holds
+            h = self._activate(h, in_place)
             if row_mask is not None:
-                h = h.mul_(row_mask) if in_place and (k > 0 or pre_is_scratch) else h * row_mask
+                h = h.mul_(row_mask) if in_place else h * row_mask
         return h
 
     def _activate(self, h: Tensor, in_place: bool) -> Tensor:
