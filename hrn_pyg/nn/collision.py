@@ -86,8 +86,10 @@ class CollisionModule(MessagePassing):
         edge_batch: Tensor | None, mask: Tensor | None
     ) -> Tensor:
         # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks
+        # (a_i is gathered for this call alone, so without autograd it takes the sum in place)
         offset = x_i - x_j
-        pre = torch.addmm(a_i + b_j, offset, w_offset.T).addmm_(safe_norm(offset), w_dist.T)
+        pre = a_i.add_(b_j) if not torch.is_grad_enabled() else a_i + b_j
+        pre = pre.addmm_(offset, w_offset.T).addmm_(safe_norm(offset), w_dist.T)
         return self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
 
     def __repr__(self) -> str:

@@ -102,8 +102,9 @@ class PropagationModule(MessagePassing):
         edge_batch: Tensor | None,
         mask: Tensor | None,
     ) -> Tensor:
-        # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks
-        pre = torch.addmm(a_j + b_i, x_j - x_i, w_offset.T)
+        # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks;
+        # a_j is gathered for this call alone, so without autograd it takes the sum in place
+        pre = (a_j.add_(b_i) if not torch.is_grad_enabled() else a_j + b_i).addmm_(x_j - x_i, w_offset.T)
         return self.eta.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
 
     def __repr__(self) -> str:

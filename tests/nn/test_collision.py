@@ -77,3 +77,16 @@ def test_bad_input_and_repr():
     with pytest.raises(ValueError, match="batch"):
         m(state, pos, ei, torch.ones(1, 16))
     assert repr(m).startswith("CollisionModule(state_dim=4, effect_dim=6")
+
+
+def test_inference_path_gives_the_autograd_numbers_and_leaves_inputs_alone():
+    torch.manual_seed(0)
+    m = CollisionModule(3, 5, MLPConfig(hidden=8, depth=2))
+    gen = torch.Generator().manual_seed(2)
+    s, x = torch.randn(4, 3, generator=gen), torch.randn(4, 3, generator=gen)
+    ei = torch.tensor([[0, 1, 2, 3], [1, 0, 3, 2]])
+    kept = s.clone(), x.clone()
+    with_grad = m(s, x, ei)
+    with torch.no_grad():  # the in-place path
+        assert torch.equal(m(s, x, ei), with_grad.detach())
+    assert torch.equal(kept[0], s) and torch.equal(kept[1], x)

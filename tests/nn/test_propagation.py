@@ -38,3 +38,19 @@ def test_errors_and_repr():
     with pytest.raises(ValueError, match="effect"):
         m(s, e[:, :4], x, torch.empty(2, 0, dtype=torch.long))
     assert repr(m).startswith("PropagationModule(ws, state_dim=3")
+
+
+def test_inference_path_gives_the_autograd_numbers_and_leaves_inputs_alone():
+    torch.manual_seed(0)
+    m = PropagationModule(3, 5, MLPConfig(hidden=8, depth=2), rest_offsets=True)
+    s, e, x = _inputs()
+    rest = x + 0.1
+    ei = torch.tensor([[0, 1, 2, 3, 0], [3, 3, 0, 1, 2]])
+    batch = torch.tensor([0, 0, 1, 1])
+    mask = torch.tensor([[2.0] * 4 + [0.0] * 4, [0.0] * 4 + [2.0] * 4])
+    kept = [t.clone() for t in (s, e, x, rest)]
+    with_grad = m(s, e, x, ei, mask, batch, rest)
+    with torch.no_grad():  # the in-place path
+        assert torch.equal(m(s, e, x, ei, mask, batch, rest), with_grad.detach())
+    for before, after in zip(kept, (s, e, x, rest)):
+        assert torch.equal(before, after)
