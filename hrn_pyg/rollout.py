@@ -79,20 +79,26 @@ def _check_finite(name: str, value: Tensor) -> None:
         raise ValueError(f"{name} contains NaN or infinite values")
 
 
-def _node_force(graph: HeteroData, force: Tensor | None) -> Tensor:
+def _node_force(graph: HeteroData, force: Tensor | None, check: bool = True) -> Tensor:
     store = graph[NODE]
     if force is None:
         force = store.force if "force" in store else torch.zeros_like(store.pos)
-        _check_finite(f"graph['{NODE}'].force", force)
+        if check:
+            _check_finite(f"graph['{NODE}'].force", force)
         return force
     if force.shape != store.pos.shape:
         raise ValueError(f"force must be [N, 3] = {tuple(store.pos.shape)}, got {tuple(force.shape)}")
-    _check_finite("force", force)
+    if check:
+        _check_finite("force", force)
     return torch.where(store.is_leaf.unsqueeze(-1), force, torch.zeros_like(force))
 
 
 def build_inputs(
-    model: HRN, graph: HeteroData, force: Tensor | None = None, force_active: bool | None = None
+    model: HRN,
+    graph: HeteroData,
+    force: Tensor | None = None,
+    force_active: bool | None = None,
+    check: bool = True,
 ) -> HRNInputs:
     r"""Stage 1: normalised network inputs of the graph's current state.
 
@@ -102,12 +108,15 @@ def build_inputs(
     scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
     collision edges are read from the graph as they are. ``force_active`` (optional) says
     whether the force is nonzero, so the network need not ask (:mod:`hrn_pyg.effects`).
+    ``check=False`` skips the finite checks of the positions and the force (each a host read
+    on a GPU): for a caller that has checked them already, as :func:`unroll` does.
     """
     store = graph[NODE]
     for name in ("pos", "prev_pos", "prev_prev_pos"):
         if name not in store:
             raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
-        _check_finite(f"graph['{NODE}'].{name}", store[name])
+        if check:
+            _check_finite(f"graph['{NODE}'].{name}", store[name])
     norm, config = model.normalizer, model.config
     pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
     static = (store.mass, store.material, store.stiffness, store.depth, store.is_leaf, store.is_root)
@@ -125,7 +134,7 @@ def build_inputs(
         state=state,
         prev_state=prev_state,
         pos=norm.length(pos),
-        force=norm.force(_node_force(graph, force)),
+        force=norm.force(_node_force(graph, force, check)),
         is_static=store.is_static,
         is_root=store.is_root,
         batch=batch,
@@ -143,7 +152,9 @@ def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | Non
     return model(inputs, masks)
 
 
-def decode(model: HRN, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def decode(
+    model: HRN, graph: HeteroData, out: Tensor, objects: tuple[Tensor, int] | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     r"""Stage 3: normalised output -> ``(pos_{t+1}, local_velocity, velocity)``, each ``[N, 3]``.
 
     .. math::
@@ -155,7 +166,8 @@ def decode(model: HRN, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, 
     Static particles get zero velocity, so their positions are returned unchanged. With
     ``model.config.rigid_fit`` the leaves of every rigid object then move by the one rigid
     transform that fits their predicted motion best (:func:`rigid_leaf_positions`), and that
-    object's velocities are the fitted ones.
+    object's velocities are the fitted ones; ``objects`` is :func:`object_of` of ``graph`` when
+    the caller has it (a rollout computes it once), else it is computed here (one host read).
     """
     store = graph[NODE]
     c2p = graph[CHILD_TO_PARENT].edge_index
@@ -165,14 +177,16 @@ def decode(model: HRN, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, 
     velocity = to_global_velocity(local, graph[LEAF_TO_ANCESTOR].edge_index)
     pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
     if model.config.rigid_fit:
-        pos = leaf_to_ancestor_mean(rigid_leaf_positions(graph, pos), graph)
+        pos = leaf_to_ancestor_mean(rigid_leaf_positions(graph, pos, objects), graph)
         rigid = store.material[:, RIGID].bool().unsqueeze(-1)
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     return pos, local, velocity
 
 
-def rigid_leaf_positions(graph: HeteroData, pred_pos: Tensor) -> Tensor:
+def rigid_leaf_positions(
+    graph: HeteroData, pred_pos: Tensor, objects: tuple[Tensor, int] | None = None
+) -> Tensor:
     """``pred_pos`` ``[N, 3]`` with the leaves of each rigid object replaced by the best rigid
     motion of their current positions (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`); other rows are
     returned unchanged (ancestor rows still need re-deriving).
@@ -180,12 +194,12 @@ def rigid_leaf_positions(graph: HeteroData, pred_pos: Tensor) -> Tensor:
     An object (of one batch copy) is identified by its root node (:func:`object_of`, one fit per
     object rather than per node); rows other than rigid leaves enter the fit with zero weight,
     and so do static rows (a sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sleeping`, is
-    rigid and static).
+    rigid and static). ``objects``: :func:`object_of` of ``graph``, if the caller has it.
     """
     store = graph[NODE]
     rigid_leaf = store.is_leaf & store.material[:, RIGID].bool() & ~store.is_static
     weight = torch.where(rigid_leaf, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
-    group, count = object_of(graph)
+    group, count = object_of(graph) if objects is None else objects
     fitted = fit_rigid_motion(store.pos, pred_pos, weight, group, count)
     return torch.where(rigid_leaf.unsqueeze(-1), fitted, pred_pos)
 
@@ -232,6 +246,8 @@ def step(
     *,
     force_active: bool | None = None,
     collisions: bool = True,
+    objects: tuple[Tensor, int] | None = None,
+    check: bool = True,
 ) -> Step:
     """One model step: build inputs, run the network, decode, and advance the graph.
 
@@ -244,10 +260,13 @@ def step(
         force_active, collisions: the step's part of an :class:`~hrn_pyg.effects.EffectPlan`:
             whether the force is nonzero (None: the network checks), and whether the next
             graph gets a collision search (False: no collision edges).
+        objects: :func:`object_of` of ``graph`` if the caller has it (None: computed here).
+        check: check the graph's positions and the force for NaN / inf first (``False``: the
+            caller has; the new positions are always checked).
     """
-    inputs = build_inputs(model, graph, force, force_active)
+    inputs = build_inputs(model, graph, force, force_active, check)
     out = run_network(model, inputs, masks)
-    pos, local, velocity = decode(model, graph, out)
+    pos, local, velocity = decode(model, graph, out, objects)
     nxt = advance(graph, pos, model.config.collision_radius if collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
 
@@ -322,12 +341,19 @@ def unroll(
     plan = plan_effects(graph, steps, forces, effects)
     store = graph[NODE]
     radius = model.config.collision_radius if plan.collisions else None
+    for name in ("pos", "prev_pos", "prev_prev_pos"):  # once here, so no step has to
+        if name not in store:
+            raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
+        _check_finite(f"graph['{NODE}'].{name}", store[name])
     graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=radius)
+    # the tree does not change during a rollout: its objects are found once (one host read)
+    objects = object_of(graph) if model.config.rigid_fit else None
     sleeping = sleep is not None and sleep.enabled
     if sleeping:
         from hrn_pyg import sleeping as sleep_module  # imports this module
 
         objs = sleep_module.objects(graph)
+        objects = (objs.of_node, objs.count)
         sleep_state = sleep_module.initial_state(objs)
     out: list[Step] = []
     for t in range(steps):  # time steps; each step is vectorised over particles
@@ -336,9 +362,11 @@ def unroll(
         active = plan.force_active[t]
         if sleeping:
             result, sleep_state = sleep_module.sleeping_step(model, graph, force, masks, sleep_state, objs, sleep,
-                                                             force_active=active, collisions=plan.collisions)
+                                                             force_active=active, collisions=plan.collisions,
+                                                             check=False)
         else:
-            result = step(model, graph, force, masks, force_active=active, collisions=plan.collisions)
+            result = step(model, graph, force, masks, force_active=active, collisions=plan.collisions,
+                          objects=objects, check=False)
         out.append(result)
         graph = result.graph
     return out

@@ -259,6 +259,7 @@ def sleeping_step(
     *,
     force_active: bool | None = None,
     collisions: bool = True,
+    check: bool = True,
 ) -> tuple[Step, SleepState]:
     """One model step in which objects at rest sleep; returns the step and the new sleep state.
 
@@ -268,14 +269,16 @@ def sleeping_step(
     nodes held still in this step, and the next graph (:func:`advance`): asleep nodes with
     ``pos``, ``prev_pos`` and ``prev_prev_pos`` all equal to the held position, the collision
     edges of all leaves at ``x_{t+1}``. ``force_active`` and ``collisions`` are the step's part
-    of the rollout's :class:`~hrn_pyg.effects.EffectPlan` (as for :func:`hrn_pyg.rollout.step`).
+    of the rollout's :class:`~hrn_pyg.effects.EffectPlan` (as for :func:`hrn_pyg.rollout.step`);
+    ``check=False``: the caller has checked the positions and the force for NaN / inf.
     """
     state = update(config, state, graph, force, objs)
     asleep_node = state.asleep[objs.of_node]
     store = graph[NODE]
     radius = model.config.collision_radius if collisions else None
     if not bool((asleep_node & ~store.is_static).any()):  # nothing movable sleeps: the plain step
-        result = step(model, graph, force, masks, force_active=force_active, collisions=collisions)
+        result = step(model, graph, force, masks, force_active=force_active, collisions=collisions,
+                      objects=(objs.of_node, objs.count), check=check)
         return result._replace(asleep=store.is_static), state
 
     pos, local, velocity = predict_awake(model, graph, force, masks, asleep_node, force_active)

@@ -153,3 +153,28 @@ def test_tiny_model_overfits_one_batch():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < losses[0] / 10, (losses[0], losses[-1])
+
+
+def test_unroll_equals_checked_steps_with_objects_found_each_step():
+    # unroll finds the objects once and skips the per-step input checks: same numbers as
+    # stepping by hand, where every step checks its inputs and finds the objects again
+    model = _model(rigid_fit=True).eval()
+    g = toy_scene(force=True)
+    with torch.no_grad():
+        fast = rollout(model, g, 4, sleep=None)
+        graph = set_state(g, g[NODE].prev_prev_pos, g[NODE].prev_pos, g[NODE].pos, radius=model.config.collision_radius)
+        slow = []
+        for _ in range(4):
+            result = step(model, graph, torch.zeros_like(graph[NODE].pos))
+            slow.append(result.pos)
+            graph = result.graph
+    assert torch.equal(fast, torch.stack(slow))
+
+
+def test_unroll_rejects_a_non_finite_start_once():
+    model = _model()
+    g = toy_scene(force=True)
+    g[NODE].prev_pos = g[NODE].prev_pos.clone()
+    g[NODE].prev_pos[0, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"prev_pos contains NaN or infinite values"):
+        rollout(model, g, 2, sleep=None)
