@@ -79,6 +79,16 @@ def _check_finite(name: str, value: Tensor) -> None:
         raise ValueError(f"{name} contains NaN or infinite values")
 
 
+def _require_state(graph: HeteroData, check: bool = True) -> None:
+    """The three positions a step reads are present (and finite, unless ``check=False``)."""
+    store = graph[NODE]
+    for name in ("pos", "prev_pos", "prev_prev_pos"):
+        if name not in store:
+            raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
+        if check:
+            _check_finite(f"graph['{NODE}'].{name}", store[name])
+
+
 def _node_force(graph: HeteroData, force: Tensor | None, check: bool = True) -> Tensor:
     store = graph[NODE]
     if force is None:
@@ -111,12 +121,8 @@ def build_inputs(
     ``check=False`` skips the finite checks of the positions and the force (each a host read
     on a GPU): for a caller that has checked them already, as :func:`unroll` does.
     """
+    _require_state(graph, check)
     store = graph[NODE]
-    for name in ("pos", "prev_pos", "prev_prev_pos"):
-        if name not in store:
-            raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
-        if check:
-            _check_finite(f"graph['{NODE}'].{name}", store[name])
     norm, config = model.normalizer, model.config
     pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
     static = (store.mass, store.material, store.stiffness, store.depth, store.is_leaf, store.is_root)
@@ -341,10 +347,7 @@ def unroll(
     plan = plan_effects(graph, steps, forces, effects)
     store = graph[NODE]
     radius = model.config.collision_radius if plan.collisions else None
-    for name in ("pos", "prev_pos", "prev_prev_pos"):  # once here, so no step has to
-        if name not in store:
-            raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
-        _check_finite(f"graph['{NODE}'].{name}", store[name])
+    _require_state(graph)  # once here, so no step has to
     graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=radius)
     # the tree does not change during a rollout: its objects are found once (one host read)
     objects = object_of(graph) if model.config.rigid_fit else None
