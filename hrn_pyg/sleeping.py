@@ -281,7 +281,7 @@ def sleeping_step(
                       objects=(objs.of_node, objs.count), check=check)
         return result._replace(asleep=store.is_static), state
 
-    pos, local, velocity = predict_awake(model, graph, force, masks, asleep_node, force_active)
+    pos, local, velocity = predict_awake(model, graph, force, masks, asleep_node, force_active, check)
     nxt = advance(graph, asleep_node, pos, radius)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 
@@ -293,19 +293,20 @@ def predict_awake(
     masks: Mapping[str, Tensor] | None,
     asleep_node: Tensor,
     force_active: bool | None = None,
+    check: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``(pos, local_velocity, velocity)`` ``[N, 3]`` of a step in which the ``asleep_node``
     rows are held: the network runs on the :func:`subgraph` of the awake objects (with frozen
     asleep collision sources), asleep rows keep ``pos`` bit for bit with zero velocity. The
     prediction part of :func:`sleeping_step`, without the next graph (the RL environment
-    builds its own)."""
+    builds its own). ``check=False``: the caller has checked positions and force for NaN / inf."""
     store = graph[NODE]
     zero = torch.zeros_like(store.pos)
     if bool(asleep_node.all()):  # nothing to run: the scene holds still
         return store.pos, zero, zero
     prev_pos, prev_prev_pos = freeze(graph, asleep_node)
     sub, index, awake_rows = subgraph(graph, asleep_node, prev_pos, prev_prev_pos)
-    out = run_network(model, build_inputs(model, sub, force.index_select(0, index), force_active), masks)
+    out = run_network(model, build_inputs(model, sub, force.index_select(0, index), force_active, check), masks)
     sub_pos, sub_local, sub_velocity = decode(model, sub, out)
     keep = awake_rows.unsqueeze(-1)
     pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
