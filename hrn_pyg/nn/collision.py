@@ -31,6 +31,12 @@ class CollisionModule(MessagePassing):
     invariant. Aggregation is a sum, so a particle that receives no message gets an exact zero and
     an empty edge set gives an all-zero output.
 
+    ``edge_weight`` (optional, 0 or 1 per edge) switches edges off without removing them: an edge
+    of weight 0 adds an exact zero and does not count in the output layer's bias, so the result
+    is that of the edge set without it. This is the fixed-shape step's form
+    (:mod:`hrn_pyg.fixed_shape`): a candidate set that only changes when something has moved far,
+    with the pairs closer than the radius marked per step.
+
     Args:
         state_dim: size :math:`S` of a particle's state vector.
         effect_dim: size :math:`D` of the effect.
@@ -39,7 +45,8 @@ class CollisionModule(MessagePassing):
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, pos :math:`(|\mathcal{V}|, 3)`,
           edge_index :math:`(2, |\mathcal{E}_C|)`, mask :math:`(B, H)` or None,
-          batch :math:`(|\mathcal{V}|,)` (needed with a mask; an edge uses its destination's id)
+          batch :math:`(|\mathcal{V}|,)` (needed with a mask; an edge uses its destination's id),
+          edge_weight :math:`(|\mathcal{E}_C|,)` or None
         - **output:** effect :math:`(|\mathcal{V}|, D)`
     """
 
@@ -60,6 +67,7 @@ class CollisionModule(MessagePassing):
         edge_index: Tensor,
         mask: Tensor | None = None,
         batch: Tensor | None = None,
+        edge_weight: Tensor | None = None,
     ) -> Tensor:
         if state.dim() != 2 or state.size(1) != self.state_dim:
             raise ValueError(f"CollisionModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
@@ -69,6 +77,9 @@ class CollisionModule(MessagePassing):
             raise ValueError(f"CollisionModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
         if mask is not None and batch is None:
             raise ValueError("CollisionModule: a dropout mask needs the node batch vector")
+        if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
+            raise ValueError(f"CollisionModule: edge_weight must be [{edge_index.size(1)}], "
+                             f"got {tuple(edge_weight.shape)}")
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
         n = state.size(0)
@@ -78,19 +89,24 @@ class CollisionModule(MessagePassing):
         from_src = state @ w_src.T
         # phi_C's last hidden layer is summed per destination; its output layer runs once per node
         hidden_sum = self.propagate(edge_index, a=from_dst, b=from_src, x=pos, w_offset=w_offset,
-                                    w_dist=w_dist, edge_batch=edge_batch, mask=mask, size=(n, n))
-        return self.phi.output_of_sum(hidden_sum, in_degree(edge_index, n))
+                                    w_dist=w_dist, edge_batch=edge_batch, mask=mask, edge_weight=edge_weight,
+                                    size=(n, n))
+        return self.phi.output_of_sum(hidden_sum, in_degree(edge_index, n, edge_weight))
 
     def message(
         self, a_i: Tensor, b_j: Tensor, x_i: Tensor, x_j: Tensor, w_offset: Tensor, w_dist: Tensor,
-        edge_batch: Tensor | None, mask: Tensor | None
+        edge_batch: Tensor | None, mask: Tensor | None, edge_weight: Tensor | None
     ) -> Tensor:
         # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks
         # (a_i is gathered for this call alone, so without autograd it takes the sum in place)
         offset = x_i - x_j
         pre = a_i.add_(b_j) if not torch.is_grad_enabled() else a_i + b_j
         pre = pre.addmm_(offset, w_offset.T).addmm_(safe_norm(offset), w_dist.T)
-        return self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
+        hidden = self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
+        if edge_weight is None:
+            return hidden
+        weight = edge_weight.to(hidden.dtype).unsqueeze(-1)
+        return hidden.mul_(weight) if not torch.is_grad_enabled() else hidden * weight
 
     def __repr__(self) -> str:
         return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"

@@ -17,7 +17,11 @@ class ForceModule(nn.Module):
     :math:`s_i` is the particle's state vector and :math:`f_i` its (normalised) external force.
     Only the particles with a nonzero force are fed to :math:`\phi_F`; every other row of the
     output is exactly zero, so a scene without forces gets no contribution, bias included.
-    Nothing is passed along edges, so this is a plain module.
+    Nothing is passed along edges, so this is a plain module. ``dense=True`` runs
+    :math:`\phi_F` on every row and zeroes the rows without force instead: the same effect
+    (up to the rounding of a matrix product over other rows) with no data-dependent shape, so
+    the pass never waits for the device to say how many rows are pushed (the fixed-shape step
+    of :mod:`hrn_pyg.fixed_shape`).
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.
@@ -45,11 +49,17 @@ class ForceModule(nn.Module):
         force: Tensor,
         mask: Tensor | None = None,
         batch: Tensor | None = None,
+        dense: bool = False,
     ) -> Tensor:
         if state.dim() != 2 or state.size(1) != self.state_dim:
             raise ValueError(f"ForceModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
         if force.shape != (state.size(0), 3):
             raise ValueError(f"ForceModule: force must be [N, 3], got {tuple(force.shape)}")
+        if dense:
+            index = batch if (mask is not None and batch is not None) else None
+            effect = self.phi(torch.cat([state, force], dim=-1), mask, index)
+            pushed = (force != 0).any(dim=-1, keepdim=True)
+            return torch.where(pushed, effect, torch.zeros_like(effect))
         active = (force != 0).any(dim=-1).nonzero().squeeze(1)
         x = torch.cat([state.index_select(0, active), force.index_select(0, active)], dim=-1)
         index = batch.index_select(0, active) if (mask is not None and batch is not None) else None

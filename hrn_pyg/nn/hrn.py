@@ -120,6 +120,9 @@ class HRNInputs(NamedTuple):
     length scale, or None (models without ``rest_offsets``). ``force_active``: whether the
     force module runs, decided by the caller (:mod:`hrn_pyg.effects`: one host read per
     rollout); None asks the force tensor in this pass (a host sync on a GPU).
+    ``collision_weight`` ``[E_C]`` (optional): 1 for the collision edges that act in this step,
+    0 for candidates that do not (:mod:`hrn_pyg.fixed_shape`). ``fixed_shape``: no tensor of
+    the pass may have a size that depends on the data (the force module runs on every row).
     """
 
     state: Tensor
@@ -135,6 +138,8 @@ class HRNInputs(NamedTuple):
     ancestor_to_descendant: Tensor
     rest_pos: Tensor | None = None
     force_active: bool | None = None
+    collision_weight: Tensor | None = None
+    fixed_shape: bool = False
 
 
 def state_features(
@@ -159,7 +164,9 @@ def state_features(
     """
     dtype = velocity.dtype
     root = is_root.to(dtype).unsqueeze(-1)
-    gravity = root * torch.tensor(GRAVITY_DIRECTION, dtype=dtype, device=velocity.device)
+    # one column per axis, scaled by a Python number: no host-to-device copy (a CUDA graph
+    # cannot record one from pageable memory)
+    gravity = torch.cat([root * g for g in GRAVITY_DIRECTION], dim=-1)
     ground = [] if ground_radius is None else [(z / ground_radius).clamp(-1.0, 1.0)]
     return torch.cat(
         [
@@ -256,9 +263,10 @@ class HRN(nn.Module):
         if force_active is None:
             force_active = bool(inputs.force.ne(0).any())
         if not (skip and not force_active):
-            effect = effect + self.force(s, inputs.force, masks.get("force"), b)
+            effect = effect + self.force(s, inputs.force, masks.get("force"), b, dense=inputs.fixed_shape)
         if not (skip and inputs.collision.size(1) == 0):
-            effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b)
+            effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b,
+                                             edge_weight=inputs.collision_weight)
         effect = effect + self.l2a(s, effect, x, inputs.leaf_to_ancestor, masks.get("l2a"), b, rest)
         effect = effect + self.ws(s, effect, x, inputs.within_siblings, masks.get("ws"), b, rest)
         effect = effect + self.a2d(s, effect, x, inputs.ancestor_to_descendant, masks.get("a2d"), b, rest)

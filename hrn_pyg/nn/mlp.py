@@ -82,9 +82,17 @@ def dropout_mask(
     return (u >= rate).to(torch.float32) / (1.0 - rate)
 
 
-def in_degree(edge_index: Tensor, num_nodes: int) -> Tensor:
-    """Number of edges into each node, ``[num_nodes]`` long (``edge_index[1]`` are destinations)."""
-    return torch.bincount(edge_index[1], minlength=num_nodes)
+def in_degree(edge_index: Tensor, num_nodes: int, edge_weight: Tensor | None = None) -> Tensor:
+    """Number of edges into each node, ``[num_nodes]`` long (``edge_index[1]`` are destinations);
+    with ``edge_weight`` ``[E]`` the sum of the weights of those edges (in its dtype).
+
+    One ``index_add``: unlike ``torch.bincount``, which reads the largest index back to size its
+    output, it never waits for the device, so a step can be captured in a CUDA graph.
+    """
+    dst = edge_index[1]
+    if edge_weight is None:
+        return torch.zeros(num_nodes, dtype=torch.long, device=dst.device).index_add_(0, dst, torch.ones_like(dst))
+    return edge_weight.new_zeros(num_nodes).index_add_(0, dst, edge_weight)
 
 
 class MLP(nn.Module):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import io
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from torch_geometric.data import HeteroData
 import hrn_pyg
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.scenes import scene_effects
+from hrn_pyg.fixed_shape import FixedShapeConfig
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import HISTORY, episode_state
 from hrn_pyg.sampling.sample import sample
@@ -131,6 +133,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--no-sleep", action="store_true",
                         help="run every object at every step (default: objects at rest sleep, hrn_pyg.sleeping)")
+    parser.add_argument("--fixed-shape", action="store_true",
+                        help="fixed-shape steps (hrn_pyg.fixed_shape): no host read inside a step, the "
+                             "same futures as --no-sleep, which it implies")
+    parser.add_argument("--cuda-graph", action="store_true",
+                        help="with --fixed-shape on CUDA: record each kind of step as a CUDA graph")
     parser.add_argument("--compile", action="store_true",
                         help="run the network through torch.compile (Module.compile): a compile of "
                              "tens of seconds first, then fused steps while the graph's shapes hold")
@@ -143,7 +150,11 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--rate must be in [0, 1), got {args.rate}")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    if args.cuda_graph and not args.fixed_shape:
+        raise ValueError("--cuda-graph needs --fixed-shape")
     device = resolve_device(args.device)
+    if args.cuda_graph and device.type != "cuda":
+        raise ValueError(f"--cuda-graph needs a CUDA device, got {device}")
     model_path = resolve_model(args.scene, args.model)
     model = load(model_path, device)
     if args.compile:
@@ -160,9 +171,10 @@ def run(args: argparse.Namespace) -> int:
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
-    sleep = None if args.no_sleep else DEFAULT_SLEEP
+    sleep = None if (args.no_sleep or args.fixed_shape) else DEFAULT_SLEEP
+    fixed = FixedShapeConfig(cuda_graph=args.cuda_graph) if args.fixed_shape else None
     samples = sample(model, graph, args.k, steps, rate, forces=forces, generator=generator,
-                     modules=modules, sleep=sleep, effects=scene_effects(args.scene)
+                     modules=modules, sleep=sleep, effects=scene_effects(args.scene), fixed_shape=fixed
                      ).cpu().numpy()  # [K, steps, L, 3]
 
     leaf = store.is_leaf
@@ -190,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_json(out / "samples.json", {
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
         "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or default_model_path(args.scene)),
-        "device": str(device), "compiled": bool(args.compile), **origin,
+        "device": str(device), "compiled": bool(args.compile),
+        "fixed_shape": None if fixed is None else asdict(fixed), **origin,
     })
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "
           f"rate {rate:g}: {rate_source})")

@@ -23,6 +23,7 @@ from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.nn.mlp import dropout_mask
 from hrn_pyg.rollout import MasksFn, rollout
 from hrn_pyg.effects import SceneEffects
+from hrn_pyg.fixed_shape import FixedShapeConfig, fixed_shape_rollout
 from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
 
 #: the state a scene must carry to be rolled out (``x_{t-2}, x_{t-1}, x_t``)
@@ -153,6 +154,7 @@ def sample(
     modules: tuple[str, ...] | None = None,
     sleep: SleepConfig | None = DEFAULT_SLEEP,
     effects: SceneEffects | None = None,
+    fixed_shape: FixedShapeConfig | None = None,
 ) -> Tensor:
     r"""Sample ``k`` futures of one scene with Monte Carlo graph-convolutional dropout.
 
@@ -187,6 +189,9 @@ def sample(
             default); None runs every object of every copy at every step.
         effects: what the scene needs simulated (:class:`~hrn_pyg.effects.SceneEffects`, e.g.
             :func:`hrn_pyg.data.scenes.scene_effects`); None: what the data show.
+        fixed_shape: roll out with fixed-shape steps (:mod:`hrn_pyg.fixed_shape`: no host read
+            inside a step, optionally CUDA graphs); the same futures as with ``sleep=None``,
+            which it needs.
 
     Returns:
         Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps``. Only leaves are returned
@@ -197,6 +202,8 @@ def sample(
     **Shapes:** initial state over ``N`` nodes, ``L`` of them leaves; output ``(k, steps, L, 3)``.
     """
     check_sampling_args(k, steps, rate)
+    if fixed_shape is not None and sleep is not None and sleep.enabled:
+        raise ValueError("fixed_shape steps run every object: pass sleep=None with them")
     _check_state(initial_state)
     modules = _check_modules(model, modules)
     graph = copy.copy(initial_state)  # new stores: deleting and moving below leave the caller's
@@ -210,6 +217,9 @@ def sample(
     leaf_index = torch.nonzero(store.is_leaf).flatten()
     batched = replicate(graph, k)
     masks_fn = make_masks_fn(model, k, rate, generator, modules)
-    with torch.no_grad():
-        pos = rollout(model, batched, steps, copies_forces, masks_fn, sleep, effects)  # [steps, k N, 3]
+    if fixed_shape is not None:
+        pos = fixed_shape_rollout(model, batched, steps, copies_forces, masks_fn, effects, fixed_shape).pos
+    else:
+        with torch.no_grad():
+            pos = rollout(model, batched, steps, copies_forces, masks_fn, sleep, effects)  # [steps, k N, 3]
     return pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()

@@ -90,3 +90,23 @@ def test_inference_path_gives_the_autograd_numbers_and_leaves_inputs_alone():
     with torch.no_grad():  # the in-place path
         assert torch.equal(m(s, x, ei), with_grad.detach())
     assert torch.equal(kept[0], s) and torch.equal(kept[1], x)
+
+
+def test_edge_weight_zero_removes_the_edge_exactly():
+    """A candidate of weight 0 adds an exact zero and no bias: the result of the edge set without
+    it (to rounding: the first layer's product runs over more rows), with autograd too (where the
+    weight is not applied in place); a node whose edges all weigh 0 gets an exact zero."""
+    torch.manual_seed(0)
+    m = CollisionModule(4, 6, CFG)
+    state, pos, ei = _inputs()
+    weight = torch.tensor([1.0, 0.0, 1.0, 0.0])
+    kept = ei[:, weight.bool()]
+    with torch.no_grad():
+        torch.testing.assert_close(m(state, pos, ei, edge_weight=weight), m(state, pos, kept))
+        assert torch.equal(m(state, pos, ei, edge_weight=torch.ones(4)), m(state, pos, ei))
+        one_edge_each = m(state, pos, ei, edge_weight=torch.tensor([1.0, 1.0, 0.0, 0.0]))
+        assert torch.equal(one_edge_each[3], torch.zeros(6))
+        assert torch.equal(m(state, pos, ei, edge_weight=torch.zeros(4)), torch.zeros(5, 6))
+    torch.testing.assert_close(m(state, pos, ei, edge_weight=weight), m(state, pos, kept))
+    with pytest.raises(ValueError, match=r"edge_weight must be \[4\]"):
+        m(state, pos, ei, edge_weight=torch.ones(3))

@@ -63,3 +63,17 @@ def test_bad_input_and_repr():
     before = m.phi.output_layer.weight.clone()
     m.reset_parameters()
     assert not torch.equal(before, m.phi.output_layer.weight)
+
+
+def test_dense_path_equals_the_gathered_one():
+    """``dense=True`` runs phi_F on every row and zeroes the unforced ones: the same effect, also
+    with a mask per batch copy, and exact zeros where there is no force."""
+    torch.manual_seed(0)
+    m = ForceModule(5, 7, CFG)
+    state, force = _inputs()
+    torch.testing.assert_close(m(state, force, dense=True), m(state, force))
+    assert torch.equal(m(state, force, dense=True)[[0, 2, 3, 5]], torch.zeros(4, 7))
+    batch = torch.tensor([0, 0, 0, 1, 1, 1])
+    mask = dropout_mask(2, 16, 0.5, torch.Generator().manual_seed(1))
+    torch.testing.assert_close(m(state, force, mask, batch, dense=True), m(state, force, mask, batch))
+    assert torch.equal(m(state, torch.zeros(6, 3), dense=True), torch.zeros(6, 7))

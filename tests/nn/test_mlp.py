@@ -72,3 +72,14 @@ def test_in_place_inference_path_equals_the_autograd_path(activation):
     assert torch.equal(pre, kept)
     with_grad.sum().backward()  # the autograd path still records a graph
     assert mlp.hidden_layers[0].weight.grad is not None
+
+
+def test_in_degree_counts_and_weighs_incoming_edges():
+    from hrn_pyg.nn.mlp import in_degree
+
+    edges = torch.tensor([[0, 1, 2, 3], [1, 1, 3, 0]])
+    assert torch.equal(in_degree(edges, 5), torch.tensor([1, 2, 0, 1, 0]))
+    assert in_degree(edges, 5).dtype == torch.long
+    weighted = in_degree(edges, 5, torch.tensor([1.0, 0.0, 1.0, 1.0]))
+    assert torch.equal(weighted, torch.tensor([1.0, 1.0, 0.0, 1.0, 0.0]))
+    assert torch.equal(in_degree(torch.zeros(2, 0, dtype=torch.long), 3), torch.zeros(3, dtype=torch.long))

@@ -67,3 +67,19 @@ def test_unknown_device_is_a_one_line_error(checkpoint, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "nonsense" in err and err.startswith("hrn-pyg sample: error:")
     assert not out.exists()
+
+
+def test_fixed_shape_flag_samples_the_no_sleep_futures(checkpoint, tmp_path, capsys):
+    def run(*flags):
+        out = tmp_path / "_".join(flags)
+        assert main(["sample", "--scene", "wedge", "--k", "2", "--rate", "0.3", "--seed", "5", "--steps", "3",
+                     "--model", str(checkpoint), "--out", str(out), *flags]) == 0
+        with np.load(out / "samples.npz", allow_pickle=False) as npz:
+            return npz["samples"], json.loads((out / "samples.json").read_text())
+
+    fixed, meta = run("--fixed-shape")
+    plain, _ = run("--no-sleep")
+    assert np.array_equal(fixed, plain)
+    assert meta["sleep"] is None and meta["fixed_shape"]["cuda_graph"] is False
+    assert main(["sample", "--scene", "wedge", "--cuda-graph", "--model", str(checkpoint)]) == 2
+    assert "--cuda-graph needs --fixed-shape" in capsys.readouterr().err

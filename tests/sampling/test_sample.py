@@ -231,3 +231,19 @@ def test_compiled_network_samples_the_same_futures():
             for m in (eager, compiled)]
     assert torch.allclose(runs[0], runs[1], atol=1e-5)
     assert not torch.equal(runs[0][0], runs[0][1])  # the copies do differ: masks reached the network
+
+
+def test_fixed_shape_steps_sample_the_same_futures(model):
+    """``fixed_shape=`` (no host read inside a step) gives the futures of ``sleep=None`` with the
+    same generator seed, and refuses to run with sleeping on."""
+    from hrn_pyg.fixed_shape import FixedShapeConfig
+
+    graph, forces = scene_and_forces()
+
+    def draw(**kwargs):
+        return sample(model, graph, 3, STEPS, 0.3, forces=forces, generator=torch.Generator().manual_seed(4),
+                      sleep=None, **kwargs)
+
+    assert torch.equal(draw(fixed_shape=FixedShapeConfig(check_every=2)), draw())
+    with pytest.raises(ValueError, match="pass sleep=None"):
+        sample(model, graph, 3, STEPS, 0.3, forces=forces, fixed_shape=FixedShapeConfig())

@@ -1,0 +1,112 @@
+r"""Collision candidates with a skin: a pair set that stays valid while nothing moves far.
+
+The collision search (:mod:`hrn_pyg.data.radius`) finds the leaf pairs closer than the radius
+:math:`r` at every step, and how many there are is only known once the device has counted them:
+the step's shapes change with the data and the host has to wait for the answer. Molecular
+dynamics codes keep a *Verlet list* instead: every pair closer than :math:`r + s` (the skin
+:math:`s`) at the time of the search. While no leaf has moved more than :math:`s / 2` since then,
+no pair outside the list can have come closer than :math:`r`:
+
+.. math::
+    \lVert x_i - x_j \rVert \ \ge\ \lVert x^0_i - x^0_j \rVert - \lVert x_i - x^0_i \rVert
+        - \lVert x_j - x^0_j \rVert \ \ge\ (r + s) - 2 \cdot \tfrac{s}{2} = r,
+
+so the collision edges of a step are exactly the candidates with
+:math:`\lVert x_i - x_j \rVert^2 < r^2`, decided by the same float expression as the search's,
+in the search's order (by destination, then source). A step then uses a fixed candidate set with
+a 0 / 1 weight per pair (:func:`active_collisions`; the collision module adds an exact zero for
+a pair of weight 0), and :func:`largest_move` measures on the device how close the list is to
+going stale.
+
+``capacity`` pads the list to a size that changes rarely (the next power of two), with padding
+pairs that are never active, so a captured step (a CUDA graph) can be reused across rebuilds.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import leaf_collision_edges
+
+#: a list is stale once a leaf has moved this fraction of the skin: a little under the half the
+#: bound allows, so that the rounding of the float comparisons cannot lose a pair
+STALE_FRACTION = 0.49
+
+
+class CollisionCandidates(NamedTuple):
+    """A Verlet list of collision pairs (see the module docstring).
+
+    Attributes:
+        edge_index: ``[2, C]`` long, node indices, row 0 the source and row 1 the destination;
+            the pairs closer than ``radius + skin`` at ``reference``, sorted by destination then
+            source, then padding pairs ``0 -> 0``.
+        valid: ``[C]`` bool, False on the padding.
+        reference: ``[N, 3]`` positions at the search.
+        radius: the collision radius ``r`` (metres).
+        skin: the skin ``s`` (metres).
+        pairs: how many pairs the search found (``C`` minus the padding).
+    """
+
+    edge_index: Tensor
+    valid: Tensor
+    reference: Tensor
+    radius: float
+    skin: float
+    pairs: int
+
+
+def padded_size(pairs: int, minimum: int = 64) -> int:
+    """The next power of two ``>= pairs`` (at least ``minimum``): list sizes change rarely."""
+    size = max(int(minimum), 1)
+    while size < pairs:
+        size *= 2
+    return size
+
+
+def build_candidates(graph: HeteroData, pos: Tensor, radius: float, skin: float,
+                     capacity: int | None = None) -> CollisionCandidates:
+    """Search the leaves of ``graph`` at ``pos`` ``[N, 3]`` with radius ``radius + skin``.
+
+    ``capacity`` (optional) pads the list to that many pairs (it must hold them all); the
+    search itself reads its sizes from the device, as every search does.
+    """
+    if not radius > 0 or not skin > 0:
+        raise ValueError(f"radius and skin must be > 0, got radius={radius}, skin={skin}")
+    edges = leaf_collision_edges(graph, pos.detach(), radius + skin)
+    pairs = edges.size(1)
+    valid = torch.ones(pairs, dtype=torch.bool, device=edges.device)
+    if capacity is not None:
+        if capacity < pairs:
+            raise ValueError(f"capacity {capacity} is smaller than the {pairs} pairs found")
+        pad = capacity - pairs
+        edges = torch.cat([edges, edges.new_zeros(2, pad)], dim=1)
+        valid = torch.cat([valid, valid.new_zeros(pad)])
+    return CollisionCandidates(edges, valid, pos.detach().clone(), float(radius), float(skin), pairs)
+
+
+def active_collisions(candidates: CollisionCandidates, pos: Tensor) -> Tensor:
+    """``[C]`` float, 1 for the candidates closer than the radius at ``pos`` ``[N, 3]`` (the
+    collision edges of ``pos``, when the list is not :func:`stale`), 0 for the others."""
+    src, dst = candidates.edge_index
+    x = pos.detach()
+    diff = x[dst] - x[src]
+    near = (diff * diff).sum(dim=-1) < candidates.radius * candidates.radius
+    return (near & candidates.valid).to(pos.dtype)
+
+
+def largest_move(candidates: CollisionCandidates, pos: Tensor) -> Tensor:
+    """0-d tensor, on the device: the farthest any node of ``pos`` ``[N, 3]`` has moved since the
+    search (metres; inf when a position is not finite). The list holds every collision pair
+    while this is at most :func:`move_limit`."""
+    moved = pos.detach() - candidates.reference
+    largest = (moved * moved).sum(dim=-1).amax().sqrt()
+    return torch.nan_to_num(largest, nan=float("inf"))
+
+
+def move_limit(skin: float) -> float:
+    """How far a node may move before a list with this skin is stale (:data:`STALE_FRACTION`)."""
+    return STALE_FRACTION * skin

@@ -1,0 +1,297 @@
+r"""A rollout whose steps have fixed shapes: no host read inside a step, capturable as a CUDA graph.
+
+:func:`hrn_pyg.rollout.unroll` waits for the device several times a step: the collision search
+reads back how many cells and pairs it found, the force module how many leaves are pushed, and
+the step checks its new positions for NaN. On a GPU each wait stalls the launch queue, and a
+small scene's step costs its waits, not its arithmetic. :func:`fixed_shape_rollout` gives the
+same positions with none of them inside a step:
+
+- collision pairs come from a list with a skin (:mod:`hrn_pyg.data.candidates`), searched when
+  the rollout starts and again only when a leaf has moved half the skin; each step marks the
+  pairs closer than the radius with a 0 / 1 weight, which the collision module multiplies in;
+- the force module runs on every row and zeroes the rows without force (``dense``), and whether
+  a step has a force at all comes from the rollout's :class:`~hrn_pyg.effects.EffectPlan`;
+- the step does not check its output; it returns a small report on the device: how far its
+  input has moved since the search, how far its output moves, and whether the output is finite.
+
+The rollout runs up to ``check_every`` steps ahead, then reads the reports of all of them at
+once (one host read). Steps up to the first whose input had moved past the list's limit are
+kept (a non-finite output among them raises, as :func:`~hrn_pyg.rollout.advance` does); from
+that step on, the list is searched anew and the steps are run again with the masks they had
+(``masks_fn`` is called once per step and its masks are kept until the step is final). So the
+result is that of the plain rollout with sleeping off, whatever the skin; the skin and
+``check_every`` only set what it costs. How many steps to run ahead is predicted from the last
+report (the margin left to the limit over the fastest node's last move, with a quarter to
+spare), and the list is searched before a step that would be predicted stale.
+
+With ``cuda_graph=True`` (CUDA only) each kind of step (with or without force, each padded list
+size) is recorded once as a CUDA graph and replayed: one launch per step instead of hundreds.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.candidates import (
+    CollisionCandidates,
+    active_collisions,
+    build_candidates,
+    largest_move,
+    move_limit,
+    padded_size,
+)
+from hrn_pyg.data.graph import COLLISION, NODE, set_state
+from hrn_pyg.effects import SceneEffects, plan_effects
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.rollout import MasksFn, _check_forces, _require_state, build_inputs, decode, object_of, run_network
+
+
+@dataclass(frozen=True)
+class FixedShapeConfig:
+    """How :func:`fixed_shape_rollout` trades searches against repeated steps.
+
+    Attributes:
+        skin: the candidate list's skin, as a fraction of the model's collision radius: larger
+            means rarer searches and more candidate pairs per step.
+        check_every: most steps run before the flags are read (one host read per read).
+        cuda_graph: record each kind of step as a CUDA graph and replay it (CUDA only).
+    """
+
+    skin: float = 0.5
+    check_every: int = 8
+    cuda_graph: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.skin > 0:
+            raise ValueError(f"FixedShapeConfig.skin must be > 0, got {self.skin}")
+        if self.check_every < 1:
+            raise ValueError(f"FixedShapeConfig.check_every must be >= 1, got {self.check_every}")
+
+
+class FixedShapeRollout(NamedTuple):
+    """Result of :func:`fixed_shape_rollout`.
+
+    Attributes:
+        pos: ``[steps, N, 3]`` positions ``x_{t+1..t+steps}``, as :func:`hrn_pyg.rollout.rollout`.
+        searches: collision searches made (the first included; 0 without collisions).
+        host_reads: reads of the step flags.
+        repeated_steps: steps run again after a stale list was found.
+    """
+
+    pos: Tensor
+    searches: int
+    host_reads: int
+    repeated_steps: int
+
+
+#: ``(pos, prev, prev_prev, force, masks, edge_index, valid, reference) -> (next_pos, report)``,
+#: report ``[3]``: input's largest move since the search, output's largest move, output not finite
+StepFn = Callable[..., tuple[Tensor, Tensor]]
+
+#: the predicted moves are scaled by this before the look-ahead is chosen (motion speeds up)
+SPEED_MARGIN = 1.25
+
+
+def make_step(model: HRN, graph: HeteroData, force_active: bool, radius: float, skin: float,
+              objects: tuple[Tensor, int] | None, mask_names: tuple[str, ...]) -> StepFn:
+    """The step of :func:`fixed_shape_rollout` as a function of tensors only (no host read).
+
+    ``graph`` holds the static attributes (tree, masses, materials, batch); the positions, the
+    force, the masks (in the order of ``mask_names``) and the candidate list come in as tensors,
+    so the same function can be recorded once and replayed with new values.
+    """
+    collisions = radius > 0
+
+    def fixed_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
+                   edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
+        current = copy.copy(graph)
+        store = current[NODE]
+        store.pos, store.prev_pos, store.prev_prev_pos = pos, prev, prev2
+        current[COLLISION].edge_index = edge_index
+        inputs = build_inputs(model, current, force, force_active, check=False)
+        if collisions:
+            candidates = CollisionCandidates(edge_index, valid, reference, radius, skin, -1)
+            inputs = inputs._replace(collision_weight=active_collisions(candidates, pos), fixed_shape=True)
+            moved = largest_move(candidates, pos)
+        else:
+            inputs = inputs._replace(fixed_shape=True)
+            moved = pos.new_zeros(())
+        out = run_network(model, inputs, dict(zip(mask_names, masks)) or None)
+        next_pos = decode(model, current, out, objects)[0]
+        step = next_pos - pos
+        speed = (step * step).sum(dim=-1).amax().sqrt()
+        bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
+        return next_pos, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
+
+    return fixed_step
+
+
+class RecordedStep:
+    """A :data:`StepFn` recorded as a CUDA graph: inputs are copied into fixed buffers, the graph
+    is replayed, and the outputs are copied out of its buffers (CUDA only)."""
+
+    def __init__(self, fn: StepFn, example: tuple) -> None:
+        self.inputs = [self._clone(a) for a in example]
+        stream = torch.cuda.Stream()
+        stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(stream):  # warm-up off the default stream, as recording needs
+            for _ in range(2):
+                fn(*self.inputs)
+        torch.cuda.current_stream().wait_stream(stream)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.outputs = fn(*self.inputs)
+
+    @staticmethod
+    def _clone(value):
+        return tuple(v.clone() for v in value) if isinstance(value, tuple) else value.clone()
+
+    def __call__(self, *args) -> tuple[Tensor, Tensor]:
+        for buffer, value in zip(self.inputs, args):
+            if isinstance(buffer, tuple):
+                for b, v in zip(buffer, value):
+                    b.copy_(v)
+            else:
+                buffer.copy_(value)
+        self.graph.replay()
+        return tuple(o.clone() for o in self.outputs)
+
+
+def _steps_within(limit: float, moved: float, speed: float, most: int) -> int:
+    """How many more steps (at most ``most``) keep a node that has ``moved`` and moves ``speed``
+    per step (times :data:`SPEED_MARGIN`) within ``limit``; 0: search now."""
+    if speed <= 0:
+        return most
+    return max(0, min(most, int((limit - moved) // (SPEED_MARGIN * speed))))
+
+
+class FixedShapeSimulator:
+    """A model and one scene, with the steps of :func:`fixed_shape_rollout` kept between rollouts
+    (with ``cuda_graph``, each kind of step is recorded once, not once per rollout).
+
+    ``graph`` is the scene at its start state (``pos``, ``prev_pos``, ``prev_prev_pos``; the
+    tree, masses and materials are shared with the steps); every :meth:`rollout` starts there.
+    """
+
+    def __init__(self, model: HRN, graph: HeteroData, config: FixedShapeConfig = FixedShapeConfig()) -> None:
+        if config.cuda_graph and graph[NODE].pos.device.type != "cuda":
+            raise ValueError("FixedShapeConfig.cuda_graph needs the graph on a CUDA device")
+        _require_state(graph)
+        store = graph[NODE]
+        self.model, self.config = model, config
+        self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
+        self.objects = object_of(self.graph) if model.config.rigid_fit else None
+        self._steps: dict[tuple, StepFn] = {}
+
+    def _step_fn(self, force_active: bool, names: tuple[str, ...], radius: float, size: int, example: tuple) -> StepFn:
+        key = (force_active, names, radius, size)
+        if key not in self._steps:
+            fn = make_step(self.model, self.graph, force_active, radius, self.config.skin * radius, self.objects, names)
+            self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
+        return self._steps[key]
+
+    def rollout(self, steps: int, forces: Tensor | None = None, masks_fn: MasksFn | None = None,
+                effects: SceneEffects | None = None) -> FixedShapeRollout:
+        """``steps`` steps from the start state; the arguments are those of
+        :func:`~hrn_pyg.rollout.unroll` (see :func:`fixed_shape_rollout`)."""
+        graph, config = self.graph, self.config
+        _check_forces(graph, steps, forces)
+        plan = plan_effects(graph, steps, forces, effects)
+        store = graph[NODE]
+        radius = float(self.model.config.collision_radius) if plan.collisions else 0.0
+        skin = config.skin * radius
+        zero_force = torch.zeros_like(store.pos)
+        empty_edges = torch.zeros(2, 0, dtype=torch.long, device=store.pos.device)
+        no_valid = torch.zeros(0, dtype=torch.bool, device=store.pos.device)
+        mask_cache: dict[int, Mapping[str, Tensor] | None] = {}
+
+        def masks_of(t: int, state: tuple[Tensor, Tensor, Tensor]) -> Mapping[str, Tensor] | None:
+            if masks_fn is None:
+                return None
+            if t not in mask_cache:
+                shown = copy.copy(graph)
+                shown[NODE].prev_prev_pos, shown[NODE].prev_pos, shown[NODE].pos = state
+                mask_cache[t] = masks_fn(t, shown)
+            return mask_cache[t]
+
+        state = (store.prev_prev_pos, store.prev_pos, store.pos)  # x_{t-2}, x_{t-1}, x_t
+        out: list[Tensor] = []
+        searches = reads = repeated = 0
+        candidates: CollisionCandidates | None = None
+        limit = move_limit(skin)
+        # the fastest node's last move: from the start state once, then from each read
+        speed = float((state[2] - state[1]).norm(dim=-1).amax()) if radius > 0 else 0.0
+        ahead = config.check_every
+        with torch.no_grad():
+            while len(out) < steps:
+                t0 = len(out)
+                fresh = radius > 0 and candidates is None
+                if fresh:
+                    candidates = build_candidates(graph, state[2], radius, skin)
+                    if config.cuda_graph:  # pad to a size that rarely changes, so recordings are reused
+                        candidates = build_candidates(graph, state[2], radius, skin, padded_size(candidates.pairs))
+                    searches += 1
+                    ahead = _steps_within(limit, 0.0, speed, config.check_every) + 1  # its first step moved 0
+                edges = candidates.edge_index if candidates is not None else empty_edges
+                valid = candidates.valid if candidates is not None else no_valid
+                reference = candidates.reference if candidates is not None else state[2]
+                trial, reports, s = [], [], state
+                for t in range(t0, min(t0 + ahead, steps)):
+                    masks = masks_of(t, s)
+                    names = tuple(sorted(masks)) if masks else ()
+                    force = forces[t] if forces is not None else zero_force
+                    args = (s[2], s[1], s[0], force, tuple(masks[n] for n in names), edges, valid, reference)
+                    nxt, report = self._step_fn(plan.force_active[t], names, radius, edges.size(1), args)(*args)
+                    trial.append(nxt)
+                    reports.append(report)
+                    s = (s[1], s[2], nxt)
+                read = torch.stack(reports).cpu().tolist()  # the one host read of these steps
+                reads += 1
+                kept = len(trial)
+                for j, (moved, _, bad) in enumerate(read):
+                    if radius > 0 and moved > limit:
+                        kept = j
+                        break
+                    if bad:
+                        raise ValueError("advance: pos contains NaN or infinite values")
+                for nxt in trial[:kept]:
+                    state = (state[1], state[2], nxt)
+                    out.append(nxt)
+                for t in range(t0, t0 + kept):
+                    mask_cache.pop(t, None)
+                if kept < len(trial):  # the list went stale at step t0 + kept: search again from there
+                    if kept == 0 and fresh:  # cannot happen with finite positions; never loop
+                        raise RuntimeError("fixed_shape_rollout: a fresh candidate list is stale")
+                    repeated += len(trial) - kept
+                    candidates = None
+                if radius > 0 and kept > 0:  # how many steps the list should still last, at the last speed
+                    moved, speed, _ = read[kept - 1]
+                    ahead = _steps_within(limit, moved, speed, config.check_every)
+                    if ahead == 0:
+                        candidates = None
+        return FixedShapeRollout(torch.stack(out), searches, reads, repeated)
+
+
+def fixed_shape_rollout(
+    model: HRN,
+    graph: HeteroData,
+    steps: int,
+    forces: Tensor | None = None,
+    masks_fn: MasksFn | None = None,
+    effects: SceneEffects | None = None,
+    config: FixedShapeConfig = FixedShapeConfig(),
+) -> FixedShapeRollout:
+    """The positions of :func:`hrn_pyg.rollout.rollout` with ``sleep=None``, from fixed-shape
+    steps (see the module docstring). Inference only (no gradient is recorded); the arguments
+    are those of :func:`~hrn_pyg.rollout.unroll`. ``masks_fn(t, graph)`` sees the graph at ``t``
+    without its collision edges. To roll one scene out several times, keep a
+    :class:`FixedShapeSimulator`.
+    """
+    return FixedShapeSimulator(model, graph, config).rollout(steps, forces, masks_fn, effects)

@@ -1,0 +1,125 @@
+"""The fixed-shape rollout (hrn_pyg.fixed_shape) gives the plain rollout's positions."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hrn_pyg import fixed_shape
+from hrn_pyg.data.graph import NODE, replicate
+from hrn_pyg.effects import SceneEffects
+from hrn_pyg.fixed_shape import FixedShapeConfig, fixed_shape_rollout
+from hrn_pyg.rollout import rollout
+from hrn_pyg.sampling.sample import make_masks_fn
+from stability.stability_helpers import fitted_model
+from toy_scene import toy_scene
+
+STEPS = 12
+
+
+def pushes(n: int, at: tuple[int, ...]) -> torch.Tensor:
+    forces = torch.zeros(STEPS, n, 3)
+    for t in at:
+        forces[t, 0] = torch.tensor([0.5, 0.0, 2.0])
+    return forces
+
+
+def plain(model, graph, forces=None, masks_fn=None, effects=None) -> torch.Tensor:
+    with torch.no_grad():
+        return rollout(model, graph, STEPS, forces, masks_fn, sleep=None, effects=effects)
+
+
+@pytest.mark.parametrize("rigid_fit", [False, True])
+@pytest.mark.parametrize("config", [FixedShapeConfig(), FixedShapeConfig(skin=0.05, check_every=3),
+                                    FixedShapeConfig(skin=2.0, check_every=1)])
+def test_equals_the_plain_rollout_bit_for_bit(rigid_fit, config):
+    """Forces on some steps, collisions between the soft and the rigid body: the same positions,
+    whatever the skin and the look-ahead."""
+    model = fitted_model(rigid_fit=rigid_fit)
+    graph = toy_scene()
+    forces = pushes(graph[NODE].num_nodes, (2, 3))
+    result = fixed_shape_rollout(model, graph, STEPS, forces, config=config)
+    assert torch.equal(result.pos, plain(model, graph, forces))
+    assert result.searches >= 1 and 1 <= result.host_reads <= STEPS
+
+
+def test_sampled_copies_get_each_step_s_masks_once():
+    """K copies with dropout: the masks of every step are drawn once (a rerun step keeps them),
+    so the same generator seed gives the plain sampler's futures."""
+    model = fitted_model(dropout_modules=("force", "collision"))
+    k = 3
+    graph = replicate(toy_scene(), k)
+    forces = pushes(graph[NODE].num_nodes, (1,))
+    calls = []
+    masks = make_masks_fn(model, k, 0.2, torch.Generator().manual_seed(5))
+
+    def counted(t, g):
+        calls.append(t)
+        return masks(t, g)
+
+    result = fixed_shape_rollout(model, graph, STEPS, forces, counted)
+    assert calls == list(range(STEPS))
+    expected = plain(model, graph, forces, make_masks_fn(model, k, 0.2, torch.Generator().manual_seed(5)))
+    assert torch.equal(result.pos, expected)
+
+
+def test_a_stale_list_is_caught_and_the_steps_rerun(monkeypatch):
+    """With the look-ahead forced long and a thin skin, lists go stale inside a run of steps: those
+    steps are thrown away and rerun after a new search, and the positions do not change."""
+    monkeypatch.setattr(fixed_shape, "_steps_within", lambda limit, moved, speed, most: most)
+    model = fitted_model()
+    graph = replicate(toy_scene(), 2)
+
+    def masks(seed):
+        return make_masks_fn(model, 2, 0.3, torch.Generator().manual_seed(seed))
+
+    result = fixed_shape_rollout(model, graph, STEPS, masks_fn=masks(1), config=FixedShapeConfig(skin=0.02, check_every=6))
+    assert result.repeated_steps > 0
+    assert torch.equal(result.pos, plain(model, graph, masks_fn=masks(1)))
+
+
+def test_a_scene_without_collisions_never_searches():
+    model = fitted_model()
+    graph = toy_scene(separate=True)
+    result = fixed_shape_rollout(model, graph, STEPS, effects=SceneEffects(collisions=False))
+    assert result.searches == 0 and result.repeated_steps == 0
+    assert result.host_reads == -(-STEPS // FixedShapeConfig().check_every)  # one read per look-ahead
+    assert torch.equal(result.pos, plain(model, graph, effects=SceneEffects(collisions=False)))
+
+
+def test_a_diverging_model_is_stopped_as_the_plain_rollout_stops_it():
+    model = fitted_model()
+    with torch.no_grad():
+        model.state.psi.output_layer.bias.fill_(float("inf"))
+    with pytest.raises(ValueError, match="advance: pos contains NaN or infinite values"):
+        plain(model, toy_scene())
+    with pytest.raises(ValueError, match="advance: pos contains NaN or infinite values"):
+        fixed_shape_rollout(model, toy_scene(), STEPS)
+
+
+def test_bad_input():
+    model = fitted_model()
+    with pytest.raises(ValueError, match="skin must be > 0"):
+        FixedShapeConfig(skin=0.0)
+    with pytest.raises(ValueError, match="check_every must be >= 1"):
+        FixedShapeConfig(check_every=0)
+    with pytest.raises(ValueError, match="cuda_graph needs the graph on a CUDA device"):
+        fixed_shape_rollout(model, toy_scene(), STEPS, config=FixedShapeConfig(cuda_graph=True))
+    with pytest.raises(ValueError, match="steps must be >= 1"):
+        fixed_shape_rollout(model, toy_scene(), 0)
+
+
+@pytest.mark.parametrize("scene", ["tower", "cube_push"])
+def test_shipped_model_on_a_pybullet_state(scene):
+    """The shipped model of a scene with many contacts (tower: hundreds of candidate pairs) or
+    pushes (cube_push: the dense force path), from a pybullet state: the same positions."""
+    from hrn_pyg.data.scenes import simulate_episode
+    from hrn_pyg.sampling.ensemble import episode_state
+    from hrn_pyg.train import load_model
+    from stability.stability_helpers import trained_checkpoint
+
+    model = load_model(trained_checkpoint(scene)).eval()
+    graph = episode_state(simulate_episode(scene, 3, steps=2 + STEPS), start=2)
+    forces = graph[NODE].force_seq.transpose(0, 1).contiguous()
+    result = fixed_shape_rollout(model, graph, STEPS, forces)
+    assert torch.equal(result.pos, plain(model, graph, forces))
