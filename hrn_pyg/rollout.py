@@ -335,7 +335,8 @@ def unroll(
     external force of each step; None means no external force at any step (the graph's
     ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
     ``t`` (None: deterministic); it always sees the whole graph. ``sleep`` lets objects at rest
-    sleep (:mod:`hrn_pyg.sleeping`; every object starts awake), on by default
+    sleep (:mod:`hrn_pyg.sleeping`; an object the start's history shows at rest starts asleep,
+    ``SleepConfig.start_from_history``), on by default
     (:data:`~hrn_pyg.sleep_config.DEFAULT_SLEEP`); ``sleep=None`` or ``enabled=False`` runs
     every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
     ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.effects.SceneEffects`;
@@ -357,7 +358,8 @@ def unroll(
 
         objs = sleep_module.objects(graph)
         objects = (objs.of_node, objs.count)
-        sleep_state = sleep_module.initial_state(objs)
+        sleep_state = (sleep_module.state_from_history(sleep, graph, objs) if sleep.start_from_history
+                       else sleep_module.initial_state(objs))
     out: list[Step] = []
     for t in range(steps):  # time steps; each step is vectorised over particles
         force = forces[t] if forces is not None else torch.zeros_like(store.pos)

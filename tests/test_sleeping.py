@@ -134,7 +134,7 @@ def test_creeping_object_falls_asleep_after_patience_steps_and_holds_exactly_sti
     graph = scene({CUBE: (5e-4, 0.0, 0.0)})  # creeps below the threshold (2e-3 m per step)
     cube = nodes_of(graph, CUBE)
     with torch.no_grad():
-        steps = unroll(model, graph, 30, sleep=SleepConfig(patience=patience))
+        steps = unroll(model, graph, 30, sleep=SleepConfig(patience=patience, start_from_history=False))
         free = rollout(model, graph, 30, sleep=None)
     pos = torch.stack([s.pos for s in steps])
     # still for `patience` observed steps: the initial velocity and patience - 1 predicted ones
@@ -199,7 +199,7 @@ def test_force_wakes_a_sleeping_object_and_it_moves():
     forces = torch.zeros(20, N, 3)
     forces[10, 0] = torch.tensor([0.0, 0.0, 2.0])  # a push on cube leaf 0 at step 10 only
     with torch.no_grad():
-        steps = unroll(model, graph, 20, forces, sleep=SleepConfig(patience=5))
+        steps = unroll(model, graph, 20, forces, sleep=SleepConfig(patience=5, start_from_history=False))
     pos = torch.stack([s.pos for s in steps])
     cube, square = nodes_of(graph, CUBE), nodes_of(graph, SQUARE)
     assert all(asleep_of(steps[t], graph, CUBE) for t in range(4, 10))
@@ -218,7 +218,7 @@ def test_moving_object_wakes_a_sleeping_one_on_contact():
     graph = scene({SQUARE: (-0.04, 0.0, 0.0)})  # the square flies at the resting cube
     cube_leaf, square_leaf = nodes_of(graph, CUBE) & graph[NODE].is_leaf, nodes_of(graph, SQUARE)
     with torch.no_grad():
-        steps = unroll(model, graph, 40, sleep=SleepConfig(patience=5))
+        steps = unroll(model, graph, 40, sleep=SleepConfig(patience=5, start_from_history=False))
     graphs = [graph] + [s.graph for s in steps]  # graphs[t]: the input of step t
 
     def contact(g) -> bool:
@@ -239,14 +239,31 @@ def test_asleep_objects_are_not_run_through_the_network():
     patience = 5
     model = toy_model()
     with torch.no_grad():
-        unroll(model, scene({SQUARE: (0.03, 0.0, 0.0)}), 12, sleep=SleepConfig(patience=patience))
+        unroll(model, scene({SQUARE: (0.03, 0.0, 0.0)}), 12, sleep=SleepConfig(patience=patience, start_from_history=False))
     # all 19 nodes until the cube (and only the cube) sleeps, then the square's 4 leaves + root
     assert model.seen_nodes == [N] * (patience - 1) + [5] * (12 - patience + 1)
     model.seen_nodes.clear()
     with torch.no_grad():
-        steps = unroll(model, scene(), 12, sleep=SleepConfig(patience=patience))
+        steps = unroll(model, scene(), 12, sleep=SleepConfig(patience=patience, start_from_history=False))
     assert model.seen_nodes == [N] * (patience - 1)  # a scene at rest costs no network pass
     assert all(bool(s.asleep.all()) for s in steps[patience - 1:])
+
+
+def test_a_start_at_rest_begins_asleep_by_default():
+    """``start_from_history`` (the default): objects still over both steps of the start's
+    history begin asleep, as the RL environment's do, so a scene at rest costs no network pass
+    from the first step; a moving object starts awake and sleeps only after its patience."""
+    model = toy_model()
+    with torch.no_grad():
+        steps = unroll(model, scene(), 8)
+    assert model.seen_nodes == [] and all(bool(s.asleep.all()) for s in steps)
+    model.seen_nodes.clear()
+    graph = scene({SQUARE: (0.03, 0.0, 0.0)})
+    with torch.no_grad():
+        steps = unroll(model, graph, 8, sleep=SleepConfig(patience=5))
+    assert model.seen_nodes == [5] * 8  # the sliding square (4 leaves + root) from the first step
+    assert all(asleep_of(s, graph, CUBE) and not asleep_of(s, graph, SQUARE) for s in steps)
+    assert torch.equal(steps[-1].pos[nodes_of(graph, CUBE)], graph[NODE].pos[nodes_of(graph, CUBE)])
 
 
 def test_subgraph_keeps_awake_objects_and_their_collision_sources():
@@ -288,7 +305,7 @@ def test_batched_copies_sleep_independently_and_keep_their_batch_ids():
         return {name: torch.ones(3, model.config.hidden) for name in model.config.dropout_modules}
 
     with torch.no_grad():
-        steps = unroll(model, graph, 12, forces, masks_fn, sleep=SleepConfig(patience=5))
+        steps = unroll(model, graph, 12, forces, masks_fn, sleep=SleepConfig(patience=5, start_from_history=False))
     assert seen_graphs == [n] * 12  # masks_fn always sees the whole graph
     batch, root = graph[NODE].batch, graph[NODE].is_root
     asleep = torch.stack([s.asleep[root] for s in steps]).view(12, 3, 3)  # [step, copy, object]
@@ -302,7 +319,7 @@ def test_batched_copies_sleep_independently_and_keep_their_batch_ids():
     pos = torch.stack([s.pos for s in steps])
     single = toy_model(gain=0.5)
     with torch.no_grad():
-        alone = rollout(single, scene(), 12, forces[:, N:2 * N], sleep=SleepConfig(patience=5))
+        alone = rollout(single, scene(), 12, forces[:, N:2 * N], sleep=SleepConfig(patience=5, start_from_history=False))
     assert torch.equal(pos[:, batch == 1], alone)
     assert torch.equal(pos[:, batch == 0], pos[:, batch == 2])
 
