@@ -53,8 +53,6 @@ from hrn_pyg.sleeping import SleepConfig
 from hrn_pyg.train import load_model
 from hrn_pyg.utils.files import atomic_write_json
 
-#: the sleeping setting (``--start-from-history``)
-SLEEPING = SleepConfig()
 CHECKPOINTS = {"tower": "hrn_pyg/checkpoints/tower.pt", "multi_material": "hrn_pyg/checkpoints/multi_material.pt",
                "field": "hrn_pyg/checkpoints/tower.pt"}
 #: the horizon of Table 1's long error
@@ -137,6 +135,11 @@ def timed(model: HRN, graph: HeteroData, forces: torch.Tensor, sleep: SleepConfi
         return (time.perf_counter() - t0) / steps, pos
 
 
+def sleeping_config(args: argparse.Namespace) -> SleepConfig:
+    """The sleeping setting: the package's defaults, ``--start-from-history`` as given."""
+    return SleepConfig(start_from_history=args.start_from_history == "true")
+
+
 def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
     graph, forces = make_case(scene, seed, QUICK_STEPS if args.quick else None, args.field_moving, args.field_spacing)
@@ -145,7 +148,7 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     store = graph[NODE]
     steps = forces.shape[0]
     truth = store.pos_seq[:, 3:].transpose(0, 1)  # [steps, N, 3]: x_3 .. x_S
-    settings = {"all_awake": None, "sleeping": SLEEPING}
+    settings = {"all_awake": None, "sleeping": sleeping_config(args)}
     effects = scene_effects("tower" if scene == "field" else scene)  # the same for both settings
     del store.pos_seq, store.force_seq
 
@@ -210,8 +213,6 @@ def main(argv: list[str] | None = None) -> dict:
     if any(s % 10 != residue for s in seeds + [args.field_seed]):
         raise SystemExit(f"--seeds and --field-seed must be {args.split} seeds (seed % 10 == {residue}), "
                          f"got {seeds} and {args.field_seed}")
-    global SLEEPING
-    SLEEPING = SleepConfig(start_from_history=args.start_from_history == "true")
     if args.quick:
         seeds = seeds[:1]
     torch.set_num_threads(args.threads)
@@ -242,7 +243,7 @@ def main(argv: list[str] | None = None) -> dict:
               f"{'yes' if r['sleep_off_bit_identical'] else 'NO'} |")
     result = {
         "what": "objects at rest sleep: rollout with SleepConfig() against every object awake",
-        "sleep_config": SLEEPING.to_dict(), "split": args.split,
+        "sleep_config": sleeping_config(args).to_dict(), "split": args.split,
         "quick": args.quick, "repeats": args.repeats,
         "statistic": "median over repeats of (rollout time / steps); settings interleaved, one process",
         "error": "position MSE per coordinate over movable leaves against pybullet, at t+15 and the episode end",

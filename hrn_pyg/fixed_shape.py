@@ -45,6 +45,7 @@ from hrn_pyg.data.candidates import (
     build_candidates,
     largest_move,
     move_limit,
+    pad_candidates,
     padded_size,
 )
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
@@ -236,7 +237,7 @@ class FixedShapeSimulator:
                 if fresh:
                     candidates = build_candidates(graph, state[2], radius, skin)
                     if config.cuda_graph:  # pad to a size that rarely changes, so recordings are reused
-                        candidates = build_candidates(graph, state[2], radius, skin, padded_size(candidates.pairs))
+                        candidates = pad_candidates(candidates, padded_size(candidates.pairs))
                     searches += 1
                     ahead = _steps_within(limit, 0.0, speed, config.check_every) + 1  # its first step moved 0
                 edges = candidates.edge_index if candidates is not None else empty_edges

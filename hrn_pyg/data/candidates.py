@@ -71,21 +71,26 @@ def build_candidates(graph: HeteroData, pos: Tensor, radius: float, skin: float,
                      capacity: int | None = None) -> CollisionCandidates:
     """Search the leaves of ``graph`` at ``pos`` ``[N, 3]`` with radius ``radius + skin``.
 
-    ``capacity`` (optional) pads the list to that many pairs (it must hold them all); the
+    ``capacity`` (optional) pads the list to that many pairs (:func:`pad_candidates`); the
     search itself reads its sizes from the device, as every search does.
     """
     if not radius > 0 or not skin > 0:
         raise ValueError(f"radius and skin must be > 0, got radius={radius}, skin={skin}")
     edges = leaf_collision_edges(graph, pos.detach(), radius + skin)
-    pairs = edges.size(1)
-    valid = torch.ones(pairs, dtype=torch.bool, device=edges.device)
-    if capacity is not None:
-        if capacity < pairs:
-            raise ValueError(f"capacity {capacity} is smaller than the {pairs} pairs found")
-        pad = capacity - pairs
-        edges = torch.cat([edges, edges.new_zeros(2, pad)], dim=1)
-        valid = torch.cat([valid, valid.new_zeros(pad)])
-    return CollisionCandidates(edges, valid, pos.detach().clone(), float(radius), float(skin), pairs)
+    valid = torch.ones(edges.size(1), dtype=torch.bool, device=edges.device)
+    candidates = CollisionCandidates(edges, valid, pos.detach().clone(), float(radius), float(skin), edges.size(1))
+    return candidates if capacity is None else pad_candidates(candidates, capacity)
+
+
+def pad_candidates(candidates: CollisionCandidates, capacity: int) -> CollisionCandidates:
+    """The list padded to ``capacity`` pairs (it must hold them all) with pairs ``0 -> 0`` that
+    are never active."""
+    pad = capacity - candidates.edge_index.size(1)
+    if pad < 0:
+        raise ValueError(f"capacity {capacity} is smaller than the {candidates.edge_index.size(1)} pairs found")
+    edges = torch.cat([candidates.edge_index, candidates.edge_index.new_zeros(2, pad)], dim=1)
+    valid = torch.cat([candidates.valid, candidates.valid.new_zeros(pad)])
+    return candidates._replace(edge_index=edges, valid=valid)
 
 
 def active_collisions(candidates: CollisionCandidates, pos: Tensor) -> Tensor:
