@@ -156,7 +156,7 @@ class HRNDynamics:
         and a resumed run can tell whether it steps the same one."""
         return (f"{type(self).__name__}(task={self.task.name!r}, model={self.model!r}, "
                 f"weights={weights_digest(self.model)}, pool={len(self.pool_seeds)} scenes, "
-                f"dropout_modules={self.dropout_modules}, sleep={self.sleep})")
+                f"dropout_modules={self.dropout_modules}, sleep={sleep_repr(self.sleep)})")
 
     # -- state layout -------------------------------------------------------------------------
     def _split(self, states: Tensor) -> tuple[Tensor, Tensor]:
@@ -260,6 +260,18 @@ class HRNDynamics:
     def structure_graph(self, index: int = 0) -> HeteroData:
         """The static graph of pool entry ``index`` (for pictures and tests)."""
         return self._structures[index]
+
+
+def sleep_repr(sleep: SleepConfig | None) -> str:
+    """The sleep settings a step of the environment uses, for a run's record.
+
+    Only ``enabled``, ``threshold`` and ``patience``: every step starts from
+    :func:`~hrn_pyg.sleeping.state_from_history`, so ``start_from_history`` (a rollout's option)
+    changes nothing here and does not make a run another run when it is resumed.
+    """
+    if sleep is None:
+        return "None"
+    return f"SleepConfig(enabled={sleep.enabled}, threshold={sleep.threshold}, patience={sleep.patience})"
 
 
 def weights_digest(model: torch.nn.Module) -> str:

@@ -222,7 +222,8 @@ def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Pa
 
     A run continues from ``out_dir/policy.pt`` when that holds the same run (:func:`resume_run`;
     written every ``checkpoint_every`` updates), also to extend a finished run to more
-    ``updates``; ``restart=True`` starts afresh.
+    ``updates``; a checkpoint of another run raises :class:`RunMismatch` and is kept;
+    ``restart=True`` starts afresh.
     """
     if dynamics is None:
         dynamics = load_dynamics(task, None, "cpu" if device is None else device)
@@ -325,11 +326,19 @@ def run_identity(task: TaskConfig, mode: str, seed: int, config: PPOConfig, sche
             "schedule": asdict(schedule), "action_noise_std": noise, "dynamics": repr(dynamics)}
 
 
+class RunMismatch(ValueError):
+    """A run folder's ``policy.pt`` belongs to another run than the one asked for."""
+
+
 def resume_run(path: Path, identity: dict, actor: nn.Module, critic: nn.Module,
                optim: torch.optim.Optimizer, env: HRNEnv) -> int:
     """Load the checkpoint at ``path`` into the run when it is the same run (``identity``), and
-    return the number of updates it holds; 0 (a fresh start) when there is none, it is another
-    run's, or it predates resumable checkpoints.
+    return the number of updates it holds; 0 (a fresh start) when there is none.
+
+    A checkpoint of another run (any key of ``identity`` differs) or one without the random
+    states raises :class:`RunMismatch` naming what differs: a run is never overwritten by
+    accident (``restart=True`` of :func:`train`, ``--restart`` on the command line, starts
+    afresh on purpose).
 
     Restored: actor, critic, Adam state, torch's random state and the environment's generator.
     Not restored: the episodes in flight when it was written. Like TorchRL's own collector
@@ -340,8 +349,14 @@ def resume_run(path: Path, identity: dict, actor: nn.Module, critic: nn.Module,
         return 0
     ckpt = load_checkpoint(path)
     saved = json.loads(ckpt["config"])
-    if "rng" not in ckpt or {k: saved.get(k) for k in identity} != json.loads(json.dumps(identity, sort_keys=True)):
-        return 0
+    wanted = json.loads(json.dumps(identity, sort_keys=True))
+    differ = sorted(k for k in wanted if saved.get(k) != wanted[k])
+    if "rng" not in ckpt:
+        differ.append("(no random states: written before runs could resume)")
+    if differ:
+        detail = "; ".join(f"{k}: saved {saved.get(k)!r}, now {wanted[k]!r}" for k in differ if k in wanted)
+        raise RunMismatch(f"{path} holds another run ({', '.join(differ)} differ{': ' + detail if detail else ''}); "
+                          "pass restart=True / --restart to overwrite it, or choose another output folder")
     actor.load_state_dict(ckpt["model"]["actor"])
     critic.load_state_dict(ckpt["model"]["critic"])
     optim.load_state_dict(ckpt["optimizer"])

@@ -301,3 +301,19 @@ def test_an_object_the_state_shows_at_rest_sleeps_unless_pushed(dynamics, model)
     torch.testing.assert_close(nxt_held[:, ~cube1], nxt_free[:, ~cube1], rtol=1e-5, atol=1e-6)
     assert "sleep=SleepConfig" in repr(dynamics) and "sleep=None" in repr(awake)
     assert HRNDynamics(model, "cube_push", pool_seeds=POOL, sleep=SleepConfig(enabled=False)).sleep is None
+
+
+def test_a_run_record_names_only_the_sleep_settings_a_step_uses(model):
+    """The environment starts every step from the state's own history, so a rollout's
+    ``start_from_history`` does not change the dynamics, nor the record a resumed run checks;
+    the threshold, the patience and sleeping off do."""
+    from hrn_pyg.rl.hrn_dynamics import sleep_repr
+    from hrn_pyg.sleep_config import SleepConfig
+
+    on = HRNDynamics(model, "cube_push", POOL, SleepConfig(start_from_history=True))
+    off = HRNDynamics(model, "cube_push", POOL, SleepConfig(start_from_history=False))
+    assert repr(on) == repr(off)
+    assert "start_from_history" not in repr(on)
+    assert sleep_repr(SleepConfig(threshold=1e-3)) != sleep_repr(SleepConfig())
+    assert sleep_repr(SleepConfig(patience=3)) != sleep_repr(SleepConfig())
+    assert "sleep=None" in repr(HRNDynamics(model, "cube_push", POOL, None))

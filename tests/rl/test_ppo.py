@@ -347,9 +347,11 @@ def test_a_finished_run_is_extended_not_repeated_and_restart_starts_afresh(tmp_p
                  RecordingPointMass(), progress=False)
     assert more["resumed_at"] == 2 and len(calls) == 1
     assert [int(r["update"]) for r in read_curve_rows(tmp_path)] == [0, 1, 2]
-    other = train(CUBE_PUSH, "deterministic", 0, dataclasses.replace(TINY, lr=1e-4), tmp_path,
-                  RecordingPointMass(), progress=False)  # another run's checkpoint: not resumed
-    assert other["resumed_at"] == 0
+    rows_before = read_curve_rows(tmp_path)
+    with pytest.raises(ppo.RunMismatch, match=r"another run \(ppo_training differ.*'lr': 0.0001.*--restart"):
+        train(CUBE_PUSH, "deterministic", 0, dataclasses.replace(TINY, lr=1e-4), tmp_path,
+              RecordingPointMass(), progress=False)  # another run's checkpoint: refused, kept
+    assert read_curve_rows(tmp_path) == rows_before and load_checkpoint(tmp_path / "policy.pt")["update"] == 3
     fresh = train(CUBE_PUSH, "deterministic", 0, TINY, tmp_path, RecordingPointMass(), progress=False,
                   restart=True)
     assert fresh["resumed_at"] == 0 and [int(r["update"]) for r in read_curve_rows(tmp_path)] == [0, 1]
