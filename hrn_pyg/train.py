@@ -429,18 +429,30 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
     return model.to(resolve_device(device)) if device is not None else model
 
 
+#: model options a fine-tuning may set on a checkpoint: they change how its weights are applied,
+#: not which weights there are
+APPLIED_OPTIONS = ("mirror_average",)
+
+
 def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
     """The model of checkpoint ``path``, in training mode, for ``init_from``.
 
     Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
-    that differs from both the defaults and the checkpoint) is an error, not silently ignored.
+    that differs from both the defaults and the checkpoint) is an error, not silently ignored;
+    except the options of :data:`APPLIED_OPTIONS`, which change how the same weights are applied
+    (``mirror_average``): set, they hold from this fine-tuning on.
     """
     model = load_model(path)
     saved, given, default = model.config.to_dict(), model_config.to_dict(), HRNConfig().to_dict()
-    clashes = sorted(k for k in given if given[k] != default.get(k) and given[k] != saved.get(k))
+    changed = {k: given[k] for k in given if given[k] != default.get(k) and given[k] != saved.get(k)}
+    clashes = sorted(k for k in changed if k not in APPLIED_OPTIONS)
     if clashes:
         raise ValueError(f"init_from={path!r} keeps that model's settings; these model options "
                          f"differ from it: {', '.join(clashes)}")
+    if changed:
+        weights = model.state_dict()
+        model = HRN(HRNConfig.from_dict({**saved, **changed}))
+        model.load_state_dict(weights)
     return model.train()
 
 

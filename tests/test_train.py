@@ -1,3 +1,4 @@
+import dataclasses
 import csv
 import json
 import os
@@ -376,3 +377,17 @@ def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes
     with pytest.raises(ValueError, match="hidden"):
         train(_config(tiny_episodes, tmp_path / "clash", steps=1, init_from=str(base)),
               HRNConfig(hidden=32), progress=False)
+
+
+def test_init_from_may_switch_on_the_mirror_average(tiny_episodes, tmp_path):
+    """mirror_average changes how the weights are applied, not which weights there are: a
+    fine-tuning may set it, and its first step starts from the checkpoint's weights."""
+    train(_config(tiny_episodes, tmp_path / "base", steps=2), SMALL, progress=False)
+    base = tmp_path / "base" / "model.pt"
+    tuned = _config(tiny_episodes, tmp_path / "tuned", steps=1, lr=1e-30, init_from=str(base))
+    train(tuned, HRNConfig(mirror_average=True), progress=False)
+    before, after = load_model(base), load_model(tmp_path / "tuned" / "model.pt")
+    assert after.config.mirror_average and not before.config.mirror_average
+    assert dataclasses.replace(after.config, mirror_average=False) == before.config
+    for (name, a), b in zip(before.state_dict().items(), after.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-12), name

@@ -61,6 +61,11 @@ class HRNConfig:
             (``graph['particle'].rest_pos``), so an elastic restoring effect is learnable.
         ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`: the distance to
             the ground plane, saturated beyond the collision radius (GNS treats walls so).
+        mirror_average: average the network over the reflection :math:`M: x \mapsto -x` of the
+            whole scene (frame averaging), :math:`u = (f(s) + M f(M s)) / 2`: the prediction is
+            then exactly mirror-equivariant, as the physics is (gravity acts along z, the
+            materials are isotropic), so the network has no side of its own. Two passes a
+            step; :meth:`HRN.sample_masks` draws an independent mask for each.
     """
 
     hidden: int = 64
@@ -74,6 +79,7 @@ class HRNConfig:
     rigid_fit: bool = False
     rest_offsets: bool = False
     ground_contact: bool = False
+    mirror_average: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -235,12 +241,15 @@ class HRN(nn.Module):
     ) -> dict[str, Tensor]:
         """One fresh mask per module of ``config.dropout_modules``, one row per trajectory copy.
 
-        Call once per prediction step. ``rate`` defaults to ``config.dropout_rate``.
+        Call once per prediction step. ``rate`` defaults to ``config.dropout_rate``. With
+        ``config.mirror_average`` each mask has ``2 * num_copies`` rows: the first half for the
+        direct pass, the second for the mirrored one.
         """
         rate = self.config.dropout_rate if rate is None else rate
         device = self.normalizer.velocity_std.device
+        rows = num_copies * (2 if self.config.mirror_average else 1)
         return {
-            name: dropout_mask(num_copies, self.config.hidden, rate, generator, device)
+            name: dropout_mask(rows, self.config.hidden, rate, generator, device)
             for name in self.config.dropout_modules
         }
 
@@ -254,9 +263,20 @@ class HRN(nn.Module):
         x, s, b = inputs.pos, inputs.state, inputs.batch
         if s.size(-1) != self.config.state_dim:
             raise ValueError(f"HRN: state has {s.size(-1)} columns, this config needs {self.config.state_dim}")
-        rest = inputs.rest_pos
-        if self.config.rest_offsets and rest is None:
+        if self.config.rest_offsets and inputs.rest_pos is None:
             raise ValueError("HRN: config.rest_offsets needs inputs.rest_pos (the rest shape)")
+        if not self.config.mirror_average:
+            return self._pass(inputs, masks)
+        direct, mirrored = split_mirror_masks(masks)
+        norm = self.normalizer
+        out = self._pass(inputs, direct)
+        out_mirrored = self._pass(mirror_inputs(inputs, norm), mirrored)
+        mean, std = norm.target_stats(inputs.is_root)
+        return 0.5 * (out + reflect_normalised(out_mirrored, mean, std))
+
+    def _pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
+        """One pass of the modules (the whole network without the mirror average)."""
+        x, s, b, rest = inputs.pos, inputs.state, inputs.batch, inputs.rest_pos
         skip = self.config.skip_idle_modules
         effect = self.history(s, inputs.prev_state, masks.get("history"), b)
         force_active = inputs.force_active
@@ -277,5 +297,48 @@ class HRN(nn.Module):
         return (
             f"{self.__class__.__name__}(hidden={c.hidden}, depth={c.depth}, effect_dim={c.effect_dim}, "
             f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
-            f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact})"
+            f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
+            + (", mirror_average=True)" if c.mirror_average else ")")
         )
+
+
+def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:
+    r"""Column 0 of ``x = (v - mean) / std`` for the reflected vector :math:`v_x \mapsto -v_x`:
+    :math:`-x_0 - 2\,\mathrm{mean}_0 / \mathrm{std}_0`; the other columns as they are.
+
+    **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
+    ``[N, 3]``).
+    """
+    mean, std = mean.expand(x.size(0), -1), std.expand(x.size(0), -1)
+    first = -x[:, :1] - 2.0 * mean[:, :1] / std[:, :1]
+    return torch.cat([first, x[:, 1:]], dim=-1)
+
+
+def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer) -> HRNInputs:
+    r"""The network inputs of the scene reflected in the plane x = 0 (:math:`x \mapsto -x`).
+
+    Velocities (the first state columns) keep their normalisation; positions, rest positions
+    and forces are scale-only, so their x column changes sign. Edges, masses, materials, heights
+    and the gravity column do not change.
+    """
+    flip = torch.tensor([-1.0, 1.0, 1.0], dtype=inputs.pos.dtype, device=inputs.pos.device)
+    mean, std = normalizer.velocity_mean, normalizer.velocity_std
+    return inputs._replace(
+        state=reflect_normalised(inputs.state, mean, std),
+        prev_state=reflect_normalised(inputs.prev_state, mean, std),
+        pos=inputs.pos * flip,
+        force=inputs.force * flip,
+        rest_pos=None if inputs.rest_pos is None else inputs.rest_pos * flip,
+    )
+
+
+def split_mirror_masks(masks: Mapping[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """Masks of a mirror-averaged pass (:meth:`HRN.sample_masks`: ``2 * copies`` rows) -> the
+    direct pass's (first half) and the mirrored pass's (second half)."""
+    direct, mirrored = {}, {}
+    for name, mask in masks.items():
+        if mask.size(0) % 2:
+            raise ValueError(f"HRN: a mirror-averaged model takes masks of 2 x copies rows (one half per "
+                             f"pass, HRN.sample_masks); {name!r} has {mask.size(0)}")
+        direct[name], mirrored[name] = mask.chunk(2, dim=0)
+    return direct, mirrored

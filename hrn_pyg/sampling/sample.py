@@ -83,13 +83,14 @@ def draw_masks(model: HRN, k: int, rate: float, generator: torch.Generator | Non
     A :class:`torch.Generator` only draws on its own device: a CPU generator driving a CUDA
     model draws on the CPU (the same numbers as a CPU model gets) and the masks are moved.
 
-    **Shapes:** ``{module: (k, hidden)}`` for every module of ``config.dropout_modules``.
+    **Shapes:** ``{module: (k, hidden)}`` for every module of ``config.dropout_modules``
+    (``2 k`` rows for a mirror-averaged model: one mask per pass).
     """
     device = model_device(model)
     if generator is None or generator.device == device:
         return model.sample_masks(k, rate, generator)
-    hidden = model.config.hidden
-    return {name: dropout_mask(k, hidden, rate, generator, generator.device).to(device)
+    hidden, rows = model.config.hidden, k * (2 if model.config.mirror_average else 1)
+    return {name: dropout_mask(rows, hidden, rate, generator, generator.device).to(device)
             for name in model.config.dropout_modules}
 
 
