@@ -61,24 +61,34 @@ def pad_frames(frames: np.ndarray, length: int) -> np.ndarray:
     return frames if extra <= 0 else np.concatenate([frames, np.repeat(frames[-1:], extra, 0)])
 
 
+def stochastic_mode(runs: Path, seed: int) -> str:
+    """The sweep's stochastic mode with a policy for ``seed``: ``stochastic`` (constant rate,
+    cube_push's Fig. 7) or else ``stochastic_annealed`` (the tower's Fig. 8)."""
+    for mode in ("stochastic", "stochastic_annealed"):
+        if (runs / mode / f"seed{seed}" / "policy.pt").is_file():
+            return mode
+    raise FileNotFoundError(f"no stochastic or stochastic_annealed policy of seed {seed} under {runs}")
+
+
 def policy_figure(task: str, runs: Path, model: Path, seed: int, episodes: int, path: Path) -> dict:
     dynamics = HRNDynamics.from_checkpoint(model, task)
     L = dynamics.num_leaves
     recs = {}
-    for mode in ("deterministic", "stochastic"):
+    stochastic = stochastic_mode(runs, seed)
+    for mode in ("deterministic", stochastic):
         env = HRNEnv(task, dynamics, batch_size=episodes, seed=FIGURE_ENV_SEED, dropout_rate=0.0)
         actor = load_actor(runs / mode / f"seed{seed}" / "policy.pt", env)
         recs[mode] = record_episodes(actor, env, episodes)
     replays = {mode: [replay_in_pybullet(r["actions"], task, r["seed"], r["goal"], HISTORY_STEPS)
                       for r in rs] for mode, rs in recs.items()}
-    sto, sto_real = recs["stochastic"], replays["stochastic"]
+    sto, sto_real = recs[stochastic], replays[stochastic]
     order = sorted(range(episodes), key=lambda i: (not (sto[i]["success"] and sto_real[i]["success"]),
                                                    not sto[i]["success"],
                                                    sto[i]["length"] < MIN_STEPS, sto[i]["length"]))
     pick = order[0]
     rows, info = {}, {"episode": pick, "scene_seed": sto[pick]["seed"]}
     length = 1 + max(max(recs[m][pick]["length"], replays[m][pick]["steps"]) for m in recs)
-    goal = recs["stochastic"][pick]["goal"].numpy()
+    goal = recs[stochastic][pick]["goal"].numpy()
     ring = goal_ring(goal, dynamics.task.goal_radius)
     for mode in recs:
         rec, real = recs[mode][pick], replays[mode][pick]
