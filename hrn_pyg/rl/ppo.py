@@ -25,7 +25,9 @@ Output (``--out``, default ``runs/rl/<task>``)::
     <mode>/seed<k>/log.csv        one row per PPO update (CSVLog)
     <mode>/seed<k>/policy.pt      actor, critic, optimiser, random states and the update count
                                   (atomic, weights-only); running the command again continues
-                                  each run from it (``--restart``: afresh)
+                                  each run from it; one of another run (other settings or
+                                  dynamics) stops the command with an error and is kept
+                                  (``--restart``: afresh)
     <mode>/seed<k>/curve.png      this run's average episode length
     episode_length.png            every mode found under --out: median over seeds, range shaded
     summary.json                  per run: final evaluation in the learned model (dropout off),
