@@ -247,11 +247,14 @@ class HRN(nn.Module):
         """
         rate = self.config.dropout_rate if rate is None else rate
         device = self.normalizer.velocity_std.device
-        rows = num_copies * (2 if self.config.mirror_average else 1)
         return {
-            name: dropout_mask(rows, self.config.hidden, rate, generator, device)
+            name: dropout_mask(self.mask_rows(num_copies), self.config.hidden, rate, generator, device)
             for name in self.config.dropout_modules
         }
+
+    def mask_rows(self, num_copies: int) -> int:
+        """Rows of a dropout mask for ``num_copies`` trajectory copies: one per copy and pass."""
+        return num_copies * (2 if self.config.mirror_average else 1)
 
     def forward(self, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:
         masks = dict(masks or {})
@@ -260,9 +263,9 @@ class HRN(nn.Module):
             raise ValueError(
                 f"HRN: masks given for {sorted(unknown)}, not in dropout_modules {self.config.dropout_modules}"
             )
-        x, s, b = inputs.pos, inputs.state, inputs.batch
-        if s.size(-1) != self.config.state_dim:
-            raise ValueError(f"HRN: state has {s.size(-1)} columns, this config needs {self.config.state_dim}")
+        columns = inputs.state.size(-1)
+        if columns != self.config.state_dim:
+            raise ValueError(f"HRN: state has {columns} columns, this config needs {self.config.state_dim}")
         if self.config.rest_offsets and inputs.rest_pos is None:
             raise ValueError("HRN: config.rest_offsets needs inputs.rest_pos (the rest shape)")
         if not self.config.mirror_average:

@@ -89,7 +89,7 @@ def draw_masks(model: HRN, k: int, rate: float, generator: torch.Generator | Non
     device = model_device(model)
     if generator is None or generator.device == device:
         return model.sample_masks(k, rate, generator)
-    hidden, rows = model.config.hidden, k * (2 if model.config.mirror_average else 1)
+    hidden, rows = model.config.hidden, model.mask_rows(k)
     return {name: dropout_mask(rows, hidden, rate, generator, generator.device).to(device)
             for name in model.config.dropout_modules}
 
