@@ -14,7 +14,7 @@ force, which in pybullet leaves every object where it is. Reported per run:
   object's leaves) at the end to the start.
 
 Run: ``python benchmarks/long_rollouts.py --model soft_bounce=hrn_pyg/checkpoints/soft_bounce_ours.pt
-[--model ...] [--seeds 8,18,28] [--steps 1000] [--out benchmarks/results/long_rollouts.json]``.
+[--model ...] [--seeds 8,18,28] [--steps 1000] [--mirror-average x|xy] [--out benchmarks/results/long_rollouts.json]``.
 Validation seeds (``seed % 10 == 8``) by default, so it can be used for model selection. Prints a
 markdown table and writes JSON atomically.
 """
@@ -28,6 +28,7 @@ import torch
 
 from hrn_pyg.data.graph import MATERIALS, NODE
 from hrn_pyg.data.scenes import SCENES, simulate_episode
+from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.train import load_model
@@ -79,6 +80,14 @@ def score(traj: torch.Tensor, graph, settle: int) -> dict[str, float]:
     return out
 
 
+def with_mirror_average(model: HRN, planes: str) -> HRN:
+    """The same weights and normaliser, averaged over the mirrors ``planes``."""
+    config = HRNConfig.from_dict({**model.config.to_dict(), "mirror_average": True, "mirror_planes": planes})
+    averaged = HRN(config)
+    averaged.load_state_dict(model.state_dict())
+    return averaged.eval()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", action="append", required=True, metavar="SCENE=PATH[:LABEL]")
@@ -86,6 +95,9 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--settle", type=int, default=200, help="step after which objects should rest")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--mirror-average", choices=("x", "xy"), default=None,
+                        help="roll every model as if averaged over these mirrors (HRNConfig.mirror_planes), "
+                             "the same weights: what the average alone does, before any training with it")
     parser.add_argument("--out", default="benchmarks/results/long_rollouts.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -97,6 +109,8 @@ def main() -> int:
         if scene not in SCENES:
             parser.error(f"unknown scene {scene!r}; choose from {sorted(SCENES)}")
         model = load_model(path)
+        if args.mirror_average:
+            model = with_mirror_average(model, args.mirror_average)
         for seed in seeds:
             graph = episode_state(simulate_episode(scene, seed, steps=5), start=2, steps=3)
             del graph[NODE].pos_seq, graph[NODE].force_seq

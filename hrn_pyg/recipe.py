@@ -67,7 +67,10 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 OPTION_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")
 #: train options the runner sets itself; a recipe may not
 RESERVED_OPTIONS = frozenset({"preset", "data", "out", "resume", "no-progress", "device", "time-limit",
-                              "init-from"})
+                              "init-from", "extra-data"})
+#: the train option naming more recipe datasets (comma-separated) whose episodes join the
+#: model's dataset in a stage; the runner passes their folders as ``--extra-data``
+EXTRA_DATASETS = "extra-datasets"
 DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch", "set"})
 MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "train", "calibrate", "finetune"})
 #: calibrate options the runner sets itself; a recipe may not
@@ -150,13 +153,34 @@ class ModelRecipe:
         """The run folder whose ``model.pt`` is the model (the last stage's)."""
         return self.run_name(self.num_stages - 1)
 
-    def identity(self, dataset: DatasetRecipe, stage: int = 0) -> dict[str, Any]:
+    def stage_options(self, stage: int = 0) -> tuple[tuple[str, OptionValue], ...]:
+        """The train options of a stage (0: the first training, then each fine-tuning)."""
+        return self.options if stage == 0 else self.finetune[stage - 1]
+
+    def extra_datasets(self, stage: int | None = None) -> tuple[str, ...]:
+        """The datasets a stage mixes into ``dataset`` (its ``extra-datasets`` option, dataset
+        names, comma-separated); every stage's when ``stage`` is None."""
+        stages = range(self.num_stages) if stage is None else (stage,)
+        names: list[str] = []
+        for s in stages:
+            value = dict(self.stage_options(s)).get(EXTRA_DATASETS, "")
+            names += [n for n in str(value).split(",") if n and n not in names]
+        return tuple(names)
+
+    def identity(self, dataset: DatasetRecipe, stage: int = 0,
+                 extra: Mapping[str, DatasetRecipe] | None = None) -> dict[str, Any]:
         """What makes two trainings the same (paths and device do not); a fine-tuning stage is
-        the same only when every stage before it is too."""
+        the same only when every stage before it is too. ``extra``: the recipes of the datasets
+        named in ``extra-datasets`` options up to this stage (recorded only when there are any,
+        so the records of models without them stay as they were)."""
         identity: dict[str, Any] = {"preset": self.preset, "options": [list(o) for o in self.options],
                                     "dataset": dataset.to_dict()}
         if stage > 0:
             identity["finetune"] = [[list(o) for o in opts] for opts in self.finetune[:stage]]
+        names = [n for s in range(stage + 1) for n in self.extra_datasets(s)]
+        if names:
+            extra = extra or {}
+            identity["extra_datasets"] = {n: extra[n].to_dict() for n in sorted(set(names))}
         return identity
 
     def train_args(self, data_dir: Path, runs_dir: Path, stage: int = 0) -> list[str]:
@@ -164,10 +188,13 @@ class ModelRecipe:
         ``--no-progress``."""
         args = ["train", "--preset", self.preset, "--data", str(data_dir / self.dataset),
                 "--out", str(runs_dir / self.run_name(stage))]
+        options = dict(self.stage_options(stage))
+        if EXTRA_DATASETS in options:  # dataset names -> their folders
+            del options[EXTRA_DATASETS]
+            options["extra-data"] = ",".join(str(data_dir / n) for n in self.extra_datasets(stage))
         if stage == 0:
-            return args + option_flags(dict(self.options))
-        return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"),
-                       *option_flags(dict(self.finetune[stage - 1]))]
+            return args + option_flags(options)
+        return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"), *option_flags(options)]
 
     def calibrate_args(self, scene: str, runs_dir: Path) -> list[str]:
         """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
@@ -186,6 +213,11 @@ class Recipe:
 
     def dataset(self, name: str) -> DatasetRecipe:
         return next(d for d in self.datasets if d.name == name)
+
+    def identity(self, model: ModelRecipe, stage: int = 0) -> dict[str, Any]:
+        """:meth:`ModelRecipe.identity` with the recipes of the model's datasets."""
+        extra = {n: self.dataset(n) for n in model.extra_datasets()}
+        return model.identity(self.dataset(model.dataset), stage, extra)
 
     def select(self, only: Sequence[str] = ()) -> tuple[ModelRecipe, ...]:
         """The models named in ``only`` (all when empty), in recipe order."""
@@ -269,6 +301,10 @@ def _parse_options(table: Any, where: str, kind: str = "train") -> tuple[tuple[s
             raise ValueError(f"{where}.{kind}: {key!r} is set by `hrn-pyg checkpoints` itself")
         if not isinstance(value, (str, int, float, bool)):
             raise ValueError(f"{where}.{kind}: {key!r} must be a string, number or boolean, got {value!r}")
+        if key.replace("_", "-") == EXTRA_DATASETS:
+            if not isinstance(value, str) or not all(NAME_PATTERN.fullmatch(n) for n in value.split(",")):
+                raise ValueError(f"{where}.{kind}: {key!r} must be dataset names, comma-separated, got {value!r}")
+            key = EXTRA_DATASETS
         options.append((key, value))
     return tuple(options)
 
@@ -304,11 +340,17 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
     stages = table.get("finetune", [])
     if not isinstance(stages, list) or ("finetune" in table and not stages):
         raise ValueError(f"{where}: 'finetune' must be a list of tables ([[{where}.finetune]])")
-    return ModelRecipe(name, dataset, _require(table, "preset", str, where),
-                       _parse_options(table.get("train", {}), where),
-                       tuple(_check_name(a, f"{where}.aliases") for a in aliases),
-                       _parse_calibrate(table["calibrate"], where) if "calibrate" in table else (),
-                       tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)))
+    model = ModelRecipe(name, dataset, _require(table, "preset", str, where),
+                        _parse_options(table.get("train", {}), where),
+                        tuple(_check_name(a, f"{where}.aliases") for a in aliases),
+                        _parse_calibrate(table["calibrate"], where) if "calibrate" in table else (),
+                        tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)))
+    unknown = sorted(set(model.extra_datasets()) - datasets)
+    if unknown:
+        raise ValueError(f"{where}: {EXTRA_DATASETS} {unknown} not in [datasets]")
+    if dataset in model.extra_datasets():
+        raise ValueError(f"{where}: {EXTRA_DATASETS} repeats the model's own dataset {dataset!r}")
+    return model
 
 
 def parse_recipe(data: Mapping[str, Any]) -> Recipe:
@@ -465,7 +507,7 @@ class Runner:
     # -- datasets ------------------------------------------------------------------------------
     def datasets(self) -> list[DatasetRecipe]:
         """The datasets the selected models need, in recipe order."""
-        needed = {m.dataset for m in self.models}
+        needed = {n for m in self.models for n in (m.dataset, *m.extra_datasets())}
         return [d for d in self.recipe.datasets if d.name in needed]
 
     def generate(self, dataset: DatasetRecipe) -> None:
@@ -499,7 +541,7 @@ class Runner:
         if not run.exists():
             return "fresh"
         record = _read_json(run / RUN_RECORD)
-        identity = model.identity(self.recipe.dataset(model.dataset), stage)
+        identity = self.recipe.identity(model, stage)
         if record is None or record.get("identity") != identity:
             return "replace"
         if (run / "model.pt").is_file():
@@ -556,7 +598,7 @@ class Runner:
     def _start_record(self, model: ModelRecipe, run: Path, args: list[str], stage: int = 0) -> dict[str, Any]:
         """Write the run's record (before training, so a killed run is recognised as ours)."""
         record = _read_json(run / RUN_RECORD) or {}
-        record = {"identity": model.identity(self.recipe.dataset(model.dataset), stage),
+        record = {"identity": self.recipe.identity(model, stage),
                   "invocations": [*record.get("invocations", []),
                                   {"command": shown(args), "args": list(args), "device": self.device_name(),
                                    "seconds": None, "rc": None}]}

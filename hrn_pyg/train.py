@@ -122,6 +122,9 @@ class TrainConfig:
         init_from: a model checkpoint (``model.pt``) to start from instead of a fresh network:
             its weights, normaliser and model settings are kept, the optimiser starts anew
             (fine-tuning); "" : a fresh network. Ignored when a run resumes.
+        extra_data: more episode folders, comma-separated, whose episodes join ``data``'s in
+            every split (e.g. a fine-tuning on a mix of the scene's data and a dataset of one
+            situation it must learn); "" : ``data`` alone. Seeds must not repeat across them.
     """
 
     preset: str = "ours"
@@ -155,6 +158,12 @@ class TrainConfig:
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
     init_from: str = ""
+    extra_data: str = ""
+
+    @property
+    def data_folders(self) -> list[str]:
+        """``data`` and the folders of ``extra_data``."""
+        return [self.data, *(f for f in self.extra_data.split(",") if f)]
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -431,7 +440,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
 
 #: model options a fine-tuning may set on a checkpoint: they change how its weights are applied,
 #: not which weights there are
-APPLIED_OPTIONS = ("mirror_average",)
+APPLIED_OPTIONS = ("mirror_average", "mirror_planes")
 
 
 def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
@@ -440,7 +449,7 @@ def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
     Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
     that differs from both the defaults and the checkpoint) is an error, not silently ignored;
     except the options of :data:`APPLIED_OPTIONS`, which change how the same weights are applied
-    (``mirror_average``): set, they hold from this fine-tuning on.
+    (``mirror_average``, ``mirror_planes``): set, they hold from this fine-tuning on.
     """
     model = load_model(path)
     saved, given, default = model.config.to_dict(), model_config.to_dict(), HRNConfig().to_dict()
@@ -476,9 +485,9 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
         torch.set_num_threads(config.threads)
 
     # every episode stays decoded in memory: windows are drawn at random across the whole split
-    train_set = EpisodeWindows(config.data, "train", horizon=config.seq_end, cache_episodes=1 << 20)
+    train_set = EpisodeWindows(config.data_folders, "train", horizon=config.seq_end, cache_episodes=1 << 20)
     try:
-        val_set = EpisodeWindows(config.data, "val", horizon=config.seq_end, cache_episodes=1 << 20)
+        val_set = EpisodeWindows(config.data_folders, "val", horizon=config.seq_end, cache_episodes=1 << 20)
     except ValueError:
         val_set = None  # a folder without validation episodes trains without a validation score
 

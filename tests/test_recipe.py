@@ -92,15 +92,26 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
     wedge = next(m for m in recipe.models if m.name == "wedge")
     args = wedge.train_args(Path("data"), Path("runs/recipe"))
     assert args == [
-        "train", "--preset", "ours", "--data", "data/wedge_ridge", "--out", "runs/recipe/wedge", "--steps", "3000",
+        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "3000",
         "--batch-size", "8", "--threads", "1", "--seq-end", "8", "--model-rigid-fit", "true",
-        "--model-ground-contact", "true", "--train-dropout", "0.1", "--dropout-modules", "force,collision",
-        "--checkpoint-every", "100", "--eval-every", "500"]
+        "--model-ground-contact", "true", "--model-mirror-average", "true", "--train-dropout", "0.1",
+        "--dropout-modules", "force,collision", "--checkpoint-every", "100", "--eval-every", "500", "--seed", "1"]
     ridge = recipe.dataset("wedge_ridge")
     assert ridge.scene == "wedge" and dict(ridge.overrides)["offset_range"] == (-0.003, 0.003)
-    # the shipped file is what that command made
+    # the shipped file is what those commands made (the first training, then each stage from the
+    # one before); a run made by hand and adopted records its own run folder
     manifest = json.loads((CHECKPOINTS_DIR / "manifest.json").read_text())["checkpoints"]["wedge"]
-    assert manifest["train_command"].startswith("hrn-pyg " + " ".join(args))
+
+    def without_out(words: list[str]) -> list[str]:
+        at = words.index("--out")
+        return words[:at] + words[at + 2:]
+
+    assert without_out(manifest["stage_commands"][0].split()[1:len(args) + 1]) == without_out(args)
+    assert len(manifest["stage_commands"]) == wedge.num_stages
+    tower = next(m for m in recipe.models if m.name == "tower")
+    assert tower.extra_datasets() == ("tower_rest",)
+    rest = recipe.dataset("tower_rest")
+    assert dict(rest.overrides)["force_range"] == (0.0, 0.0) and rest.seed_offset >= recipe.dataset("tower").episodes
 
 
 @pytest.mark.parametrize("change, word", [
@@ -349,3 +360,34 @@ def test_bad_finetune_tables_are_refused():
         recipe["models"]["m"]["finetune"] = stages
         with pytest.raises(ValueError, match=word):
             parse_recipe(recipe)
+
+
+def test_a_stage_can_mix_in_another_dataset_and_its_recipe_is_part_of_the_identity():
+    """``extra-datasets`` in a stage: its folders go to ``--extra-data``, the runner generates
+    them, the stage's identity records their recipes (so changing one redoes the stage), and
+    models without the option keep the identity they had."""
+    base = {"datasets": {"d": {"scene": "tower", "episodes": 2, "steps": 3},
+                         "rest": {"scene": "tower", "episodes": 2, "steps": 3, "seed_offset": 100,
+                                  "set": {"force_range": [0.0, 0.0]}}},
+            "models": {"m": {"dataset": "d", "preset": "ours", "train": {"steps": 2},
+                             "finetune": [{"steps": 3, "extra_datasets": "rest"}]},
+                       "plain": {"dataset": "d", "preset": "ours"}}}
+    recipe = parse_recipe(base)
+    model, plain = recipe.models
+    assert model.extra_datasets() == ("rest",) and model.extra_datasets(0) == ()
+    args = model.train_args(Path("data"), Path("runs"), 1)
+    assert args[args.index("--extra-data") + 1] == str(Path("data") / "rest") and "--extra-datasets" not in args
+    assert "--extra-data" not in model.train_args(Path("data"), Path("runs"), 0)
+    assert "extra_datasets" not in recipe.identity(model, 0) and "extra_datasets" not in recipe.identity(plain)
+    assert recipe.identity(model, 1)["extra_datasets"] == {"rest": recipe.dataset("rest").to_dict()}
+    changed = json.loads(json.dumps(base))
+    changed["datasets"]["rest"]["episodes"] = 3
+    assert parse_recipe(changed).identity(parse_recipe(changed).models[0], 1) != recipe.identity(model, 1)
+    runner = Runner(recipe, RunConfig(dry_run=True))
+    assert [d.name for d in runner.datasets()] == ["d", "rest"]
+    for value, word in (("nope", r"\['nope'\] not in \[datasets\]"), ("d", "repeats the model's own"),
+                        ("a b", "dataset names, comma-separated")):
+        bad = json.loads(json.dumps(base))
+        bad["models"]["m"]["finetune"][0]["extra_datasets"] = value
+        with pytest.raises(ValueError, match=word):
+            parse_recipe(bad)

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import re
 import zipfile
-from collections import OrderedDict
-from collections.abc import Callable
+from collections import Counter, OrderedDict
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +98,8 @@ class EpisodeWindows(Dataset):
     """Windows of ``T + 3`` consecutive model states from one split of an episode folder.
 
     Args:
-        root: folder of ``episode_<seed:06d>.npz`` files.
+        root: folder of ``episode_<seed:06d>.npz`` files, or several such folders whose
+            episodes are pooled (a fine-tuning on a mix of datasets); a seed may occur once.
         split: ``train``, ``val`` or ``test`` (disjoint by seed, see :func:`split_of_seed`).
         horizon: ``T``, the number of predicted steps per window (1 for one-step training,
             up to 6 for recurrent training).
@@ -115,7 +116,7 @@ class EpisodeWindows(Dataset):
 
     def __init__(
         self,
-        root: str | Path,
+        root: str | Path | Sequence[str | Path],
         split: str = "train",
         horizon: int = 1,
         collision_radius: float | None = None,
@@ -130,20 +131,32 @@ class EpisodeWindows(Dataset):
             raise ValueError(f"collision_radius must be >= 0, got {collision_radius}")
         if int(cache_episodes) < 1:
             raise ValueError(f"cache_episodes must be >= 1, got {cache_episodes}")
-        folder = Path(root)
-        if not folder.is_dir():
-            raise FileNotFoundError(f"episode folder {folder} does not exist")
+        folders = [Path(root)] if isinstance(root, (str, Path)) else [Path(r) for r in root]
+        if not folders:
+            raise ValueError("no episode folder given")
+        for folder in folders:
+            if not folder.is_dir():
+                raise FileNotFoundError(f"episode folder {folder} does not exist")
         self.split = split
         self.horizon = int(horizon)
         self.collision_radius = None if collision_radius is None else float(collision_radius)
         self.cache_episodes = int(cache_episodes)
 
-        found = sorted((int(m.group(1)), folder / name) for name in _listdir(folder) if (m := EPISODE_PATTERN.match(name)))
-        if not found:
-            raise ValueError(f"no episode_<seed>.npz files in {folder}")
+        found = []
+        for folder in folders:
+            here = [(int(m.group(1)), folder / name) for name in _listdir(folder) if (m := EPISODE_PATTERN.match(name))]
+            if not here:
+                raise ValueError(f"no episode_<seed>.npz files in {folder}")
+            found += here
+        found.sort()
+        twice = sorted(seed for seed, n in Counter(seed for seed, _ in found).items() if n > 1)
+        if twice:
+            raise ValueError(f"episode seed(s) {twice[:5]} occur in more than one of the folders "
+                             f"{[str(f) for f in folders]}: give each dataset its own seed range")
         chosen = [(seed, path) for seed, path in found if split_of_seed(seed) == split]
         if not chosen:
-            raise ValueError(f"no episodes of split {split!r} among the {len(found)} in {folder}")
+            raise ValueError(f"no episodes of split {split!r} among the {len(found)} in "
+                             f"{', '.join(str(f) for f in folders)}")
         self.seeds = [seed for seed, _ in chosen]
         self.paths = [path for _, path in chosen]
 
@@ -157,7 +170,7 @@ class EpisodeWindows(Dataset):
 
         self._episodes: OrderedDict[int, dict[str, Tensor]] = OrderedDict()
         self._structures: dict[int, HeteroData] = {}
-        super().__init__(root=str(folder), transform=transform, log=False)
+        super().__init__(root=str(folders[0]), transform=transform, log=False)
 
     @property
     def raw_file_names(self) -> list[str]:

@@ -271,6 +271,10 @@ class TowerConfig(SceneConfig):
 
     rolling_friction: float = 0.05
     cube_side: float = 0.1
+    #: each cube's horizontal offset from the stack's axis, per cube and axis (m; default a
+    #: straight stack). With ``force_range = (0, 0)``: towers that stand a little off-centre for a
+    #: whole episode, data for a model that must hold a stack at rest
+    stack_offset_range: tuple[float, float] = (0.0, 0.0)
     ball_radius: float = 0.075
     cube_mass_range: tuple[float, float] = (0.2, 0.5)
     ball_mass_range: tuple[float, float] = (0.5, 1.0)
@@ -891,12 +895,16 @@ class Tower(_RandomForces):
             "ball_distance": _uniform(rng, cfg.ball_distance_range),
             "ball_heading": float(rng.uniform(0, 2 * np.pi)),
             **self._schedule_params(rng),
+            # drawn last and only when asked for, so the straight stacks' episodes do not change
+            "stack_offsets": (rng.uniform(*cfg.stack_offset_range, size=(3, 2)).tolist()
+                              if cfg.stack_offset_range != (0.0, 0.0) else [[0.0, 0.0]] * 3),
         }
 
     def build(self):
         cfg, pr = self.config, self.params
-        for k, (mass, yaw) in enumerate(zip(pr["cube_masses"], pr["yaws"])):
-            self._add_rigid("box", cfg.cube_side, mass, (0, 0, cfg.cube_side * (k + 0.5)),
+        offsets = pr.get("stack_offsets", [[0.0, 0.0]] * 3)
+        for k, (mass, yaw, (dx, dy)) in enumerate(zip(pr["cube_masses"], pr["yaws"], offsets)):
+            self._add_rigid("box", cfg.cube_side, mass, (dx, dy, cfg.cube_side * (k + 0.5)),
                             _yaw_quaternion(yaw))
         d, h = pr["ball_distance"], pr["ball_heading"]
         self._add_rigid("sphere", cfg.ball_radius, pr["ball_mass"],

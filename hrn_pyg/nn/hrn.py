@@ -37,6 +37,12 @@ STATE_DIM = sum(d for _, d in STATE_LAYOUT)
 #: the extra state column of ``HRNConfig.ground_contact``: height clipped at the collision radius
 GROUND_CONTACT_DIM = 1
 
+#: the reflection groups of ``HRNConfig.mirror_planes``: each element as the axes it negates
+MIRROR_GROUPS: dict[str, tuple[tuple[int, ...], ...]] = {
+    "x": ((), (0,)),
+    "xy": ((), (0,), (1,), (0, 1)),
+}
+
 #: direction of gravity, z up
 GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
 
@@ -66,6 +72,11 @@ class HRNConfig:
             then exactly mirror-equivariant, as the physics is (gravity acts along z, the
             materials are isotropic), so the network has no side of its own. Two passes a
             step; :meth:`HRN.sample_masks` draws an independent mask for each.
+        mirror_planes: the reflections ``mirror_average`` averages over: ``"x"`` (the plane
+            x = 0; two passes) or ``"xy"`` (the planes x = 0 and y = 0 and their product, the
+            half-turn about z; four passes). With ``"xy"`` a body that a half-turn about its
+            vertical axis maps onto itself (a resting cube, a centred stack of cubes) gets no
+            horizontal velocity of its own making: a learnt bias cannot make it creep.
     """
 
     hidden: int = 64
@@ -80,6 +91,7 @@ class HRNConfig:
     rest_offsets: bool = False
     ground_contact: bool = False
     mirror_average: bool = False
+    mirror_planes: str = "x"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -95,6 +107,15 @@ class HRNConfig:
         unknown = set(self.dropout_modules) - set(MODULE_NAMES)
         if unknown:
             raise ValueError(f"HRNConfig.dropout_modules: unknown {sorted(unknown)}; choose from {MODULE_NAMES}")
+        if self.mirror_planes not in MIRROR_GROUPS:
+            raise ValueError(f"HRNConfig.mirror_planes must be one of {sorted(MIRROR_GROUPS)}, "
+                             f"got {self.mirror_planes!r}")
+
+    @property
+    def mirror_group(self) -> tuple[tuple[int, ...], ...]:
+        """The reflections the network is averaged over, each as the axes it negates (``()`` is
+        the identity); just the identity without ``mirror_average``."""
+        return MIRROR_GROUPS[self.mirror_planes] if self.mirror_average else ((),)
 
     @property
     def state_dim(self) -> int:
@@ -242,8 +263,9 @@ class HRN(nn.Module):
         """One fresh mask per module of ``config.dropout_modules``, one row per trajectory copy.
 
         Call once per prediction step. ``rate`` defaults to ``config.dropout_rate``. With
-        ``config.mirror_average`` each mask has ``2 * num_copies`` rows: the first half for the
-        direct pass, the second for the mirrored one.
+        ``config.mirror_average`` each mask has ``G * num_copies`` rows for the ``G`` passes of
+        ``config.mirror_group``: the first ``num_copies`` for the direct pass, then one block per
+        reflection.
         """
         rate = self.config.dropout_rate if rate is None else rate
         device = self.normalizer.velocity_std.device
@@ -254,7 +276,7 @@ class HRN(nn.Module):
 
     def mask_rows(self, num_copies: int) -> int:
         """Rows of a dropout mask for ``num_copies`` trajectory copies: one per copy and pass."""
-        return num_copies * (2 if self.config.mirror_average else 1)
+        return num_copies * len(self.config.mirror_group)
 
     def forward(self, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:
         masks = dict(masks or {})
@@ -268,14 +290,21 @@ class HRN(nn.Module):
             raise ValueError(f"HRN: state has {columns} columns, this config needs {self.config.state_dim}")
         if self.config.rest_offsets and inputs.rest_pos is None:
             raise ValueError("HRN: config.rest_offsets needs inputs.rest_pos (the rest shape)")
-        if not self.config.mirror_average:
+        group = self.config.mirror_group
+        if len(group) == 1:
             return self._pass(inputs, masks)
-        direct, mirrored = split_mirror_masks(masks)
         norm = self.normalizer
-        out = self._pass(inputs, direct)
-        out_mirrored = self._pass(mirror_inputs(inputs, norm), mirrored)
         mean, std = norm.target_stats(inputs.is_root)
-        return 0.5 * (out + reflect_normalised(out_mirrored, mean, std))
+        total = None
+        for axes, pass_masks in zip(group, split_mirror_masks(masks, len(group))):
+            reflected = inputs
+            for axis in axes:
+                reflected = mirror_inputs(reflected, norm, axis)
+            out = self._pass(reflected, pass_masks)
+            for axis in axes:  # reflections commute and are their own inverses
+                out = reflect_normalised(out, mean, std, axis)
+            total = out if total is None else total + out
+        return total / len(group)
 
     def _pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
         """One pass of the modules (the whole network without the mirror average)."""
@@ -301,47 +330,51 @@ class HRN(nn.Module):
             f"{self.__class__.__name__}(hidden={c.hidden}, depth={c.depth}, effect_dim={c.effect_dim}, "
             f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
-            + (", mirror_average=True)" if c.mirror_average else ")")
+            + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 
 
-def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:
-    r"""Column 0 of ``x = (v - mean) / std`` for the reflected vector :math:`v_x \mapsto -v_x`:
-    :math:`-x_0 - 2\,\mathrm{mean}_0 / \mathrm{std}_0`; the other columns as they are.
+def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor, axis: int = 0) -> Tensor:
+    r"""Column ``a = axis`` of ``x = (v - mean) / std`` for the reflected vector
+    :math:`v_a \mapsto -v_a`: :math:`-x_a - 2\,\mathrm{mean}_a / \mathrm{std}_a`; the other
+    columns as they are.
 
     **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
-    ``[N, 3]``).
+    ``[N, 3]``); ``axis`` 0, 1 or 2.
     """
     mean, std = mean.expand(x.size(0), -1), std.expand(x.size(0), -1)
-    first = -x[:, :1] - 2.0 * mean[:, :1] / std[:, :1]
-    return torch.cat([first, x[:, 1:]], dim=-1)
+    column = -x[:, axis:axis + 1] - 2.0 * mean[:, axis:axis + 1] / std[:, axis:axis + 1]
+    return torch.cat([x[:, :axis], column, x[:, axis + 1:]], dim=-1)
 
 
-def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer) -> HRNInputs:
-    r"""The network inputs of the scene reflected in the plane x = 0 (:math:`x \mapsto -x`).
+def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer, axis: int = 0) -> HRNInputs:
+    r"""The network inputs of the scene reflected in the plane through the origin normal to
+    ``axis`` (0: :math:`x \mapsto -x`, 1: :math:`y \mapsto -y`).
 
     Velocities (the first state columns) keep their normalisation; positions, rest positions
-    and forces are scale-only, so their x column changes sign. Edges, masses, materials, heights
-    and the gravity column do not change.
+    and forces are scale-only, so their ``axis`` column changes sign. Edges, masses, materials,
+    heights and the gravity column do not change.
     """
-    flip = torch.tensor([-1.0, 1.0, 1.0], dtype=inputs.pos.dtype, device=inputs.pos.device)
+    flip = torch.ones(3, dtype=inputs.pos.dtype, device=inputs.pos.device)
+    flip[axis] = -1.0
     mean, std = normalizer.velocity_mean, normalizer.velocity_std
     return inputs._replace(
-        state=reflect_normalised(inputs.state, mean, std),
-        prev_state=reflect_normalised(inputs.prev_state, mean, std),
+        state=reflect_normalised(inputs.state, mean, std, axis),
+        prev_state=reflect_normalised(inputs.prev_state, mean, std, axis),
         pos=inputs.pos * flip,
         force=inputs.force * flip,
         rest_pos=None if inputs.rest_pos is None else inputs.rest_pos * flip,
     )
 
 
-def split_mirror_masks(masks: Mapping[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
-    """Masks of a mirror-averaged pass (:meth:`HRN.sample_masks`: ``2 * copies`` rows) -> the
-    direct pass's (first half) and the mirrored pass's (second half)."""
-    direct, mirrored = {}, {}
+def split_mirror_masks(masks: Mapping[str, Tensor], passes: int = 2) -> list[dict[str, Tensor]]:
+    """Masks of a mirror-averaged step (:meth:`HRN.sample_masks`: ``passes * copies`` rows) ->
+    one dict per pass, in the order of ``HRNConfig.mirror_group`` (the direct pass first)."""
+    per_pass: list[dict[str, Tensor]] = [{} for _ in range(passes)]
     for name, mask in masks.items():
-        if mask.size(0) % 2:
-            raise ValueError(f"HRN: a mirror-averaged model takes masks of 2 x copies rows (one half per "
-                             f"pass, HRN.sample_masks); {name!r} has {mask.size(0)}")
-        direct[name], mirrored[name] = mask.chunk(2, dim=0)
-    return direct, mirrored
+        if mask.size(0) % passes:
+            raise ValueError(f"HRN: a mirror-averaged model takes masks of {passes} x copies rows (one block "
+                             f"per pass, HRN.sample_masks); {name!r} has {mask.size(0)}")
+        for block, rows in zip(per_pass, mask.chunk(passes, dim=0)):
+            block[name] = rows
+    return per_pass

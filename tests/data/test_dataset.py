@@ -169,3 +169,28 @@ def test_errors(tmp_path: Path, folder: Path) -> None:
     (broken / "episode_000001.npz").write_bytes(b"not a zip file")
     with pytest.raises(ValueError, match="episode_000001"):
         EpisodeWindows(broken)
+
+
+def test_several_folders_pool_their_episodes_and_a_repeated_seed_is_refused(tmp_path: Path, folder: Path) -> None:
+    """A second folder's episodes join the first's in every split; each window is the one its
+    own folder gives; a seed in both folders is an error naming it."""
+    extra = tmp_path / "extra"
+    extra.mkdir()
+    for seed in range(100, 110):
+        write_episode(extra, seed)
+    for split in ("train", "val", "test"):
+        one, other = EpisodeWindows(folder, split, horizon=2), EpisodeWindows(extra, split, horizon=2)
+        both = EpisodeWindows([folder, extra], split, horizon=2)
+        assert sorted(both.seeds) == sorted(one.seeds + other.seeds)
+        assert len(both) == len(one) + len(other)
+    both, other = EpisodeWindows([folder, extra], "val", horizon=2), EpisodeWindows(extra, "val", horizon=2)
+    theirs = {(int(w.episode_seed), int(w.start_step)): w for w in (other[i] for i in range(len(other)))}
+    mine = [w for w in (both[i] for i in range(len(both))) if int(w.episode_seed) >= 100]
+    assert len(mine) == len(theirs)
+    for w in mine:
+        torch.testing.assert_close(w[NODE].pos_seq, theirs[(int(w.episode_seed), int(w.start_step))][NODE].pos_seq)
+    write_episode(extra, 3)
+    with pytest.raises(ValueError, match=r"seed\(s\) \[3\] occur in more than one"):
+        EpisodeWindows([folder, extra], "train")
+    with pytest.raises(ValueError, match="no episode folder"):
+        EpisodeWindows([], "train")

@@ -183,3 +183,22 @@ def test_ground_rolling_friction_stops_a_rolling_ball():
     assert _max_leaf_speed(simulate_episode("wedge", seed=0, config=rolls), 40).max() > 0.5
     with pytest.raises(ValueError, match="rolling_friction"):
         scene_config("wedge", rolling_friction=-0.1)
+
+
+def test_tower_stack_offsets_leave_straight_stacks_alone_and_stand_still_unpushed():
+    """``stack_offset_range`` moves each cube off the stack's axis by at most the range; the
+    default (none) gives the same episode as before the option existed (zero offsets, nothing
+    else drawn); an unpushed off-centre stack stands: pybullet's cubes move under 5 mm in 40 steps."""
+    straight = simulate_episode("tower", seed=4, steps=2)
+    assert make_scene("tower", seed=4).params["stack_offsets"] == [[0.0, 0.0]] * 3
+    config = scene_config("tower", stack_offset_range=(-0.015, 0.015), force_range=(0.0, 0.0))
+    offset = simulate_episode("tower", seed=4, steps=40, config=config)
+    cubes = straight["leaf_object"] < 3
+    start = offset["positions"][0]
+    for cube in range(3):
+        rows = offset["leaf_object"] == cube
+        shift = start[rows, :2].mean(axis=0) - straight["positions"][0][rows, :2].mean(axis=0)
+        assert 0 < np.abs(shift).max() <= 0.015 + 1e-4
+    assert np.abs(offset["positions"][-1][cubes] - start[cubes]).max() < 0.005
+    with pytest.raises(ValueError, match="stack_offset_range"):
+        scene_config("tower", stack_offset_range=(0.01, -0.01))

@@ -1,4 +1,5 @@
-"""The mirror average of HRNConfig.mirror_average: exact equivariance under x -> -x."""
+"""The mirror average of HRNConfig.mirror_average: exact equivariance under x -> -x, and with
+``mirror_planes="xy"`` under y -> -y and the half-turn about z too."""
 
 import pytest
 import torch
@@ -20,13 +21,14 @@ def _model(seed: int = 0, **kw) -> HRN:
     return model.eval()
 
 
-def _scene(mirrored: bool, seed: int = 0):
-    """The toy scene (a push on leaf 0 with an x component), or its mirror image in x = 0."""
+def _scene(mirrored: bool, seed: int = 0, flip: torch.Tensor = FLIP):
+    """The toy scene (a push on leaf 0 with an x and a y component), or its image under the
+    diagonal reflection ``flip``."""
     leaves = trajectory(2, seed)
     force = torch.zeros(14, 3)
     force[0] = torch.tensor([0.5, 0.2, 2.0])
     if mirrored:
-        leaves, force = leaves * FLIP, force * FLIP
+        leaves, force = leaves * flip, force * flip
     return set_state(structure(), leaves[0], leaves[1], leaves[2], radius=0.08, force=force)
 
 
@@ -89,3 +91,54 @@ def test_masks_with_an_odd_number_of_rows_say_why():
     with pytest.raises(ValueError, match=r"mirror-averaged model takes masks of 2 x copies rows.*'force' has 1"):
         model(inputs, {"force": torch.ones(1, 16)})
     assert _model().sample_masks(3, rate=0.1)["force"].shape == (3, 16)
+
+
+FLIPS_XY = [torch.tensor(f) for f in ([-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [-1.0, -1.0, 1.0])]
+
+
+@pytest.mark.parametrize("flip", FLIPS_XY, ids=["x", "y", "half-turn"])
+def test_the_xy_average_is_equivariant_under_both_mirrors_and_the_half_turn(flip):
+    """mirror_planes="xy": f(g s) = g f(s) for each of the group's three reflections; the
+    x-only average is not equivariant under y -> -y (so the test can tell them apart)."""
+    model = _model(mirror_average=True, mirror_planes="xy", rigid_fit=True, ground_contact=True)
+    with torch.no_grad():
+        pos = step(model, _scene(False)).pos
+        pos_g = step(model, _scene(True, flip=flip)).pos
+        torch.testing.assert_close(pos_g, pos * flip, atol=1e-6, rtol=0)
+        x_only = _model(mirror_average=True, rigid_fit=True, ground_contact=True)
+        y_flip = FLIPS_XY[1]
+        gap = (step(x_only, _scene(True, flip=y_flip)).pos - step(x_only, _scene(False)).pos * y_flip).abs().max()
+    assert gap > 1e-4
+
+
+@pytest.mark.parametrize("kw", [{}, {"rigid_fit": True, "ground_contact": True}])
+def test_a_half_turn_symmetric_body_at_rest_gets_no_horizontal_velocity_of_its_own(kw):
+    """The toy cube and the square, each mapped onto itself by a half-turn about its own vertical
+    axis, at rest and out of each other's reach: with the xy average their centres move only
+    along z, whatever the weights; the plain network of the same weights moves them sideways."""
+    from toy_scene import LEAF_OBJECT, leaf_rest_positions
+
+    rest = leaf_rest_positions(separate=True)
+    g = set_state(structure(), rest, rest, rest, radius=0.08)
+    model = _model(mirror_average=True, mirror_planes="xy", **kw)
+    plain = HRN(HRNConfig(**{**SMALL, **kw}))
+    plain.load_state_dict(model.state_dict())
+    plain.eval()
+    with torch.no_grad():
+        moved = step(model, g).pos[:14] - rest
+        moved_plain = step(plain, g).pos[:14] - rest
+    for obj in (0, 1):
+        rows = LEAF_OBJECT == obj
+        assert moved[rows, :2].mean(dim=0).abs().max() < 1e-7
+        assert moved_plain[rows, :2].mean(dim=0).abs().max() > 1e-5
+
+
+def test_bad_mirror_planes_say_which_are_allowed():
+    with pytest.raises(ValueError, match=r"mirror_planes must be one of \['x', 'xy'\], got 'z'"):
+        HRNConfig(mirror_planes="z")
+    assert HRNConfig(mirror_average=True, mirror_planes="xy").mirror_group == ((), (0,), (1,), (0, 1))
+    assert HRNConfig(mirror_planes="xy").mirror_group == ((),)  # the planes act only with the average
+    model = _model(mirror_average=True, mirror_planes="xy")
+    assert model.sample_masks(3, rate=0.1)["force"].shape == (12, 16)
+    with pytest.raises(ValueError, match=r"masks of 4 x copies rows.*'force' has 2"):
+        model(build_inputs(model, _scene(False)), {"force": torch.ones(2, 16)})
