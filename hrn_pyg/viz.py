@@ -34,9 +34,10 @@ GROUND_LINES = 7
 MIN_EXTENT = 0.15
 #: margin (m) around the ground truth in pictures of sampled futures: room for a plausible spread
 SAMPLES_PAD = 0.1
-#: the sample pictures' limits also cover the central part of the samples: per axis, the
-#: quantiles ``q`` and ``1 - q`` of all sample points (a few wild samples do not count)
-SAMPLES_BULK = 0.1
+#: the sample pictures' limits also cover the central part of the samples: per axis and per time
+#: step, the quantiles ``q`` and ``1 - q`` of the sample points (a few wild samples do not count;
+#: a future that splits, as on the wedge, keeps both branches in view at every step)
+SAMPLES_BULK = 0.02
 #: camera: elevation and azimuth (degrees)
 VIEW = (18, -72)
 #: how far the 3-D box is zoomed into its panel (matplotlib leaves a wide margin at 1)
@@ -91,15 +92,23 @@ def _inside(pos: np.ndarray, limits: np.ndarray) -> np.ndarray:
 
 
 def _bulk(samples: np.ndarray) -> np.ndarray:
-    """Corners ``[2, 3]`` of the central part of the sample points (quantiles :data:`SAMPLES_BULK`).
+    """Corners ``[2, 3]`` of the central part of the sample points: the quantiles
+    :data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK`` per axis, taken at each time step apart (the
+    union over the steps), so the late, wide steps are not outvoted by the early, tight ones.
 
-    Shapes: ``samples [..., 3] -> [2, 3]``.
+    Shapes: ``samples [K, T, L, 3]`` (or ``[..., 3]``, one pool) ``-> [2, 3]``.
     """
-    pts = np.asarray(samples, dtype=float).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if len(pts) == 0:
+    samples = np.asarray(samples, dtype=float)
+    steps = [samples[:, t] for t in range(samples.shape[1])] if samples.ndim == 4 else [samples]
+    corners = []
+    for step in steps:
+        pts = step.reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        if len(pts):
+            corners.append(np.quantile(pts, [SAMPLES_BULK, 1.0 - SAMPLES_BULK], axis=0))
+    if not corners:
         return np.zeros((0, 3))
-    return np.quantile(pts, [SAMPLES_BULK, 1.0 - SAMPLES_BULK], axis=0)
+    return np.stack([np.min([c[0] for c in corners], axis=0), np.max([c[1] for c in corners], axis=0)])
 
 
 def _axes(fig, rows: int, cols: int, index: int, limits: np.ndarray):
