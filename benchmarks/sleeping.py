@@ -144,7 +144,7 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
     graph, forces = make_case(scene, seed, QUICK_STEPS if args.quick else None, args.field_moving, args.field_spacing)
     simulated = time.perf_counter() - t0
-    model = load_model(CHECKPOINTS[scene])
+    model = load_model(args.models.get(scene, CHECKPOINTS[scene]))
     store = graph[NODE]
     steps = forces.shape[0]
     truth = store.pos_seq[:, 3:].transpose(0, 1)  # [steps, N, 3]: x_3 .. x_S
@@ -202,8 +202,19 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true",
                         help=f"smoke run: first seed only, {QUICK_STEPS}-step episodes, 3 repeats")
+    parser.add_argument("--model", action="append", default=[], metavar="CASE=PATH",
+                        help="score this checkpoint in CASE instead of the shipped one (repeatable), "
+                             "e.g. a candidate on --split val")
     parser.add_argument("--out", default="benchmarks/results/sleeping.json")
     args = parser.parse_args(argv)
+    args.models = {}
+    for spec in args.model:
+        case, _, path = spec.partition("=")
+        if case not in CHECKPOINTS or not path:
+            raise SystemExit(f"--model {spec!r}: need CASE=PATH with CASE one of {sorted(CHECKPOINTS)}")
+        if not os.path.isfile(path):
+            raise SystemExit(f"--model {spec!r}: no file {path}")
+        args.models[case] = path
     if args.quick:
         args.repeats = 3
     if args.repeats < 3:
@@ -248,7 +259,8 @@ def main(argv: list[str] | None = None) -> dict:
         "statistic": "median over repeats of (rollout time / steps); settings interleaved, one process",
         "error": "position MSE per coordinate over movable leaves against pybullet, at t+15 and the episode end",
         "field": {"towers": TowerFieldConfig.towers, "moving": args.field_moving, "spacing": args.field_spacing,
-                  "model": CHECKPOINTS["field"]},
+                  "model": args.models.get("field", CHECKPOINTS["field"])},
+        "models": {case: args.models.get(case, path) for case, path in CHECKPOINTS.items()},
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
                     "torch": torch.__version__, "numpy": np.__version__, "torch_threads": args.threads,
                     "load_average_1m": os.getloadavg()[0]},
