@@ -24,7 +24,7 @@ per coordinate over the movable leaves) at ``t+15`` and at the episode's end for
 the mean fraction of movable objects asleep, and whether ``SleepConfig(enabled=False)`` gives the
 plain rollout bit for bit.
 
-Run: ``python benchmarks/sleeping.py [--seeds 9,19,29] [--repeats 5] [--threads 1]``; a smoke run
+Run: ``python benchmarks/sleeping.py [--seeds 9,19,29] [--repeats 5] [--threads 1] [--model CASE=PATH]``; a smoke run
 on a busy machine: ``python benchmarks/sleeping.py --quick`` (one seed, 40-step episodes, three
 repeats). Prints a markdown table and writes ``benchmarks/results/sleeping.json``.
 """
