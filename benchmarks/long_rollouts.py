@@ -28,10 +28,9 @@ import torch
 
 from hrn_pyg.data.graph import MATERIALS, NODE
 from hrn_pyg.data.scenes import SCENES, simulate_episode
-from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.train import load_model
+from hrn_pyg.train import load_model, with_applied_options
 from hrn_pyg.utils.files import atomic_write_json
 
 #: the package's 1000-step check (tests/stability/test_long_rollouts.py)
@@ -80,14 +79,6 @@ def score(traj: torch.Tensor, graph, settle: int) -> dict[str, float]:
     return out
 
 
-def with_mirror_average(model: HRN, planes: str) -> HRN:
-    """The same weights and normaliser, averaged over the mirrors ``planes``."""
-    config = HRNConfig.from_dict({**model.config.to_dict(), "mirror_average": True, "mirror_planes": planes})
-    averaged = HRN(config)
-    averaged.load_state_dict(model.state_dict())
-    return averaged.eval()
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", action="append", required=True, metavar="SCENE=PATH[:LABEL]")
@@ -110,7 +101,7 @@ def main() -> int:
             parser.error(f"unknown scene {scene!r}; choose from {sorted(SCENES)}")
         model = load_model(path)
         if args.mirror_average:
-            model = with_mirror_average(model, args.mirror_average)
+            model = with_applied_options(model, mirror_average=True, mirror_planes=args.mirror_average)
         for seed in seeds:
             graph = episode_state(simulate_episode(scene, seed, steps=5), start=2, steps=3)
             del graph[NODE].pos_seq, graph[NODE].force_seq

@@ -459,10 +459,21 @@ def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
         raise ValueError(f"init_from={path!r} keeps that model's settings; these model options "
                          f"differ from it: {', '.join(clashes)}")
     if changed:
-        weights = model.state_dict()
-        model = HRN(HRNConfig.from_dict({**saved, **changed}))
-        model.load_state_dict(weights)
+        model = with_applied_options(model, **changed)
     return model.train()
+
+
+def with_applied_options(model: HRN, **options: Any) -> HRN:
+    """The same weights and normaliser under a config with ``options`` changed, for options of
+    :data:`APPLIED_OPTIONS` only (they change how the weights are applied, e.g. the mirror
+    average); the other settings fix which weights there are. Keeps ``model``'s train/eval mode.
+    """
+    unknown = sorted(set(options) - set(APPLIED_OPTIONS))
+    if unknown:
+        raise ValueError(f"only {list(APPLIED_OPTIONS)} can be applied to trained weights, not {unknown}")
+    changed = HRN(HRNConfig.from_dict({**model.config.to_dict(), **options}))
+    changed.load_state_dict(model.state_dict())
+    return changed.to(model.normalizer.velocity_std.device).train(model.training)
 
 
 def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,

@@ -391,3 +391,19 @@ def test_init_from_may_switch_on_the_mirror_average(tiny_episodes, tmp_path):
     assert dataclasses.replace(after.config, mirror_average=False) == before.config
     for (name, a), b in zip(before.state_dict().items(), after.state_dict().values()):
         assert torch.allclose(a, b, atol=1e-12), name
+
+
+def test_with_applied_options_keeps_the_weights_and_refuses_other_settings(tiny_episodes, tmp_path):
+    """The xy mirror average applied to trained weights: same weights and normaliser, the new
+    planes in the config, the mode kept; a setting that changes which weights there are is
+    refused by name."""
+    from hrn_pyg.train import with_applied_options
+
+    train(_config(tiny_episodes, tmp_path / "base", steps=2), SMALL, progress=False)
+    model = load_model(tmp_path / "base" / "model.pt")
+    averaged = with_applied_options(model, mirror_average=True, mirror_planes="xy")
+    assert averaged.config.mirror_group == ((), (0,), (1,), (0, 1)) and not averaged.training
+    for (name, a), b in zip(model.state_dict().items(), averaged.state_dict().values()):
+        assert torch.equal(a, b), name
+    with pytest.raises(ValueError, match=r"not \['hidden'\]"):
+        with_applied_options(model, hidden=32)

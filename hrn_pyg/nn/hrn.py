@@ -295,14 +295,13 @@ class HRN(nn.Module):
             return self._pass(inputs, masks)
         norm = self.normalizer
         mean, std = norm.target_stats(inputs.is_root)
+        flips = reflection_signs(group, inputs.pos)  # [G, 3], one tensor for the whole step
         total = None
-        for axes, pass_masks in zip(group, split_mirror_masks(masks, len(group))):
-            reflected = inputs
-            for axis in axes:
-                reflected = mirror_inputs(reflected, norm, axis)
-            out = self._pass(reflected, pass_masks)
-            for axis in axes:  # reflections commute and are their own inverses
-                out = reflect_normalised(out, mean, std, axis)
+        for axes, flip, pass_masks in zip(group, flips, split_mirror_masks(masks, len(group))):
+            if axes:  # the scene reflected, the answer reflected back (a reflection is its own inverse)
+                out = reflect_normalised(self._pass(mirror_inputs(inputs, norm, flip), pass_masks), mean, std, flip)
+            else:
+                out = self._pass(inputs, pass_masks)
             total = out if total is None else total + out
         return total / len(group)
 
@@ -334,33 +333,43 @@ class HRN(nn.Module):
         )
 
 
-def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor, axis: int = 0) -> Tensor:
-    r"""Column ``a = axis`` of ``x = (v - mean) / std`` for the reflected vector
-    :math:`v_a \mapsto -v_a`: :math:`-x_a - 2\,\mathrm{mean}_a / \mathrm{std}_a`; the other
-    columns as they are.
+def reflection_signs(group: tuple[tuple[int, ...], ...], like: Tensor) -> Tensor:
+    """``[G, 3]``: for each reflection of ``group`` (the axes it negates), -1 on those axes and
+    +1 on the others, with ``like``'s dtype and device."""
+    signs = [[-1.0 if a in axes else 1.0 for a in range(3)] for axes in group]
+    return torch.tensor(signs, dtype=like.dtype, device=like.device)
+
+
+def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor | None = None) -> Tensor:
+    r"""The first three columns of ``x = (v - mean) / std`` for the reflected vector
+    :math:`v \mapsto f \odot v` (``flip`` :math:`f`, entries :math:`\pm 1`; default: the
+    mirror x -> -x): :math:`f \odot x + (f - 1)\,\mathrm{mean} / \mathrm{std}`, i.e.
+    :math:`-x_a - 2\,\mathrm{mean}_a / \mathrm{std}_a` on a negated axis; the other columns as
+    they are.
 
     **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
-    ``[N, 3]``); ``axis`` 0, 1 or 2.
+    ``[N, 3]``); ``flip`` ``[3]``.
     """
-    mean, std = mean.expand(x.size(0), -1), std.expand(x.size(0), -1)
-    column = -x[:, axis:axis + 1] - 2.0 * mean[:, axis:axis + 1] / std[:, axis:axis + 1]
-    return torch.cat([x[:, :axis], column, x[:, axis + 1:]], dim=-1)
+    if flip is None:
+        flip = torch.tensor([-1.0, 1.0, 1.0], dtype=x.dtype, device=x.device)
+    vector = x[:, :3] * flip + (flip - 1.0) * (mean / std)
+    return torch.cat([vector, x[:, 3:]], dim=-1)
 
 
-def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer, axis: int = 0) -> HRNInputs:
-    r"""The network inputs of the scene reflected in the plane through the origin normal to
-    ``axis`` (0: :math:`x \mapsto -x`, 1: :math:`y \mapsto -y`).
+def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor | None = None) -> HRNInputs:
+    r"""The network inputs of the scene under the reflection :math:`v \mapsto f \odot v`
+    (``flip`` :math:`f` ``[3]``, entries :math:`\pm 1`; default: the mirror x -> -x).
 
     Velocities (the first state columns) keep their normalisation; positions, rest positions
-    and forces are scale-only, so their ``axis`` column changes sign. Edges, masses, materials,
+    and forces are scale-only, so their negated columns change sign. Edges, masses, materials,
     heights and the gravity column do not change.
     """
-    flip = torch.ones(3, dtype=inputs.pos.dtype, device=inputs.pos.device)
-    flip[axis] = -1.0
+    if flip is None:
+        flip = torch.tensor([-1.0, 1.0, 1.0], dtype=inputs.pos.dtype, device=inputs.pos.device)
     mean, std = normalizer.velocity_mean, normalizer.velocity_std
     return inputs._replace(
-        state=reflect_normalised(inputs.state, mean, std, axis),
-        prev_state=reflect_normalised(inputs.prev_state, mean, std, axis),
+        state=reflect_normalised(inputs.state, mean, std, flip),
+        prev_state=reflect_normalised(inputs.prev_state, mean, std, flip),
         pos=inputs.pos * flip,
         force=inputs.force * flip,
         rest_pos=None if inputs.rest_pos is None else inputs.rest_pos * flip,
