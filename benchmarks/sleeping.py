@@ -24,9 +24,18 @@ per coordinate over the movable leaves) at ``t+15`` and at the episode's end for
 the mean fraction of movable objects asleep, and whether ``SleepConfig(enabled=False)`` gives the
 plain rollout bit for bit.
 
-Run: ``python benchmarks/sleeping.py [--seeds 9,19,29] [--repeats 5] [--threads 1] [--model CASE=PATH]``; a smoke run
-on a busy machine: ``python benchmarks/sleeping.py --quick`` (one seed, 40-step episodes, three
-repeats). Prints a markdown table and writes ``benchmarks/results/sleeping.json``.
+Errors over the whole split (``--accuracy-episodes``, default all 10 episodes per case, seeds 9,
+19, ..., 99; the field: ten worlds): one episode's end error is a coin toss between two rollouts
+that have both drifted or fallen apart (0.03-3 m^2 on the towers), so "not worse" is judged on
+the split's mean, as ``hrn-pyg evaluate`` reports it: the ratio of the sleeping rollouts' mean
+error to the awake ones', with a paired bootstrap 95 % interval over the episodes, the median
+per-episode ratio and the count of episodes worse. These rollouts are not timed.
+
+Run: ``python benchmarks/sleeping.py [--seeds 9,19,29] [--repeats 5] [--threads 1] [--model CASE=PATH]
+[--accuracy-episodes 10]``; a setting of the rule on validation episodes: ``--split val --seeds
+8,18,28 --field-seed 8 --threshold 1e-3 --patience 20``; a smoke run on a busy machine:
+``python benchmarks/sleeping.py --quick`` (one seed, 40-step episodes, three repeats, two
+episodes of errors). Prints markdown tables and writes ``benchmarks/results/sleeping.json``.
 """
 
 from __future__ import annotations
@@ -42,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch_geometric.data import HeteroData
+from tqdm.auto import tqdm
 
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.scenes import SCENES, Tower, TowerConfig, _yaw_quaternion, scene_effects, simulate_episode
@@ -119,6 +129,19 @@ def make_case(scene: str, seed: int, steps: int | None, moving: int, spacing: fl
     return graph, graph[NODE].force_seq.transpose(0, 1).contiguous()
 
 
+_CASES: dict[tuple[str, int, bool], tuple[HeteroData, torch.Tensor]] = {}
+
+
+def cached_case(scene: str, seed: int, args: argparse.Namespace) -> tuple[HeteroData, torch.Tensor]:
+    """:func:`make_case` once per (scene, seed) in a run: the timed cases and the accuracy pass
+    share their pybullet episodes. Returns a shallow copy the caller may strip."""
+    key = (scene, seed, args.quick)
+    if key not in _CASES:
+        _CASES[key] = make_case(scene, seed, QUICK_STEPS if args.quick else None, args.field_moving, args.field_spacing)
+    graph, forces = _CASES[key]
+    return graph.clone(), forces
+
+
 def position_mse(pred: torch.Tensor, truth: torch.Tensor, graph: HeteroData) -> float:
     """Mean squared error per coordinate over the movable leaves (``hrn_pyg.evaluate``'s)."""
     store = graph[NODE]
@@ -136,13 +159,17 @@ def timed(model: HRN, graph: HeteroData, forces: torch.Tensor, sleep: SleepConfi
 
 
 def sleeping_config(args: argparse.Namespace) -> SleepConfig:
-    """The sleeping setting: the package's defaults, ``--start-from-history`` as given."""
-    return SleepConfig(start_from_history=args.start_from_history == "true")
+    """The sleeping setting: the package's defaults, ``--start-from-history``, ``--threshold``
+    and ``--patience`` as given."""
+    default = SleepConfig()
+    return SleepConfig(start_from_history=args.start_from_history == "true",
+                       threshold=default.threshold if args.threshold is None else args.threshold,
+                       patience=default.patience if args.patience is None else args.patience)
 
 
 def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
-    graph, forces = make_case(scene, seed, QUICK_STEPS if args.quick else None, args.field_moving, args.field_spacing)
+    graph, forces = cached_case(scene, seed, args)
     simulated = time.perf_counter() - t0
     model = load_model(args.models.get(scene, CHECKPOINTS[scene]))
     store = graph[NODE]
@@ -187,6 +214,60 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     }
 
 
+def episode_errors(scene: str, seed: int, args: argparse.Namespace) -> dict[str, dict[str, float]]:
+    """Position MSE at t+15 and at the end, all awake and sleeping, of one episode (untimed)."""
+    graph, forces = cached_case(scene, seed, args)
+    store = graph[NODE]
+    truth = store.pos_seq[:, 3:].transpose(0, 1)
+    del store.pos_seq, store.force_seq
+    model = load_model(args.models.get(scene, CHECKPOINTS[scene]))
+    effects = scene_effects("tower" if scene == "field" else scene)
+    steps = forces.shape[0]
+    horizon = min(HORIZON, steps)
+    out = {}
+    with torch.no_grad():
+        for name, sleep in (("all_awake", None), ("sleeping", sleeping_config(args))):
+            pred = rollout(model, graph, steps, forces, sleep=sleep, effects=effects)
+            out[name] = {"t+15": position_mse(pred[horizon - 1], truth[horizon - 1], graph),
+                         "end": position_mse(pred[-1], truth[-1], graph)}
+    return out
+
+
+def paired_summary(awake: list[float], sleeping: list[float], draws: int = 2000) -> dict:
+    r"""Sleeping against all awake over episodes, one error per episode each.
+
+    ``ratio_of_means`` :math:`\bar e_\mathrm{sleep} / \bar e_\mathrm{awake}` (the mean is the
+    split's error, as ``hrn-pyg evaluate`` averages episodes), its 95 % interval from ``draws``
+    paired bootstrap resamples of the episodes (a fixed seed, so a rerun prints the same), the
+    median of the per-episode ratios and how many episodes are worse with sleeping.
+    """
+    a, b = np.asarray(awake, dtype=np.float64), np.asarray(sleeping, dtype=np.float64)
+    pick = np.random.default_rng(0).integers(0, a.size, size=(draws, a.size))
+    boot = b[pick].mean(1) / a[pick].mean(1)
+    per_episode = b / a
+    return {"mean_all_awake": float(a.mean()), "mean_sleeping": float(b.mean()),
+            "ratio_of_means": float(b.mean() / a.mean()),
+            "ratio_interval_95": [float(np.quantile(boot, 0.025)), float(np.quantile(boot, 0.975))],
+            "median_episode_ratio": float(np.median(per_episode)),
+            "episodes_worse": int((per_episode > 1).sum()), "episodes": int(a.size)}
+
+
+def accuracy_over_split(scenes: list[str], args: argparse.Namespace) -> dict:
+    """Errors of both settings over the first ``--accuracy-episodes`` episodes of the split of
+    every case (the field: that many field worlds), with :func:`paired_summary` per horizon."""
+    residue = 9 if args.split == "test" else 8
+    seeds = [residue + 10 * i for i in range(args.accuracy_episodes)]
+    result = {}
+    for scene in scenes:
+        per_seed = {}
+        for seed in tqdm(seeds, desc=f"accuracy {scene}", leave=False, disable=args.no_progress):
+            per_seed[seed] = episode_errors(scene, seed, args)
+        summary = {h: paired_summary([e["all_awake"][h] for e in per_seed.values()],
+                                     [e["sleeping"][h] for e in per_seed.values()]) for h in ("t+15", "end")}
+        result[scene] = {"seeds": seeds, "per_episode": {str(k): v for k, v in per_seed.items()}, "summary": summary}
+    return result
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="9,19,29", help="test seeds (seed %% 10 == 9) of tower and multi_material")
@@ -194,6 +275,10 @@ def main(argv: list[str] | None = None) -> dict:
                         help="val: validation seeds (seed %% 10 == 8), for choosing settings")
     parser.add_argument("--start-from-history", default="true", choices=("true", "false"),
                         help="SleepConfig.start_from_history of the sleeping setting (default: the package default, true)")
+    parser.add_argument("--threshold", type=float, default=None,
+                        help="SleepConfig.threshold of the sleeping setting, m per step (default: the package's)")
+    parser.add_argument("--patience", type=int, default=None,
+                        help="SleepConfig.patience of the sleeping setting, steps (default: the package's)")
     parser.add_argument("--field-seed", type=int, default=9)
     parser.add_argument("--field-moving", type=int, default=2, help="towers whose ball is pushed (of 16)")
     parser.add_argument("--field-spacing", type=float, default=1.5, help="distance between towers (m)")
@@ -205,6 +290,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--model", action="append", default=[], metavar="CASE=PATH",
                         help="score this checkpoint in CASE instead of the shipped one (repeatable), "
                              "e.g. a candidate on --split val")
+    parser.add_argument("--accuracy-episodes", type=int, default=10,
+                        help="errors of both settings (untimed) over this many episodes of the split per case, "
+                             "seeds 9, 19, ... (val: 8, 18, ...); 0: none")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--out", default="benchmarks/results/sleeping.json")
     args = parser.parse_args(argv)
     args.models = {}
@@ -217,6 +306,13 @@ def main(argv: list[str] | None = None) -> dict:
         args.models[case] = path
     if args.quick:
         args.repeats = 3
+        args.accuracy_episodes = min(args.accuracy_episodes, 2)
+    try:
+        sleeping_config(args)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
+    if not 0 <= args.accuracy_episodes <= 10:
+        raise SystemExit(f"--accuracy-episodes must be 0..10 (the split has 10 episodes per scene), got {args.accuracy_episodes}")
     if args.repeats < 3:
         raise SystemExit("--repeats must be >= 3 (median of at least 3 runs)")
     seeds = [int(s) for s in args.seeds.split(",") if s]
@@ -228,10 +324,12 @@ def main(argv: list[str] | None = None) -> dict:
         seeds = seeds[:1]
     torch.set_num_threads(args.threads)
 
-    rows = []
-    for scene in (c for c in args.cases.split(",") if c):
+    scenes = [c for c in args.cases.split(",") if c]
+    for scene in scenes:
         if scene not in CHECKPOINTS:
             raise SystemExit(f"unknown case {scene!r}; choose from {sorted(CHECKPOINTS)}")
+    rows = []
+    for scene in scenes:
         for seed in ([args.field_seed] if scene == "field" else seeds):
             row = bench_case(scene, seed, args)
             rows.append(row)
@@ -252,6 +350,20 @@ def main(argv: list[str] | None = None) -> dict:
               f"{100 * r['asleep_fraction_mean']:.0f}% | {err['all_awake'][h]:.3g} / {err['sleeping'][h]:.3g} | "
               f"{err['all_awake']['end']:.3g} / {err['sleeping']['end']:.3g} | "
               f"{'yes' if r['sleep_off_bit_identical'] else 'NO'} |")
+    accuracy = accuracy_over_split(scenes, args) if args.accuracy_episodes else {}
+    if accuracy:
+        print()
+        print(f"Errors over {args.accuracy_episodes} {args.split} episodes per case (untimed; mean of the per-episode "
+              "position MSE, sleeping / all awake with a paired bootstrap 95 % interval):")
+        print()
+        print("| case | horizon | mean awake | mean sleeping | ratio of means | 95 % interval | median episode ratio | episodes worse |")
+        print("|---|---|---:|---:|---:|---|---:|---:|")
+        for scene, acc in accuracy.items():
+            for h, sm in acc["summary"].items():
+                lo, hi = sm["ratio_interval_95"]
+                print(f"| {scene} | {h} | {sm['mean_all_awake']:.4g} | {sm['mean_sleeping']:.4g} | "
+                      f"{sm['ratio_of_means']:.3f} | {lo:.3f}-{hi:.3f} | {sm['median_episode_ratio']:.3f} | "
+                      f"{sm['episodes_worse']} of {sm['episodes']} |")
     result = {
         "what": "objects at rest sleep: rollout with SleepConfig() against every object awake",
         "sleep_config": sleeping_config(args).to_dict(), "split": args.split,
@@ -265,6 +377,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "torch": torch.__version__, "numpy": np.__version__, "torch_threads": args.threads,
                     "load_average_1m": os.getloadavg()[0]},
         "rows": rows,
+        "accuracy": accuracy,
     }
     atomic_write_json(args.out, result)
     print(f"wrote {args.out}")

@@ -151,6 +151,29 @@ def test_creeping_object_falls_asleep_after_patience_steps_and_holds_exactly_sti
     assert float((free[-1, cube] - free[patience - 2, cube]).abs().max()) > 0.005
 
 
+def test_a_scene_wholly_asleep_keeps_its_contacts_without_a_search(monkeypatch):
+    from hrn_pyg import sleeping
+
+    model = toy_model()
+    graph = scene(separate=False)  # at rest, the square touching the cube
+    with torch.no_grad():
+        first = unroll(model, graph, 1)[0]  # asleep from the start (the history shows rest)
+    assert bool(first.asleep.all())
+    assert first.graph[COLLISION].edge_index.size(1) > 0
+    assert torch.equal(first.graph[COLLISION].edge_index, full_search_edges(first.graph))
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("searched although every leaf is held")
+
+    monkeypatch.setattr(sleeping, "collision_edges", no_search)
+    with torch.no_grad():
+        steps = unroll(model, first.graph, 3)
+    for st in steps:
+        assert bool(st.asleep.all())
+        assert torch.equal(st.graph[COLLISION].edge_index, first.graph[COLLISION].edge_index)
+        assert torch.equal(st.pos, first.pos)
+
+
 def _tower_at_rest():
     from hrn_pyg.data.scenes import simulate_episode
     from hrn_pyg.sampling.ensemble import episode_state
