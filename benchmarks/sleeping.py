@@ -134,7 +134,7 @@ _CASES: dict[tuple[str, int, bool], tuple[HeteroData, torch.Tensor]] = {}
 
 def cached_case(scene: str, seed: int, args: argparse.Namespace) -> tuple[HeteroData, torch.Tensor]:
     """:func:`make_case` once per (scene, seed) in a run: the timed cases and the accuracy pass
-    share their pybullet episodes. Returns a shallow copy the caller may strip."""
+    share their pybullet episodes. Returns a copy (``clone``) the caller may strip."""
     key = (scene, seed, args.quick)
     if key not in _CASES:
         _CASES[key] = make_case(scene, seed, QUICK_STEPS if args.quick else None, args.field_moving, args.field_spacing)
@@ -215,7 +215,8 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
 
 
 def episode_errors(scene: str, seed: int, args: argparse.Namespace) -> dict[str, dict[str, float]]:
-    """Position MSE at t+15 and at the end, all awake and sleeping, of one episode (untimed)."""
+    """Position MSE at t+15 (or the episode's last step, if sooner) and at the end, all awake and
+    sleeping, of one episode (untimed)."""
     graph, forces = cached_case(scene, seed, args)
     store = graph[NODE]
     truth = store.pos_seq[:, 3:].transpose(0, 1)
@@ -228,7 +229,7 @@ def episode_errors(scene: str, seed: int, args: argparse.Namespace) -> dict[str,
     with torch.no_grad():
         for name, sleep in (("all_awake", None), ("sleeping", sleeping_config(args))):
             pred = rollout(model, graph, steps, forces, sleep=sleep, effects=effects)
-            out[name] = {"t+15": position_mse(pred[horizon - 1], truth[horizon - 1], graph),
+            out[name] = {f"t+{horizon}": position_mse(pred[horizon - 1], truth[horizon - 1], graph),
                          "end": position_mse(pred[-1], truth[-1], graph)}
     return out
 
@@ -263,7 +264,8 @@ def accuracy_over_split(scenes: list[str], args: argparse.Namespace) -> dict:
         for seed in tqdm(seeds, desc=f"accuracy {scene}", leave=False, disable=args.no_progress):
             per_seed[seed] = episode_errors(scene, seed, args)
         summary = {h: paired_summary([e["all_awake"][h] for e in per_seed.values()],
-                                     [e["sleeping"][h] for e in per_seed.values()]) for h in ("t+15", "end")}
+                                     [e["sleeping"][h] for e in per_seed.values()])
+                   for h in next(iter(per_seed.values()))["all_awake"]}
         result[scene] = {"seeds": seeds, "per_episode": {str(k): v for k, v in per_seed.items()}, "summary": summary}
     return result
 
