@@ -149,6 +149,26 @@ def position_mse(pred: torch.Tensor, truth: torch.Tensor, graph: HeteroData) -> 
     return float((pred - truth)[moving].pow(2).mean())
 
 
+def prepared(scene: str, seed: int, args: argparse.Namespace
+             ) -> tuple[HeteroData, torch.Tensor, torch.Tensor, HRN, SceneEffects]:
+    """One case ready to roll: the start graph (ground truth stripped), the forces ``[S, N, 3]``,
+    pybullet's positions ``[S, N, 3]`` of the predicted steps (``x_3 .. x_S``), the case's model
+    and the scene's declared effects (the same for both settings; the field: the tower's)."""
+    graph, forces = cached_case(scene, seed, args)
+    store = graph[NODE]
+    truth = store.pos_seq[:, 3:].transpose(0, 1)
+    del store.pos_seq, store.force_seq
+    model = load_model(args.models.get(scene, CHECKPOINTS[scene]))
+    return graph, forces, truth, model, scene_effects("tower" if scene == "field" else scene)
+
+
+def errors(pred: torch.Tensor, truth: torch.Tensor, graph: HeteroData) -> dict[str, float]:
+    """Position MSE at t+15 (or the last step of a shorter episode) and at the episode's end."""
+    horizon = min(HORIZON, pred.shape[0])
+    return {f"t+{horizon}": position_mse(pred[horizon - 1], truth[horizon - 1], graph),
+            "end": position_mse(pred[-1], truth[-1], graph)}
+
+
 def timed(model: HRN, graph: HeteroData, forces: torch.Tensor, sleep: SleepConfig | None,
           effects: SceneEffects | None = None) -> tuple[float, torch.Tensor]:
     steps = forces.shape[0]
@@ -169,15 +189,11 @@ def sleeping_config(args: argparse.Namespace) -> SleepConfig:
 
 def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
-    graph, forces = cached_case(scene, seed, args)
+    graph, forces, truth, model, effects = prepared(scene, seed, args)
     simulated = time.perf_counter() - t0
-    model = load_model(args.models.get(scene, CHECKPOINTS[scene]))
     store = graph[NODE]
     steps = forces.shape[0]
-    truth = store.pos_seq[:, 3:].transpose(0, 1)  # [steps, N, 3]: x_3 .. x_S
     settings = {"all_awake": None, "sleeping": sleeping_config(args)}
-    effects = scene_effects("tower" if scene == "field" else scene)  # the same for both settings
-    del store.pos_seq, store.force_seq
 
     with torch.no_grad():
         asleep = torch.stack([s.asleep for s in unroll(model, graph, steps, forces, sleep=settings["sleeping"],
@@ -195,15 +211,13 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
         for k, sleep in settings.items():
             times[k].append(timed(model, graph, forces, sleep, effects)[0])
     med = {k: statistics.median(v) for k, v in times.items()}
-    horizon = min(HORIZON, steps)
     return {
         "scene": scene, "seed": seed, "steps": steps,
         "objects": int(store.is_root.sum()), "leaves": int(store.is_leaf.sum()), "nodes": int(store.num_nodes),
         "ms_per_step": {k: 1e3 * v for k, v in med.items()},
         "ms_per_step_runs": {k: [1e3 * t for t in v] for k, v in times.items()},
         "all_awake_over_sleeping": med["all_awake"] / med["sleeping"],
-        "position_mse": {k: {f"t+{horizon}": position_mse(p[horizon - 1], truth[horizon - 1], graph),
-                             "end": position_mse(p[-1], truth[-1], graph)} for k, p in preds.items()},
+        "position_mse": {k: errors(p, truth, graph) for k, p in preds.items()},
         "asleep_fraction_mean": float(asleep_fraction.mean()),
         "asleep_fraction_last_step": float(asleep_fraction[-1]),
         "first_step_all_asleep": (int(torch.nonzero(asleep_fraction == 1).min())
@@ -217,21 +231,10 @@ def bench_case(scene: str, seed: int, args: argparse.Namespace) -> dict:
 def episode_errors(scene: str, seed: int, args: argparse.Namespace) -> dict[str, dict[str, float]]:
     """Position MSE at t+15 (or the episode's last step, if sooner) and at the end, all awake and
     sleeping, of one episode (untimed)."""
-    graph, forces = cached_case(scene, seed, args)
-    store = graph[NODE]
-    truth = store.pos_seq[:, 3:].transpose(0, 1)
-    del store.pos_seq, store.force_seq
-    model = load_model(args.models.get(scene, CHECKPOINTS[scene]))
-    effects = scene_effects("tower" if scene == "field" else scene)
-    steps = forces.shape[0]
-    horizon = min(HORIZON, steps)
-    out = {}
+    graph, forces, truth, model, effects = prepared(scene, seed, args)
     with torch.no_grad():
-        for name, sleep in (("all_awake", None), ("sleeping", sleeping_config(args))):
-            pred = rollout(model, graph, steps, forces, sleep=sleep, effects=effects)
-            out[name] = {f"t+{horizon}": position_mse(pred[horizon - 1], truth[horizon - 1], graph),
-                         "end": position_mse(pred[-1], truth[-1], graph)}
-    return out
+        return {name: errors(rollout(model, graph, forces.shape[0], forces, sleep=sleep, effects=effects), truth, graph)
+                for name, sleep in (("all_awake", None), ("sleeping", sleeping_config(args)))}
 
 
 def paired_summary(awake: list[float], sleeping: list[float], draws: int = 2000) -> dict:

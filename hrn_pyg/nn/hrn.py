@@ -249,6 +249,9 @@ class HRN(nn.Module):
         self.a2d = PropagationModule(s, d, mlp, name="a2d", rest_offsets=rest)
         self.state = NextStateModule(s, d, mlp)
         self.normalizer = Normalizer()
+        # [G, 3] signs of the mirror group's reflections: made once, moved with the module, so a
+        # step builds no tensor from host data (none to copy, nothing a CUDA graph cannot hold)
+        self.register_buffer("mirror_signs", reflection_signs(config.mirror_group), persistent=False)
 
     def reset_parameters(self) -> None:
         for name in MODULE_NAMES:
@@ -295,7 +298,7 @@ class HRN(nn.Module):
             return self._pass(inputs, masks)
         norm = self.normalizer
         mean, std = norm.target_stats(inputs.is_root)
-        flips = reflection_signs(group, inputs.pos)  # [G, 3], one tensor for the whole step
+        flips = self.mirror_signs.to(inputs.pos.dtype)  # [G, 3]
         total = None
         for axes, flip, pass_masks in zip(group, flips, split_mirror_masks(masks, len(group))):
             if axes:  # the scene reflected, the answer reflected back (a reflection is its own inverse)
@@ -333,11 +336,10 @@ class HRN(nn.Module):
         )
 
 
-def reflection_signs(group: tuple[tuple[int, ...], ...], like: Tensor) -> Tensor:
-    """``[G, 3]``: for each reflection of ``group`` (the axes it negates), -1 on those axes and
-    +1 on the others, with ``like``'s dtype and device."""
-    signs = [[-1.0 if a in axes else 1.0 for a in range(3)] for axes in group]
-    return torch.tensor(signs, dtype=like.dtype, device=like.device)
+def reflection_signs(group: tuple[tuple[int, ...], ...]) -> Tensor:
+    """``[G, 3]`` float: for each reflection of ``group`` (the axes it negates), -1 on those
+    axes and +1 on the others (the buffer ``HRN.mirror_signs``)."""
+    return torch.tensor([[-1.0 if a in axes else 1.0 for a in range(3)] for axes in group])
 
 
 def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor | None = None) -> Tensor:

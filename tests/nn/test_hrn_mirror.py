@@ -142,3 +142,26 @@ def test_bad_mirror_planes_say_which_are_allowed():
     assert model.sample_masks(3, rate=0.1)["force"].shape == (12, 16)
     with pytest.raises(ValueError, match=r"masks of 4 x copies rows.*'force' has 2"):
         model(build_inputs(model, _scene(False)), {"force": torch.ones(2, 16)})
+
+
+def test_the_reflection_signs_are_a_buffer_of_the_module_not_of_the_checkpoint():
+    """The group's signs are made once and move with the module (a step builds no tensor from
+    host data); they stay out of the state dict, so checkpoints are unchanged."""
+    model = _model(mirror_average=True, mirror_planes="xy")
+    expected = torch.tensor([[1.0, 1.0, 1.0], [-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [-1.0, -1.0, 1.0]])
+    assert torch.equal(model.mirror_signs, expected)
+    assert "mirror_signs" not in model.state_dict()
+    plain = HRN(HRNConfig(**SMALL))
+    plain.load_state_dict(model.state_dict())  # the same keys with and without the average
+    assert torch.equal(plain.mirror_signs, torch.ones(1, 3))
+    with torch.no_grad():
+        single = step(model, _scene(False)).pos
+        model.double()
+        assert model.mirror_signs.dtype == torch.float64
+        g = _scene(False)
+        for store in g.node_stores:
+            for key, value in list(store.items()):
+                if torch.is_tensor(value) and value.is_floating_point():
+                    store[key] = value.double()
+        doubled = step(model, g).pos
+    torch.testing.assert_close(doubled.float(), single, atol=1e-5, rtol=0)
