@@ -50,7 +50,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch, HeteroData
 
-from hrn_pyg.viz import save_figure
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy
@@ -58,10 +58,11 @@ from hrn_pyg.data.io import load_episode, save_episode
 from hrn_pyg.data.scenes import make_scene, scene_config, simulate_episode
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.train import TrainConfig, load_model, train
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.train import TrainConfig, train
 from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.viz import save_figure
 
 SCENES = ("soft_bounce", "cube_collision")
 HORIZONS = (5, 15)

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Issue 15's GPU measurements in one sitting on a lent machine (run from the repository root with
-# the device tool, which sets $OUT; carry data/device/packs): the step time against leaf count
-# (plain, fixed-shape, CUDA graph; the goals <= 1.5 ms to 10k leaves and < 50 ms at 1M), then
-# the shipped models on real episodes with fixed-shape steps recorded as CUDA graphs.
+# The GPU checks in one sitting on a lent machine (run from the repository root with the device
+# tool, which sets $OUT; carry data/device/packs): the CUDA-only tests (the fixed-shape step runs
+# with no synchronisation, a CUDA-graph rollout equals the plain one), the step time against
+# leaf count (plain, fixed-shape, CUDA graph; the goals <= 1.5 ms to 10k leaves and < 50 ms at
+# 1M), then the shipped models on real episodes with fixed-shape steps recorded as CUDA graphs.
 set -u
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1
 OUT=${OUT:-runs/device_check}
@@ -11,6 +12,7 @@ python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_devic
 for scene in tower cube_collision cube_push soft_bounce; do
   [ -d "data/$scene" ] || python3 data/device/pack.py unpack "data/device/packs/$scene.pack.npz" "data/$scene"
 done
+timeout 120 python3 -m pytest -q -p no:warnings tests/sim/test_fixed_shape.py -k cuda 2>&1 | tee "$OUT/cuda_tests.log"
 timeout 300 python3 benchmarks/device_step.py --device cuda --out "$OUT/device_step_cuda.json" 2>&1 | tee "$OUT/device_step.log"
 timeout 200 python3 benchmarks/fixed_shape.py --device cuda --cuda-graph --scenes tower,cube_collision,cube_push,soft_bounce \
   --out "$OUT/fixed_shape_cuda.json" 2>&1 | tee "$OUT/fixed_shape.log"

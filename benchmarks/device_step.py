@@ -5,10 +5,10 @@ pitch apart, collision radius 0.08 m; the octree hierarchy of ``benchmarks/scali
 cubes as it takes to reach each ``--leaves`` target. The model is a random-init
 :class:`~hrn_pyg.nn.hrn.HRN` (default config, seed 0) whose normaliser is fitted on a real
 pybullet ``soft_bounce`` window: the cost of a step does not depend on the weights. Each size is
-timed as the median over ``--repeats`` of ``--steps`` steps of :func:`hrn_pyg.rollout.unroll`
+timed as the median over ``--repeats`` of ``--steps`` steps of :func:`hrn_pyg.sim.rollout.unroll`
 (sleeping off, every object moving: the worst case), with the device synchronised before the
 clock starts and stops, after one warm-up run; the network pass alone is timed the same way.
-Beside it, the same rollout from fixed-shape steps (:mod:`hrn_pyg.fixed_shape`: a collision
+Beside it, the same rollout from fixed-shape steps (:mod:`hrn_pyg.sim.fixed_shape`: a collision
 candidate list with a skin, no host read inside a step, one read per look-ahead), and on CUDA
 the same again with every step recorded as a CUDA graph; each row says how many collision
 searches and host reads the fixed-shape rollout made, and how far its positions are from the
@@ -45,14 +45,20 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scaling import cubes_scene  # noqa: E402  (a sibling benchmark's scene builder)
 
+from hrn_pyg.data.candidates import build_candidates  # noqa: E402
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_state  # noqa: E402
 from hrn_pyg.data.scenes import simulate_episode  # noqa: E402
-from hrn_pyg.data.candidates import build_candidates  # noqa: E402
-from hrn_pyg.fixed_shape import FixedShapeConfig, FixedShapeSimulator, RecordedStep, make_step  # noqa: E402
 from hrn_pyg.nn.hrn import HRN, HRNConfig  # noqa: E402
 from hrn_pyg.nn.normalizer import fit_normalizer  # noqa: E402
-from hrn_pyg.rollout import build_inputs, run_network, unroll  # noqa: E402
 from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402
+from hrn_pyg.sim.fixed_shape import (  # noqa: E402
+    FixedShapeConfig,
+    FixedShapeSimulator,
+    RecordedStep,
+    make_step,
+)
+from hrn_pyg.sim.rollout import unroll  # noqa: E402
+from hrn_pyg.sim.step import build_inputs, run_network
 from hrn_pyg.utils.device import resolve_device  # noqa: E402
 from hrn_pyg.utils.files import atomic_write_json  # noqa: E402
 

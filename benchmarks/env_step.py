@@ -26,7 +26,7 @@ import torch
 
 from hrn_pyg.rl.hrn_dynamics import HRNDynamics
 from hrn_pyg.rl.tasks import get_task
-from hrn_pyg.sleep_config import DEFAULT_SLEEP
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.files import atomic_write_json
 
 

@@ -3,8 +3,8 @@
 For each scene, the shipped checkpoint rolls out full pybullet validation episodes (``seed % 10
 == 8``, ``--seeds``, from step 2 with the episode's own forces, the scene's declared effects,
 sleeping off) two ways in one process, interleaved ``--repeats`` times so both see the same
-load: :func:`hrn_pyg.rollout.rollout` (``sleep=None``) and a kept
-:class:`hrn_pyg.fixed_shape.FixedShapeSimulator` (no host read inside a step; a collision
+load: :func:`hrn_pyg.sim.rollout.rollout` (``sleep=None``) and a kept
+:class:`hrn_pyg.sim.fixed_shape.FixedShapeSimulator` (no host read inside a step; a collision
 candidate list with a skin, searched again only when a leaf has moved half the skin; on CUDA,
 with ``--cuda-graph``, every step recorded as a CUDA graph). Reported per scene: the median time
 per step of each, their ratio, the collision searches, flag reads and repeated steps per
@@ -30,13 +30,13 @@ from pathlib import Path
 
 import torch
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import read_episode
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.scenes import scene_effects
-from hrn_pyg.fixed_shape import FixedShapeConfig, FixedShapeSimulator
-from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.train import load_model
+from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
+from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
 

@@ -12,7 +12,7 @@ Scenes (voxelised boxes, k-means hierarchy of the package, pitch ``--pitch``):
 * ``touching``: two cubes side by side within the collision radius, no force (force idle);
 * ``touching_pushed``: the same, one pushed: nothing idle (the control: ratio ~1).
 
-For each scene and setting: time per rollout step (:func:`hrn_pyg.rollout.step`, median of
+For each scene and setting: time per rollout step (:func:`hrn_pyg.sim.step.step`, median of
 ``--repeats`` >= 5 runs of ``--steps`` steps, one torch thread, the two settings interleaved so
 they see the same machine load), the largest absolute difference of the predicted positions over
 the rollout, and a per-stage breakdown of one step (``build_inputs``, each of the seven
@@ -44,8 +44,8 @@ from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.data.voxelise import box_mesh, voxelise
 from hrn_pyg.nn.hrn import HRN, MODULE_NAMES, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.rollout import build_inputs, decode, run_network, step
 from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sim.step import build_inputs, decode, run_network, step
 from hrn_pyg.utils.files import atomic_write_json
 
 #: side of each cube (m)

@@ -26,11 +26,11 @@ import time
 
 import torch
 
+from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.graph import MATERIALS, NODE
 from hrn_pyg.data.scenes import SCENES, simulate_episode
-from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.train import load_model, with_applied_options
+from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.utils.files import atomic_write_json
 
 #: the package's 1000-step check (tests/stability/test_long_rollouts.py)

@@ -24,11 +24,11 @@ import platform
 import numpy as np
 import torch
 
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.cli import model_for
-from hrn_pyg.sampling.ensemble import HISTORY, episode_state
+from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.metrics import object_centres, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--tower-model", default=None)
     parser.add_argument("--k", type=int, default=16)
     parser.add_argument("--steps", type=int, default=30)
-    parser.add_argument("--seed", type=int, default=9, help="episode seed (a test-split seed: seed % 10 == 9)")
+    parser.add_argument("--seed", type=int, default=9, help="episode seed (a test-split seed: seed %% 10 == 9)")
     parser.add_argument("--sample-seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--random-init", action="store_true", help="untrained models: pipeline check only")

@@ -20,7 +20,7 @@ leaf groups of 8 (:mod:`hrn_pyg.data.hierarchy`), built in a vectorised way beca
 k-means calls would dominate the set-up of the large scenes. Weights are random (seed 0), with
 the normaliser fitted on a real pybullet ``soft_bounce`` window; cost does not depend on them.
 
-**Time**: median over ``--repeats`` (>= 5) of a ``--steps``-step rollout (:func:`hrn_pyg.rollout.step`,
+**Time**: median over ``--repeats`` (>= 5) of a ``--steps``-step rollout (:func:`hrn_pyg.sim.step.step`,
 no gradient), per step, one torch thread. **Peak memory**: the growth of the process's resident
 set during one step (or one loss forward + backward) after a warm-up: Linux's high-water mark
 ``VmHWM`` is reset to the current ``VmRSS`` by writing ``5`` to ``/proc/self/clear_refs``, the work
@@ -153,9 +153,16 @@ def cubes_scene(n: int, objects: int, pitch: float, per_row: int | None = None):
 
 def child_step(args: argparse.Namespace) -> dict:
     from hrn_pyg.data.graph import (
-        ANCESTOR_TO_DESCENDANT, COLLISION, LEAF_TO_ANCESTOR, NODE, WITHIN_SIBLINGS, build_structure, set_state)
+        ANCESTOR_TO_DESCENDANT,
+        COLLISION,
+        LEAF_TO_ANCESTOR,
+        NODE,
+        WITHIN_SIBLINGS,
+        build_structure,
+        set_state,
+    )
     from hrn_pyg.nn.hrn import HRN, HRNConfig
-    from hrn_pyg.rollout import build_inputs, run_network, step
+    from hrn_pyg.sim.step import build_inputs, run_network, step
 
     leaves, leaf_object, parent = cubes_scene(args.n, args.objects, args.pitch,
                                               per_row=args.objects if args.row else None)

@@ -16,7 +16,7 @@ Cases (all on the CPU, shipped checkpoints, the pybullet episode's own forces):
 
 Both settings get the scene's declared effects (:func:`hrn_pyg.data.scenes.scene_effects`; the
 field: the tower's). For each case: a rollout with every object awake (``sleep=None``) and one with
-``SleepConfig()`` (the defaults of :mod:`hrn_pyg.sleeping`), ``--repeats`` >= 3 times each in one
+``SleepConfig()`` (the defaults of :mod:`hrn_pyg.sim.sleeping`), ``--repeats`` >= 3 times each in one
 process, the two settings interleaved so they see the same machine load (one torch thread by
 default). Reported: the median over repeats of the time per step (rollout time / steps), the
 ratio, the position MSE against pybullet (``hrn_pyg.evaluate``'s definition: squared error
@@ -53,14 +53,21 @@ import torch
 from torch_geometric.data import HeteroData
 from tqdm.auto import tqdm
 
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import SCENES, Tower, TowerConfig, _yaw_quaternion, scene_effects, simulate_episode
-from hrn_pyg.effects import SceneEffects
+from hrn_pyg.data.scenes import (
+    SCENES,
+    Tower,
+    TowerConfig,
+    _yaw_quaternion,
+    scene_effects,
+    simulate_episode,
+)
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.rollout import rollout, unroll
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.sleeping import SleepConfig
-from hrn_pyg.train import load_model
+from hrn_pyg.sim.rollout import rollout, unroll
+from hrn_pyg.sim.sleeping import SleepConfig
 from hrn_pyg.utils.files import atomic_write_json
 
 CHECKPOINTS = {"tower": "hrn_pyg/checkpoints/tower.pt", "multi_material": "hrn_pyg/checkpoints/multi_material.pt",

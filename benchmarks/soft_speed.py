@@ -33,12 +33,12 @@ from torch_geometric.data import Batch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy_vs_time import HORIZONS, STRIDE, pybullet_ms_per_step  # noqa: E402
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import EpisodeWindows  # noqa: E402
 from hrn_pyg.data.graph import NODE  # noqa: E402
 from hrn_pyg.data.scenes import scene_effects  # noqa: E402
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise  # noqa: E402
-from hrn_pyg.rollout import rollout  # noqa: E402
-from hrn_pyg.train import load_model  # noqa: E402
+from hrn_pyg.sim.rollout import rollout  # noqa: E402
 from hrn_pyg.utils.files import atomic_write_json  # noqa: E402
 
 SCENE = "soft_bounce"

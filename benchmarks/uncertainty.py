@@ -46,13 +46,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import STATIC, simulate_episode
+from hrn_pyg.checkpoints import CHECKPOINT_DIR
+from hrn_pyg.data.graph import HISTORY, NODE, STATIC
+from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.sampling.cli import CHECKPOINT_DIR, model_for
-from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.cli import model_for
+from hrn_pyg.sampling.ensemble import (
+    PerturbationConfig,
+    episode_state,
+    ground_truth_ensemble,
+)
 from hrn_pyg.sampling.metrics import (
-    best_of_k_error, coverage, energy_score, object_centres, root_spread, side_fractions,
+    best_of_k_error,
+    coverage,
+    energy_score,
+    object_centres,
+    root_spread,
+    side_fractions,
 )
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json

@@ -43,13 +43,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.scenes import config_to_dict, simulate_episode
-from hrn_pyg.sampling.cli import load
-from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.ensemble import (
+    PerturbationConfig,
+    episode_state,
+    ground_truth_ensemble,
+)
 from hrn_pyg.sampling.metrics import energy_score
-from hrn_pyg.sampling.sides import RIDGE_X, ball_centres, brier_score, ridge_config, share_below, split_difference
 from hrn_pyg.sampling.sample import sample
+from hrn_pyg.sampling.sides import (
+    RIDGE_X,
+    ball_centres,
+    brier_score,
+    ridge_config,
+    share_below,
+    split_difference,
+)
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
 
 #: seed residues of the splits (hrn_pyg.data.dataset)
@@ -116,7 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     steps = args.steps or config.steps - HISTORY
     if not 1 <= steps <= config.steps - HISTORY:
         raise ValueError(f"--steps must be in [1, {config.steps - HISTORY}], got {steps}")
-    model = load(args.model)
+    model = load_model(args.model)
     if args.rates:
         rates = [float(r) for r in args.rates.split(",") if r]
     elif float(model.config.dropout_rate) > 0:

@@ -14,7 +14,13 @@ import argparse
 import torch
 
 from hrn_pyg import HRN, HRNConfig, rollout
-from hrn_pyg.data.graph import COLLISION, LEAF_TO_ANCESTOR, NODE, build_structure, set_state
+from hrn_pyg.data.graph import (
+    COLLISION,
+    LEAF_TO_ANCESTOR,
+    NODE,
+    build_structure,
+    set_state,
+)
 from hrn_pyg.nn import CollisionModule, PropagationModule
 
 

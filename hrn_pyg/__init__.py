@@ -1,15 +1,18 @@
 """hrn_pyg: stochastic Hierarchical Relation Networks in PyTorch Geometric.
 
-The names most users need are here: the model (:class:`HRN`, :class:`HRNConfig`), the one
-rollout loop (:func:`rollout`, which also names the module ``hrn_pyg/rollout.py``), and the
-Monte Carlo dropout sampler (:func:`sample`).
+The names most users need are here: the model (:class:`HRN`, :class:`HRNConfig`), loading a
+checkpoint (:func:`load_model`), the deterministic rollout (:func:`rollout`, from
+:mod:`hrn_pyg.sim.rollout`), objects at rest (:class:`SleepConfig`) and the Monte Carlo
+dropout sampler (:func:`sample`). This module is the top of the package: no module of the
+package imports it.
 """
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.rollout import rollout  # the function shadows the module name on purpose
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.sleep_config import SleepConfig
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.sleeping import SleepConfig
 
 __version__ = "0.1.0"
 
-__all__ = ["HRN", "HRNConfig", "SleepConfig", "rollout", "sample", "__version__"]
+__all__ = ["HRN", "HRNConfig", "SleepConfig", "load_model", "rollout", "sample", "__version__"]

@@ -35,13 +35,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text)
         if name != command:
             continue
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:  # sub-command not built yet
-            if exc.name != module_name:
-                raise
-            p.set_defaults(_missing=module_name)
-            continue
+        module = importlib.import_module(module_name)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
@@ -52,9 +46,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
-    if getattr(args, "_missing", None):
-        print(f"hrn-pyg {args.command}: not available in this version", file=sys.stderr)
-        return 2
     try:
         return int(args._run(args) or 0)
     except (ValueError, FileNotFoundError) as exc:

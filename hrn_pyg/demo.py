@@ -23,6 +23,7 @@ import json
 import time
 from pathlib import Path
 
+from hrn_pyg.checkpoints import CHECKPOINT_DIR
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_text
 
@@ -34,7 +35,8 @@ DEMO_STEPS = 40
 
 
 def checkpoint_dir() -> Path:
-    return Path(__file__).resolve().parent / "checkpoints"
+    """The folder the demo takes its checkpoints from (the shipped ones)."""
+    return CHECKPOINT_DIR
 
 
 def _held_out_episodes(scene: str, folder: Path) -> Path:

@@ -37,12 +37,12 @@ from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 from torch_geometric.utils import scatter
 
-from hrn_pyg.data.dataset import HISTORY, EpisodeWindows, _num_steps
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
+from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
 from hrn_pyg.metrics_rest import REST_SPEED, REST_STEPS, rest_metrics
-from hrn_pyg.rollout import rollout
-from hrn_pyg.train import load_model
+from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
@@ -154,7 +154,7 @@ def episode_start_windows(data: str | Path, split: str, limit: int | None = None
     ``force_seq`` ``[N_e, S_e - 2, 3]``.
     """
     probe = EpisodeWindows(data, split, horizon=1)
-    lengths = [_num_steps(path) - HISTORY for path in probe.paths]
+    lengths = [episode_steps(path) - HISTORY for path in probe.paths]
     chosen = [(episode, length) for episode, length in enumerate(lengths) if length >= 1][:limit]
     datasets: dict[int, EpisodeWindows] = {1: probe}
     windows = []
@@ -202,8 +202,8 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
                 errors[m][h][members] = err[m].cpu().numpy()
         leaf = store.is_leaf.nonzero().flatten()
         copy = store.batch[leaf]
-        n_obj = int(store.object.max()) + 1
-        rest = rest_metrics(pred[:, leaf], truth[:, leaf], copy * n_obj + store.object[leaf],
+        n_obj = object_span(store.object)
+        rest = rest_metrics(pred[:, leaf], truth[:, leaf], copy_object_ids(copy, store.object[leaf], n_obj),
                             ~store.is_static[leaf], copy, num_objects=len(members) * n_obj,
                             num_groups=len(members), mass=store.mass[leaf, 0])
         depth[members] = rest.depth.cpu().numpy()

@@ -15,7 +15,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.graph import NODE, copy_object_ids, object_span
 from hrn_pyg.nn.collision import safe_norm
 from hrn_pyg.nn.normalizer import Normalizer
 
@@ -45,7 +45,7 @@ def local_velocity_loss(
 
     over the non-static nodes :math:`\mathcal{M}`; :math:`\sigma_{r(i)}` is the normaliser's root
     scale for roots (global frame) and its local scale otherwise (parent frame). Equal to the MSE
-    of the normalised network output against :func:`hrn_pyg.rollout.target_output`.
+    of the normalised network output against :func:`hrn_pyg.sim.step.target_output`.
 
     **Shapes:** pred_local, true_local :math:`(N, 3)`; is_root, is_static :math:`(N,)`; returns a scalar.
     """
@@ -91,8 +91,10 @@ def rest_velocity_loss(
 
     .. math::
         \mathcal{L}_{rest} = rac{1}{3|\mathcal{R}|} \sum_{i \in \mathcal{R}}
-            \Bigl\lVert rac{\hat v_i - v_i}{\sigma} \BigrVert_1, \qquad
-        \mathcal{R} = \{i : \mathrm{root}_i \land \lnot \mathrm{static}_i \land \lVert v_i Vert < 	au\}
+            \Bigl\lVert rac{\hat v_i - v_i}{\sigma} \Bigr
+Vert_1, \qquad
+        \mathcal{R} = \{i : \mathrm{root}_i \land \lnot \mathrm{static}_i \land \lVert v_i 
+Vert < 	au\}
 
     The squared errors of :func:`global_velocity_loss` hardly see a resting object's creep of
     a tenth of a millimetre per step (about 1 % of a typical velocity scale, so 1e-4 of the loss),
@@ -200,8 +202,7 @@ def shape_groups(graph: HeteroData) -> tuple[Tensor, Tensor]:
     leaf = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
     obj = store.object[leaf]
     if "batch" in store:
-        n_obj = int(store.object.max()) + 1 if store.object.numel() else 1
-        obj = store.batch[leaf] * n_obj + obj
+        obj = copy_object_ids(store.batch[leaf], obj, object_span(store.object))
     return leaf, obj
 
 

@@ -35,6 +35,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from hrn_pyg.data.graph import object_centres
+
 __all__ = [
     "REST_SPEED",
     "REST_STEPS",
@@ -83,10 +85,7 @@ def object_centroids(pos: Tensor, obj: Tensor, num_objects: int, mass: Tensor | 
     masses); returns ``[S, num_objects, 3]``.
     """
     _check_positions("pos", pos)
-    weight = torch.ones_like(pos[0, :, 0]) if mass is None else mass.to(pos.dtype)
-    total = pos.new_zeros(num_objects).index_add(0, obj, weight)  # [O]
-    summed = pos.new_zeros(pos.shape[0], num_objects, 3).index_add(1, obj, pos * weight[:, None])
-    return summed / total.clamp_min(torch.finfo(pos.dtype).tiny)[:, None]
+    return object_centres(pos, obj, num_objects, mass)
 
 
 def objects_at_rest(truth: Tensor, obj: Tensor, movable: Tensor, num_objects: int,

@@ -44,29 +44,36 @@ from torch.utils.data import DataLoader
 from torch_geometric.data import Batch, HeteroData
 from tqdm import tqdm
 
+from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
-from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, WITHIN_SIBLINGS, set_state
-from hrn_pyg.data.symmetry import apply_vertical_symmetry, isotropic_horizontal, random_vertical_symmetries
+from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, RIGID, WITHIN_SIBLINGS, set_state
+from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries
 from hrn_pyg.losses import (
     DEFAULT_CHUNK_SIZE,
     fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
-    rest_velocity_loss,
     group_shape_loss,
     local_velocity_loss,
+    rest_velocity_loss,
     shape_groups,
 )
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.rollout import RIGID, root_of
-from hrn_pyg.rollout import step as model_step
-from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from hrn_pyg.sim.rollout import iterate
+from hrn_pyg.sim.step import root_of
+from hrn_pyg.utils.checkpoint import (
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
-from hrn_pyg.utils.metrics import CSVLog, plot_curves
+from hrn_pyg.utils.metrics import CSVLog
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
+from hrn_pyg.viz import plot_curves
 
 PRESETS = ("hrn", "ours")
 SHAPE_LOSSES = ("group", "full")
@@ -279,11 +286,12 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     if config.w_rest > 0:
         parts["rest"] = seq.new_zeros(())
     total = seq.new_zeros(())
-    for k in range(seq_len):  # unrolled time steps
-        masks = None
-        if config.train_dropout > 0:
-            masks = model.sample_masks(copies, config.train_dropout, generator)
-        result = model_step(model, graph, forces[:, k], masks)
+    masks_fn = None
+    if config.train_dropout > 0:  # one mask per copy per step, drawn as the step starts
+        def masks_fn(t: int, g: HeteroData) -> dict[str, Tensor]:
+            return model.sample_masks(copies, config.train_dropout, generator)
+    unrolled = iterate(model, graph, seq_len, forces.transpose(0, 1), masks_fn, sleep=None)
+    for k, result in enumerate(unrolled):  # unrolled time steps, with gradients through all of them
         # the first target is measured from the (possibly noisy) input, later ones from the truth
         true_prev, true_next = (graph[NODE].pos if k == 0 else seq[:, k + 2]), seq[:, k + 3]
         true_local = to_local_velocity(true_next - true_prev, c2p)
@@ -411,10 +419,12 @@ def _collate(windows: list[HeteroData]) -> HeteroData:
 
 
 # --------------------------------------------------------------------------------------------
-# the run
+# the run, stage by stage (train() below takes them in this order)
 
 
-def _model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]:
+def model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]:
+    """The checkpoint of a model: its weights (normaliser included), its settings and the run's as
+    JSON, and the steps done; what :func:`~hrn_pyg.checkpoints.load_model` reads."""
     return {
         "model": model.state_dict(),
         "config": json.dumps({"model": model.config.to_dict(), "train": asdict(config)}),
@@ -422,25 +432,72 @@ def _model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]
     }
 
 
-def load_model(path: str | os.PathLike, device: str | torch.device | None = None) -> HRN:
-    """An :class:`HRN` with its normaliser from a checkpoint written by ``hrn-pyg train``, on
-    ``device`` (None: the CPU)."""
-    ckpt = load_checkpoint(path)
+@dataclass(frozen=True)
+class _Place:
+    """Where this process trains: its device, its rank among ``world`` processes, and whether this
+    call joined the process group (and so leaves it at exit)."""
+
+    device: torch.device
+    rank: int
+    world: int
+    joined_group: bool
+
+
+def _place_process(config: TrainConfig) -> _Place:
+    """Pick the device, join the process group under ``torchrun`` (one GPU per rank on CUDA) and
+    set the number of threads."""
+    device = resolve_device(config.device)
+    joined_group = _maybe_init_distributed(device)
+    rank, world = _world()
+    if device.type == "cuda" and world > 1:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", rank)) % torch.cuda.device_count())
+        torch.cuda.set_device(device)
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    return _Place(device, rank, world, joined_group)
+
+
+def _load_splits(config: TrainConfig) -> tuple[EpisodeWindows, EpisodeWindows | None]:
+    """The training and validation windows of ``data`` and ``extra_data`` (None: no validation
+    episodes)."""
+    # every episode stays decoded in memory: windows are drawn at random across the whole split
+    train_set = EpisodeWindows(config.data_folders, "train", horizon=config.seq_end, cache_episodes=1 << 20)
     try:
-        config = json.loads(ckpt["config"])
-        model = HRN(HRNConfig.from_dict(config["model"]))
+        val_set = EpisodeWindows(config.data_folders, "val", horizon=config.seq_end, cache_episodes=1 << 20)
+    except ValueError:
+        val_set = None  # a folder without validation episodes trains without a validation score
+    return train_set, val_set
+
+
+def _checkpoint_to_resume(last: Path, resume: bool) -> dict[str, Any] | None:
+    """The checkpoint ``last`` when resuming (an error if there is none); None for a new run."""
+    if not resume:
+        return None
+    if not last.is_file():
+        raise FileNotFoundError(f"--resume: no checkpoint at {last}")
+    return load_checkpoint(last)
+
+
+def _initial_model(config: TrainConfig, model_config: HRNConfig, train_set: EpisodeWindows,
+                   ckpt: dict[str, Any] | None) -> HRN:
+    """The network the steps start from: the checkpoint's when resuming, else the model of
+    ``init_from`` or a fresh one with its normaliser fitted; under ``augment_symmetry`` a new
+    run's normaliser is made isotropic."""
+    torch.manual_seed(config.seed)
+    # built in every case: its initialisation advances the global random stream, which the
+    # dropout masks of a run from init_from then continue
+    model = HRN(model_config)
+    if ckpt is not None:
+        model = HRN(HRNConfig.from_dict(json.loads(ckpt["config"])["model"]))
         model.load_state_dict(ckpt["model"])
-    except (KeyError, TypeError, RuntimeError) as exc:
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
-                              f"({type(exc).__name__}: {first_line})") from None
-    model.eval()
-    return model.to(resolve_device(device)) if device is not None else model
-
-
-#: model options a fine-tuning may set on a checkpoint: they change how its weights are applied,
-#: not which weights there are
-APPLIED_OPTIONS = ("mirror_average", "mirror_planes")
+        return model
+    if config.init_from:
+        model = _fine_tuned_start(config.init_from, model_config)
+    else:
+        _fit_to_training_windows(model, train_set, config.seed)
+    if config.augment_symmetry:
+        isotropic_horizontal(model.normalizer)
+    return model
 
 
 def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
@@ -463,17 +520,180 @@ def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
     return model.train()
 
 
-def with_applied_options(model: HRN, **options: Any) -> HRN:
-    """The same weights and normaliser under a config with ``options`` changed, for options of
-    :data:`APPLIED_OPTIONS` only (they change how the weights are applied, e.g. the mirror
-    average); the other settings fix which weights there are. Keeps ``model``'s train/eval mode.
+def _fit_to_training_windows(model: HRN, train_set: EpisodeWindows, seed: int) -> None:
+    """Fit the model's normaliser on :data:`NORMALIZER_WINDOWS` training windows drawn by ``seed``."""
+    picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(seed))
+    fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
+
+
+def _optimiser(model: HRN, config: TrainConfig) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam at ``config.lr`` under the warm-up + cosine schedule of :func:`cosine_lr_factor`."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda s: cosine_lr_factor(s, config.steps, config.warmup))
+    return optimizer, scheduler
+
+
+def _restore_training_state(ckpt: dict[str, Any], optimizer: torch.optim.Optimizer,
+                            scheduler: torch.optim.lr_scheduler.LambdaLR) -> int:
+    """Continue the checkpoint's optimiser, learning-rate schedule and global random streams;
+    returns the number of steps it had done."""
+    optimizer.load_state_dict(ckpt["optimizer"])
+    scheduler.load_state_dict(ckpt["scheduler"])
+    set_rng_state(ckpt["rng"])
+    return int(ckpt["step"])
+
+
+def _open_run_folder(out: Path, config: TrainConfig, model: HRN, place: _Place,
+                     resumed_at: int | None) -> CSVLog | None:
+    """On rank 0, write ``config.json`` and open ``metrics.csv``, dropping the rows of the steps
+    after ``resumed_at`` (the steps done by the checkpoint a resumed run continues); the log, or
+    None on other ranks."""
+    if place.rank != 0:
+        return None
+    log = CSVLog(out / "metrics.csv", LOG_FIELDS)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "config.json", {"model": model.config.to_dict(), "train": asdict(config),
+                                            "world_size": place.world})
+    if resumed_at is not None:
+        log.truncate_after(resumed_at - 1)
+    return log
+
+
+def _step_batches(train_set: EpisodeWindows, config: TrainConfig, place: _Place, start: int, end: int) -> DataLoader:
+    """The batches of steps ``start .. end-1`` (windows drawn by :class:`StepWindows`), collated by
+    ``config.workers`` background processes (0: in this one)."""
+    return DataLoader(train_set, batch_sampler=StepWindows(len(train_set), config.batch_size, config.seed,
+                                                           place.rank, start, end),
+                      collate_fn=_collate, num_workers=config.workers, pin_memory=place.device.type == "cuda",
+                      # its own generator: the loader's seed draw must not shift the global
+                      # random stream that dropout masks use (resume would then diverge)
+                      generator=torch.Generator().manual_seed(config.seed))
+
+
+def _augmentation_streams(config: TrainConfig, rank: int,
+                          start: int) -> tuple[torch.Generator | None, torch.Generator | None]:
+    """This rank's generators of the input noise and of the symmetry draws (None where off).
+
+    Both are streams of their own, apart from the global one that the dropout masks use, and
+    both are seeded with the first step, so a resumed run draws fresh noise and symmetries.
     """
-    unknown = sorted(set(options) - set(APPLIED_OPTIONS))
-    if unknown:
-        raise ValueError(f"only {list(APPLIED_OPTIONS)} can be applied to trained weights, not {unknown}")
-    changed = HRN(HRNConfig.from_dict({**model.config.to_dict(), **options}))
-    changed.load_state_dict(model.state_dict())
-    return changed.to(model.normalizer.velocity_std.device).train(model.training)
+    noise = torch.Generator().manual_seed(config.seed * 7 + rank + 3 + start) if config.input_noise > 0 else None
+    turns = torch.Generator().manual_seed(config.seed * 11 + rank + 5 + start) if config.augment_symmetry else None
+    return noise, turns
+
+
+def _validation_ids(val_set: EpisodeWindows | None) -> list[int]:
+    """The :data:`VAL_WINDOWS` validation windows scored at every evaluation, spread over the
+    split (none without validation episodes)."""
+    if not val_set:
+        return []
+    return list(range(0, len(val_set), max(1, len(val_set) // VAL_WINDOWS)))[:VAL_WINDOWS]
+
+
+def _on_device(batch: HeteroData, device: torch.device, turns: torch.Generator | None) -> HeteroData:
+    """A batch moved to ``device``, every window turned (and maybe mirrored) by a draw from
+    ``turns`` when given."""
+    batch = batch.to(device, non_blocking=True)
+    if turns is not None:
+        batch = apply_vertical_symmetry(batch, random_vertical_symmetries(_batch_size_of(batch), turns, device=device))
+    return batch
+
+
+class _Run:
+    """The steps of one training call: the model with its optimiser and schedules, the metrics
+    log, and the checkpoint ``last.pt`` that keeps them."""
+
+    def __init__(self, config: TrainConfig, out: Path, place: _Place, model: HRN, optimizer: torch.optim.Optimizer,
+                 scheduler: torch.optim.lr_scheduler.LambdaLR, log: CSVLog | None,
+                 val_set: EpisodeWindows | None) -> None:
+        self.config, self.out, self.place = config, out, place
+        self.model, self.optimizer, self.scheduler, self.log = model, optimizer, scheduler, log
+        self.val_set, self.val_ids = val_set, _validation_ids(val_set)
+        self.seq_schedule = SequenceLengthSchedule(config.seq_start, config.seq_end, config.steps, config.grow_until)
+        self.summary: dict[str, Any] = {}  # the last logged row
+        self.t0 = time.perf_counter()
+
+    def take_steps(self, batches: DataLoader, start: int, end: int, noise: torch.Generator | None,
+                   turns: torch.Generator | None, progress: bool) -> int:
+        """Take steps ``start .. end-1`` (fewer once past ``time_limit``); returns the steps done.
+
+        At exit, also on Ctrl-C or an error, :meth:`close` keeps the finished steps (the step that
+        was running when an exception came is not counted as done).
+        """
+        config = self.config
+        bar = tqdm(zip(range(start, end), batches), initial=start, total=config.steps,
+                   disable=not progress or self.place.rank != 0, desc=f"train {config.preset}", dynamic_ncols=True)
+        self.model.train()
+        step_index = start
+        try:
+            for step_index, batch in bar:
+                seq_len = self.seq_schedule(step_index)
+                loss, parts = self.update(_on_device(batch, self.place.device, turns), seq_len, noise, step_index)
+                row = self.log_row(step_index, seq_len, loss, parts)
+                bar.set_postfix(loss=f"{row['loss']:.4g}", T=seq_len)
+                self.summary = row
+                if (step_index + 1) % config.checkpoint_every == 0:
+                    self.save(step_index + 1)
+                if self.past_time_limit():
+                    step_index += 1  # stop here, as if interrupted
+                    break
+            else:
+                step_index = end
+        finally:
+            self.close(step_index)
+        return step_index
+
+    def update(self, batch: HeteroData, seq_len: int, noise: torch.Generator | None,
+               step_index: int) -> tuple[Tensor, dict[str, float]]:
+        """One optimiser step on the loss of a batch (gradients averaged over the ranks, then
+        clipped) and one step of the learning-rate schedule; the loss and its logged parts."""
+        loss, parts = window_loss(self.model, batch, seq_len, self.config, noise_generator=noise)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss became {float(loss)} at step {step_index}")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        _average_gradients(self.model)
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        return loss, parts
+
+    def log_row(self, step_index: int, seq_len: int, loss: Tensor, parts: dict[str, float]) -> dict[str, Any]:
+        """The row of a finished step (with the validation loss when one is due), appended to
+        ``metrics.csv`` on rank 0."""
+        config = self.config
+        row = {"step": step_index, "seq_len": seq_len, "lr": self.scheduler.get_last_lr()[0],
+               "loss": float(loss.detach()), **parts, "seconds": round(time.perf_counter() - self.t0, 3)}
+        if self.val_ids and ((step_index + 1) % config.eval_every == 0 or step_index + 1 == config.steps):
+            row["val_loss"] = validation_loss(self.model, self.val_set, self.val_ids, config.seq_end, config)
+        if self.log is not None:
+            self.log.append(row)
+        return row
+
+    def past_time_limit(self) -> bool:
+        """Whether ``time_limit`` minutes have passed since the run started (never without one)."""
+        return self.config.time_limit > 0 and time.perf_counter() - self.t0 > 60.0 * self.config.time_limit
+
+    def save(self, step_done: int) -> None:
+        """Write ``last.pt`` on rank 0: the model after ``step_done`` steps, with the optimiser,
+        schedule and global random state that a resumed run continues."""
+        if self.place.rank != 0:
+            return
+        payload = model_payload(self.model, self.config, step_done)
+        payload.update(optimizer=self.optimizer.state_dict(), scheduler=self.scheduler.state_dict(), rng=rng_state())
+        save_checkpoint(self.out / "last.pt", payload)
+
+    def close(self, step_done: int) -> None:
+        """Keep the finished steps in ``last.pt``, draw ``loss.png`` from ``metrics.csv`` and leave
+        the process group if this call joined it."""
+        self.save(step_done)
+        if self.place.rank == 0 and (self.out / "metrics.csv").exists():
+            plot_curves(self.out / "metrics.csv", self.out / "loss.png", "step",
+                        ["loss", "local", "global", "shape", "energy", "rest", "val_loss"],
+                        title=f"{self.config.preset} on {Path(self.config.data).name}")
+        if self.place.joined_group:
+            dist.destroy_process_group()
 
 
 def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,
@@ -484,133 +704,22 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
     normaliser, no optimiser) is written when the last step is done.
     """
-    device = resolve_device(config.device)
-    started_distributed = _maybe_init_distributed(device)
-    rank, world = _world()
-    if device.type == "cuda" and world > 1:
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", rank)) % torch.cuda.device_count())
-        torch.cuda.set_device(device)
+    place = _place_process(config)
     out = Path(config.out)
-    last = out / "last.pt"
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
-
-    # every episode stays decoded in memory: windows are drawn at random across the whole split
-    train_set = EpisodeWindows(config.data_folders, "train", horizon=config.seq_end, cache_episodes=1 << 20)
-    try:
-        val_set = EpisodeWindows(config.data_folders, "val", horizon=config.seq_end, cache_episodes=1 << 20)
-    except ValueError:
-        val_set = None  # a folder without validation episodes trains without a validation score
-
-    torch.manual_seed(config.seed)
-    model = HRN(model_config)
-    start = 0
-    ckpt = None
-    if resume and last.is_file():
-        ckpt = load_checkpoint(last)
-        saved = json.loads(ckpt["config"])
-        model = HRN(HRNConfig.from_dict(saved["model"]))
-        model.load_state_dict(ckpt["model"])
-        start = int(ckpt["step"])
-    elif resume:
-        raise FileNotFoundError(f"--resume: no checkpoint at {last}")
-    else:
-        if config.init_from:
-            model = _fine_tuned_start(config.init_from, model_config)
-        else:
-            picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(config.seed))
-            fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
-        if config.augment_symmetry:
-            isotropic_horizontal(model.normalizer)
-
-    model.to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: cosine_lr_factor(s, config.steps, config.warmup))
-    if ckpt is not None:
-        optimizer.load_state_dict(ckpt["optimizer"])
-        scheduler.load_state_dict(ckpt["scheduler"])
-        set_rng_state(ckpt["rng"])
-
-    seq_schedule = SequenceLengthSchedule(config.seq_start, config.seq_end, config.steps, config.grow_until)
-    log = CSVLog(out / "metrics.csv", LOG_FIELDS) if rank == 0 else None
-    if rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(out / "config.json", {"model": model.config.to_dict(), "train": asdict(config),
-                                                "world_size": world})
-        if ckpt is not None:
-            log.truncate_after(start - 1)
-
-    def save(step_done: int) -> None:
-        if rank != 0:
-            return
-        payload = _model_payload(model, config, step_done)
-        payload.update(optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(), rng=rng_state())
-        save_checkpoint(last, payload)
-
-    val_ids = list(range(0, len(val_set), max(1, len(val_set) // VAL_WINDOWS)))[:VAL_WINDOWS] if val_set else []
-    summary: dict[str, Any] = {}
-    step_index = start
-    t0 = time.perf_counter()
+    train_set, val_set = _load_splits(config)
+    ckpt = _checkpoint_to_resume(out / "last.pt", resume)
+    model = _initial_model(config, model_config, train_set, ckpt)
+    model.to(place.device)
+    optimizer, scheduler = _optimiser(model, config)
+    start = 0 if ckpt is None else _restore_training_state(ckpt, optimizer, scheduler)
+    log = _open_run_folder(out, config, model, place, resumed_at=None if ckpt is None else start)
+    run = _Run(config, out, place, model, optimizer, scheduler, log, val_set)
     end = config.steps if stop_after is None else min(config.steps, start + int(stop_after))
-    loader = DataLoader(train_set, batch_sampler=StepWindows(len(train_set), config.batch_size, config.seed,
-                                                             rank, start, end),
-                        collate_fn=_collate, num_workers=config.workers, pin_memory=device.type == "cuda",
-                        # its own generator: the loader's seed draw must not shift the global
-                        # random stream that dropout masks use (resume would then diverge)
-                        generator=torch.Generator().manual_seed(config.seed))
-    bar = tqdm(zip(range(start, end), loader), initial=start, total=config.steps,
-               disable=not progress or rank != 0, desc=f"train {config.preset}", dynamic_ncols=True)
-    noise = torch.Generator().manual_seed(config.seed * 7 + rank + 3) if config.input_noise > 0 else None
-    if noise is not None and ckpt is not None:
-        noise.manual_seed(config.seed * 7 + rank + 3 + start)  # a resumed run draws fresh noise
-    # the symmetry draws have their own stream too (a resumed run draws fresh ones)
-    turns = torch.Generator().manual_seed(config.seed * 11 + rank + 5 + start) if config.augment_symmetry else None
-    model.train()
-    try:
-        for step_index, batch in bar:
-            seq_len = seq_schedule(step_index)
-            batch = batch.to(device, non_blocking=True)
-            if turns is not None:
-                batch = apply_vertical_symmetry(
-                    batch, random_vertical_symmetries(_batch_size_of(batch), turns, device=device))
-            loss, parts = window_loss(model, batch, seq_len, config, noise_generator=noise)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"loss became {float(loss)} at step {step_index}")
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            _average_gradients(model)
-            torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            optimizer.step()
-            scheduler.step()
-            row = {"step": step_index, "seq_len": seq_len, "lr": scheduler.get_last_lr()[0],
-                   "loss": float(loss.detach()), **parts, "seconds": round(time.perf_counter() - t0, 3)}
-            if val_ids and ((step_index + 1) % config.eval_every == 0 or step_index + 1 == config.steps):
-                row["val_loss"] = validation_loss(model, val_set, val_ids, config.seq_end, config)
-            if log is not None:
-                log.append(row)
-            bar.set_postfix(loss=f"{row['loss']:.4g}", T=seq_len)
-            summary = row
-            if (step_index + 1) % config.checkpoint_every == 0:
-                save(step_index + 1)
-            if config.time_limit > 0 and time.perf_counter() - t0 > 60.0 * config.time_limit:
-                step_index, end = step_index + 1, step_index + 1  # stop here, as if interrupted
-                break
-        else:
-            step_index = end
-    finally:
-        # at exit, also on Ctrl-C or an error: keep the finished steps (step_index is the one
-        # that was running when an exception came, so it is not counted as done)
-        save(step_index)
-        if rank == 0 and (out / "metrics.csv").exists():
-            plot_curves(out / "metrics.csv", out / "loss.png", "step",
-                        ["loss", "local", "global", "shape", "energy", "rest", "val_loss"],
-                        title=f"{config.preset} on {Path(config.data).name}")
-        if started_distributed:
-            dist.destroy_process_group()
-    if rank == 0 and end == config.steps:
-        save_checkpoint(out / "model.pt", _model_payload(model, config, config.steps))
-    return summary
+    noise, turns = _augmentation_streams(config, place.rank, start)
+    done = run.take_steps(_step_batches(train_set, config, place, start, end), start, end, noise, turns, progress)
+    if place.rank == 0 and done == config.steps:
+        save_checkpoint(out / "model.pt", model_payload(model, config, config.steps))
+    return run.summary
 
 
 @torch.no_grad()

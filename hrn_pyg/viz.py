@@ -7,12 +7,14 @@ Reading aids: the ground ``z = 0`` is a light line grid drawn *under* the partic
 surface would hide them); static objects (the wedge) are light grey; the axis limits come from
 the reference rollout (the ground truth) plus a margin, each axis its own length with the box
 drawn to scale, so one wild sample cannot shrink the scene (sample pictures also cover the
-central 80% of the sample points per axis). Points outside the limits are not
+central part of the sample points per axis and time step, between the quantiles
+:data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK``: 96 %). Points outside the limits are not
 drawn, and a panel says what fraction of its points it left out.
 """
 
 from __future__ import annotations
 
+import csv
 import os
 from collections.abc import Sequence
 
@@ -275,3 +277,28 @@ def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fp
         plt.close(fig)
     with atomic_path(path, suffix=".gif") as tmp:
         imageio.mimsave(tmp, images, format="GIF", duration=1.0 / fps, loop=0)
+
+
+def plot_curves(csv_path: str | os.PathLike, png_path: str | os.PathLike, x: str, ys: list[str],
+                title: str = "", logy: bool = True) -> None:
+    """Draw columns ``ys`` of a CSV against column ``x`` into a PNG (written atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(csv_path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=110)
+    for y in ys:
+        pts = [(float(r[x]), float(r[y])) for r in rows if r.get(y) not in (None, "")]
+        if pts:
+            ax.plot(*zip(*pts), label=y, lw=1.2)
+    ax.set_xlabel(x)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_title(title)
+    ax.legend(frameon=False, fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, png_path)

@@ -12,7 +12,7 @@ import hrn_pyg.cli
 import hrn_pyg.demo
 from hrn_pyg.cli import main
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.train import TrainConfig, _model_payload
+from hrn_pyg.train import TrainConfig, model_payload
 from hrn_pyg.utils.checkpoint import save_checkpoint
 
 
@@ -21,12 +21,17 @@ def tiny_checkpoints(tmp_path, monkeypatch):
     folder = tmp_path / "checkpoints"
     folder.mkdir()
     torch.manual_seed(0)
-    save_checkpoint(folder / "wedge.pt", _model_payload(HRN(HRNConfig(hidden=8, effect_dim=8)), TrainConfig(), 0))
+    save_checkpoint(folder / "wedge.pt", model_payload(HRN(HRNConfig(hidden=8, effect_dim=8)), TrainConfig(), 0))
     monkeypatch.setattr(hrn_pyg.demo, "checkpoint_dir", lambda: folder)
     return folder
 
 
 def test_demo_on_cpu_passes_the_device_on(tiny_checkpoints, tmp_path, monkeypatch):
+    """The default device is made ``meta`` here: a demo that ignored ``--device cpu`` (and passed
+    on, or let its steps take, the default) would sample there and fail."""
+    import hrn_pyg.utils.device
+
+    monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
     calls = []
 
     def shorter(argv):  # the demo's own sub-commands, cut to 2 steps to keep the test fast
@@ -39,6 +44,24 @@ def test_demo_on_cpu_passes_the_device_on(tiny_checkpoints, tmp_path, monkeypatc
     assert [c[0] for c in calls] == ["sample"] and calls[0][-2:] == ["--device", "cpu"]
     assert json.loads((out / "samples" / "wedge" / "samples.json").read_text())["device"] == "cpu"
     assert "skipped Table 1" in (out / "README.md").read_text()
+
+
+class _Stop(Exception):
+    """Ends the demo at its first sub-command."""
+
+
+def test_demo_passes_on_a_device_other_than_the_default(tiny_checkpoints, tmp_path, monkeypatch):
+    """``--device meta`` (a device the default never is) reaches the sampling step as asked."""
+    calls = []
+
+    def record(argv):
+        calls.append(list(argv))
+        raise _Stop
+
+    monkeypatch.setattr(hrn_pyg.cli, "main", record)
+    with pytest.raises(_Stop):
+        main(["demo", "--out", str(tmp_path / "demo"), "--k", "2", "--device", "meta"])
+    assert [c[0] for c in calls] == ["sample"] and calls[0][-2:] == ["--device", "meta"]
 
 
 def test_demo_unknown_device_is_a_one_line_error(tiny_checkpoints, tmp_path, capsys):

@@ -5,13 +5,14 @@ import pytest
 import torch
 from torch_geometric.data import Batch
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.evaluate import per_trajectory_errors, summarise
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.rollout import rollout
-from hrn_pyg.train import TrainConfig, load_model, train
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.train import TrainConfig, train
 
 
 def test_errors_are_zero_for_the_truth_and_match_a_hand_case(tiny_episodes):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.io import load_episode, save_episode
@@ -33,9 +34,8 @@ from hrn_pyg.metrics_rest import (
     rest_metrics,
 )
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.train import TrainConfig, load_model, train
+from hrn_pyg.train import TrainConfig, train
 from hrn_pyg.utils.device import default_device, resolve_device
-
 
 
 def _steps(folder: Path, seed: int = 9) -> int:
@@ -186,12 +186,34 @@ def test_long_horizons_clip_to_each_episodes_end_and_match_the_short_path(mixed_
 # ------------------------------------------------------------------------------------------ the CLI
 
 
-def test_evaluate_cli_long_table_and_device_cpu(tiny_episodes, tiny_model, tmp_path, capsys):
+def _spy_on_evaluation(monkeypatch) -> list[tuple[str, torch.device, torch.device]]:
+    """Per call of Table 1's and the long evaluation: which, the model's device, the device asked."""
+    import hrn_pyg.evaluate as evaluate_module
+
+    calls = []
+    for name in ("evaluate_model", "evaluate_long"):
+        def spy(model, starts, horizons, device="cpu", _name=name, _f=getattr(evaluate_module, name)):
+            calls.append((_name, next(model.parameters()).device, torch.device(device)))
+            return _f(model, starts, horizons, device)
+
+        monkeypatch.setattr(evaluate_module, name, spy)
+    return calls
+
+
+def test_evaluate_cli_long_table_and_device_cpu(tiny_episodes, tiny_model, tmp_path, capsys, monkeypatch):
+    """The default device is made ``meta`` here: a command that ignored ``--device cpu`` would
+    evaluate there (and fail); both evaluations must run with the model on the CPU."""
+    import hrn_pyg.utils.device
+
+    monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
+    calls = _spy_on_evaluation(monkeypatch)
     out = tmp_path / "e"
     code = main(["evaluate", "--data", str(tiny_episodes), "--model", f"a={tiny_model}", "--out", str(out),
                  "--horizons", "2,5", "--stride", "3", "--long-horizons", "8,50,100", "--device", "cpu",
                  "--no-figure"])
     assert code == 0
+    cpu = torch.device("cpu")
+    assert calls == [("evaluate_model", cpu, cpu), ("evaluate_long", cpu, cpu)]
     printed = capsys.readouterr().out
     print(printed)  # shown with -s: the table format of the report
     result = json.loads((out / "results.json").read_text())
@@ -209,6 +231,19 @@ def test_evaluate_cli_long_table_and_device_cpu(tiny_episodes, tiny_model, tmp_p
     windows = select_windows(EpisodeWindows(tiny_episodes, "test", horizon=5), 3, None)
     before = summarise(evaluate_model(load_model(tiny_model), windows, (2, 5)))
     assert result["results"]["a"] == before
+
+
+def test_evaluate_cli_device_meta_puts_the_model_there(tiny_episodes, tiny_model, tmp_path, monkeypatch):
+    """``--device meta`` (a device the default never is): the model and the windows go there, and
+    the run stops with the error only meta tensors give (no values to read), writing nothing."""
+    calls = _spy_on_evaluation(monkeypatch)
+    out = tmp_path / "e"
+    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
+        main(["evaluate", "--data", str(tiny_episodes), "--model", f"a={tiny_model}", "--out", str(out),
+              "--horizons", "2", "--stride", "3", "--device", "meta", "--no-figure"])
+    meta = torch.device("meta")
+    assert calls == [("evaluate_model", meta, meta)]
+    assert not (out / "results.json").exists()
 
 
 def test_evaluate_cli_rejects_an_unknown_device_in_one_line(tiny_episodes, tmp_path, capsys):

@@ -1,5 +1,6 @@
 import pytest
 import torch
+from toy_scene import toy_scene
 
 from hrn_pyg.losses import (
     fair_energy_score,
@@ -10,7 +11,6 @@ from hrn_pyg.losses import (
     shape_groups,
 )
 from hrn_pyg.nn.normalizer import Normalizer
-from toy_scene import toy_scene
 
 
 def test_local_velocity_loss_hand_case():

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
+from hrn_pyg.checkpoints import CHECKPOINT_DIR
 from hrn_pyg.cli import main
 from hrn_pyg.recipe import (
-    CHECKPOINTS_DIR,
     MANIFEST_NAME,
     RUN_RECORD,
     RunConfig,
@@ -83,7 +83,7 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
     from hrn_pyg.data.scenes import scene_config
 
     recipe = load_recipe(REPO / "data" / "recipes.toml")
-    shipped = {p.stem for p in CHECKPOINTS_DIR.glob("*.pt")}
+    shipped = {p.stem for p in CHECKPOINT_DIR.glob("*.pt")}
     made = {n for m in recipe.models for n in (m.name, *m.aliases)}
     assert made <= shipped
     assert shipped - made == {"cube_push_policy"}  # the RL policy comes from `hrn-pyg rl`
@@ -100,7 +100,7 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
     assert ridge.scene == "wedge" and dict(ridge.overrides)["offset_range"] == (-0.003, 0.003)
     # the shipped file is what those commands made (the first training, then each stage from the
     # one before); a run made by hand and adopted records its own run folder
-    manifest = json.loads((CHECKPOINTS_DIR / "manifest.json").read_text())["checkpoints"]["wedge"]
+    manifest = json.loads((CHECKPOINT_DIR / "manifest.json").read_text())["checkpoints"]["wedge"]
 
     def without_out(words: list[str]) -> list[str]:
         at = words.index("--out")
@@ -145,12 +145,15 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
 def test_dry_run_prints_the_commands_and_writes_nothing(tmp_path):
     recipe = load_recipe(_write_recipe(tmp_path / "recipes.toml"))
     lines: list[str] = []
+    # "meta", a device the default never is: a runner that ignored it (or put the default in its
+    # place) would print another --device, or none
     config = RunConfig(data_dir=tmp_path / "data", runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt",
-                       device="cpu", dry_run=True)
+                       device="meta", dry_run=True)
     assert Runner(recipe, config, say=lines.append).run() == []
     assert lines[0].startswith("hrn-pyg generate --scene cube_collision --episodes 3 --out ")
     trains = [line for line in lines if line.startswith("hrn-pyg train")]
-    assert len(trains) == 2 and all(t.endswith("--device cpu") for t in trains)
+    assert len(trains) == 2 and all(t.endswith("--device meta") for t in trains)
+    assert all(t.count("--device") == 1 for t in trains)
     assert "--model-hidden 8" in trains[0] and "--resume" not in trains[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["recipes.toml"]
 
@@ -267,8 +270,8 @@ def test_the_ablation_recipe_parses_and_varies_one_factor_at_a_time():
 def test_a_calibrate_table_ships_the_calibrated_copy_and_is_not_redone(tmp_path):
     """``[models.b.calibrate]``: the published file is model.pt calibrated on a validation seed
     (rate and modules in its config and in the manifest); a rerun does not calibrate again."""
+    from hrn_pyg.checkpoints import load_model
     from hrn_pyg.sampling.calibrate import calibration_record
-    from hrn_pyg.train import load_model
 
     text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
     text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours"})

@@ -1,5 +1,5 @@
-import dataclasses
 import csv
+import dataclasses
 import json
 import os
 import subprocess
@@ -8,9 +8,10 @@ import sys
 import pytest
 import torch
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.train import TrainConfig, load_model, train
+from hrn_pyg.train import TrainConfig, train
 
 SMALL = HRNConfig(hidden=16, depth=1, effect_dim=16)
 
@@ -168,9 +169,10 @@ def test_time_limit_stops_like_an_interruption(tiny_episodes, tmp_path):
 
 
 def test_input_noise_is_a_random_walk_rigid_per_object_and_zero_on_static():
+    from toy_scene import toy_window
+
     from hrn_pyg.data.graph import NODE
     from hrn_pyg.train import input_noise
-    from toy_scene import toy_window
 
     window = toy_window(3)
     store = window[NODE]
@@ -262,7 +264,7 @@ def test_sample_copies_layout_one_mask_row_per_copy(tiny_episodes):
     from hrn_pyg.data.graph import NODE, set_state
     from hrn_pyg.nn.hrn import HRN
     from hrn_pyg.nn.normalizer import fit_normalizer
-    from hrn_pyg.rollout import step as model_step
+    from hrn_pyg.sim.step import step as model_step
     from hrn_pyg.train import window_loss
 
     windows = EpisodeWindows(str(tiny_episodes), "train", horizon=2)
@@ -329,7 +331,7 @@ def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
     from hrn_pyg.data.graph import NODE, set_state
     from hrn_pyg.nn.hrn import HRN
     from hrn_pyg.nn.normalizer import fit_normalizer
-    from hrn_pyg.rollout import step as model_step
+    from hrn_pyg.sim.step import step as model_step
     from hrn_pyg.train import window_loss
 
     windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
@@ -397,7 +399,7 @@ def test_with_applied_options_keeps_the_weights_and_refuses_other_settings(tiny_
     """The xy mirror average applied to trained weights: same weights and normaliser, the new
     planes in the config, the mode kept; a setting that changes which weights there are is
     refused by name."""
-    from hrn_pyg.train import with_applied_options
+    from hrn_pyg.checkpoints import with_applied_options
 
     train(_config(tiny_episodes, tmp_path / "base", steps=2), SMALL, progress=False)
     model = load_model(tmp_path / "base" / "model.pt")

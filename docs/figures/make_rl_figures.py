@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
 from hrn_pyg.rl.evaluate import record_episodes, replay_in_pybullet
+from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
 from hrn_pyg.rl.showcase import load_actor
 from hrn_pyg.utils.files import atomic_path
 from hrn_pyg.viz import object_colors, rollout_grid

@@ -23,10 +23,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.scenes import simulate_episode
-from hrn_pyg.sampling.cli import load
-from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.ensemble import (
+    PerturbationConfig,
+    episode_state,
+    ground_truth_ensemble,
+)
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.sampling.sides import RIDGE_X, ball_centres, ridge_config
 from hrn_pyg.viz import save_figure
@@ -68,7 +72,7 @@ def draw(sides: dict, seed: int, model_path: str, data: str, out: Path, members:
         raise ValueError(f"--rate {rate:g} was not scored in the JSON (rates {sides['rates']})")
     episode = simulate_episode("wedge", seed, config=config)
     params = json.loads(str(episode["params"]))["params"]
-    samples, ensemble = paths(load(model_path), episode, config, sides["k"], members, std, rate, seed)
+    samples, ensemble = paths(load_model(model_path), episode, config, sides["k"], members, std, rate, seed)
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), dpi=110, gridspec_kw={"width_ratios": [2.2, 1.2, 1]})
     ax = axes[0]

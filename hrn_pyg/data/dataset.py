@@ -27,9 +27,14 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Dataset, HeteroData
 
+from hrn_pyg.data.graph import (
+    HISTORY,
+    NODE,
+    build_structure,
+    leaf_to_ancestor_mean,
+    set_state,
+)
 from hrn_pyg.data.io import load_episode
-
-from hrn_pyg.data.graph import NODE, build_structure, leaf_to_ancestor_mean, set_state
 
 SPLITS = ("train", "val", "test")
 #: Seeds with ``seed % SPLIT_MODULUS`` equal to these residues form the val and test splits.
@@ -38,8 +43,6 @@ VAL_RESIDUE = 8
 TEST_RESIDUE = 9
 #: Episode file names, as written by ``hrn-pyg generate``.
 EPISODE_PATTERN = re.compile(r"^episode_(\d+)\.npz$")
-#: Model states before the window's current step that the model needs (``x_{t-2}, x_{t-1}``).
-HISTORY = 2
 #: The episode keys this dataset reads.
 EPISODE_KEYS = (
     "positions",
@@ -64,7 +67,7 @@ def read_episode(path: str | Path) -> dict[str, np.ndarray]:
     return {key: np.asarray(episode[key]) for key in EPISODE_KEYS}
 
 
-def _num_steps(path: Path) -> int:
+def episode_steps(path: Path) -> int:
     """``S`` of an episode from the header of its ``positions`` array, without reading data."""
     try:
         with zipfile.ZipFile(path) as archive, archive.open("positions.npy") as f:
@@ -161,7 +164,7 @@ class EpisodeWindows(Dataset):
         self.paths = [path for _, path in chosen]
 
         # windows start at t = HISTORY .. S - T
-        counts = np.array([max(_num_steps(p) - self.horizon - HISTORY + 1, 0) for p in self.paths])
+        counts = np.array([max(episode_steps(p) - self.horizon - HISTORY + 1, 0) for p in self.paths])
         if counts.sum() == 0:
             raise ValueError(f"every {split} episode in {folder} is shorter than {self.horizon + HISTORY} steps")
         self._window_episode = np.repeat(np.arange(len(self.paths)), counts)

@@ -28,10 +28,13 @@ LEAF_TO_ANCESTOR = (NODE, "leaf_to_ancestor", NODE)
 WITHIN_SIBLINGS = (NODE, "within_siblings", NODE)
 ANCESTOR_TO_DESCENDANT = (NODE, "ancestor_to_descendant", NODE)
 EDGE_TYPES = (CHILD_TO_PARENT, COLLISION, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
+#: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
+HISTORY = 2
 #: Material names in one-hot column order (episode files store the column index).
 MATERIALS = ("rigid", "soft", "cloth", "static")
-#: Column of the static material: such objects never move.
-STATIC = MATERIALS.index("static")
+#: Material codes: the value of ``object_material`` and the column of ``graph['particle'].material``
+#: (static objects never move).
+RIGID, SOFT, CLOTH, STATIC = (MATERIALS.index(name) for name in ("rigid", "soft", "cloth", "static"))
 
 
 def _sort_edges(src: Tensor, dst: Tensor, num_nodes: int) -> Tensor:
@@ -214,6 +217,37 @@ def build_structure(
             raise ValueError(f"rest_pos must be finite with shape [{n_leaves}, 3], got {list(rest_pos.shape)}")
         store.rest_pos = leaf_to_ancestor_mean(_to_nodes("rest_pos", rest_pos.to(device=device, dtype=dtype), graph), graph)
     return graph
+
+
+def object_span(leaf_object: Tensor) -> int:
+    """The number of object ids in use, ``max + 1`` (1 when there are none; one host read)."""
+    return int(leaf_object.max()) + 1 if leaf_object.numel() else 1
+
+
+def copy_object_ids(copy: Tensor, obj: Tensor, span: int) -> Tensor:
+    """One id per (batch copy, object) pair: ``copy * span + obj``, ``span`` from :func:`object_span`
+    (objects are numbered per copy, so the copies of one object need ids of their own)."""
+    return copy * span + obj
+
+
+def object_centres(positions: Tensor, leaf_object: Tensor, num_objects: int,
+                   leaf_mass: Tensor | None = None) -> Tensor:
+    r"""Mass-weighted centre of each object's leaves, the position of its hierarchy root.
+
+    .. math:: r_o = \sum_{l \in o} m_l x_l \Big/ \sum_{l \in o} m_l
+
+    ``leaf_mass`` ``(L,)``, or ``(*, L)`` with masses of their own per leading index; None: equal
+    masses. An object without leaves gets zeros.
+
+    **Shapes:** positions ``(*, L, 3)``, leaf_object ``(L,)`` long in ``0..num_objects-1``;
+    returns ``(*, num_objects, 3)``.
+    """
+    weight = torch.ones_like(positions[..., 0]) if leaf_mass is None else leaf_mass.to(positions.dtype)
+    weight = weight.expand(positions.shape[:-1])
+    total = positions.new_zeros(*weight.shape[:-1], num_objects).index_add(-1, leaf_object, weight)
+    summed = positions.new_zeros(*positions.shape[:-2], num_objects, 3).index_add(
+        -2, leaf_object, positions * weight[..., None])
+    return summed / total.clamp_min(torch.finfo(positions.dtype).tiny)[..., None]
 
 
 def leaf_to_ancestor_mean(values: Tensor, graph: HeteroData) -> Tensor:

@@ -66,6 +66,8 @@ def _import_pybullet():
 
 p = _import_pybullet()
 
+from hrn_pyg.data.effects import SceneEffects
+from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.data.voxelise import (
     box_mesh,
     grid_sheet,
@@ -76,10 +78,6 @@ from hrn_pyg.data.voxelise import (
     write_obj,
     write_tetrahedral_vtk,
 )
-from hrn_pyg.effects import SceneEffects
-
-#: Material codes of ``object_material`` (architecture.md).
-RIGID, SOFT, CLOTH, STATIC = 0, 1, 2, 3
 
 GRAVITY = 9.81
 #: Nominal density (kg/m^3) giving a static body's leaves a mass: they never move, but the
@@ -365,7 +363,7 @@ class Scene:
     config_cls: ClassVar[type[SceneConfig]]
     #: objects an agent may push (indices); scripted scenes push whatever their script says.
     actuated: ClassVar[tuple[int, ...]] = ()
-    #: the effects a model of this scene has to simulate (:mod:`hrn_pyg.effects`); None in a
+    #: the effects a model of this scene has to simulate (:mod:`hrn_pyg.data.effects`); None in a
     #: field: the data decide
     effects: ClassVar[SceneEffects] = SceneEffects()
 
@@ -933,7 +931,7 @@ def scene_config(scene: str, **overrides) -> SceneConfig:
 
 
 def scene_effects(scene: str) -> SceneEffects:
-    """The :class:`~hrn_pyg.effects.SceneEffects` scene ``scene`` declares (what to simulate)."""
+    """The :class:`~hrn_pyg.data.effects.SceneEffects` scene ``scene`` declares (what to simulate)."""
     return _scene_class(scene).effects
 
 

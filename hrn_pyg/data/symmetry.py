@@ -11,7 +11,7 @@ same physics would produce: every position, force and rest shape is mapped by on
 and heights, distances, masses and the hierarchy are unchanged. Training on windows mapped by a
 fresh :math:`Q` per copy gives the model no preferred horizontal direction to learn, and its
 normaliser then has no horizontal mean to add to every step: a resting body has nothing that
-pushes it sideways (:func:`isotropic_horizontal`).
+pushes it sideways (:func:`hrn_pyg.nn.normalizer.isotropic_horizontal`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.nn.normalizer import Normalizer
 
 #: per-node attributes of a window that are vectors in world space (rows ``[N, 3]`` or ``[N, T, 3]``)
 WORLD_VECTORS = ("pos", "prev_pos", "prev_prev_pos", "force", "pos_seq", "force_seq", "rest_pos")
@@ -79,23 +78,3 @@ def apply_vertical_symmetry(window: HeteroData, symmetries: Tensor) -> HeteroDat
         else:
             out[NODE][name] = torch.einsum("nij,ntj->nti", q, value)
     return out
-
-
-def isotropic_horizontal(normalizer: Normalizer) -> Normalizer:
-    r"""Make the normaliser's statistics those of the symmetrised data, in place.
-
-    Averaged over all turns about z, a vector's horizontal mean is 0 and each horizontal
-    component's second moment is :math:`\tfrac12(\mu_x^2 + \sigma_x^2 + \mu_y^2 + \sigma_y^2)`;
-    vertical statistics are unchanged. Applies to the velocity, local / root target and force
-    statistics; returns ``normalizer``.
-    """
-    pairs = (("velocity_mean", "velocity_std"), ("local_mean", "local_std"), ("root_mean", "root_std"))
-    with torch.no_grad():
-        for mean_name, std_name in pairs:
-            mean, std = getattr(normalizer, mean_name), getattr(normalizer, std_name)
-            second = (mean[:2].square() + std[:2].square()).mean()
-            mean[:2] = 0.0
-            std[:2] = second.sqrt()
-        force = normalizer.force_std  # an uncentred root mean square already
-        force[:2] = force[:2].square().mean().sqrt()
-    return normalizer

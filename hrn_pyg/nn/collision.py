@@ -34,7 +34,7 @@ class CollisionModule(MessagePassing):
     ``edge_weight`` (optional, 0 or 1 per edge) switches edges off without removing them: an edge
     of weight 0 adds an exact zero and does not count in the output layer's bias, so the result
     is that of the edge set without it. This is the fixed-shape step's form
-    (:mod:`hrn_pyg.fixed_shape`): a candidate set that only changes when something has moved far,
+    (:mod:`hrn_pyg.sim.fixed_shape`): a candidate set that only changes when something has moved far,
     with the pairs closer than the radius marked per step.
 
     Args:

@@ -21,7 +21,7 @@ class ForceModule(nn.Module):
     :math:`\phi_F` on every row and zeroes the rows without force instead: the same effect
     (up to the rounding of a matrix product over other rows) with no data-dependent shape, so
     the pass never waits for the device to say how many rows are pushed (the fixed-shape step
-    of :mod:`hrn_pyg.fixed_shape`).
+    of :mod:`hrn_pyg.sim.fixed_shape`).
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.

@@ -138,17 +138,17 @@ class HRNConfig:
 
 class HRNInputs(NamedTuple):
     """Everything one network pass reads, already normalised (built by
-    :func:`hrn_pyg.rollout.build_inputs`).
+    :func:`hrn_pyg.sim.step.build_inputs`).
 
     Shapes: ``state``, ``prev_state`` ``[N, STATE_DIM]`` (s(t), s(t-1)); ``pos`` ``[N, 3]``
     positions divided by the length scale (only differences are used); ``force`` ``[N, 3]``
     normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
     the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided by the
     length scale, or None (models without ``rest_offsets``). ``force_active``: whether the
-    force module runs, decided by the caller (:mod:`hrn_pyg.effects`: one host read per
+    force module runs, decided by the caller (:mod:`hrn_pyg.data.effects`: one host read per
     rollout); None asks the force tensor in this pass (a host sync on a GPU).
     ``collision_weight`` ``[E_C]`` (optional): 1 for the collision edges that act in this step,
-    0 for candidates that do not (:mod:`hrn_pyg.fixed_shape`). ``fixed_shape``: no tensor of
+    0 for candidates that do not (:mod:`hrn_pyg.sim.fixed_shape`). ``fixed_shape``: no tensor of
     the pass may have a size that depends on the data (the force module runs on every row).
     """
 
@@ -225,7 +225,7 @@ class HRN(nn.Module):
     :math:`e_F` (:class:`ForceModule`) and :math:`e_C` (:class:`CollisionModule`) are skipped when
     there is no force / no collision edge, which gives the same result as running them. The
     output is the normalised change of each particle's local velocity (zero on static particles);
-    :func:`hrn_pyg.rollout.decode` turns it into positions. The model carries no hidden state.
+    :func:`hrn_pyg.sim.step.decode` turns it into positions. The model carries no hidden state.
 
     A dropout mask (see :meth:`sample_masks`) is a ``[B, hidden]`` table per module, one row per
     trajectory copy ``B``, looked up by each node's / edge's batch id. Without masks the model is

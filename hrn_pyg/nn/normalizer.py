@@ -204,3 +204,23 @@ def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None =
         norm.length_scale.copy_(length.std(centred=False))
         norm.fitted.fill_(True)
     return norm
+
+
+def isotropic_horizontal(normalizer: Normalizer) -> Normalizer:
+    r"""Make the normaliser's statistics those of the symmetrised data, in place.
+
+    Averaged over all turns about z, a vector's horizontal mean is 0 and each horizontal
+    component's second moment is :math:`\tfrac12(\mu_x^2 + \sigma_x^2 + \mu_y^2 + \sigma_y^2)`;
+    vertical statistics are unchanged. Applies to the velocity, local / root target and force
+    statistics; returns ``normalizer``.
+    """
+    pairs = (("velocity_mean", "velocity_std"), ("local_mean", "local_std"), ("root_mean", "root_std"))
+    with torch.no_grad():
+        for mean_name, std_name in pairs:
+            mean, std = getattr(normalizer, mean_name), getattr(normalizer, std_name)
+            second = (mean[:2].square() + std[:2].square()).mean()
+            mean[:2] = 0.0
+            std[:2] = second.sqrt()
+        force = normalizer.force_std  # an uncentred root mean square already
+        force[:2] = force[:2].square().mean().sqrt()
+    return normalizer

@@ -16,7 +16,7 @@ class NextStateModule(nn.Module):
         v^{loc}_i(t+1) = v^{loc}_i(t) + \mu_{r(i)} + \sigma_{r(i)} \odot \hat{u}_i
 
     :math:`\hat u_i` is the network's normalised output; the decoding on the right (done by
-    :func:`hrn_pyg.rollout.decode` with the model's :class:`~hrn_pyg.nn.normalizer.Normalizer`)
+    :func:`hrn_pyg.sim.step.decode` with the model's :class:`~hrn_pyg.nn.normalizer.Normalizer`)
     turns it into the local velocity :math:`v_i(t+1) - v_{parent(i)}(t+1)`, with separate statistics
     :math:`(\mu, \sigma)` for roots (global frame) and for the other nodes (parent frame). Static
     particles (``is_static``) get an exact zero.

@@ -2,7 +2,7 @@
 
 :class:`StochasticDynamics` is the small protocol :class:`hrn_pyg.rl.env.HRNEnv` steps through:
 draw initial scenes, read each movable object's root state, and sample ``k`` next states under
-Monte Carlo dropout at a given rate. The learned HRN wraps into it (the lead's ``HRNDynamics``:
+Monte Carlo dropout at a given rate. The learned HRN wraps into it (:class:`hrn_pyg.rl.hrn_dynamics.HRNDynamics`:
 the flattened state is the leaf positions at ``t-2, t-1, t``, the roots are mass-weighted leaf
 means, ``hrn_pyg.sampling`` gives the ``k`` batched futures).
 
@@ -26,6 +26,8 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from hrn_pyg.utils.checks import check_count, check_rate
+
 #: Per-object root state: position (3) then per-step velocity (3).
 ROOT_DIM = 6
 #: Relative approach speed (m/step) at which collision noise reaches half its full size; resting
@@ -48,8 +50,7 @@ def dropout_spread(rate: float) -> float:
     A unit ``h`` becomes ``h / (1 - p)`` with probability ``1 - p`` and ``0`` otherwise, so its
     relative standard deviation is :math:`\sqrt{p / (1 - p)}`; 0 at ``p = 0``.
     """
-    if not 0.0 <= rate < 1.0:
-        raise ValueError(f"dropout rate must be in [0, 1), got {rate}")
+    check_rate(rate, "dropout rate")
     return math.sqrt(rate / (1.0 - rate))
 
 
@@ -264,8 +265,7 @@ class PointMassDynamics:
             raise ValueError(f"states must be (B, {self.state_dim}), got {tuple(states.shape)}")
         if forces.shape != (B, O, 3):
             raise ValueError(f"forces must be ({B}, {O}, 3), got {tuple(forces.shape)}")
-        if k < 1:
-            raise ValueError(f"k must be >= 1, got {k}")
+        check_count(k, "k")
         spread = dropout_spread(rate)
         c = self.config
         roots = self.roots(states).unsqueeze(1).expand(B, k, O, ROOT_DIM)

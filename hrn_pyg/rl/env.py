@@ -18,7 +18,14 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from hrn_pyg.rl.dynamics import StochasticDynamics, dropout_spread
-from hrn_pyg.rl.tasks import GOAL_DIM, TaskConfig, action_to_forces, get_task, goal_reached, sample_goal
+from hrn_pyg.rl.tasks import (
+    GOAL_DIM,
+    TaskConfig,
+    action_to_forces,
+    get_task,
+    goal_reached,
+    sample_goal,
+)
 
 
 class HRNEnv(EnvBase):

@@ -22,6 +22,7 @@ from tensordict.nn import TensorDictModule
 from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from hrn_pyg.data.graph import HISTORY, object_centres
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.tasks import TaskConfig, action_to_forces, get_task, goal_reached
 
@@ -45,7 +46,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
                        goal: Tensor | None = None, history_steps: int = 0) -> dict:
     """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
 
-    The ground-truth check of issue 6: builds ``hrn_pyg.data.scenes.make_scene(task, seed)``,
+    The ground-truth check of a policy: builds ``hrn_pyg.data.scenes.make_scene(task, seed)``,
     applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
     judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
     displacement) after every step, stopping at the first success. ``goal`` ``(2,)`` is the
@@ -54,7 +55,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
     environment's episode must start from this scene's initial state (the learned dynamics'
     ``reset_states`` draws scenes by seed). ``history_steps`` zero-force steps are taken after
     the scene's reset before the first action: :class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`
-    starts its episodes after ``HISTORY_STEPS`` such steps (it needs ``x_{t-2}, x_{t-1}``), so
+    starts its episodes after ``HISTORY`` such steps (it needs ``x_{t-2}, x_{t-1}``), so
     the replay of one of its episodes passes that number.
 
     Returns ``{"success": bool, "steps": int, "roots": (steps + 1, O, 6) tensor,
@@ -77,9 +78,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
         mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
 
         def centres(x: Tensor) -> Tensor:  # (L, 3) -> (O, 3), mass-weighted per object
-            num = torch.zeros(task.num_objects, 3).index_add_(0, obj, x * mass[:, None])
-            den = torch.zeros(task.num_objects).index_add_(0, obj, mass)
-            return num / den[:, None]
+            return object_centres(x, obj, task.num_objects, mass)
 
         prev = centres(leaves)
         roots = [torch.cat([prev, prev - centres(before)], -1)]
@@ -156,7 +155,7 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
     Runs ``episodes`` deterministic episodes in the learned environment with dropout 0 and no
     action noise (:func:`record_episodes`; the environment's settings are restored after),
     then replays each episode's actions open loop in the pybullet scene it started from, after
-    the same ``HISTORY_STEPS`` zero-force steps, against the same goal
+    the same ``HISTORY`` zero-force steps, against the same goal
     (:func:`replay_in_pybullet`). An episode that failed or ran to ``max_steps`` counts as
     length ``max_steps`` on either side (the convention of :func:`evaluate_policy`).
 
@@ -164,7 +163,6 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
     ``pybullet_mean_length`` and ``agreement`` (fraction of episodes where both judge the same),
     plus ``ground_truth_episodes``.
     """
-    from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS
 
     saved = env.dropout_rate, env.action_noise_std
     env.dropout_rate, env.action_noise_std = 0.0, 0.0
@@ -176,7 +174,7 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
     model_ok, model_len, real_ok, real_len = [], [], [], []
     for rec in records:  # one pybullet scene per episode
         replay = replay_in_pybullet(rec["actions"], env.task, rec["seed"], rec["goal"],
-                                    history_steps=HISTORY_STEPS)
+                                    history_steps=HISTORY)
         model_ok.append(rec["success"])
         model_len.append(rec["length"] if rec["success"] else max_steps)
         real_ok.append(replay["success"])

@@ -9,7 +9,7 @@ very same start. The flattened per-environment state is
     [ x_{t-2} (L*3) | x_{t-1} (L*3) | x_t (L*3) | pool index (1) ]
 
 leaf positions only: ancestors are derived, collision edges recomputed, exactly as in every
-other rollout (:func:`hrn_pyg.rollout.step`). One call of :meth:`HRNDynamics.sample_next`
+other rollout (:func:`hrn_pyg.sim.step.step`). One call of :meth:`HRNDynamics.sample_next`
 steps ``B`` environments times ``k`` samples as one batched graph, each copy with its own
 dropout masks (one per step per copy, the seed paper's graph-convolutional dropout).
 
@@ -17,10 +17,11 @@ Speed (the environment step is the RL loop's cost): every pool entry shares one 
 the batched static graph depends only on the number of copies; it is collated once per copy
 count and cached, and only the node attributes that differ between pool entries (the masses)
 are gathered per step. At rate 0 the ``k`` samples are one deterministic prediction, computed
-once per environment and repeated. The model stages are called directly
-(:func:`~hrn_pyg.rollout.build_inputs`, :func:`~hrn_pyg.rollout.run_network`,
-:func:`~hrn_pyg.rollout.decode`), skipping the collision search for a next graph that
-:func:`hrn_pyg.rollout.step` would build and this module would throw away.
+once per environment and repeated. A step is one :func:`hrn_pyg.sim.sleeping.predict_held`
+(the model's prediction with the objects at rest held still) and no next graph: the collision
+search that :func:`hrn_pyg.sim.step.step` would make for it is left out, since the next call
+builds its graph from the new state. The objects of a batch are found once per copy count, and
+the force module is told that a force acts, so the step asks the device nothing it need not.
 """
 
 from __future__ import annotations
@@ -36,21 +37,27 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 
-from hrn_pyg.data.graph import NODE, build_structure, set_state
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.graph import HISTORY, NODE, build_structure, object_centres, set_state
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
-from hrn_pyg.rollout import build_inputs, decode, run_network
 from hrn_pyg.sampling.sample import draw_masks, model_device
-from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
-from hrn_pyg.sleeping import Objects, objects, predict_awake, state_from_history, update
+from hrn_pyg.sim.sleeping import (
+    DEFAULT_SLEEP,
+    Objects,
+    SleepConfig,
+    held_from_history,
+    holds_movable,
+    objects,
+    predict_held,
+)
+from hrn_pyg.utils.checks import check_count, check_rate
 
 #: seeds of the initial-state pool; far from the generated datasets' seeds (0..199), so the
 #: agent starts from scenes the model never saw in training
 POOL_SEEDS = tuple(range(10_000, 10_064))
-#: zero-force pybullet steps taken after reset to get x_{t-2}, x_{t-1}, x_t
-HISTORY_STEPS = 2
 #: batched static graphs kept (one per copy count: training batch x k, the same at rate 0 with
 #: k = 1, evaluation batches); a handful covers every count one PPO run uses
 BATCH_CACHE_SIZE = 8
@@ -82,10 +89,12 @@ class HRNDynamics:
 
     def __init__(self, model: HRN, task: str | TaskConfig, pool_seeds: Sequence[int] = POOL_SEEDS,
                  sleep: SleepConfig | None = DEFAULT_SLEEP) -> None:
-        from hrn_pyg.data.scenes import make_scene  # pybullet only where a pool is built
+        from hrn_pyg.data.scenes import (
+            make_scene,  # pybullet only where a pool is built
+        )
 
         self.task = get_task(task)
-        #: objects at rest sleep (:func:`hrn_pyg.sleeping.state_from_history`); None: all awake
+        #: objects at rest sleep (:func:`hrn_pyg.sim.sleeping.state_from_history`); None: all awake
         self.sleep = sleep if sleep is not None and sleep.enabled else None
         self._objects: dict[int, Objects] = {}
         self.model = model.eval()
@@ -106,7 +115,7 @@ class HRNDynamics:
             scene = make_scene(self.task.name, int(seed))
             try:
                 frames = [scene.reset()]
-                for _ in range(HISTORY_STEPS):
+                for _ in range(HISTORY):
                     frames.append(scene.step(scene.zero_action()))
                 histories.append(np.stack(frames))
                 masses.append(np.asarray(scene.leaf_mass, dtype=np.float32))
@@ -147,8 +156,6 @@ class HRNDynamics:
                         pool_seeds: Sequence[int] = POOL_SEEDS,
                         sleep: SleepConfig | None = DEFAULT_SLEEP) -> HRNDynamics:
         """The dynamics of a checkpoint's model on ``device`` (None: the CPU)."""
-        from hrn_pyg.train import load_model
-
         return cls(load_model(path, device), task, pool_seeds, sleep)
 
     def __repr__(self) -> str:
@@ -180,22 +187,17 @@ class HRNDynamics:
         return self._join(self.pool[index], index)
 
     def roots(self, states: Tensor) -> Tensor:
-        pos, index = self._split(states)
-        mass = self.leaf_mass[index]  # [..., L]
-        onehot = torch.nn.functional.one_hot(self.leaf_object, self.num_objects).to(pos.dtype)  # [L, O]
-        weights = mass.unsqueeze(-1) * onehot  # [..., L, O]
-        total = weights.sum(-2).unsqueeze(-1)  # [..., O, 1]
-        centre_now = torch.einsum("...lo,...lc->...oc", weights, pos[..., 2, :, :]) / total
-        centre_prev = torch.einsum("...lo,...lc->...oc", weights, pos[..., 1, :, :]) / total
+        pos, index = self._split(states)  # [..., 3, L, 3], [...]
+        mass = self.leaf_mass[index].unsqueeze(-2)  # [..., 1, L]: the same masses at every time
+        centres = object_centres(pos[..., 1:, :, :], self.leaf_object, self.num_objects, mass)  # [..., 2, O, 3]
+        centre_prev, centre_now = centres.unbind(-3)
         return torch.cat([centre_now, centre_now - centre_prev], dim=-1)
 
     @torch.no_grad()
     def sample_next(self, states: Tensor, forces: Tensor, k: int, rate: float,
                     generator: torch.Generator) -> Tensor:
-        if k < 1:
-            raise ValueError(f"k must be >= 1, got {k}")
-        if not 0.0 <= rate < 1.0:
-            raise ValueError(f"rate must be in [0, 1), got {rate}")
+        check_count(k, "k")
+        check_rate(rate)
         B = states.shape[0]
         if forces.shape != (B, self.num_objects, 3):
             raise ValueError(f"forces must be ({B}, {self.num_objects}, 3), got {tuple(forces.shape)}")
@@ -215,26 +217,26 @@ class HRNDynamics:
         if rate > 0:  # one mask per copy on the masked modules only (cube_push: force)
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.dropout_modules}
-        asleep_node = self._asleep(graph, n) if self.sleep is not None else None
-        if asleep_node is None or not bool((asleep_node & ~graph[NODE].is_static).any()):
-            next_pos = decode(self.model, graph, run_network(self.model, build_inputs(self.model, graph), masks))[0]
-        else:  # the objects the state shows at rest, unless pushed or touched, are held
-            next_pos = predict_awake(self.model, graph, graph[NODE].force, masks, asleep_node)[0]
+        objs = self._objects_of(graph, n)
+        held = held_from_history(self.sleep, graph, objs, graph[NODE].force) if self.sleep is not None else None
+        if held is not None and not holds_movable(held, graph):
+            held = None
+        # every environment is pushed by its action: the force module runs (a zero row adds nothing)
+        next_pos = predict_held(self.model, graph, graph[NODE].force, masks, held, force_active=True,
+                                objects=(objs.of_node, objs.count)).pos
         leaves = graph[NODE].is_leaf
         nxt = next_pos[leaves].reshape(n, 1, self.num_leaves, 3)
         new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
         new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
         return self._join(new_pos, index[:, None].expand(B, k))
 
-    def _asleep(self, graph: HeteroData, n: int) -> Tensor:
-        """``[N]`` bool: the nodes held in this step (:func:`hrn_pyg.sleeping.state_from_history`,
-        then the wake-up rule of :func:`hrn_pyg.sleeping.update`); the objects of ``n`` copies
-        are cached per ``n``."""
+    def _objects_of(self, graph: HeteroData, n: int) -> Objects:
+        """The :class:`~hrn_pyg.sim.sleeping.Objects` of a batched graph of ``n`` copies, found
+        once per ``n`` (a host read) and cached."""
         objs = self._objects.get(n)
         if objs is None:
             objs = self._objects.setdefault(n, objects(graph))
-        state = update(self.sleep, state_from_history(self.sleep, graph, objs), graph, graph[NODE].force, objs)
-        return state.asleep[objs.of_node]
+        return objs
 
     def _batched_structure(self, copies: Tensor) -> HeteroData:
         """Pool entries ``copies`` ``[n]`` as one batched static graph (a shallow copy).
@@ -266,7 +268,7 @@ def sleep_repr(sleep: SleepConfig | None) -> str:
     """The sleep settings a step of the environment uses, for a run's record.
 
     Only ``enabled``, ``threshold`` and ``patience``: every step starts from
-    :func:`~hrn_pyg.sleeping.state_from_history`, so ``start_from_history`` (a rollout's option)
+    :func:`~hrn_pyg.sim.sleeping.state_from_history`, so ``start_from_history`` (a rollout's option)
     changes nothing here and does not make a run another run when it is resumed.
     """
     if sleep is None:

@@ -66,18 +66,30 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve, write_summary
-from hrn_pyg.rl.stats import write_comparison
-from hrn_pyg.utils.stop import StopRequest
+from hrn_pyg.rl.curves import (
+    curve_metrics,
+    plot_episode_length,
+    read_curve,
+    write_summary,
+)
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
+from hrn_pyg.rl.stats import write_comparison
 from hrn_pyg.rl.tasks import MODES, TASKS, TaskConfig, get_task
-from hrn_pyg.utils.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
+from hrn_pyg.utils.checkpoint import (
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
-from hrn_pyg.utils.metrics import CSVLog, plot_curves
+from hrn_pyg.utils.metrics import CSVLog
 from hrn_pyg.utils.schedules import LinearSchedule
+from hrn_pyg.utils.stop import StopRequest
+from hrn_pyg.viz import plot_curves
 
 LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
               "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
@@ -198,12 +210,9 @@ def load_dynamics(task: TaskConfig, model: str | None,
     path = Path(model)
     if not path.is_file():
         raise FileNotFoundError(f"--model checkpoint not found: {path}")
-    try:
-        from hrn_pyg.rl.hrn_dynamics import HRNDynamics  # added with the learned model
-    except ModuleNotFoundError as exc:
-        raise ValueError("--model needs hrn_pyg.rl.hrn_dynamics (the learned HRN dynamics), "
-                         "which is not available in this version") from exc
-    from hrn_pyg.sleep_config import DEFAULT_SLEEP
+    from hrn_pyg.rl.hrn_dynamics import (
+        HRNDynamics,  # pybullet and the model only when asked for
+    )
 
     return HRNDynamics.from_checkpoint(path, task, device, sleep=DEFAULT_SLEEP if sleep else None)
 

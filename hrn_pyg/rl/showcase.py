@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hrn_pyg.data.graph import HISTORY
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, HRNDynamics
 from hrn_pyg.rl.evaluate import record_episodes, replay_in_pybullet
+from hrn_pyg.rl.hrn_dynamics import HRNDynamics
 from hrn_pyg.rl.ppo import build_actor_critic
 from hrn_pyg.utils.checkpoint import load_checkpoint
 from hrn_pyg.utils.files import atomic_write_json
@@ -43,7 +44,7 @@ def showcase_policy(model: str | os.PathLike, policy: str | os.PathLike, out: st
     env = HRNEnv(task, dynamics, batch_size=episodes, seed=SHOWCASE_SEED, dropout_rate=0.0)
     actor = load_actor(policy, env)
     records = record_episodes(actor, env, episodes)  # CPU tensors
-    replays = [replay_in_pybullet(r["actions"], task, r["seed"], r["goal"], history_steps=HISTORY_STEPS)
+    replays = [replay_in_pybullet(r["actions"], task, r["seed"], r["goal"], history_steps=HISTORY)
                for r in records]  # one pybullet scene per episode
     rec, real = records[0], replays[0]
     L = dynamics.num_leaves

@@ -22,7 +22,7 @@ The choice is written into a copy of the checkpoint (default ``<name>.calibrated
 the input; ``--in-place`` replaces the input; always atomically): the JSON config's
 ``model.dropout_rate`` / ``model.dropout_modules`` become the chosen rate and modules, and a
 ``calibration`` record beside ``model`` and ``train`` keeps how (scene, seeds, every candidate
-with its numbers, the date). :func:`hrn_pyg.train.load_model` reads such a file like any
+with its numbers, the date). :func:`hrn_pyg.checkpoints.load_model` reads such a file like any
 other; ``hrn-pyg sample``, the demo and the RL environment use its rate when given none.
 """
 
@@ -42,13 +42,25 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.dataset import EPISODE_PATTERN, SPLIT_MODULUS, TEST_RESIDUE, VAL_RESIDUE, read_episode
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import load_model, resolve_model
+from hrn_pyg.data.dataset import (
+    EPISODE_PATTERN,
+    SPLIT_MODULUS,
+    TEST_RESIDUE,
+    VAL_RESIDUE,
+    read_episode,
+)
+from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sampling.ensemble import HISTORY, PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.ensemble import (
+    PerturbationConfig,
+    episode_state,
+    ground_truth_ensemble,
+)
 from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
+from hrn_pyg.utils.device import resolve_device
 
 #: candidate dropout rates tried by default
 DEFAULT_RATES = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
@@ -174,7 +186,8 @@ def build_start(scene: str, seed: int, steps: int, members: int,
     The start is step :data:`~hrn_pyg.sampling.ensemble.HISTORY` of the unperturbed episode;
     the truth is the ``members`` ensemble's leaves at step ``HISTORY + steps``.
     """
-    from hrn_pyg.data.scenes import STATIC, simulate_episode
+    from hrn_pyg.data.graph import STATIC
+    from hrn_pyg.data.scenes import simulate_episode
 
     if episode is None:
         episode = simulate_episode(scene, seed, steps=HISTORY + steps, config=config)
@@ -382,9 +395,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrn_pyg.sampling.cli import load, resolve_model
-    from hrn_pyg.utils.device import resolve_device
-
     # --- everything cheap is checked before anything is simulated ----------------------------
     rates = parse_rates(args.rates)
     for name in ("k", "members"):
@@ -402,7 +412,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"the output {out} is the input checkpoint; pass --in-place to overwrite it, "
                          "or another --out")
     device = resolve_device(args.device)
-    model = load(model_path, device)
+    model = load_model(model_path, device)
     record_before = calibration_record(model_path)
     allowed = allowed_modules(model, record_before)
     module_sets = parse_module_sets(args.modules, allowed)

@@ -21,48 +21,21 @@ import numpy as np
 import torch
 from torch_geometric.data import HeteroData
 
-import hrn_pyg
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import checkpoint_path, load_model, resolve_model
+from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.scenes import scene_effects
-from hrn_pyg.fixed_shape import FixedShapeConfig
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.sampling.ensemble import HISTORY, episode_state
+from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.sleep_config import DEFAULT_SLEEP
+from hrn_pyg.sim.fixed_shape import FixedShapeConfig
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
 
-#: folder of the checkpoints shipped with the package, one ``<scene>.pt`` per scene
-CHECKPOINT_DIR = Path(hrn_pyg.__file__).resolve().parent / "checkpoints"
 #: columns of the PNG, as fractions of the horizon (t = 0 is the start state)
 FIGURE_COLUMNS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: sampling rate of a model that names none (config ``dropout_rate`` 0: never calibrated)
 UNCALIBRATED_RATE = 0.3
-
-
-def default_model_path(scene: str) -> Path:
-    """``hrn_pyg/checkpoints/<scene>.pt``."""
-    return CHECKPOINT_DIR / f"{scene}.pt"
-
-
-def resolve_model(scene: str, path: str | None) -> Path:
-    """The checkpoint to use; FileNotFoundError naming it and the command that makes it."""
-    model_path = Path(path) if path else default_model_path(scene)
-    if not model_path.is_file():
-        raise FileNotFoundError(
-            f"no model checkpoint at {model_path}; train one with "
-            f"`hrn-pyg generate --scene {scene} --out data/{scene}` then "
-            f"`hrn-pyg train --preset ours --data data/{scene} --out runs/{scene} --train-dropout 0.1` "
-            f"and pass --model runs/{scene}/model.pt"
-        )
-    return model_path
-
-
-def load(path: Path, device: torch.device | str | None = None) -> HRN:
-    """The checkpoint's model on ``device`` (None: the CPU)."""
-    from hrn_pyg.train import load_model  # the trainer's loader (imports the training stack)
-
-    return load_model(path, device)
 
 
 def default_rate(model: HRN, calibrated: bool = False) -> tuple[float, str]:
@@ -81,7 +54,7 @@ def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroDat
     :class:`HRN` with seed 0 whose normaliser is fitted on ``fit_on``; on ``device`` (None: the
     CPU)."""
     if not random_init:
-        return load(resolve_model(scene, path), device)
+        return load_model(resolve_model(scene, path), device)
     from hrn_pyg.nn.hrn import HRNConfig
     from hrn_pyg.nn.normalizer import fit_normalizer
 
@@ -132,9 +105,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--no-sleep", action="store_true",
-                        help="run every object at every step (default: objects at rest sleep, hrn_pyg.sleeping)")
+                        help="run every object at every step (default: objects at rest sleep, hrn_pyg.sim.sleeping)")
     parser.add_argument("--fixed-shape", action="store_true",
-                        help="fixed-shape steps (hrn_pyg.fixed_shape): no host read inside a step, the "
+                        help="fixed-shape steps (hrn_pyg.sim.fixed_shape): no host read inside a step, the "
                              "same futures as --no-sleep, which it implies")
     parser.add_argument("--cuda-graph", action="store_true",
                         help="with --fixed-shape on CUDA: record each kind of step as a CUDA graph")
@@ -156,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     if args.cuda_graph and device.type != "cuda":
         raise ValueError(f"--cuda-graph needs a CUDA device, got {device}")
     model_path = resolve_model(args.scene, args.model)
-    model = load(model_path, device)
+    model = load_model(model_path, device)
     if args.compile:
         model.compile()  # same numbers; shapes that change (new contacts) compile once more
     if args.rate is None:
@@ -201,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write(out / "samples.npz", write_npz)
     atomic_write_json(out / "samples.json", {
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
-        "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or default_model_path(args.scene)),
+        "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or checkpoint_path(args.scene)),
         "device": str(device), "compiled": bool(args.compile),
         "fixed_shape": None if fixed is None else asdict(fixed), **origin,
     })

@@ -21,11 +21,15 @@ import numpy as np
 import torch
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.graph import NODE, build_structure, leaf_to_ancestor_mean, set_state
-from hrn_pyg.data.scenes import STATIC, Scene, SceneConfig, simulate_episode
-
-#: model states before the start step that the model needs (``x_{t-2}, x_{t-1}``)
-HISTORY = 2
+from hrn_pyg.data.graph import (
+    HISTORY,
+    NODE,
+    STATIC,
+    build_structure,
+    leaf_to_ancestor_mean,
+    set_state,
+)
+from hrn_pyg.data.scenes import Scene, SceneConfig, simulate_episode
 
 
 @dataclass(frozen=True)

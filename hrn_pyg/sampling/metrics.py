@@ -13,6 +13,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hrn_pyg.data.graph import object_centres as graph_object_centres
+from hrn_pyg.data.graph import object_span
+
 #: the two sides of the wedge's ridge, in the order :func:`side_fractions` returns them
 SIDES = ("below", "above")
 
@@ -108,11 +111,7 @@ def object_centres(positions: Tensor, leaf_object: Tensor, leaf_mass: Tensor) ->
         raise ValueError(f"leaf_object and leaf_mass must be [{n_leaves}], got {tuple(leaf_object.shape)}, {tuple(leaf_mass.shape)}")
     if bool((leaf_mass <= 0).any()) or bool((leaf_object < 0).any()):
         raise ValueError("leaf_mass must be > 0 and leaf_object >= 0")
-    n_obj = int(leaf_object.max()) + 1
-    weighted = positions * leaf_mass[:, None]
-    total = positions.new_zeros(*positions.shape[:-2], n_obj, 3).index_add(-2, leaf_object, weighted)
-    mass = positions.new_zeros(n_obj).index_add(0, leaf_object, leaf_mass)
-    return total / mass[:, None]
+    return graph_object_centres(positions, leaf_object, object_span(leaf_object), leaf_mass)
 
 
 def root_spread(centres: Tensor) -> Tensor:

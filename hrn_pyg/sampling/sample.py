@@ -2,7 +2,7 @@
 
 The K trajectories are K copies of the scene in *one* batched graph
 (:func:`hrn_pyg.data.graph.replicate`), rolled out together by the one rollout loop
-(:func:`hrn_pyg.rollout.rollout`). At every prediction step a fresh dropout mask is drawn per
+(:func:`hrn_pyg.sim.rollout.rollout`). At every prediction step a fresh dropout mask is drawn per
 copy and per masked module, a ``[K, H]`` table; the model looks up each node's and each edge's
 row by its batch id, so within one step one trajectory applies one mask everywhere (the
 "kernel" stays one function across its graph) while copies and steps differ. There is no Python
@@ -18,13 +18,15 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
+from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.graph import NODE, replicate
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.nn.mlp import dropout_mask
-from hrn_pyg.rollout import MasksFn, rollout
-from hrn_pyg.effects import SceneEffects
-from hrn_pyg.fixed_shape import FixedShapeConfig, fixed_shape_rollout
-from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
+from hrn_pyg.sim.fixed_shape import FixedShapeConfig, fixed_shape_rollout
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
+from hrn_pyg.sim.step import MasksFn
+from hrn_pyg.utils.checks import check_count, check_rate
 
 #: the state a scene must carry to be rolled out (``x_{t-2}, x_{t-1}, x_t``)
 STATE_FIELDS = ("prev_prev_pos", "prev_pos", "pos")
@@ -35,12 +37,9 @@ WINDOW_ONLY_FIELDS = ("pos_seq", "force_seq")
 
 def check_sampling_args(k: int, steps: int, rate: float) -> None:
     """Raise ValueError unless ``k >= 1``, ``steps >= 1`` and ``0 <= rate < 1``."""
-    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-        raise ValueError(f"k must be an integer >= 1, got {k!r}")
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
-    if not 0.0 <= float(rate) < 1.0:
-        raise ValueError(f"rate must be in [0, 1), got {rate!r}")
+    check_count(k, "k")
+    check_count(steps, "steps")
+    check_rate(rate)
 
 
 def _check_state(graph: HeteroData) -> None:
@@ -101,7 +100,7 @@ def make_masks_fn(
     generator: torch.Generator | None = None,
     modules: tuple[str, ...] | None = None,
 ) -> MasksFn | None:
-    r"""A ``masks_fn(t, graph)`` for :func:`hrn_pyg.rollout.rollout` drawing fresh masks each step.
+    r"""A ``masks_fn(t, graph)`` for :func:`hrn_pyg.sim.rollout.rollout` drawing fresh masks each step.
 
     Each call draws, for every module in ``modules`` (default: the model's
     ``config.dropout_modules``), one inverted-dropout mask per trajectory copy,
@@ -186,11 +185,11 @@ def sample(
             a CPU generator also serves a model on another device (:func:`draw_masks`).
         modules: modules to mask (default: the model's ``config.dropout_modules``; each must be
             in it).
-        sleep: objects at rest sleep, each copy's on its own (:mod:`hrn_pyg.sleeping`; on by
+        sleep: objects at rest sleep, each copy's on its own (:mod:`hrn_pyg.sim.sleeping`; on by
             default); None runs every object of every copy at every step.
-        effects: what the scene needs simulated (:class:`~hrn_pyg.effects.SceneEffects`, e.g.
+        effects: what the scene needs simulated (:class:`~hrn_pyg.data.effects.SceneEffects`, e.g.
             :func:`hrn_pyg.data.scenes.scene_effects`); None: what the data show.
-        fixed_shape: roll out with fixed-shape steps (:mod:`hrn_pyg.fixed_shape`: no host read
+        fixed_shape: roll out with fixed-shape steps (:mod:`hrn_pyg.sim.fixed_shape`: no host read
             inside a step, optionally CUDA graphs); the same futures as with ``sleep=None``,
             which it needs.
 

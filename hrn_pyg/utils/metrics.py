@@ -1,4 +1,4 @@
-"""Metric logs: append-only CSV (survives a kill) and a loss-curve picture."""
+"""Metric logs: an append-only CSV that survives a kill (its picture: :func:`hrn_pyg.viz.plot_curves`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import os
 from pathlib import Path
 
 from hrn_pyg.utils.files import atomic_path
-from hrn_pyg.viz import save_figure
 
 
 class CSVLog:
@@ -41,28 +40,3 @@ class CSVLog:
                 w = csv.DictWriter(fh, fieldnames=self.fields)
                 w.writeheader()
                 w.writerows(rows)
-
-
-def plot_curves(csv_path: str | os.PathLike, png_path: str | os.PathLike, x: str, ys: list[str],
-                title: str = "", logy: bool = True) -> None:
-    """Draw columns ``ys`` of a CSV against column ``x`` into a PNG (written atomically)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with open(csv_path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=110)
-    for y in ys:
-        pts = [(float(r[x]), float(r[y])) for r in rows if r.get(y) not in (None, "")]
-        if pts:
-            ax.plot(*zip(*pts), label=y, lw=1.2)
-    ax.set_xlabel(x)
-    if logy:
-        ax.set_yscale("log")
-    ax.set_title(title)
-    ax.legend(frameon=False, fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure(fig, png_path)

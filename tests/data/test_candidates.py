@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from toy_scene import toy_scene
 
 from hrn_pyg.data.candidates import (
     STALE_FRACTION,
@@ -12,7 +13,6 @@ from hrn_pyg.data.candidates import (
     padded_size,
 )
 from hrn_pyg.data.graph import NODE, leaf_collision_edges
-from toy_scene import toy_scene
 
 RADIUS = 0.08
 

@@ -7,16 +7,15 @@ import math
 import pytest
 import torch
 from torch_geometric.data import Batch
+from toy_scene import toy_window
 
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.symmetry import (
     WORLD_VECTORS,
     apply_vertical_symmetry,
-    isotropic_horizontal,
     random_vertical_symmetries,
 )
-from hrn_pyg.nn.normalizer import fit_normalizer
-from toy_scene import toy_window
+from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 
 
 def _dihedral() -> torch.Tensor:

@@ -3,13 +3,13 @@ import io
 import pytest
 import torch
 from torch_geometric.data import Batch
+from toy_scene import toy_scene, toy_window
 
 from hrn_pyg.data.graph import COLLISION, replicate
 from hrn_pyg.nn.hrn import HRN, STATE_DIM, HRNConfig
 from hrn_pyg.nn.mlp import dropout_mask
 from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.rollout import build_inputs
-from toy_scene import toy_scene, toy_window
+from hrn_pyg.sim.step import build_inputs
 
 SMALL = dict(hidden=16, depth=2, effect_dim=8)
 

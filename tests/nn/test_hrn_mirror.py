@@ -3,12 +3,12 @@
 
 import pytest
 import torch
+from toy_scene import structure, toy_window, trajectory
 
 from hrn_pyg.data.graph import set_state
 from hrn_pyg.nn.hrn import HRN, HRNConfig, reflect_normalised
 from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.rollout import build_inputs, step
-from toy_scene import structure, toy_window, trajectory
+from hrn_pyg.sim.step import build_inputs, step
 
 SMALL = dict(hidden=16, depth=2, effect_dim=8, dropout_modules=("force", "collision"))
 FLIP = torch.tensor([-1.0, 1.0, 1.0])

@@ -1,7 +1,7 @@
 import torch
+from toy_scene import toy_window
 
 from hrn_pyg.nn.normalizer import STD_EPSILON, Normalizer, fit_normalizer
-from toy_scene import toy_window
 
 
 def test_unfitted_is_identity():

@@ -4,13 +4,14 @@ import math
 
 import pytest
 import torch
+from toy_scene import toy_scene, toy_window
 
 from hrn_pyg.data.graph import NODE, build_structure, set_state
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.nn.rigid import fit_rigid_motion, polar_rotation
-from hrn_pyg.rollout import rollout, root_of, step
-from toy_scene import toy_scene, toy_window
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.step import root_of, step
 
 SMALL = dict(hidden=16, depth=2, effect_dim=8)
 
@@ -136,7 +137,7 @@ def test_rigid_fit_changes_only_rigid_rows_and_passes_gradients():
 def test_rest_offsets_and_ground_contact_inputs():
     model = _model(rest_offsets=True, ground_contact=True)
     g = toy_scene()
-    from hrn_pyg.rollout import build_inputs
+    from hrn_pyg.sim.step import build_inputs
 
     inputs = build_inputs(model, g)
     assert inputs.state.shape[1] == model.config.state_dim == HRNConfig().state_dim + 1

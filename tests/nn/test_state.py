@@ -1,9 +1,9 @@
 import torch
+from toy_scene import structure
 
 from hrn_pyg.data.graph import CHILD_TO_PARENT, LEAF_TO_ANCESTOR
 from hrn_pyg.nn.mlp import MLPConfig
 from hrn_pyg.nn.state import NextStateModule, to_global_velocity, to_local_velocity
-from toy_scene import structure
 
 
 def test_shape_and_static_rows_zero():

@@ -105,13 +105,46 @@ def test_multisync_collector_two_workers(fork_start):
         collector.shutdown()
 
 
-def test_parallel_env_two_workers_rollout_and_seed():
+#: what a collected frame is made of: compared key by key between runs
+FRAME_KEYS = ("observation", "state", "goal", "action", ("next", "observation"), ("next", "state"),
+              ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "t"))
+
+
+def _fixed_policy(env):
+    """A deterministic policy of the observation (a fixed random linear map, squashed into the
+    force bounds): its actions differ exactly when the observations do."""
+    spec = env.action_spec
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    weight = torch.randn(obs_dim, spec.shape[-1], generator=torch.Generator().manual_seed(0))
+    high = spec.space.high
+
+    def policy(td):
+        return td.set("action", torch.tanh(td["observation"] @ weight) * high)
+
+    return policy
+
+
+def _seeded_rollout(seed: int, steps: int = 12):
     env = ParallelEnv(2, make_env, mp_start_method="fork")
     try:
-        env.set_seed(7)
-        td = env.rollout(12, break_when_any_done=False)
-        assert td.shape == (2, 2, 12)
-        assert torch.isfinite(td["next", "state"]).all()
-        assert td["next", "done"].any()
+        env.set_seed(seed)
+        return env.rollout(steps, policy=_fixed_policy(env), break_when_any_done=False)
     finally:
         env.close()
+
+
+def test_parallel_env_two_workers_rollout_and_seed():
+    """``set_seed`` governs the whole collection: the same seed gives the same frames
+    (observations, actions, rewards, ...) bit for bit, another seed other ones, and the two
+    workers of one seed are not copies of each other."""
+    td = _seeded_rollout(7)
+    assert td.shape == (2, 2, 12)
+    assert torch.isfinite(td["next", "state"]).all()
+    assert td["next", "done"].any()
+
+    again, other = _seeded_rollout(7), _seeded_rollout(8)
+    for key in FRAME_KEYS:
+        assert torch.equal(td[key], again[key]), f"seed 7 twice: {key} differs"
+    for key in ("observation", "action", ("next", "observation")):
+        assert not torch.equal(td[key], other[key]), f"seeds 7 and 8: the same {key}"
+        assert not torch.equal(td[key][0], td[key][1]), f"seed 7: both workers have the same {key}"

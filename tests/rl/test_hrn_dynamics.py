@@ -8,18 +8,22 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import check_env_specs
 
 from hrn_pyg.data.dataset import EpisodeWindows
-from hrn_pyg.data.graph import NODE, set_state
+from hrn_pyg.data.graph import HISTORY, NODE, set_state
 from hrn_pyg.data.io import save_episode
 from hrn_pyg.data.scenes import make_scene, simulate_episode
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.rl.dynamics import StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.hrn_dynamics import HISTORY_STEPS, POOL_SEEDS, HRNDynamics
-from hrn_pyg.rl.evaluate import ground_truth_success, record_episodes, replay_in_pybullet
+from hrn_pyg.rl.evaluate import (
+    ground_truth_success,
+    record_episodes,
+    replay_in_pybullet,
+)
+from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, HRNDynamics
 from hrn_pyg.rl.ppo import build_actor_critic
 from hrn_pyg.rl.tasks import get_task, goal_reached
-from hrn_pyg.rollout import step as model_step
+from hrn_pyg.sim.step import step as model_step
 
 POOL = POOL_SEEDS[:4]
 #: windows of the tiny cube_push folder the normaliser is fitted on
@@ -72,7 +76,7 @@ def test_rate_zero_gives_k_copies_of_one_deterministic_step(dynamics, model):
     forces = _forces(B, 1)
     samples = dynamics.sample_next(states, forces, 4, 0.0, torch.Generator().manual_seed(3))
     assert torch.equal(samples, samples[:, :1].expand_as(samples))
-    # the same step by hand: one unbatched graph per environment through hrn_pyg.rollout.step
+    # the same step by hand: one unbatched graph per environment through hrn_pyg.sim.step.step
     per_object = torch.bincount(dynamics.leaf_object).float()
     for b in range(B):
         index = int(states[b, -1])
@@ -124,12 +128,12 @@ def test_scene_seeds_round_trip_to_the_pybullet_scene(dynamics):
     assert torch.equal(seeds, torch.tensor(POOL)[states[:, -1].long()])
     nxt = dynamics.sample_next(states, _forces(8), 2, 0.1, torch.Generator().manual_seed(9))
     assert torch.equal(dynamics.scene_seeds(nxt), seeds[:, None].expand(8, 2))
-    # the state is the named scene after HISTORY_STEPS zero-force steps
+    # the state is the named scene after HISTORY zero-force steps
     seed = int(seeds[0])
     scene = make_scene("cube_push", seed)
     try:
         frames = [scene.reset()]
-        for _ in range(HISTORY_STEPS):
+        for _ in range(HISTORY):
             frames.append(scene.step(scene.zero_action()))
     finally:
         scene.close()
@@ -227,7 +231,7 @@ def test_record_episodes_and_ground_truth_check(dynamics):
     model_ok, model_len, real_ok, real_len = [], [], [], []
     for rec in records:
         replay = replay_in_pybullet(rec["actions"], task, rec["seed"], rec["goal"],
-                                    history_steps=HISTORY_STEPS)
+                                    history_steps=HISTORY)
         met = goal_reached(task, replay["roots"], rec["goal"])            # (steps + 1,)
         assert replay["success"] == bool(met[-1]) and not met[:-1].any()
         assert replay["steps"] == (int(met.nonzero()[0]) if met.any() else rec["length"])
@@ -255,7 +259,7 @@ def test_replay_starts_where_the_learned_episode_starts(dynamics):
     states = dynamics.reset_states(1, torch.Generator().manual_seed(3))
     seed = int(dynamics.scene_seeds(states)[0])
     replay = replay_in_pybullet(torch.zeros(2, 4), "cube_push", seed, goal=torch.tensor([9.0, 9.0]),
-                                history_steps=HISTORY_STEPS)
+                                history_steps=HISTORY)
     torch.testing.assert_close(replay["roots"][0], dynamics.roots(states)[0], rtol=0, atol=1e-5)
     assert replay["leaves"].shape == (3, dynamics.num_leaves, 3) and not replay["success"]
     with pytest.raises(ValueError, match="history_steps"):
@@ -263,11 +267,11 @@ def test_replay_starts_where_the_learned_episode_starts(dynamics):
 
 
 def test_from_checkpoint_on_an_explicit_device(model, dynamics, tmp_path):
-    from hrn_pyg.train import TrainConfig, _model_payload
+    from hrn_pyg.train import TrainConfig, model_payload
     from hrn_pyg.utils.checkpoint import save_checkpoint
 
     path = tmp_path / "cube_push.pt"
-    save_checkpoint(path, _model_payload(model, TrainConfig(), 0))
+    save_checkpoint(path, model_payload(model, TrainConfig(), 0))
     loaded = HRNDynamics.from_checkpoint(path, "cube_push", device=torch.device("cpu"), pool_seeds=POOL)
     assert loaded.device == torch.device("cpu")
     assert loaded.pool.device == loaded.leaf_object.device == torch.device("cpu")
@@ -283,7 +287,7 @@ def test_an_object_the_state_shows_at_rest_sleeps_unless_pushed(dynamics, model)
     """Reset states are pybullet scenes at rest; with a push on cube 0 only, cube 1 (untouched)
     is held exactly where it is, while the same model with sleeping off lets it creep, and the
     pushed cube moves as it does with sleeping off."""
-    from hrn_pyg.sleep_config import SleepConfig
+    from hrn_pyg.sim.sleeping import SleepConfig
 
     awake = HRNDynamics(model, "cube_push", pool_seeds=POOL, sleep=None)
     B, L = 3, dynamics.num_leaves
@@ -308,7 +312,7 @@ def test_a_run_record_names_only_the_sleep_settings_a_step_uses(model):
     ``start_from_history`` does not change the dynamics, nor the record a resumed run checks;
     the threshold, the patience and sleeping off do."""
     from hrn_pyg.rl.hrn_dynamics import sleep_repr
-    from hrn_pyg.sleep_config import SleepConfig
+    from hrn_pyg.sim.sleeping import SleepConfig
 
     on = HRNDynamics(model, "cube_push", POOL, SleepConfig(start_from_history=True))
     off = HRNDynamics(model, "cube_push", POOL, SleepConfig(start_from_history=False))

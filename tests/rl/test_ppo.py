@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from hrn_pyg.cli import main
-from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl import ppo
 from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve
 from hrn_pyg.rl.dynamics import PointMassDynamics
+from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy
 from hrn_pyg.rl.ppo import MODES, PPOConfig, build_actor_critic, mode_settings, train
 from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER
@@ -177,16 +177,55 @@ def test_cli_bad_input_exits_2(argv, tmp_path, capsys):
     assert not any(tmp_path.iterdir())
 
 
-def test_cli_device_cpu(tmp_path):
+def _spy_on_environments(monkeypatch) -> list[tuple[torch.device | None, torch.device]]:
+    """Per environment PPO builds: the device it is asked for (None: the dynamics') and its
+    dynamics' device."""
+    made = []
+
+    def spy(task, dynamics=None, **kwargs):
+        asked = kwargs["device"]
+        made.append((None if asked is None else torch.device(asked), dynamics.device))
+        return HRNEnv(task, dynamics, **kwargs)
+
+    monkeypatch.setattr(ppo, "HRNEnv", spy)
+    return made
+
+
+CLI_RUN = ["rl", "--task", "cube_push", "--mode", "deterministic", "--seeds", "1", "--updates", "1",
+           "--num-envs", "2", "--frames-per-batch", "10", "--minibatch", "10", "--eval-episodes", "2",
+           "--no-progress"]
+
+
+def test_cli_device_cpu(tmp_path, monkeypatch):
+    """The default device is made ``meta`` here: a command that ignored ``--device cpu`` would
+    build its dynamics and environment there (and fail); they must be on the CPU, and so the
+    policy it saves."""
+    import hrn_pyg.utils.device
+
+    monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
+    made = _spy_on_environments(monkeypatch)
     out = tmp_path / "rl"
-    code = main(["rl", "--task", "cube_push", "--mode", "deterministic", "--seeds", "1", "--updates", "1",
-                 "--num-envs", "2", "--frames-per-batch", "10", "--minibatch", "10", "--eval-episodes", "2",
-                 "--out", str(out), "--no-progress", "--device", "cpu"])
+    code = main([*CLI_RUN, "--out", str(out), "--device", "cpu"])
     assert code == 0
-    assert (out / "deterministic" / "seed0" / "policy.pt").is_file()
+    assert made == [(torch.device("cpu"), torch.device("cpu"))]
+    ckpt = load_checkpoint(out / "deterministic" / "seed0" / "policy.pt")
+    weights = [*ckpt["model"]["actor"].values(), *ckpt["model"]["critic"].values()]
+    assert weights and all(w.device.type == "cpu" for w in weights)
 
 
-def test_train_on_an_explicit_device_repeats_the_default_run(tmp_path):
+def test_cli_device_meta_builds_the_run_there(tmp_path, monkeypatch):
+    """``--device meta`` (a device the default never is): the dynamics and the environment are
+    made on it, and the run stops with the error only meta tensors give, before any update."""
+    made = _spy_on_environments(monkeypatch)
+    out = tmp_path / "rl"
+    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
+        main([*CLI_RUN, "--out", str(out), "--device", "meta"])
+    assert made == [(torch.device("meta"), torch.device("meta"))]
+    assert not (out / "deterministic" / "seed0" / "policy.pt").exists()
+
+
+def test_train_on_an_explicit_device_repeats_the_default_run(tmp_path, monkeypatch):
+    made = _spy_on_environments(monkeypatch)
     cfg = dataclasses.replace(TINY, updates=1)
     a = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path / "a", progress=False, device=torch.device("cpu"))
     b = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path / "b", progress=False)
@@ -194,6 +233,11 @@ def test_train_on_an_explicit_device_repeats_the_default_run(tmp_path):
         assert a[key] == b[key]
     rows = [(tmp_path / run / "log.csv").read_text().splitlines()[1].rsplit(",", 1)[0] for run in "ab"]
     assert rows[0] == rows[1]  # every logged value but the seconds
+    # the device is used, not ignored: asked for meta, train builds its dynamics and environment there
+    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
+        train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path / "c", progress=False, device=torch.device("meta"))
+    cpu, meta = torch.device("cpu"), torch.device("meta")
+    assert made == [(cpu, cpu), (None, cpu), (meta, meta)]
 
 
 def test_cli_unknown_task_or_mode_exits_2():
@@ -264,11 +308,72 @@ class Interrupt(Exception):
     """Stands for a run killed between two updates."""
 
 
+def _clone_state(state):
+    """A deep copy of a (nested) state dict: tensors cloned, containers copied."""
+    if isinstance(state, torch.Tensor):
+        return state.detach().clone()
+    if isinstance(state, dict):
+        return {k: _clone_state(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_clone_state(v) for v in state)
+    return state
+
+
+def _assert_same_weights(got: dict, want: dict, what: str):
+    assert got.keys() == want.keys(), what
+    for k in want:
+        assert torch.equal(got[k], want[k]), f"{what}: {k} differs"
+
+
+def _assert_same_adam_state(got: dict, want: dict):
+    """Every parameter's Adam moments and step count, and the parameter groups, bit for bit."""
+    assert got["param_groups"] == want["param_groups"]
+    params = [i for group in want["param_groups"] for i in group["params"]]
+    assert sorted(want["state"]) == sorted(params) and len(params) > 0  # every parameter has state
+    assert sorted(got["state"]) == sorted(want["state"])
+    for i in params:
+        assert set(want["state"][i]) == {"step", "exp_avg", "exp_avg_sq"}
+        assert set(got["state"][i]) == set(want["state"][i]), f"parameter {i}"
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(got["state"][i][key], want["state"][i][key]), f"parameter {i}: {key} differs"
+
+
 def test_a_killed_run_continues_from_its_last_checkpoint(tmp_path, monkeypatch):
     """Killed after update 3 with a checkpoint every 2 updates: the rerun starts at update 2 from
-    the saved weights, Adam state and random state, and the log is one history 0..3."""
+    the saved weights, Adam state and random state, and the log is one history 0..3.
+
+    The state the rerun resumes with is compared with that of an uninterrupted run of the same
+    settings as it enters update 2: actor and critic weights and the whole Adam state (both
+    moments and the step count of every parameter) are the same, bit for bit. (After update 2
+    the runs part: a resumed run starts fresh episodes, see ``ppo.resume_run``.)"""
     cfg = dataclasses.replace(TINY, updates=4, checkpoint_every=2)
-    update = ppo._ppo_update
+    update, build = ppo._ppo_update, ppo.build_actor_critic
+
+    # the uninterrupted run: its networks and optimiser as they enter update 2
+    nets, entering = {}, {}
+
+    def keep_nets(env, hidden):
+        nets["actor"], nets["critic"] = build(env, hidden)
+        nets["initial_critic"] = _clone_state(nets["critic"].state_dict())
+        return nets["actor"], nets["critic"]
+
+    def snapshot_at_two(batch, gae, loss_module, optim, config):
+        entering.setdefault("calls", 0)
+        if entering["calls"] == 2:
+            entering.update(actor=_clone_state(nets["actor"].state_dict()),
+                            critic=_clone_state(nets["critic"].state_dict()),
+                            optim=_clone_state(optim.state_dict()))
+        entering["calls"] += 1
+        return update(batch, gae, loss_module, optim, config)
+
+    monkeypatch.setattr(ppo, "build_actor_critic", keep_nets)
+    monkeypatch.setattr(ppo, "_ppo_update", snapshot_at_two)
+    whole = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path / "whole", RecordingPointMass(), progress=False)
+    assert whole["resumed_at"] == 0 and entering["calls"] == 4
+    # training moved every critic weight by update 2: a critic left at its initial weights differs
+    assert all(not torch.equal(entering["critic"][k], v) for k, v in nets["initial_critic"].items())
+    monkeypatch.setattr(ppo, "build_actor_critic", build)
+
     done = []
 
     def killed_after_three(batch, *args):
@@ -289,8 +394,8 @@ def test_a_killed_run_continues_from_its_last_checkpoint(tmp_path, monkeypatch):
 
     def spy(path, identity, actor, critic, optim, env):
         start = resume(path, identity, actor, critic, optim, env)
-        loaded.update(actor={k: v.clone() for k, v in actor.state_dict().items()},
-                      adam_steps={int(s["step"]) for s in optim.state_dict()["state"].values()},
+        loaded.update(actor=_clone_state(actor.state_dict()), critic=_clone_state(critic.state_dict()),
+                      optim=_clone_state(optim.state_dict()),
                       torch_rng=torch.get_rng_state().clone(), env_rng=env.rng.get_state().clone())
         return start
 
@@ -298,13 +403,19 @@ def test_a_killed_run_continues_from_its_last_checkpoint(tmp_path, monkeypatch):
     monkeypatch.setattr(ppo, "resume_run", spy)
     res = train(CUBE_PUSH, "stochastic", 0, cfg, tmp_path, RecordingPointMass(), progress=False)
     assert res["resumed_at"] == 2
-    assert all(torch.equal(loaded["actor"][k], v) for k, v in saved["model"]["actor"].items())
-    assert loaded["adam_steps"] == {2 * 2}  # 2 updates x 2 minibatches before the kill
+    _assert_same_weights(loaded["actor"], entering["actor"], "actor")
+    _assert_same_weights(loaded["critic"], entering["critic"], "critic")
+    _assert_same_adam_state(loaded["optim"], entering["optim"])
+    assert {int(s["step"]) for s in loaded["optim"]["state"].values()} == {2 * 2}  # 2 updates x 2 minibatches
     assert torch.equal(loaded["torch_rng"], saved["rng"]["torch"])
     assert torch.equal(loaded["env_rng"], saved["env_rng"])
     rows = read_curve_rows(tmp_path)
     assert [int(r["update"]) for r in rows] == [0, 1, 2, 3]
     assert [float(r["frames"]) for r in rows] == [40, 80, 120, 160]
+    # the updates before the kill are the uninterrupted run's (every logged value but the seconds)
+    unbroken = read_curve_rows(tmp_path / "whole")
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in rows[:2]] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in unbroken[:2]]
     final = load_checkpoint(tmp_path / "policy.pt")
     assert final["update"] == 4 and {int(s["step"]) for s in final["optimizer"]["state"].values()} == {8}
 

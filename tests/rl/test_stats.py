@@ -7,9 +7,16 @@ import math
 import pytest
 import torch
 
-from hrn_pyg.rl.stats import (bootstrap_median, bootstrap_median_difference, compare_modes,
-                              comparison_markdown, median, reference_levels, run_table,
-                              write_comparison)
+from hrn_pyg.rl.stats import (
+    bootstrap_median,
+    bootstrap_median_difference,
+    compare_modes,
+    comparison_markdown,
+    median,
+    reference_levels,
+    run_table,
+    write_comparison,
+)
 
 
 def test_median_by_hand_with_censored_values():

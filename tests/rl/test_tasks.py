@@ -9,7 +9,15 @@ import torch
 from hrn_pyg.rl.dynamics import PointMassDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.ppo import PPOConfig, mode_settings
-from hrn_pyg.rl.tasks import CUBE_PUSH, MODES, TASKS, TOWER, goal_clearance, goal_reached, sample_goal
+from hrn_pyg.rl.tasks import (
+    CUBE_PUSH,
+    MODES,
+    TASKS,
+    TOWER,
+    goal_clearance,
+    goal_reached,
+    sample_goal,
+)
 
 #: goals drawn per task (rounds of ``BATCH`` environments)
 DRAWS, BATCH = 8192, 1024

@@ -12,22 +12,28 @@ import numpy as np
 import pytest
 import torch
 
+from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import build_parser, main
-from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import STATIC, simulate_episode
+from hrn_pyg.data.graph import HISTORY, NODE, STATIC
+from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sampling import calibrate as cal
-from hrn_pyg.sampling.ensemble import HISTORY, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.ensemble import PerturbationConfig, episode_state, ground_truth_ensemble
 from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.train import TrainConfig, _model_payload, load_model
+from hrn_pyg.train import TrainConfig, model_payload
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 
 SCENE = "cube_collision"
 SEEDS = (8, 18)
 STEPS, K, MEMBERS = 3, 4, 4
-RATES = (0.05, 0.2, 0.5)
+RATES = (0.05, 0.3, 0.9)
+#: the ensemble's start perturbation (m): a fifth of the default 2 mm, so that the tiny model's
+#: spread matches it near the middle rate: 0.05 spreads too little, 0.9 too much (ratio > 1)
+POSITION_STD = 0.0004
+#: the rate that matches, not the highest offered
+MIDDLE_RATE = 0.3
 
 
 def digest(path: Path) -> str:
@@ -42,7 +48,7 @@ def checkpoint(tmp_path_factory) -> Path:
     episode = simulate_episode(SCENE, 8, steps=HISTORY + 8)
     fit_normalizer([episode_state(episode, HISTORY, 8)], model.normalizer)
     path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, _model_payload(model, TrainConfig(), 0))
+    save_checkpoint(path, model_payload(model, TrainConfig(), 0))
     return path
 
 
@@ -57,7 +63,8 @@ def calibrated(checkpoint, tmp_path_factory) -> tuple[Path, str]:
     before the run."""
     before = digest(checkpoint)
     code = main(calibrate_argv(checkpoint, "--seeds", ",".join(map(str, SEEDS)),
-                               "--rates", ",".join(map(str, RATES)), "--modules", "force,collision", "force"))
+                               "--rates", ",".join(map(str, RATES)), "--modules", "force,collision", "force",
+                               "--position-std", str(POSITION_STD)))
     assert code == 0
     return checkpoint.with_name("tiny.calibrated.pt"), before
 
@@ -73,7 +80,8 @@ def recomputed(checkpoint: Path, modules: tuple[str, ...]) -> dict[float, tuple[
     starts = []
     for seed in SEEDS:
         episode = simulate_episode(SCENE, seed, steps=HISTORY + STEPS)
-        members = ground_truth_ensemble(SCENE, seed, MEMBERS, HISTORY + STEPS)
+        members = ground_truth_ensemble(SCENE, seed, MEMBERS, HISTORY + STEPS,
+                                        PerturbationConfig(position_std=POSITION_STD))
         graph = episode_state(episode, HISTORY, STEPS)
         moving = torch.as_tensor(episode["object_material"])[torch.as_tensor(episode["leaf_object"])] != STATIC
         starts.append((graph, torch.as_tensor(members[:, -1]).float(), moving))
@@ -89,13 +97,23 @@ def recomputed(checkpoint: Path, modules: tuple[str, ...]) -> dict[float, tuple[
 
 
 def test_chosen_rate_has_the_ratio_closest_to_one(checkpoint, calibrated):
+    """The ensemble's spread lies between what the lowest and the highest rate give: the chosen
+    rate is the middle one, whose median spread ratio is closest to 1, not the highest offered."""
     path, _ = calibrated
     record = cal.calibration_record(path)
     numbers = recomputed(checkpoint, ("force", "collision"))
-    distance = {rate: abs(float(np.median(np.log(r)))) for rate, (r, _) in numbers.items()}
+    medians = {rate: math.exp(float(np.median(np.log(r)))) for rate, (r, _) in numbers.items()}
+    # the case is not one-sided: the lowest rate spreads too little, the highest too much
+    assert medians[min(RATES)] < 1 < medians[max(RATES)], medians
+    distance = {rate: abs(math.log(m)) for rate, m in medians.items()}
     best = min(distance, key=lambda rate: (distance[rate], numbers[rate][1]))
+    assert best == MIDDLE_RATE and min(RATES) < MIDDLE_RATE < max(RATES)
+    # clearly best: the neighbours are at least twice as far from a ratio of 1 (on the log scale)
+    assert all(distance[rate] > 2 * distance[MIDDLE_RATE] for rate in RATES if rate != MIDDLE_RATE), distance
     # force and collision give the same numbers here (no collision in 3 steps): ties go to the first
-    assert record["rate"] == best and record["modules"] == ["force", "collision"]
+    assert record["rate"] == MIDDLE_RATE and record["modules"] == ["force", "collision"]
+    assert record["spread_ratio_median"] == pytest.approx(medians[MIDDLE_RATE], rel=1e-5)
+    assert record["perturbation"]["position_std"] == POSITION_STD
     rows = [c for c in record["candidates"] if c["modules"] == ["force", "collision"]]
     assert [c["rate"] for c in rows] == list(RATES)
     for c in rows:
@@ -103,6 +121,7 @@ def test_chosen_rate_has_the_ratio_closest_to_one(checkpoint, calibrated):
         assert c["spread_ratios"] == pytest.approx(ratios, rel=1e-5)
         assert c["spread_ratio_median"] == pytest.approx(math.exp(np.median(np.log(ratios))), rel=1e-5)
         assert c["energy_score_m"] == pytest.approx(energy, rel=1e-5)
+    assert load_model(path).config.dropout_rate == MIDDLE_RATE
 
 
 def test_written_checkpoint_loads_with_rate_and_record(checkpoint, calibrated):
@@ -140,6 +159,42 @@ def test_data_folder_gives_its_validation_episodes(checkpoint, tiny_episodes, tm
                                "--out", str(out))) == 0
     record = cal.calibration_record(out)
     assert record["seeds"] == [8] and record["data"] == str(tiny_episodes)  # seeds 0..9: only 8 validates
+
+
+def _spy_on_scoring(monkeypatch) -> list[torch.device]:
+    """The device of the model every calibration scores its candidates with."""
+    devices, calibrate = [], cal.calibrate
+
+    def spy(model, *args, **kwargs):
+        devices.append(next(model.parameters()).device)
+        return calibrate(model, *args, **kwargs)
+
+    monkeypatch.setattr(cal, "calibrate", spy)
+    return devices
+
+
+def test_device_cpu_is_used_when_the_default_is_elsewhere(checkpoint, tmp_path, monkeypatch):
+    """The default device is made ``meta``: a command that ignored ``--device cpu`` would score
+    there (and fail)."""
+    import hrn_pyg.utils.device
+
+    monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
+    devices = _spy_on_scoring(monkeypatch)
+    out = tmp_path / "cpu.pt"
+    assert main(calibrate_argv(checkpoint, "--seeds", "8", "--rates", "0.3", "--modules", "force",
+                               "--out", str(out), "--device", "cpu")) == 0
+    assert devices == [torch.device("cpu")] and cal.calibration_record(out)["rate"] == 0.3
+
+
+def test_device_meta_scores_there(checkpoint, tmp_path, monkeypatch):
+    """``--device meta`` (a device the default never is): the model is scored there and the run
+    stops with the error only meta tensors give, writing nothing."""
+    devices = _spy_on_scoring(monkeypatch)
+    out = tmp_path / "meta.pt"
+    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
+        main(calibrate_argv(checkpoint, "--seeds", "8", "--rates", "0.3", "--modules", "force",
+                            "--out", str(out), "--device", "meta"))
+    assert devices == [torch.device("meta")] and not out.exists()
 
 
 def test_output_equal_to_input_needs_in_place(checkpoint):

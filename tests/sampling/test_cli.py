@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from hrn_pyg.checkpoints import resolve_model
 from hrn_pyg.cli import main
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sampling.cli import resolve_model
-from hrn_pyg.train import TrainConfig, _model_payload
+from hrn_pyg.train import TrainConfig, model_payload
 from hrn_pyg.utils.checkpoint import save_checkpoint
 
 
@@ -19,7 +19,7 @@ from hrn_pyg.utils.checkpoint import save_checkpoint
 def checkpoint(tmp_path_factory):
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("ckpt") / "wedge.pt"
-    save_checkpoint(path, _model_payload(HRN(HRNConfig(hidden=16, effect_dim=16)), TrainConfig(), 0))
+    save_checkpoint(path, model_payload(HRN(HRNConfig(hidden=16, effect_dim=16)), TrainConfig(), 0))
     return path
 
 
@@ -51,12 +51,55 @@ def test_bad_rate_is_a_clean_error(checkpoint, capsys):
     assert "\n" not in err and err.startswith("hrn-pyg sample: error:") and "rate" in err and "1.5" in err, err
 
 
-def test_device_cpu_runs_and_is_recorded(checkpoint, tmp_path):
+def _spy_on_model_loading(monkeypatch) -> list[torch.device]:
+    """The device of the model ``hrn-pyg sample`` loads, one entry per load."""
+    import hrn_pyg.sampling.cli as sample_cli
+
+    devices, load = [], sample_cli.load_model
+
+    def spy(*args, **kwargs):
+        model = load(*args, **kwargs)
+        devices.append(next(model.parameters()).device)
+        return model
+
+    monkeypatch.setattr(sample_cli, "load_model", spy)
+    return devices
+
+
+def test_device_cpu_runs_and_is_recorded(checkpoint, tmp_path, monkeypatch):
+    """The default device is made ``meta`` here, so a command that ignored ``--device cpu`` (and
+    took the default) would put its model there and fail; it must run on the CPU."""
+    import hrn_pyg.sampling.cli as sample_cli
+    import hrn_pyg.utils.device
+
+    monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
+    devices = _spy_on_model_loading(monkeypatch)
+    drawn, sample = [], sample_cli.sample
+
+    def spy_sample(model, graph, *args, generator=None, **kwargs):
+        drawn.append((next(model.parameters()).device, generator.device))
+        return sample(model, graph, *args, generator=generator, **kwargs)
+
+    monkeypatch.setattr(sample_cli, "sample", spy_sample)
     out = tmp_path / "out"
     code = main(["sample", "--scene", "wedge", "--k", "2", "--seed", "5", "--steps", "2",
                  "--model", str(checkpoint), "--out", str(out), "--device", "cpu"])
     assert code == 0
+    cpu = torch.device("cpu")
+    assert devices == [cpu] and drawn == [(cpu, cpu)]
     assert json.loads((out / "samples.json").read_text())["device"] == "cpu"
+
+
+def test_device_meta_puts_the_model_there(checkpoint, tmp_path, monkeypatch):
+    """``--device meta`` (a device the default never is): the model is loaded onto it and the
+    run stops with the error only meta tensors give (no data to sample), writing nothing."""
+    devices = _spy_on_model_loading(monkeypatch)
+    out = tmp_path / "out"
+    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
+        main(["sample", "--scene", "wedge", "--k", "2", "--seed", "5", "--steps", "2",
+              "--model", str(checkpoint), "--out", str(out), "--device", "meta"])
+    assert devices == [torch.device("meta")]
+    assert not out.exists()
 
 
 def test_unknown_device_is_a_one_line_error(checkpoint, tmp_path, capsys):

@@ -8,7 +8,12 @@ import torch
 
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.scenes import simulate_episode
-from hrn_pyg.sampling.ensemble import PerturbationConfig, draw_offsets, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.ensemble import (
+    PerturbationConfig,
+    draw_offsets,
+    episode_state,
+    ground_truth_ensemble,
+)
 from hrn_pyg.sampling.metrics import object_centres
 
 STEPS = 4

@@ -12,8 +12,8 @@ from toy_scene import toy_scene, toy_window
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.sample import make_masks_fn, sample
+from hrn_pyg.sim.rollout import rollout
 
 STEPS = 4
 LEAVES = 14
@@ -236,7 +236,7 @@ def test_compiled_network_samples_the_same_futures():
 def test_fixed_shape_steps_sample_the_same_futures(model):
     """``fixed_shape=`` (no host read inside a step) gives the futures of ``sleep=None`` with the
     same generator seed, and refuses to run with sleeping on."""
-    from hrn_pyg.fixed_shape import FixedShapeConfig
+    from hrn_pyg.sim.fixed_shape import FixedShapeConfig
 
     graph, forces = scene_and_forces()
 

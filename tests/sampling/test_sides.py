@@ -5,8 +5,13 @@ import json
 import pytest
 import torch
 
-from hrn_pyg.sampling.sides import (ball_centres, brier_score, ridge_config, share_below,
-                                    split_difference)
+from hrn_pyg.sampling.sides import (
+    ball_centres,
+    brier_score,
+    ridge_config,
+    share_below,
+    split_difference,
+)
 
 
 def test_ball_centre_is_the_mass_weighted_mean_of_object_0():

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from toy_scene import toy_window
 
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
-from toy_scene import toy_window
 
 #: the long cases run only when this environment variable is "1"
 SLOW = os.environ.get("HRN_SLOW") == "1"

@@ -6,19 +6,24 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from stability_helpers import fitted_model
+from toy_scene import DT, GRAVITY, toy_scene, toy_window
 
-from hrn_pyg.data.graph import COLLISION, NODE, build_structure, leaf_to_ancestor_mean, set_state
+from hrn_pyg.data.graph import (
+    COLLISION,
+    NODE,
+    build_structure,
+    leaf_to_ancestor_mean,
+    set_state,
+)
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.data.voxelise import box_mesh, lattice_tetrahedra, voxelise
 from hrn_pyg.losses import full_shape_loss
 from hrn_pyg.nn.hrn import HRN, MODULE_NAMES, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.rollout import rollout, unroll
 from hrn_pyg.sampling.sample import sample
+from hrn_pyg.sim.rollout import rollout, unroll
 from hrn_pyg.train import TrainConfig, window_loss
-from toy_scene import DT, GRAVITY, toy_scene, toy_window
-
-from stability_helpers import fitted_model
 
 #: steps of the short rollouts of this file
 STEPS = 15

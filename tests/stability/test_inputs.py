@@ -5,17 +5,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from stability_helpers import fitted_model
 from torch_geometric.data import Batch
+from toy_scene import (
+    LEAF_OBJECT,
+    MATERIAL,
+    PARENT,
+    STIFFNESS,
+    structure,
+    toy_scene,
+    trajectory,
+)
 
 import hrn_pyg.data.graph as graph_module
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import NODE, build_structure, set_state
 from hrn_pyg.data.hierarchy import build_hierarchy
-from hrn_pyg.rollout import build_inputs, rollout, step
 from hrn_pyg.sampling.sample import sample
-from toy_scene import LEAF_OBJECT, MATERIAL, PARENT, STIFFNESS, structure, toy_scene, trajectory
-
-from stability_helpers import fitted_model
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.step import build_inputs, step
 
 BAD = (float("nan"), float("inf"), float("-inf"))
 

@@ -21,17 +21,16 @@ from __future__ import annotations
 
 import pytest
 import torch
+from stability_helpers import SLOW, fitted_model, slow, trained_checkpoint
+from toy_scene import toy_scene
 
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.graph import COLLISION, NODE
 from hrn_pyg.data.scenes import SCENES, simulate_episode
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.rollout import rollout
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.train import load_model
-from toy_scene import toy_scene
-
-from stability_helpers import SLOW, fitted_model, slow, trained_checkpoint
+from hrn_pyg.sim.rollout import rollout, unroll
 
 #: how far (m) a leaf may go below the ground plane z = 0 in a trained model's long rollout:
 #: one voxel pitch of the datasets (0.05 m); pybullet's own contact margin is 6 mm
@@ -147,29 +146,90 @@ def test_thousand_steps_of_a_trained_model_stay_above_the_ground(scene):
     assert traj[:, leaves, 2].min() > -SINK_DEPTH
 
 
+def _cross_object_leaf_edges(graph) -> int:
+    """Collision edges of ``graph`` that join leaves of two different objects."""
+    store = graph[NODE]
+    src, dst = graph[COLLISION].edge_index
+    joins = store.is_leaf[src] & store.is_leaf[dst] & (store.object[src] != store.object[dst])
+    return int(joins.sum())
+
+
+def _min_leaf_distance(pos, store, a: int, b: int) -> float:
+    leaf = store.is_leaf
+    return float(torch.cdist(pos[leaf & (store.object == a)], pos[leaf & (store.object == b)]).min())
+
+
 @slow
 def test_trained_model_survives_an_impact_at_ten_times_the_training_speed():
+    """Both cubes of cube_collision flying at each other at 10x the fastest scripted push (2.5 m/s).
+
+    At that speed a cube moves ~10 collision radii per step and the trained model slows a lone
+    cube down on its own, so the start is placed from the model's own contact-free flight: a
+    run with cube 1 moved sideways out of reach gives where each cube is after ``meet`` steps,
+    and cube 1 is then shifted along the line of approach so that its leaves come within half a
+    collision radius of cube 0's exactly there. The rollout must see collision edges between the
+    two cubes at that step (not fly through without contact), the contact must change both
+    cubes' velocity against the contact-free flight (each is slowed in its direction of travel),
+    and the 100 steps must stay finite and bounded."""
     path = trained_checkpoint("cube_collision")
     if path is None:
         pytest.skip("no trained cube_collision checkpoint on disk")
     model = load_model(path)
+    radius = model.config.collision_radius
     episode, window = _scene_state("cube_collision")
     g = window.clone()
+    del g[NODE].pos_seq, g[NODE].force_seq
     store = g[NODE]
-    # both cubes flying at each other at 10x the fastest scripted push (2.5 m/s)
+    assert sorted(torch.unique(store.object).tolist()) == [0, 1]
     centre = store.pos[store.is_root]
     direction = centre[1] - centre[0]
     direction[2] = 0
-    direction = direction / direction.norm()
-    speed = 10 * 2.5 * float(episode["dt"])
+    direction = direction / direction.norm()  # from cube 0 towards cube 1
+    sideways = torch.stack([-direction[1], direction[0], torch.zeros(())])
+    speed = 10 * 2.5 * float(episode["dt"])  # m per model step
+    assert speed > 5 * radius  # one step jumps far further than a collision reaches
     v = torch.where((store.object == 0)[:, None], direction * speed, -direction * speed)
-    g[NODE].prev_pos = store.pos - v
-    g[NODE].prev_prev_pos = store.pos - 2 * v
-    del g[NODE].pos_seq, g[NODE].force_seq
+    cube1 = (store.object == 1)[:, None].to(store.pos.dtype)
+
+    def start(offset_of_cube1):
+        h = g.clone()
+        pos = store.pos + cube1 * offset_of_cube1
+        h[NODE].pos, h[NODE].prev_pos, h[NODE].prev_prev_pos = pos, pos - v, pos - 2 * v
+        return h
+
+    meet = 2  # the step after which the cubes touch (Step.graph of step index meet - 1)
+    away = 3.0 * sideways  # cube 1 this far sideways never comes within reach of cube 0
     with torch.no_grad():
-        traj = rollout(model, g, 100, sleep=None)
+        free = unroll(model, start(away), meet + 1, sleep=None)
+    assert all(_cross_object_leaf_edges(s.graph) == 0 for s in free)
+    pos = free[meet - 1].pos.clone()
+    pos[store.object == 1] -= away
+    # the largest shift along the line of approach that brings the cubes within radius / 2
+    shifts = torch.arange(4.0, -4.0, -1e-3)
+    shift = next(float(a) for a in shifts
+                 if _min_leaf_distance(pos + cube1 * (a * direction), store, 0, 1) <= radius / 2)
+    g = start(shift * direction)
+    assert _min_leaf_distance(g[NODE].pos, store, 0, 1) > 2 * speed  # far apart at the start
+
+    with torch.no_grad():
+        steps = unroll(model, g, 100, sleep=None)
+    traj = torch.stack([s.pos for s in steps])
     assert torch.isfinite(traj).all()
-    assert (traj - store.pos).abs().max() < TRAINED_BOUND
+    assert (traj - g[NODE].pos).abs().max() < TRAINED_BOUND
+
+    # no contact before the meeting step, contact (edges between the cubes' leaves) at it
+    assert [_cross_object_leaf_edges(s.graph) for s in steps[: meet - 1]] == [0] * (meet - 1)
+    assert _min_leaf_distance(steps[meet - 1].pos, store, 0, 1) < radius
+    assert _cross_object_leaf_edges(steps[meet - 1].graph) > 0
+
+    # before the impact both cubes fly exactly as without the other one; the step after the
+    # contact slows each of them along its direction of travel, by more than 0.05 m/step
+    roots = store.is_root
+    for k in range(meet):
+        torch.testing.assert_close(steps[k].velocity[roots], free[k].velocity[roots], rtol=1e-4, atol=1e-5)
+    along = (steps[meet].velocity[roots] - free[meet].velocity[roots]) @ direction  # [cube 0, cube 1]
+    assert float(along[0]) < -0.05, f"cube 0 velocity change at impact {float(along[0]):.4f} m/step"
+    assert float(along[1]) > 0.05, f"cube 1 velocity change at impact {float(along[1]):.4f} m/step"
 
 
 #: the goals of the stability issue: over 1000 steps a rigid object keeps its mean pairwise leaf

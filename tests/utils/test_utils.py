@@ -4,10 +4,19 @@ import numpy as np
 import pytest
 import torch
 
-from hrn_pyg.utils.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from hrn_pyg.utils.checkpoint import (
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from hrn_pyg.utils.files import atomic_path, atomic_write_text
 from hrn_pyg.utils.metrics import CSVLog
-from hrn_pyg.utils.schedules import LinearSchedule, SequenceLengthSchedule, cosine_lr_factor
+from hrn_pyg.utils.schedules import (
+    LinearSchedule,
+    SequenceLengthSchedule,
+    cosine_lr_factor,
+)
 
 
 def test_atomic_path_leaves_nothing_on_error(tmp_path):

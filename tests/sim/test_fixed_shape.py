@@ -1,18 +1,18 @@
-"""The fixed-shape rollout (hrn_pyg.fixed_shape) gives the plain rollout's positions."""
+"""The fixed-shape rollout (hrn_pyg.sim.fixed_shape) gives the plain rollout's positions."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-
-from hrn_pyg import fixed_shape
-from hrn_pyg.data.graph import NODE, replicate
-from hrn_pyg.effects import SceneEffects
-from hrn_pyg.fixed_shape import FixedShapeConfig, fixed_shape_rollout
-from hrn_pyg.rollout import rollout
-from hrn_pyg.sampling.sample import make_masks_fn
 from stability.stability_helpers import fitted_model
 from toy_scene import toy_scene
+
+from hrn_pyg.sim import fixed_shape
+from hrn_pyg.data.effects import SceneEffects
+from hrn_pyg.data.graph import NODE, replicate
+from hrn_pyg.sampling.sample import make_masks_fn
+from hrn_pyg.sim.fixed_shape import FixedShapeConfig, fixed_shape_rollout
+from hrn_pyg.sim.rollout import rollout
 
 STEPS = 12
 
@@ -113,13 +113,98 @@ def test_bad_input():
 def test_shipped_model_on_a_pybullet_state(scene):
     """The shipped model of a scene with many contacts (tower: hundreds of candidate pairs) or
     pushes (cube_push: the dense force path), from a pybullet state: the same positions."""
+    from stability.stability_helpers import trained_checkpoint
+
+    from hrn_pyg.checkpoints import load_model
     from hrn_pyg.data.scenes import simulate_episode
     from hrn_pyg.sampling.ensemble import episode_state
-    from hrn_pyg.train import load_model
-    from stability.stability_helpers import trained_checkpoint
 
     model = load_model(trained_checkpoint(scene)).eval()
     graph = episode_state(simulate_episode(scene, 3, steps=2 + STEPS), start=2)
     forces = graph[NODE].force_seq.transpose(0, 1).contiguous()
     result = fixed_shape_rollout(model, graph, STEPS, forces)
     assert torch.equal(result.pos, plain(model, graph, forces))
+
+
+def _fixed_step_args(model, graph, masks: bool, device: str):
+    """The fixed-shape step of ``model`` on ``graph`` and its tensor arguments, built on the CPU
+    (the candidate search and the object count read the host) and then moved to ``device``."""
+    from hrn_pyg.data.candidates import build_candidates
+    from hrn_pyg.sim.step import object_of
+
+    store = graph[NODE]
+    radius = float(model.config.collision_radius)
+    candidates = build_candidates(graph, store.pos, radius, 0.5 * radius)
+    objects = object_of(graph) if model.config.rigid_fit else None
+    names = tuple(sorted(model.config.dropout_modules)) if masks else ()
+    mask_rows = model.mask_rows(1)
+    mask_values = tuple(torch.ones(mask_rows, model.config.hidden) for _ in names)
+    force = pushes(store.num_nodes, (0,))[0]
+    args = (store.pos, store.prev_pos, store.prev_prev_pos, force, mask_values,
+            candidates.edge_index, candidates.valid, candidates.reference)
+    to = (lambda t: tuple(x.to(device) for x in t) if isinstance(t, tuple) else t.to(device))
+    graph, model = graph.to(device), model.to(device)
+    if objects is not None:
+        objects = (objects[0].to(device), objects[1])
+    step_fn = fixed_shape.make_step(model, graph, True, radius, 0.5 * radius, objects, names)
+    return step_fn, tuple(to(a) for a in args)
+
+
+MODEL_OPTIONS = [
+    dict(),
+    dict(rigid_fit=True),
+    dict(rest_offsets=True, ground_contact=True),
+    dict(mirror_average=True),
+    dict(mirror_average=True, mirror_planes="xy", rigid_fit=True),
+    dict(skip_idle_modules=False),
+]
+
+
+@pytest.mark.parametrize("options", MODEL_OPTIONS, ids=lambda o: ",".join(o) or "default")
+@pytest.mark.parametrize("masks", [False, True], ids=["deterministic", "masked"])
+def test_the_fixed_shape_step_never_reads_the_host(options, masks):
+    """On the ``meta`` device every read of a value raises, so a step that runs there to the end
+    asks the device nothing: for every model option, with and without dropout masks."""
+    model = fitted_model(dropout_modules=("force", "collision"), **options)
+    graph = toy_scene()
+    step_fn, args = _fixed_step_args(model, graph, masks, "meta")
+    next_pos, report = step_fn(*args)
+    assert next_pos.device.type == "meta" and next_pos.shape == graph[NODE].pos.shape
+    assert report.shape == (3,)
+
+
+def test_the_meta_check_catches_a_host_read(monkeypatch):
+    """The check above is not vacuous: a host read inside the step raises on ``meta``."""
+    from hrn_pyg.sim import step as step_module
+
+    real = step_module.decode
+
+    def reading_decode(model, graph, out, objects=None):
+        bool(out.abs().sum() > 0)  # a host read
+        return real(model, graph, out, objects)
+
+    monkeypatch.setattr(step_module, "decode", reading_decode)
+    step_fn, args = _fixed_step_args(fitted_model(), toy_scene(), False, "meta")
+    with pytest.raises((NotImplementedError, RuntimeError)):
+        step_fn(*args)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("options", MODEL_OPTIONS, ids=lambda o: ",".join(o) or "default")
+def test_on_cuda_the_step_never_syncs_and_a_cuda_graph_rollout_equals_the_plain_one(options):
+    """With ``set_sync_debug_mode("error")`` any synchronising call inside the step raises; the
+    CUDA-graph rollout then gives the plain rollout's positions (run by benchmarks/device_check.sh)."""
+    model = fitted_model(dropout_modules=("force", "collision"), **options)
+    graph = toy_scene()
+    step_fn, args = _fixed_step_args(model, graph, True, "cuda")
+    step_fn(*args)  # warm-up: lazy initialisation may sync once
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        step_fn(*args)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    model, graph = model.cuda(), graph.to("cuda")
+    forces = pushes(graph[NODE].num_nodes, (2, 3)).cuda()
+    recorded = fixed_shape_rollout(model, graph, STEPS, forces, config=FixedShapeConfig(cuda_graph=True))
+    assert torch.allclose(recorded.pos, plain(model, graph, forces), atol=1e-6, rtol=0)

@@ -13,13 +13,21 @@ import math
 
 import pytest
 import torch
+from stability.stability_helpers import fitted_model, trained_checkpoint
+from toy_scene import LEAF_OBJECT, leaf_rest_positions, structure, toy_scene
 
 from hrn_pyg.data.graph import COLLISION, NODE, replicate, set_state
 from hrn_pyg.nn.hrn import HRN, HRNInputs
-from hrn_pyg.rollout import build_inputs, decode, rollout, run_network, unroll
-from hrn_pyg.sleeping import SleepConfig, freeze, initial_state, objects, subgraph, update
-from stability.stability_helpers import fitted_model, trained_checkpoint
-from toy_scene import LEAF_OBJECT, leaf_rest_positions, structure, toy_scene
+from hrn_pyg.sim.rollout import rollout, unroll
+from hrn_pyg.sim.sleeping import (
+    SleepConfig,
+    freeze,
+    initial_state,
+    objects,
+    subgraph,
+    update,
+)
+from hrn_pyg.sim.step import build_inputs, decode, run_network
 
 CUBE, SQUARE = 0, 1
 N = 19
@@ -106,7 +114,7 @@ def test_sleep_off_is_bit_identical_to_plain_rollout(config):
 def test_sleeping_is_the_default_of_rollout_and_sample():
     """``rollout`` and ``sample`` let objects at rest sleep unless given ``sleep=None``."""
     from hrn_pyg.sampling.sample import sample
-    from hrn_pyg.sleep_config import DEFAULT_SLEEP
+    from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 
     model = toy_model()
     graph = scene({CUBE: (5e-4, 0.0, 0.0)})  # creeps below the threshold: falls asleep
@@ -152,7 +160,7 @@ def test_creeping_object_falls_asleep_after_patience_steps_and_holds_exactly_sti
 
 
 def test_a_scene_wholly_asleep_keeps_its_contacts_without_a_search(monkeypatch):
-    from hrn_pyg import sleeping
+    from hrn_pyg.sim import sleeping
 
     model = toy_model()
     graph = scene(separate=False)  # at rest, the square touching the cube
@@ -185,7 +193,7 @@ def _tower_at_rest():
 
 @pytest.mark.skipif(trained_checkpoint("tower") is None, reason="no shipped tower checkpoint")
 def test_resting_tower_sleeps_holds_exactly_still_and_wakes_when_hit():
-    from hrn_pyg.train import load_model
+    from hrn_pyg.checkpoints import load_model
 
     model = load_model(trained_checkpoint("tower"))
     graph = _tower_at_rest()  # pybullet's tower (objects 0-2) and ball (3) after two steps
@@ -410,7 +418,7 @@ def test_update_wakes_through_contacts_with_moving_objects_only():
 
 @pytest.mark.parametrize("limit", [None, 0])  # the box test, and the fallback to grid cells
 def test_near_awake_holds_every_leaf_within_reach_of_an_awake_one(limit, monkeypatch):
-    from hrn_pyg import sleeping
+    from hrn_pyg.sim import sleeping
 
     if limit is not None:
         monkeypatch.setattr(sleeping, "BOX_TEST_LIMIT", limit)

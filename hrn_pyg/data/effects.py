@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.graph import NODE, copy_object_ids, object_span
 
 
 @dataclass(frozen=True)
@@ -81,10 +81,11 @@ def can_collide(graph: HeteroData) -> bool:
     obj, static = store.object[leaf], store.is_static[leaf]
     if obj.numel() == 0:
         return False
-    key = copy_id * (int(obj.max()) + 1) + obj  # one id per (copy, object)
+    span = object_span(obj)
+    key = copy_object_ids(copy_id, obj, span)
     pairs, first = torch.unique(key, return_inverse=True)
     movable = torch.zeros(pairs.numel(), dtype=torch.bool, device=key.device).index_fill(0, first[~static], True)
-    copies = torch.div(pairs, int(obj.max()) + 1, rounding_mode="floor")
+    copies = torch.div(pairs, span, rounding_mode="floor")
     counts = torch.zeros(int(copies.max()) + 1, dtype=torch.long, device=key.device).index_add(
         0, copies, torch.ones_like(copies))
     has_movable = torch.zeros_like(counts).index_add(0, copies, movable.long())

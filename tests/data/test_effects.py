@@ -6,15 +6,16 @@ from dataclasses import replace
 
 import pytest
 import torch
+from stability.stability_helpers import fitted_model
 from torch_geometric.data import HeteroData
+from toy_scene import toy_scene
 
+from hrn_pyg.data.effects import SceneEffects, can_collide, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, replicate, set_state
 from hrn_pyg.data.scenes import SCENES, scene_effects
-from hrn_pyg.effects import SceneEffects, can_collide, plan_effects
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.rollout import build_inputs, rollout, run_network, step, unroll
-from stability.stability_helpers import fitted_model
-from toy_scene import toy_scene
+from hrn_pyg.sim.rollout import rollout, unroll
+from hrn_pyg.sim.step import build_inputs, run_network, step
 
 N = 19  # nodes of the toy scene
 STEPS = 6

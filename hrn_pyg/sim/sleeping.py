@@ -1,6 +1,6 @@
 r"""Objects at rest sleep: a step runs the network only on what moves (as Bullet and PhysX do).
 
-An *object* is one root's tree of one batch copy (:func:`hrn_pyg.rollout.root_of`), so the
+An *object* is one root's tree of one batch copy (:func:`hrn_pyg.sim.step.root_of`), so the
 copies of :func:`hrn_pyg.data.graph.replicate` sleep independently. Each object carries two
 numbers across the steps of a rollout (:class:`SleepState`): whether it is asleep, and for how
 many consecutive steps it has been still. At the start of step :math:`t` (graph at
@@ -30,62 +30,48 @@ contact can only form when something moves, so "no new collision edge" is this c
 sub-threshold creep counts as rest. Woken objects take part in the same step, with zero
 velocity (an asleep object's ``prev_pos`` and ``prev_prev_pos`` equal its ``pos``).
 
-The step itself (:func:`sleeping_step`) runs :func:`hrn_pyg.rollout.build_inputs`,
-:func:`~hrn_pyg.rollout.run_network` and :func:`~hrn_pyg.rollout.decode` on a sub-graph: every
-node of the awake objects, then the asleep (or static) leaves that are sources of collision
-edges into awake leaves, flagged ``is_static`` (they act on their neighbours but are not moved).
-The network is local to an object's tree plus its collision sources, so the awake objects see
-exactly what they would see in the whole graph. Asleep objects keep ``pos`` bit for bit. The
-next graph's collision edges (:func:`next_collision_edges`) are the full set, but searched only
-around awake leaves: an edge between two asleep leaves cannot change and is carried over, and a
-sleeping object still notices a newcomer. When no movable object is asleep the step is
-:func:`hrn_pyg.rollout.step` on the whole graph (bit-identical to a rollout without sleeping);
-when every object is asleep the network is not run at all.
+The step itself (:func:`sleeping_step`) runs :func:`hrn_pyg.sim.step.predict` on a sub-graph
+(:func:`predict_held`): every node of the awake objects, then the asleep (or static) leaves
+that are sources of collision edges into awake leaves, flagged ``is_static`` (they act on their
+neighbours but are not moved). The network is local to an object's tree plus its collision
+sources, so the awake objects see exactly what they would see in the whole graph. Asleep
+objects keep ``pos`` bit for bit. The next graph's collision edges (:func:`next_collision_edges`)
+are the full set, but searched only around awake leaves: an edge between two asleep leaves
+cannot change and is carried over, and a sleeping object still notices a newcomer. When no
+movable object is asleep the step is :func:`hrn_pyg.sim.step.step` on the whole graph
+(bit-identical to a rollout without sleeping); when every object is asleep the network is not
+run at all.
 
-Callers that carry no state between steps (the RL environment, :mod:`hrn_pyg.rl.hrn_dynamics`)
-start each step from :func:`state_from_history`: an object still over the two steps its
-three positions span is asleep; :func:`update` and :func:`predict_awake` then do the rest. A
-rollout starts from it too (``SleepConfig.start_from_history``, the default): a scene whose
-start shows its objects at rest does not run them for ``patience`` steps first. Chosen on
-validation episodes (``benchmarks/sleeping.py --split val``, seeds 8, 18, 28 and the field of
-seed 8): the 64-object field went from x2.66 to x3.24 (89 -> 95 % of object-steps asleep) with
-its errors at t+15 and at the end lower; the tower and multi_material episodes start in motion
-and changed by at most 2 % either way.
+A rollout keeps its objects and their sleep state in a :class:`Sleeper`. Callers that carry no
+state between steps (the RL environment, :mod:`hrn_pyg.rl.hrn_dynamics`) take the held nodes
+from :func:`held_from_history`: an object still over the two steps its three positions span is
+asleep (:func:`state_from_history`), then :func:`update` wakes what a force or a moving
+neighbour reaches. A rollout starts from the same state (``SleepConfig.start_from_history``,
+the default): a scene whose start shows its objects at rest does not run them for
+``patience`` steps first.
 
-Defaults, from per-step leaf displacements (the largest over an object's leaves) of pybullet
-episodes and of the shipped models; units are metres per model step (1/30 s):
+Why the defaults (per-step leaf displacements, the largest over an object's leaves, in metres
+per model step of 1/30 s; the sweeps behind them are in docs/history.md):
 
-* pybullet's resting rigid bodies move < 1e-4 (``tower``, last 30 steps of 40 episodes: 99 %
-  below 5e-5, all below 9e-5); its resting soft cubes and cloth jitter at 1-10 mm per step
-  (``multi_material``: medians 2-3 mm), so "pybullet at rest" is not one number;
+* pybullet's resting rigid bodies move < 1e-4 per step; its resting soft cubes and cloth jitter
+  at 1-10 mm per step, so "pybullet at rest" is not one number;
 * real motion is far above: a pushed ball moves 1-4 cm per step, and anything in free flight
   changes its displacement by :math:`g\,\Delta t^2` = 1.1 cm per step, so it cannot stay under
   a few mm per step for two steps running;
-* the trained models never hold an object exactly still: ``tower.pt`` lets a resting tower creep
-  by 0.1-1 mm per step from the first steps on, ``multi_material.pt`` its settled objects by
-  0.7-1.4 mm per step (last 40 steps; both looked at on episodes 9 and 19, not used to choose);
-* a first sweep (the models of 2026-11-26, validation seeds 8-48, threshold 1e-3 / 2e-3 / 4e-3,
-  patience 10): at 1e-3 the ``multi_material`` objects of that model fell asleep in 2 of 5
-  episodes, at 2e-3 in all 5, and its end-of-episode error dropped in all 5 (held objects
-  stopped creeping) with the t+15 error unchanged;
-* the same sweep with today's models over all ten validation episodes (2026-11-27, patience 10
-  / 20 / 40 as well): no setting stands out. ``multi_material``: 62-86 % of object-steps asleep,
-  mean end error sleeping / awake 1.06-1.13, median per-episode ratio 0.93-1.04, t+15
-  unchanged; ``tower``: 38-57 % asleep, 1.003 on every setting. Which of two rollouts that have
-  both drifted ends nearer pybullet is a toss-up per episode (one episode, where pybullet's soft
-  cube slides 11 cm after it has settled, makes most of the ``multi_material`` mean), so
-  ``benchmarks/sleeping.py`` judges the error over the whole split with a bootstrap interval.
+* the trained models never hold an object exactly still: they let resting objects creep by
+  0.1-1.4 mm per step.
 
-So ``threshold = 2e-3`` (6 cm/s): the smallest of the first sweep that put the models' resting
-objects to sleep, below Bullet's 0.8 m/s and PhysX's about 0.1 m/s (a mass-normalised kinetic
-energy of 5e-5 x (10 m/s)^2). ``patience = 10`` steps (1/3 s, PhysX's wake counter is 0.4 s) is
-longer than any turning point of a real motion.
+So ``threshold = 2e-3`` (6 cm/s) is above the models' creep and below real motion (Bullet's
+sleep threshold is 0.8 m/s, PhysX's about 0.1 m/s), and ``patience = 10`` steps (1/3 s;
+PhysX's wake counter is 0.4 s) is longer than any turning point of a real motion.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
-from typing import NamedTuple
+from dataclasses import asdict, dataclass
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -98,14 +84,59 @@ from hrn_pyg.data.graph import (
     LEAF_TO_ANCESTOR,
     NODE,
     WITHIN_SIBLINGS,
+    copy_object_ids,
+    object_span,
 )
 from hrn_pyg.data.radius import cell_keys, collision_edges
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.rollout import Step, build_inputs, decode, object_of, run_network, step
-from hrn_pyg.rollout import advance as advance_graph
-from hrn_pyg.sleep_config import SleepConfig
+from hrn_pyg.sim.step import Prediction, Step, check_next_pos, object_of, predict, step
+from hrn_pyg.sim.step import advance as advance_graph
 
-#: node attributes a model step reads (:func:`~hrn_pyg.rollout.build_inputs`, ``decode``), the
+
+@dataclass(frozen=True)
+class SleepConfig:
+    """When an object at rest falls asleep (the rule: the module docstring).
+
+    Attributes:
+        enabled: False runs every object at every step (the plain rollout, bit for bit).
+        threshold: metres per step; an object whose leaves all moved less than this in a step
+            (and had no external force) was still in that step. Default 2e-3 (6 cm/s at 30 steps
+            per second): above the creep of the shipped models at rest, below real motion.
+        patience: consecutive still steps after which an object falls asleep (>= 1).
+        start_from_history: a rollout's objects start in the state the start's own three
+            positions imply (:func:`state_from_history`: still over both steps
+            of history, and not pushed or touched by a moving object, is asleep, as in the RL
+            environment); False starts every movable object awake.
+    """
+
+    enabled: bool = True
+    threshold: float = 2e-3
+    patience: int = 10
+    start_from_history: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"SleepConfig.enabled must be a bool, got {self.enabled!r}")
+        threshold = self.threshold
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (
+                math.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"SleepConfig.threshold must be a finite number > 0 (metres per step), got {threshold!r}")
+        if not isinstance(self.start_from_history, bool):
+            raise ValueError(f"SleepConfig.start_from_history must be a bool, got {self.start_from_history!r}")
+        patience = self.patience
+        if isinstance(patience, bool) or not isinstance(patience, int) or patience < 1:
+            raise ValueError(f"SleepConfig.patience must be an integer >= 1 (steps), got {patience!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+#: what :func:`hrn_pyg.sim.rollout.rollout`, :func:`hrn_pyg.sampling.sample` and the RL environment
+#: use unless told otherwise (``sleep=None`` runs every object at every step)
+DEFAULT_SLEEP = SleepConfig()
+
+
+#: node attributes a model step reads (:func:`~hrn_pyg.sim.step.build_inputs`, ``decode``), the
 #: ones a sub-graph carries; ``batch`` and ``rest_pos`` only where the graph has them
 NODE_ATTRIBUTES = ("mass", "material", "stiffness", "object", "depth", "is_leaf", "is_root", "is_static",
                    "pos", "prev_pos", "prev_prev_pos", "batch", "rest_pos")
@@ -145,7 +176,7 @@ class SleepState(NamedTuple):
 
 def objects(graph: HeteroData) -> Objects:
     """The :class:`Objects` of ``graph``: one per root node, numbered in root order
-    (:func:`hrn_pyg.rollout.object_of`)."""
+    (:func:`hrn_pyg.sim.step.object_of`)."""
     of_node, count = object_of(graph)
     static = torch.zeros(count, dtype=torch.bool, device=of_node.device).index_fill(
         0, of_node[graph[NODE].is_static], True)
@@ -260,6 +291,11 @@ def subgraph(graph: HeteroData, asleep_node: Tensor, prev_pos: Tensor, prev_prev
     return sub, index, awake_rows
 
 
+def holds_movable(held: Tensor, graph: HeteroData) -> bool:
+    """Whether ``held`` ``[N]`` bool holds any node that is not static (one host read)."""
+    return bool((held & ~graph[NODE].is_static).any())
+
+
 def sleeping_step(
     model: HRN,
     graph: HeteroData,
@@ -277,54 +313,94 @@ def sleeping_step(
 
     ``force`` ``[N, 3]`` is the step's external force (zero on ancestors); ``state`` the sleep
     state carried from the previous step (:func:`initial_state` at the start). The returned
-    :class:`~hrn_pyg.rollout.Step` has zero velocities on asleep nodes, ``asleep`` ``[N]`` the
+    :class:`~hrn_pyg.sim.step.Step` has zero velocities on asleep nodes, ``asleep`` ``[N]`` the
     nodes held still in this step, and the next graph (:func:`advance`): asleep nodes with
     ``pos``, ``prev_pos`` and ``prev_prev_pos`` all equal to the held position, the collision
     edges of all leaves at ``x_{t+1}``. ``force_active`` and ``collisions`` are the step's part
-    of the rollout's :class:`~hrn_pyg.effects.EffectPlan` (as for :func:`hrn_pyg.rollout.step`);
-    ``check=False``: the caller has checked the positions and the force for NaN / inf.
+    of the rollout's :class:`~hrn_pyg.data.effects.EffectPlan` (as for
+    :func:`hrn_pyg.sim.step.step`); ``check=False``: the caller has checked the positions and
+    the force for NaN / inf.
     """
     state = update(config, state, graph, force, objs)
     asleep_node = state.asleep[objs.of_node]
-    store = graph[NODE]
-    radius = model.config.collision_radius if collisions else None
-    if not bool((asleep_node & ~store.is_static).any()):  # nothing movable sleeps: the plain step
+    if not holds_movable(asleep_node, graph):  # nothing movable sleeps: the plain step
         result = step(model, graph, force, masks, force_active=force_active, collisions=collisions,
                       objects=(objs.of_node, objs.count), check=check)
-        return result._replace(asleep=store.is_static), state
-
-    pos, local, velocity = predict_awake(model, graph, force, masks, asleep_node, force_active, check)
-    nxt = advance(graph, asleep_node, pos, radius)
+        return result._replace(asleep=graph[NODE].is_static), state
+    pos, local, velocity = predict_held(model, graph, force, masks, asleep_node, force_active=force_active,
+                                        check=check)
+    nxt = advance(graph, asleep_node, pos, model.config.collision_radius if collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 
 
-def predict_awake(
+def predict_held(
     model: HRN,
     graph: HeteroData,
     force: Tensor,
     masks: Mapping[str, Tensor] | None,
-    asleep_node: Tensor,
+    held: Tensor | None,
+    *,
     force_active: bool | None = None,
+    objects: tuple[Tensor, int] | None = None,
     check: bool = True,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """``(pos, local_velocity, velocity)`` ``[N, 3]`` of a step in which the ``asleep_node``
-    rows are held: the network runs on the :func:`subgraph` of the awake objects (with frozen
-    asleep collision sources), asleep rows keep ``pos`` bit for bit with zero velocity. The
-    prediction part of :func:`sleeping_step`, without the next graph (the RL environment
-    builds its own). ``check=False``: the caller has checked positions and force for NaN / inf."""
+) -> Prediction:
+    """:func:`hrn_pyg.sim.step.predict` of a step in which the ``held`` ``[N]`` rows are held still.
+
+    The network runs on the :func:`subgraph` of the objects not held (with frozen held collision
+    sources); held rows keep ``pos`` bit for bit with zero velocity, and when every row is held
+    the network is not run. ``held=None`` holds nothing: the plain prediction on the whole graph
+    (``objects``, :func:`~hrn_pyg.sim.step.object_of` of ``graph``, is used only then).
+    ``check=False``: the caller has checked positions and force for NaN / inf.
+    """
+    if held is None:
+        return predict(model, graph, force, masks, force_active=force_active, objects=objects, check=check)
     store = graph[NODE]
     zero = torch.zeros_like(store.pos)
-    if bool(asleep_node.all()):  # nothing to run: the scene holds still
-        return store.pos, zero, zero
-    prev_pos, prev_prev_pos = freeze(graph, asleep_node)
-    sub, index, awake_rows = subgraph(graph, asleep_node, prev_pos, prev_prev_pos)
-    out = run_network(model, build_inputs(model, sub, force.index_select(0, index), force_active, check), masks)
-    sub_pos, sub_local, sub_velocity = decode(model, sub, out)
+    if bool(held.all()):  # nothing to run: the scene holds still
+        return Prediction(store.pos, zero, zero)
+    prev_pos, prev_prev_pos = freeze(graph, held)
+    sub, index, awake_rows = subgraph(graph, held, prev_pos, prev_prev_pos)
+    sub_pos, sub_local, sub_velocity = predict(model, sub, force.index_select(0, index), masks,
+                                               force_active=force_active, check=check)
     keep = awake_rows.unsqueeze(-1)
     pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
     local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))
     velocity = zero.index_copy(0, index, torch.where(keep, sub_velocity, zero.index_select(0, index)))
-    return pos, local, velocity
+    return Prediction(pos, local, velocity)
+
+
+def held_from_history(config: SleepConfig, graph: HeteroData, objs: Objects, force: Tensor) -> Tensor:
+    """``[N]`` bool: the nodes a caller that carries no state between steps holds in this step:
+    the objects :func:`state_from_history` finds at rest, less those :func:`update` wakes
+    (a force ``[N, 3]`` on them, or a contact with a moving object)."""
+    return update(config, state_from_history(config, graph, objs), graph, force, objs).asleep[objs.of_node]
+
+
+class Sleeper:
+    """The sleep bookkeeping of one rollout: the scene's :class:`Objects` (the tree does not
+    change) and the :class:`SleepState` carried from step to step.
+
+    :meth:`start` finds the objects and their state at the start; every :meth:`step` is a
+    :func:`sleeping_step` that carries the state on.
+    """
+
+    def __init__(self, config: SleepConfig, objs: Objects, state: SleepState) -> None:
+        self.config, self.objects, self.state = config, objs, state
+
+    @classmethod
+    def start(cls, config: SleepConfig, graph: HeteroData) -> Sleeper:
+        """The objects of ``graph`` and their state at the start: the state its history implies
+        (``config.start_from_history``), else every movable object awake."""
+        objs = objects(graph)
+        state = state_from_history(config, graph, objs) if config.start_from_history else initial_state(objs)
+        return cls(config, objs, state)
+
+    def step(self, model: HRN, graph: HeteroData, force: Tensor, masks: Mapping[str, Tensor] | None, *,
+             force_active: bool | None = None, collisions: bool = True) -> Step:
+        """One :func:`sleeping_step` (positions and force already checked by the caller)."""
+        result, self.state = sleeping_step(model, graph, force, masks, self.state, self.objects, self.config,
+                                           force_active=force_active, collisions=collisions, check=False)
+        return result
 
 
 def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) -> SleepState:
@@ -343,16 +419,16 @@ def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) ->
 
 
 def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> HeteroData:
-    """The graph at ``t+1`` after a step with sleeping objects: :func:`hrn_pyg.rollout.advance`
+    """The graph at ``t+1`` after a step with sleeping objects: :func:`hrn_pyg.sim.step.advance`
     with the asleep nodes held (all three positions equal to the held one) and the collision
     edges of :func:`next_collision_edges`.
 
     ``pos`` ``[N, 3]`` is ``x_{t+1}`` with ancestors derived (the awake objects' from the
     sub-graph's decode, the asleep nodes' rows equal to ``x_t``), so the held rows stay bit for bit.
     """
-    if not bool(torch.isfinite(pos).all()):  # before the search reads it
-        raise ValueError("advance: pos contains NaN or infinite values")
-    return advance_graph(graph, pos, radius, held=asleep_node, edges=next_collision_edges(graph, asleep_node, pos, radius))
+    check_next_pos(pos)  # before the search reads it
+    edges = next_collision_edges(graph, asleep_node, pos, radius)
+    return advance_graph(graph, pos, radius, held=asleep_node, edges=edges, check=False)
 
 
 def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> Tensor:
@@ -405,8 +481,8 @@ def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, rad
     """
     index = torch.nonzero(leaf).flatten()
     awake = torch.nonzero(awake_leaf).flatten()
-    span = int(leaf_object.max()) + 1
-    box_key, box_of = torch.unique(batch[awake] * span + leaf_object[awake], return_inverse=True)
+    span = object_span(leaf_object)
+    box_key, box_of = torch.unique(copy_object_ids(batch[awake], leaf_object[awake], span), return_inverse=True)
     if box_key.numel() * index.numel() > BOX_TEST_LIMIT:
         return near_awake_cells(pos, batch, leaf, awake_leaf, radius)
     spread = box_of[:, None].expand(-1, 3)

@@ -1,6 +1,6 @@
-"""The one rollout loop of hrn_pyg, used by training, evaluation, sampling and the environment.
+"""One learned step of the HRN, written once: every rollout, sampler and environment calls it.
 
-A model step has three named stages, each a function testable on its own (after GNS's
+A step has three stages, each a function testable on its own (after GNS's
 ``learned_simulator.py``):
 
 1. :func:`build_inputs`: per-particle state features and edge offsets, normalised with the
@@ -10,11 +10,13 @@ A model step has three named stages, each a function testable on its own (after 
    scatter down the tree to global velocities, integration ``x_{t+1} = x_t + v_{t+1}`` of the
    leaves, ancestor positions re-derived from the leaves; static particles never move.
 
-:func:`step` chains them and also returns the next graph (positions shifted, collision edges
-recomputed at the new positions); :func:`unroll` and :func:`rollout` feed predictions back,
-letting objects at rest sleep unless told not to (``sleep=``, :mod:`hrn_pyg.sleeping`).
-Everything is differentiable in the positions (the edge sets are not), and vectorised over
-particles.
+:func:`predict` chains the three stages; it is the only place they are chained. :func:`step`
+adds :func:`advance`, the next graph (positions shifted, collision edges recomputed at the new
+positions). The callers add only what is their own: the rollout loop
+(:mod:`hrn_pyg.sim.rollout`), objects at rest held still (:mod:`hrn_pyg.sim.sleeping`), steps
+with no host read (:mod:`hrn_pyg.sim.fixed_shape`) and the RL environment's batched step
+(:mod:`hrn_pyg.rl.hrn_dynamics`). Everything is differentiable in the positions (the edge sets
+are not), and vectorised over particles.
 """
 
 from __future__ import annotations
@@ -32,25 +34,33 @@ from hrn_pyg.data.graph import (
     CHILD_TO_PARENT,
     COLLISION,
     LEAF_TO_ANCESTOR,
-    MATERIALS,
     NODE,
+    RIGID,
     WITHIN_SIBLINGS,
     leaf_collision_edges,
     leaf_to_ancestor_mean,
-    set_state,
 )
-from hrn_pyg.effects import SceneEffects, plan_effects
 from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
-from hrn_pyg.sleep_config import DEFAULT_SLEEP, SleepConfig
-
-
-#: column of the rigid material in ``graph['particle'].material``
-RIGID = MATERIALS.index("rigid")
+from hrn_pyg.utils.checks import check_finite
 
 #: ``masks_fn(step_index, graph) -> {module: [B, H] mask} | None``, called once per step
 MasksFn = Callable[[int, HeteroData], Mapping[str, Tensor] | None]
+
+
+class Prediction(NamedTuple):
+    """What the network predicts for one step (:func:`predict`), each ``[N, 3]``.
+
+    Attributes:
+        pos: positions at ``t+1`` (leaves integrated, ancestors derived).
+        local_velocity: velocity in the parent's frame (roots global).
+        velocity: global velocity (local summed down the tree).
+    """
+
+    pos: Tensor
+    local_velocity: Tensor
+    velocity: Tensor
 
 
 class Step(NamedTuple):
@@ -64,7 +74,7 @@ class Step(NamedTuple):
             force zero, collision edges of ``x_{t+1}`` (an asleep node's three positions are
             all its held position).
         asleep: ``[N]`` bool, the nodes held still in this step because their object was asleep
-            (:mod:`hrn_pyg.sleeping`); None when sleeping is off.
+            (:mod:`hrn_pyg.sim.sleeping`); None when sleeping is off.
     """
 
     pos: Tensor
@@ -74,32 +84,29 @@ class Step(NamedTuple):
     asleep: Tensor | None = None
 
 
-def _check_finite(name: str, value: Tensor) -> None:
-    if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name} contains NaN or infinite values")
-
-
-def _require_state(graph: HeteroData, check: bool = True) -> None:
+def require_state(graph: HeteroData, check: bool = True) -> None:
     """The three positions a step reads are present (and finite, unless ``check=False``)."""
     store = graph[NODE]
     for name in ("pos", "prev_pos", "prev_prev_pos"):
         if name not in store:
             raise ValueError(f"graph['{NODE}'] has no '{name}': set the state first (hrn_pyg.data.graph.set_state)")
         if check:
-            _check_finite(f"graph['{NODE}'].{name}", store[name])
+            check_finite(f"graph['{NODE}'].{name}", store[name])
 
 
-def _node_force(graph: HeteroData, force: Tensor | None, check: bool = True) -> Tensor:
+def node_force(graph: HeteroData, force: Tensor | None, check: bool = True) -> Tensor:
+    """The step's external force ``[N, 3]``: ``force`` with ancestor rows zeroed, or the graph's
+    own ``force`` (zero if absent) when ``force`` is None."""
     store = graph[NODE]
     if force is None:
         force = store.force if "force" in store else torch.zeros_like(store.pos)
         if check:
-            _check_finite(f"graph['{NODE}'].force", force)
+            check_finite(f"graph['{NODE}'].force", force)
         return force
     if force.shape != store.pos.shape:
         raise ValueError(f"force must be [N, 3] = {tuple(store.pos.shape)}, got {tuple(force.shape)}")
     if check:
-        _check_finite("force", force)
+        check_finite("force", force)
     return torch.where(store.is_leaf.unsqueeze(-1), force, torch.zeros_like(force))
 
 
@@ -109,6 +116,8 @@ def build_inputs(
     force: Tensor | None = None,
     force_active: bool | None = None,
     check: bool = True,
+    collision_weight: Tensor | None = None,
+    fixed_shape: bool = False,
 ) -> HRNInputs:
     r"""Stage 1: normalised network inputs of the graph's current state.
 
@@ -117,11 +126,13 @@ def build_inputs(
     positions divided by the length scale (edges only see differences); force divided by its
     scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
     collision edges are read from the graph as they are. ``force_active`` (optional) says
-    whether the force is nonzero, so the network need not ask (:mod:`hrn_pyg.effects`).
+    whether the force is nonzero, so the network need not ask (:mod:`hrn_pyg.data.effects`).
     ``check=False`` skips the finite checks of the positions and the force (each a host read
-    on a GPU): for a caller that has checked them already, as :func:`unroll` does.
+    on a GPU): for a caller that has checked them already, as a rollout does.
+    ``collision_weight`` ``[E_C]`` and ``fixed_shape``: the options of a step with no host read
+    (:class:`~hrn_pyg.nn.hrn.HRNInputs`, :mod:`hrn_pyg.sim.fixed_shape`).
     """
-    _require_state(graph, check)
+    require_state(graph, check)
     store = graph[NODE]
     norm, config = model.normalizer, model.config
     pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
@@ -140,7 +151,7 @@ def build_inputs(
         state=state,
         prev_state=prev_state,
         pos=norm.length(pos),
-        force=norm.force(_node_force(graph, force, check)),
+        force=norm.force(node_force(graph, force, check)),
         is_static=store.is_static,
         is_root=store.is_root,
         batch=batch,
@@ -150,6 +161,8 @@ def build_inputs(
         ancestor_to_descendant=graph[ANCESTOR_TO_DESCENDANT].edge_index,
         rest_pos=rest_pos,
         force_active=force_active,
+        collision_weight=collision_weight,
+        fixed_shape=fixed_shape,
     )
 
 
@@ -199,7 +212,7 @@ def rigid_leaf_positions(
 
     An object (of one batch copy) is identified by its root node (:func:`object_of`, one fit per
     object rather than per node); rows other than rigid leaves enter the fit with zero weight,
-    and so do static rows (a sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sleeping`, is
+    and so do static rows (a sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sim.sleeping`, is
     rigid and static). ``objects``: :func:`object_of` of ``graph``, if the caller has it.
     """
     store = graph[NODE]
@@ -223,7 +236,7 @@ def object_of(graph: HeteroData) -> tuple[Tensor, int]:
 def root_of(graph: HeteroData) -> Tensor:
     """``[N]`` long: the root node of every node's tree (a root is its own, and so is a node
     without ancestors in the graph, e.g. a sleeping object's leaf in a sub-graph of
-    :mod:`hrn_pyg.sleeping`)."""
+    :mod:`hrn_pyg.sim.sleeping`)."""
     store = graph[NODE]
     node, ancestor = graph[LEAF_TO_ANCESTOR].edge_index
     index = torch.arange(store.num_nodes, device=node.device)
@@ -244,6 +257,37 @@ def target_output(model: HRN, graph: HeteroData, next_pos: Tensor) -> Tensor:
     return model.normalizer.normalize_target(delta, store.is_root)
 
 
+def predict(
+    model: HRN,
+    graph: HeteroData,
+    force: Tensor | None = None,
+    masks: Mapping[str, Tensor] | None = None,
+    *,
+    force_active: bool | None = None,
+    objects: tuple[Tensor, int] | None = None,
+    check: bool = True,
+    collision_weight: Tensor | None = None,
+    fixed_shape: bool = False,
+) -> Prediction:
+    """The three stages of a step: :func:`build_inputs`, :func:`run_network`, :func:`decode`.
+
+    Args:
+        model: the HRN.
+        graph: current state (``pos``, ``prev_pos``, ``prev_prev_pos``; collision edges of ``pos``).
+        force: ``[N, 3]`` external force during ``t -> t+1``; None uses ``graph['particle'].force``
+            (zero if absent).
+        masks: dropout masks ``{module: [B, H]}``; None is the deterministic model.
+        force_active: whether the force is nonzero (None: the network checks, a host read).
+        objects: :func:`object_of` of ``graph`` if the caller has it (None: computed here when
+            the model fits rigid motions, a host read).
+        check: check the graph's positions and the force for NaN / inf first (``False``: the
+            caller has).
+        collision_weight, fixed_shape: see :func:`build_inputs`.
+    """
+    inputs = build_inputs(model, graph, force, force_active, check, collision_weight, fixed_shape)
+    return Prediction(*decode(model, graph, run_network(model, inputs, masks), objects))
+
+
 def step(
     model: HRN,
     graph: HeteroData,
@@ -255,24 +299,14 @@ def step(
     objects: tuple[Tensor, int] | None = None,
     check: bool = True,
 ) -> Step:
-    """One model step: build inputs, run the network, decode, and advance the graph.
+    """One model step: :func:`predict`, then :func:`advance` the graph to ``t+1``.
 
-    Args:
-        model: the HRN (its config gives the collision radius of the next graph).
-        graph: current state (``pos``, ``prev_pos``, ``prev_prev_pos``; collision edges of ``pos``).
-        force: ``[N, 3]`` external force during ``t -> t+1``; None uses ``graph['particle'].force``
-            (zero if absent).
-        masks: dropout masks ``{module: [B, H]}``; None is the deterministic model.
-        force_active, collisions: the step's part of an :class:`~hrn_pyg.effects.EffectPlan`:
-            whether the force is nonzero (None: the network checks), and whether the next
-            graph gets a collision search (False: no collision edges).
-        objects: :func:`object_of` of ``graph`` if the caller has it (None: computed here).
-        check: check the graph's positions and the force for NaN / inf first (``False``: the
-            caller has; the new positions are always checked).
+    The arguments are those of :func:`predict`; ``collisions`` (the step's part of an
+    :class:`~hrn_pyg.data.effects.EffectPlan`) says whether the next graph gets a collision
+    search (False: no collision edges). The new positions are always checked for NaN / inf.
     """
-    inputs = build_inputs(model, graph, force, force_active, check)
-    out = run_network(model, inputs, masks)
-    pos, local, velocity = decode(model, graph, out, objects)
+    pos, local, velocity = predict(model, graph, force, masks, force_active=force_active, objects=objects,
+                                   check=check)
     nxt = advance(graph, pos, model.config.collision_radius if collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
 
@@ -283,6 +317,7 @@ def advance(
     radius: float | None,
     held: Tensor | None = None,
     edges: Tensor | None = None,
+    check: bool = True,
 ) -> HeteroData:
     """The graph at ``t+1``: a shallow copy of ``graph`` (at ``t``) with ``prev_prev_pos, prev_pos,
     pos = x_{t-1}, x_t, x_{t+1}``, force zero and the collision edges of ``x_{t+1}``.
@@ -290,14 +325,16 @@ def advance(
     What :func:`hrn_pyg.data.graph.set_state` gives for a graph whose ancestor rows are already
     derived (every graph of a rollout, and ``pos`` from :func:`decode`), without re-deriving
     them: the rows are moved, not recomputed, so they stay bit for bit. ``held`` ``[N]`` bool
-    (optional): nodes held still in this step (:mod:`hrn_pyg.sleeping`), whose
+    (optional): nodes held still in this step (:mod:`hrn_pyg.sim.sleeping`), whose
     ``prev_prev_pos`` becomes ``x_t`` so they start from rest when they wake. ``edges``
     ``(2, |E_C|)`` (optional): the collision edges of ``x_{t+1}`` when the caller has them
     (the sleeping step searches only where something moved); else all leaves are searched.
+    ``check=False``: the caller has checked ``pos`` for NaN / inf (with :func:`check_next_pos`).
 
     **Shapes:** pos ``(N, 3)``; returns a graph with ``collision`` ``(2, |E_C|)``.
     """
-    _check_finite("advance: pos", pos)
+    if check:
+        check_next_pos(pos)
     store = graph[NODE]
     out = copy.copy(graph)
     part = out[NODE]
@@ -309,85 +346,12 @@ def advance(
     return out
 
 
-def _check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
-    n = graph[NODE].num_nodes
-    if forces is not None and (forces.dim() != 3 or forces.shape[0] < steps or forces.shape[1:] != (n, 3)):
-        raise ValueError(f"forces must be [steps>={steps}, {n}, 3], got {tuple(forces.shape)}")
-    if forces is not None:
-        _check_finite("forces", forces[:steps])
 
 
-def unroll(
-    model: HRN,
-    graph: HeteroData,
-    steps: int,
-    forces: Tensor | None = None,
-    masks_fn: MasksFn | None = None,
-    sleep: SleepConfig | None = DEFAULT_SLEEP,
-    effects: SceneEffects | None = None,
-) -> list[Step]:
-    """Feed the model its own predictions for ``steps`` steps; every :class:`Step` is kept.
-
-    The initial graph's collision edges are recomputed with the model's radius first, so the
-    first step sees the same kind of edges as the later ones. ``forces`` ``[steps, N, 3]`` is the
-    external force of each step; None means no external force at any step (the graph's
-    ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
-    ``t`` (None: deterministic); it always sees the whole graph. ``sleep`` lets objects at rest
-    sleep (:mod:`hrn_pyg.sleeping`; an object the start's history shows at rest starts asleep,
-    ``SleepConfig.start_from_history``), on by default
-    (:data:`~hrn_pyg.sleep_config.DEFAULT_SLEEP`); ``sleep=None`` or ``enabled=False`` runs
-    every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
-    ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.effects.SceneEffects`;
-    None: what the data show): before the first step it becomes an
-    :class:`~hrn_pyg.effects.EffectPlan`, so no step asks the device whether its force is zero,
-    and a scene in which nothing can touch gets no collision search at all.
-    """
-    _check_forces(graph, steps, forces)
-    plan = plan_effects(graph, steps, forces, effects)
-    store = graph[NODE]
-    radius = model.config.collision_radius if plan.collisions else None
-    _require_state(graph)  # once here, so no step has to
-    graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=radius)
-    # the tree does not change during a rollout: its objects are found once (one host read)
-    objects = object_of(graph) if model.config.rigid_fit else None
-    sleeping = sleep is not None and sleep.enabled
-    if sleeping:
-        from hrn_pyg import sleeping as sleep_module  # imports this module
-
-        objs = sleep_module.objects(graph)
-        objects = (objs.of_node, objs.count)
-        sleep_state = (sleep_module.state_from_history(sleep, graph, objs) if sleep.start_from_history
-                       else sleep_module.initial_state(objs))
-    out: list[Step] = []
-    for t in range(steps):  # time steps; each step is vectorised over particles
-        force = forces[t] if forces is not None else torch.zeros_like(store.pos)
-        masks = masks_fn(t, graph) if masks_fn is not None else None
-        active = plan.force_active[t]
-        if sleeping:
-            result, sleep_state = sleep_module.sleeping_step(model, graph, force, masks, sleep_state, objs, sleep,
-                                                             force_active=active, collisions=plan.collisions,
-                                                             check=False)
-        else:
-            result = step(model, graph, force, masks, force_active=active, collisions=plan.collisions,
-                          objects=objects, check=False)
-        out.append(result)
-        graph = result.graph
-    return out
+#: the name a non-finite prediction is reported under
+NEXT_POS = "advance: pos"
 
 
-def rollout(
-    model: HRN,
-    graph: HeteroData,
-    steps: int,
-    forces: Tensor | None = None,
-    masks_fn: MasksFn | None = None,
-    sleep: SleepConfig | None = DEFAULT_SLEEP,
-    effects: SceneEffects | None = None,
-) -> Tensor:
-    """Positions of all nodes over ``steps`` predicted steps, ``[steps, N, 3]`` (``x_{t+1..t+steps}``).
-
-    See :func:`unroll` for the arguments.
-    """
-    return torch.stack([s.pos for s in unroll(model, graph, steps, forces, masks_fn, sleep, effects)])
+def check_next_pos(pos: Tensor) -> None:
+    """Raise ValueError if a step's new positions ``[N, 3]`` hold NaN or inf (a host read)."""
+    check_finite(NEXT_POS, pos)

@@ -1,14 +1,15 @@
 import pytest
 import torch
 from torch_geometric.data import Batch
+from toy_scene import toy_scene, toy_window
 
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
 from hrn_pyg.losses import full_shape_loss, local_velocity_loss, shape_groups
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.rollout import build_inputs, decode, rollout, run_network, step, target_output, unroll
-from toy_scene import toy_scene, toy_window
+from hrn_pyg.sim.rollout import rollout, unroll
+from hrn_pyg.sim.step import build_inputs, decode, run_network, step, target_output
 
 
 def _model(seed=0, hidden=16, **kw):

@@ -1,6 +1,6 @@
 r"""A rollout whose steps have fixed shapes: no host read inside a step, capturable as a CUDA graph.
 
-:func:`hrn_pyg.rollout.unroll` waits for the device several times a step: the collision search
+:func:`hrn_pyg.sim.rollout.iterate` waits for the device several times a step: the collision search
 reads back how many cells and pairs it found, the force module how many leaves are pushed, and
 the step checks its new positions for NaN. On a GPU each wait stalls the launch queue, and a
 small scene's step costs its waits, not its arithmetic. :func:`fixed_shape_rollout` gives the
@@ -10,13 +10,13 @@ same positions with none of them inside a step:
   the rollout starts and again only when a leaf has moved half the skin; each step marks the
   pairs closer than the radius with a 0 / 1 weight, which the collision module multiplies in;
 - the force module runs on every row and zeroes the rows without force (``dense``), and whether
-  a step has a force at all comes from the rollout's :class:`~hrn_pyg.effects.EffectPlan`;
+  a step has a force at all comes from the rollout's :class:`~hrn_pyg.data.effects.EffectPlan`;
 - the step does not check its output; it returns a small report on the device: how far its
   input has moved since the search, how far its output moves, and whether the output is finite.
 
 The rollout runs up to ``check_every`` steps ahead, then reads the reports of all of them at
 once (one host read). Steps up to the first whose input had moved past the list's limit are
-kept (a non-finite output among them raises, as :func:`~hrn_pyg.rollout.advance` does); from
+kept (a non-finite output among them raises, as :func:`~hrn_pyg.sim.step.advance` does); from
 that step on, the list is searched anew and the steps are run again with the masks they had
 (``masks_fn`` is called once per step and its masks are kept until the step is final). So the
 result is that of the plain rollout with sleeping off, whatever the skin; the skin and
@@ -48,10 +48,12 @@ from hrn_pyg.data.candidates import (
     pad_candidates,
     padded_size,
 )
+from hrn_pyg.data.effects import SceneEffects, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
-from hrn_pyg.effects import SceneEffects, plan_effects
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.rollout import MasksFn, _check_forces, _require_state, build_inputs, decode, object_of, run_network
+from hrn_pyg.sim.rollout import check_forces
+from hrn_pyg.sim.step import NEXT_POS, MasksFn, object_of, predict, require_state
+from hrn_pyg.utils.checks import non_finite_error
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,7 @@ class FixedShapeRollout(NamedTuple):
     """Result of :func:`fixed_shape_rollout`.
 
     Attributes:
-        pos: ``[steps, N, 3]`` positions ``x_{t+1..t+steps}``, as :func:`hrn_pyg.rollout.rollout`.
+        pos: ``[steps, N, 3]`` positions ``x_{t+1..t+steps}``, as :func:`hrn_pyg.sim.rollout.rollout`.
         searches: collision searches made (the first included; 0 without collisions).
         host_reads: reads of the step flags.
         repeated_steps: steps run again after a stale list was found.
@@ -116,16 +118,12 @@ def make_step(model: HRN, graph: HeteroData, force_active: bool, radius: float, 
         store = current[NODE]
         store.pos, store.prev_pos, store.prev_prev_pos = pos, prev, prev2
         current[COLLISION].edge_index = edge_index
-        inputs = build_inputs(model, current, force, force_active, check=False)
+        weight, moved = None, pos.new_zeros(())
         if collisions:
             candidates = CollisionCandidates(edge_index, valid, reference, radius, skin, -1)
-            inputs = inputs._replace(collision_weight=active_collisions(candidates, pos), fixed_shape=True)
-            moved = largest_move(candidates, pos)
-        else:
-            inputs = inputs._replace(fixed_shape=True)
-            moved = pos.new_zeros(())
-        out = run_network(model, inputs, dict(zip(mask_names, masks)) or None)
-        next_pos = decode(model, current, out, objects)[0]
+            weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
+        next_pos = predict(model, current, force, dict(zip(mask_names, masks)) or None, force_active=force_active,
+                           objects=objects, check=False, collision_weight=weight, fixed_shape=True).pos
         step = next_pos - pos
         speed = (step * step).sum(dim=-1).amax().sqrt()
         bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
@@ -184,7 +182,7 @@ class FixedShapeSimulator:
     def __init__(self, model: HRN, graph: HeteroData, config: FixedShapeConfig = FixedShapeConfig()) -> None:
         if config.cuda_graph and graph[NODE].pos.device.type != "cuda":
             raise ValueError("FixedShapeConfig.cuda_graph needs the graph on a CUDA device")
-        _require_state(graph)
+        require_state(graph)
         store = graph[NODE]
         self.model, self.config = model, config
         self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
@@ -201,9 +199,9 @@ class FixedShapeSimulator:
     def rollout(self, steps: int, forces: Tensor | None = None, masks_fn: MasksFn | None = None,
                 effects: SceneEffects | None = None) -> FixedShapeRollout:
         """``steps`` steps from the start state; the arguments are those of
-        :func:`~hrn_pyg.rollout.unroll` (see :func:`fixed_shape_rollout`)."""
+        :func:`~hrn_pyg.sim.rollout.iterate` (see :func:`fixed_shape_rollout`)."""
         graph, config = self.graph, self.config
-        _check_forces(graph, steps, forces)
+        check_forces(graph, steps, forces)
         plan = plan_effects(graph, steps, forces, effects)
         store = graph[NODE]
         radius = float(self.model.config.collision_radius) if plan.collisions else 0.0
@@ -261,7 +259,7 @@ class FixedShapeSimulator:
                         kept = j
                         break
                     if bad:
-                        raise ValueError("advance: pos contains NaN or infinite values")
+                        raise non_finite_error(NEXT_POS)
                 for nxt in trial[:kept]:
                     state = (state[1], state[2], nxt)
                     out.append(nxt)
@@ -289,9 +287,9 @@ def fixed_shape_rollout(
     effects: SceneEffects | None = None,
     config: FixedShapeConfig = FixedShapeConfig(),
 ) -> FixedShapeRollout:
-    """The positions of :func:`hrn_pyg.rollout.rollout` with ``sleep=None``, from fixed-shape
+    """The positions of :func:`hrn_pyg.sim.rollout.rollout` with ``sleep=None``, from fixed-shape
     steps (see the module docstring). Inference only (no gradient is recorded); the arguments
-    are those of :func:`~hrn_pyg.rollout.unroll`. ``masks_fn(t, graph)`` sees the graph at ``t``
+    are those of :func:`~hrn_pyg.sim.rollout.iterate`. ``masks_fn(t, graph)`` sees the graph at ``t``
     without its collision edges. To roll one scene out several times, keep a
     :class:`FixedShapeSimulator`.
     """

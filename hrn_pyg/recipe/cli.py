@@ -1,0 +1,55 @@
+"""The command line of ``hrn-pyg checkpoints``: its options, turned into a :class:`RunConfig`.
+
+``add_arguments`` and ``run`` are what :mod:`hrn_pyg.cli` calls; ``run`` loads the recipe,
+carries it out with a :class:`~hrn_pyg.recipe.runner.Runner` and returns the exit code (1 when
+something failed; a rerun continues).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from hrn_pyg.checkpoints import CHECKPOINT_DIR
+from hrn_pyg.recipe.runner import RunConfig, Runner
+from hrn_pyg.recipe.schema import RECIPE_PATH, load_recipe
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--recipe", default=RECIPE_PATH, help=f"recipe file (default {RECIPE_PATH})")
+    parser.add_argument("--only", default="", help="NAME[,NAME]: only these models (default all)")
+    parser.add_argument("--data-dir", default="data", help="datasets go to DATA_DIR/<dataset> (default data)")
+    parser.add_argument("--runs-dir", default="runs/recipe", help="run folders (default runs/recipe)")
+    parser.add_argument("--checkpoints-dir", default=str(CHECKPOINT_DIR),
+                        help="where <model>.pt and manifest.json go (default: the package's checkpoints)")
+    parser.add_argument("--device", default=None, help="passed to train (default: CUDA when available)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="trainings at once, each its own process; also generate's --workers (default 1)")
+    parser.add_argument("--skip-generate", action="store_true",
+                        help="the datasets are already there (checked, not generated)")
+    parser.add_argument("--dry-run", action="store_true", help="print the commands, run and write nothing")
+    parser.add_argument("--time-limit", type=float, default=0.0,
+                        help="minutes each training may run in this call; a rerun continues it (default: none)")
+
+
+def config_from_args(args: argparse.Namespace) -> RunConfig:
+    return RunConfig(recipe=Path(args.recipe), data_dir=Path(args.data_dir), runs_dir=Path(args.runs_dir),
+                     checkpoints_dir=Path(args.checkpoints_dir), device=args.device or None, jobs=args.jobs,
+                     skip_generate=args.skip_generate, dry_run=args.dry_run,
+                     only=tuple(n for n in args.only.split(",") if n), time_limit=args.time_limit)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
+    runner = Runner(load_recipe(config.recipe), config, say=lambda line: print(line, flush=True))
+    failed = runner.run()
+    if failed:
+        print(f"hrn-pyg checkpoints: failed: {', '.join(failed)}; rerun to continue", file=sys.stderr)
+        return 1
+    if runner.paused:
+        print(f"paused at the time limit: {', '.join(runner.paused)}; rerun the same command to continue")
+        return 0
+    if not config.dry_run:
+        print(f"checkpoints up to date: {', '.join(m.name for m in runner.models)}")
+    return 0

@@ -1,0 +1,114 @@
+"""The records of ``hrn-pyg checkpoints``: each run's ``recipe.json`` and the checkpoints' manifest.
+
+A run folder's ``recipe.json`` (:data:`RUN_RECORD`) holds what the folder was trained with (its
+identity) and every train invocation (command, device, seconds, exit code). The checkpoints
+folder's ``manifest.json`` (:data:`MANIFEST_NAME`) holds one entry per shipped model: the
+dataset recipe, the exact commands, training steps, device, wall seconds of the training
+invocations, the calibrated rate and modules, and the SHA-256 of the checkpoint. Entries are
+built from the run records (:func:`model_entry`) and written atomically, only when they change
+(:func:`update_manifest`); :func:`copy_atomic` and :func:`sha256` publish the checkpoints
+themselves.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from hrn_pyg.recipe.schema import CALIBRATED_NAME, DatasetRecipe, ModelRecipe, shown
+from hrn_pyg.utils.files import atomic_write, atomic_write_json
+
+#: where the shipped checkpoints live
+MANIFEST_NAME = "manifest.json"
+#: per-run record of what the run folder was trained with, and of every train invocation
+RUN_RECORD = "recipe.json"
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    """The JSON object in ``path``; None when the file is missing or not valid JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def sha256(path: Path) -> str:
+    """The hex SHA-256 digest of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def copy_atomic(source: Path, target: Path) -> None:
+    """Copy ``source`` to ``target`` so that a reader never sees half a file."""
+    with open(source, "rb") as src:
+        atomic_write(target, lambda fh: shutil.copyfileobj(src, fh))
+
+
+def model_entry(model: ModelRecipe, dataset: DatasetRecipe, data_dir: Path, runs_dir: Path, run: Path,
+                digest: str, train_command: Callable[[int], Sequence[str]],
+                calibrate_command: Callable[[], Sequence[str]]) -> dict[str, Any]:
+    """A model's manifest entry, from the records of its run folders under ``runs_dir``.
+
+    ``dataset`` is the model's dataset, ``run`` its final run folder and ``digest`` the SHA-256
+    of the published checkpoint; ``train_command(stage)`` is the command of a stage without a
+    finished invocation, ``calibrate_command()`` the calibrate command (asked only when the
+    recipe calibrates the model).
+    """
+    folders = [runs_dir / model.run_name(i) for i in range(model.num_stages)]
+    # per stage: the invocations that ended, and the command that made its model.pt (its
+    # last invocation), as one would type it afresh
+    done = [[i for i in (read_json(f / RUN_RECORD) or {}).get("invocations", []) if i.get("seconds") is not None]
+            for f in folders]
+    commands = [shown([a for a in (d[-1]["args"] if d else train_command(i)) if a != "--resume"])
+                for i, d in enumerate(done)]
+    steps = [(read_json(f / "config.json") or {}).get("train", {}).get("steps") for f in folders]
+    invocations = [i for d in done for i in d]
+    stages = {"stage_commands": commands, "stage_steps": steps} if model.num_stages > 1 else {}
+    return {
+        "name": model.name,
+        "aliases": list(model.aliases),
+        "dataset": dataset.to_dict(),
+        "generate_command": shown(dataset.generate_args(data_dir)),
+        "train_command": commands[-1],
+        "steps": steps[-1],
+        "device": ",".join(sorted({i["device"] for i in invocations})),
+        "wall_seconds": round(sum(i["seconds"] for i in invocations), 3),
+        "train_invocations": len(invocations),
+        "sha256": digest,
+        **stages,
+        **calibration_entry(model, run, calibrate_command),
+    }
+
+
+def calibration_entry(model: ModelRecipe, run: Path, calibrate_command: Callable[[], Sequence[str]]) -> dict[str, Any]:
+    """The manifest's calibration fields: the command and the chosen rate and modules."""
+    if not model.calibrate:
+        return {}
+    from hrn_pyg.sampling.calibrate import calibration_record  # imports torch
+
+    record = calibration_record(run / CALIBRATED_NAME) or {}
+    chosen = {k: record.get(k) for k in ("rate", "modules", "spread_ratio_median", "seeds")}
+    return {"calibrate_command": shown(calibrate_command()), "calibrated": chosen}
+
+
+def update_manifest(path: Path, name: str, entry: dict[str, Any]) -> None:
+    """Set model ``name``'s entry in the manifest at ``path``, stamped with the time it changed;
+    the file is rewritten (atomically) only when the entry differs. Callers writing from several
+    threads hold one lock around it."""
+    manifest = read_json(path) or {}
+    entries = manifest.get("checkpoints", {})
+    old = dict(entries.get(name, {}))
+    old.pop("updated", None)
+    if old == entry:
+        return
+    entries[name] = {**entry, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    atomic_write_json(path, {"about": "how each checkpoint here was made: `hrn-pyg checkpoints` "
+                                      "from data/recipes.toml", "checkpoints": dict(sorted(entries.items()))})

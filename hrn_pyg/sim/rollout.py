@@ -1,0 +1,114 @@
+"""The rollout loop: the model fed its own predictions, one :func:`~hrn_pyg.sim.step.step` a time.
+
+:func:`iterate` is the loop, a generator of :class:`~hrn_pyg.sim.step.Step`; :func:`unroll`
+keeps every step and :func:`rollout` their positions. Training unrolls through the same
+generator (with gradients), evaluation, sampling and the stability checks through
+:func:`rollout`. Before the first step the loop turns what the scene needs into an
+:class:`~hrn_pyg.data.effects.EffectPlan` (so no step asks the device whether its force is
+zero) and finds the scene's objects once; objects at rest sleep unless told not to
+(``sleep=``, :mod:`hrn_pyg.sim.sleeping`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.effects import SceneEffects, plan_effects
+from hrn_pyg.data.graph import NODE, set_state
+from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.sim import sleeping
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
+from hrn_pyg.sim.step import MasksFn, Step, object_of, require_state, step
+from hrn_pyg.utils.checks import check_finite
+
+
+def check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:
+    """Raise ValueError unless ``steps >= 1`` and ``forces`` is None or a finite
+    ``[steps' >= steps, N, 3]`` tensor for the ``N`` nodes of ``graph``."""
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    n = graph[NODE].num_nodes
+    if forces is not None and (forces.dim() != 3 or forces.shape[0] < steps or forces.shape[1:] != (n, 3)):
+        raise ValueError(f"forces must be [steps>={steps}, {n}, 3], got {tuple(forces.shape)}")
+    if forces is not None:
+        check_finite("forces", forces[:steps])
+
+
+def iterate(
+    model: HRN,
+    graph: HeteroData,
+    steps: int,
+    forces: Tensor | None = None,
+    masks_fn: MasksFn | None = None,
+    sleep: SleepConfig | None = DEFAULT_SLEEP,
+    effects: SceneEffects | None = None,
+) -> Iterator[Step]:
+    """Feed the model its own predictions for ``steps`` steps, yielding each :class:`Step`.
+
+    The initial graph's collision edges are recomputed with the model's radius first, so the
+    first step sees the same kind of edges as the later ones. ``forces`` ``[steps, N, 3]``
+    is the external force of each step; None means no external force at any step (the graph's
+    ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
+    ``t`` (None: deterministic); it always sees the whole graph. ``sleep`` lets objects at rest
+    sleep (:mod:`hrn_pyg.sim.sleeping`; an object the start's history shows at rest starts
+    asleep, ``SleepConfig.start_from_history``), on by default
+    (:data:`~hrn_pyg.sim.sleeping.DEFAULT_SLEEP`); ``sleep=None`` or ``enabled=False`` runs
+    every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
+    ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.data.effects.SceneEffects`;
+    None: what the data show): a scene in which nothing can touch gets no collision search at
+    all. The arguments are checked when the generator starts.
+    """
+    check_forces(graph, steps, forces)
+    plan = plan_effects(graph, steps, forces, effects)
+    store = graph[NODE]
+    radius = model.config.collision_radius if plan.collisions else None
+    require_state(graph)  # once here, so no step has to
+    graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=radius)
+    # the tree does not change during a rollout: its objects are found once (one host read)
+    sleeper = sleeping.Sleeper.start(sleep, graph) if sleep is not None and sleep.enabled else None
+    if sleeper is not None:
+        objects = sleeper.objects.of_node, sleeper.objects.count
+    else:
+        objects = object_of(graph) if model.config.rigid_fit else None
+    for t in range(steps):  # time steps; each step is vectorised over particles
+        force = forces[t] if forces is not None else torch.zeros_like(store.pos)
+        masks = masks_fn(t, graph) if masks_fn is not None else None
+        active = plan.force_active[t]
+        if sleeper is not None:
+            result = sleeper.step(model, graph, force, masks, force_active=active, collisions=plan.collisions)
+        else:
+            result = step(model, graph, force, masks, force_active=active, collisions=plan.collisions,
+                          objects=objects, check=False)
+        yield result
+        graph = result.graph
+
+
+def unroll(
+    model: HRN,
+    graph: HeteroData,
+    steps: int,
+    forces: Tensor | None = None,
+    masks_fn: MasksFn | None = None,
+    sleep: SleepConfig | None = DEFAULT_SLEEP,
+    effects: SceneEffects | None = None,
+) -> list[Step]:
+    """Every :class:`Step` of :func:`iterate` (same arguments), in order."""
+    return list(iterate(model, graph, steps, forces, masks_fn, sleep, effects))
+
+
+def rollout(
+    model: HRN,
+    graph: HeteroData,
+    steps: int,
+    forces: Tensor | None = None,
+    masks_fn: MasksFn | None = None,
+    sleep: SleepConfig | None = DEFAULT_SLEEP,
+    effects: SceneEffects | None = None,
+) -> Tensor:
+    """Positions of all nodes over ``steps`` predicted steps, ``[steps, N, 3]``
+    (``x_{t+1..t+steps}``). See :func:`iterate` for the arguments."""
+    return torch.stack([s.pos for s in iterate(model, graph, steps, forces, masks_fn, sleep, effects)])

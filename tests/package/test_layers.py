@@ -1,0 +1,156 @@
+"""The package's imports point down a fixed order of layers and form no cycle.
+
+Read from the source with ``ast`` (imports inside functions included, so a lazy import cannot
+hide a cycle). The order, bottom first; a module may import from its own layer or below:
+
+    utils -> data, viz -> nn -> checkpoints -> sim -> train, losses, evaluate, metrics_rest,
+    sampling -> rl -> recipe, demo, cli, the package root
+"""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from pathlib import Path
+
+import hrn_pyg
+
+ROOT = Path(hrn_pyg.__file__).resolve().parent
+LAYERS = (
+    ("hrn_pyg.utils",),
+    ("hrn_pyg.data", "hrn_pyg.viz"),
+    ("hrn_pyg.nn",),
+    ("hrn_pyg.checkpoints",),
+    ("hrn_pyg.sim",),
+    ("hrn_pyg.train", "hrn_pyg.losses", "hrn_pyg.evaluate", "hrn_pyg.metrics_rest", "hrn_pyg.sampling"),
+    ("hrn_pyg.rl",),
+    ("hrn_pyg.recipe", "hrn_pyg.demo", "hrn_pyg.cli", "hrn_pyg"),
+)
+
+
+def module_files() -> dict[str, Path]:
+    """``{dotted module name: file}`` of every module of the package."""
+    out = {}
+    for path in ROOT.rglob("*.py"):
+        parts = ("hrn_pyg",) + path.relative_to(ROOT).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def imports_of(name: str, path: Path, modules: set[str]) -> list[tuple[str, str, int]]:
+    """``(target module, imported name, line)`` of every package import in one module."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(a.name, "", node.lineno) for a in node.names if a.name.split(".")[0] == "hrn_pyg"]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                source = ".".join(base + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            if source.split(".")[0] != "hrn_pyg":
+                continue
+            for alias in node.names:
+                sub = f"{source}.{alias.name}"
+                found.append((sub, "", node.lineno) if sub in modules else (source, alias.name, node.lineno))
+    return found
+
+
+def layer_of(module: str) -> int:
+    best, level = -1, None
+    for i, layer in enumerate(LAYERS):
+        for prefix in layer:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best:
+                best, level = len(prefix), i
+    assert level is not None, f"{module} is in no layer: add it to LAYERS"
+    return level
+
+
+def unit_of(module: str) -> str:
+    """The subpackage or top-level module a module belongs to (``hrn_pyg.sim.step`` -> ``hrn_pyg.sim``)."""
+    return ".".join(module.split(".")[:2])
+
+
+def graph() -> dict[str, list[tuple[str, str, int]]]:
+    files = module_files()
+    return {name: imports_of(name, path, set(files)) for name, path in files.items()}
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one node (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_every_module_is_in_a_layer():
+    for name in module_files():
+        layer_of(name)
+
+
+def test_every_import_points_down_the_layers():
+    upward = [f"{name}:{line} imports {target} (layer {layer_of(target)} above {layer_of(name)})"
+              for name, found in graph().items() for target, _, line in found
+              if layer_of(target) > layer_of(name)]
+    assert not upward, "\n".join(upward)
+
+
+def test_no_module_imports_the_package_root():
+    offenders = [f"{name}:{line} imports from hrn_pyg itself" for name, found in graph().items()
+                 for target, _, line in found if target == "hrn_pyg" and name != "hrn_pyg"]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_no_cycle_between_modules():
+    edges = {name: {t for t, _, _ in found if t != name} for name, found in graph().items()}
+    assert cycles(edges) == []
+
+
+def test_no_cycle_between_subpackages():
+    edges: dict[str, set[str]] = defaultdict(set)
+    for name, found in graph().items():
+        for target, _, _ in found:
+            if unit_of(target) != unit_of(name):
+                edges[unit_of(name)].add(unit_of(target))
+    assert cycles(edges) == []
+
+
+def test_no_private_name_is_imported_from_another_module():
+    private = [f"{name}:{line} imports {target}.{imported}" for name, found in graph().items()
+               for target, imported, line in found if imported.startswith("_") and target != name]
+    assert not private, "\n".join(private)
+
+
+def test_the_checker_finds_a_cycle_and_an_upward_import():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert layer_of("hrn_pyg.sim.step") > layer_of("hrn_pyg.nn.hrn") > layer_of("hrn_pyg.data.graph")
+    assert layer_of("hrn_pyg.rl.ppo") > layer_of("hrn_pyg.sampling.sample")

@@ -1,0 +1,129 @@
+"""Short rollouts of every shipped checkpoint, kept on disk so that a change of the code can be
+checked to leave every model's predictions bit for bit as they were.
+
+``python tests/sim/reference_rollouts.py --write`` remakes ``reference_rollouts.npz`` (only
+when the predictions are *meant* to change); ``tests/sim/test_reference_rollouts.py`` compares.
+The start states are stored with the file (pybullet is not rerun), so the comparison is of the
+model code alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import hrn_pyg
+from hrn_pyg.checkpoints import CHECKPOINT_DIR, load_model
+from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
+
+FILE = Path(__file__).with_name("reference_rollouts.npz")
+#: the scene each shipped model was trained on (its reference start states come from there)
+SCENE_OF = {
+    "cube_collision": "cube_collision", "cube_collision_dropout": "cube_collision",
+    "cube_collision_hrn": "cube_collision", "cube_push": "cube_push", "multi_material": "multi_material",
+    "soft_bounce": "soft_bounce", "soft_bounce_fine": "soft_bounce", "soft_bounce_hrn": "soft_bounce",
+    "tower": "tower", "wedge": "wedge",
+}
+#: episode arrays the start states are rebuilt from
+EPISODE_KEYS = ("positions", "forces", "leaf_mass", "leaf_object", "object_material", "object_stiffness",
+                "hierarchy_parent")
+SEED, EPISODE_STEPS, LATE_START, STEPS = 9, 60, 45, 12
+RL_TASKS = {"cube_push": "cube_push", "tower": "tower"}
+RL_POOL = (10_000, 10_001, 10_002)
+
+
+def episodes() -> dict[str, dict[str, np.ndarray]]:
+    """One short pybullet episode per scene (only when writing)."""
+    from hrn_pyg.data.scenes import simulate_episode
+
+    out = {}
+    for scene in sorted(set(SCENE_OF.values())):
+        ep = simulate_episode(scene, SEED, steps=EPISODE_STEPS)
+        out[scene] = {k: ep[k] for k in EPISODE_KEYS}
+    return out
+
+
+def push(graph, steps: int) -> torch.Tensor:
+    """``[steps, N, 3]``: a 2 N horizontal push on object 0's leaves for steps 2-4, else zero."""
+    store = graph["particle"]
+    target = store.is_leaf & (store.object == 0) & ~store.is_static
+    force = torch.zeros(steps, store.num_nodes, 3)
+    force[2:5, target, 0] = 2.0 / max(int(target.sum()), 1)
+    return force
+
+
+def compute(episode_arrays: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Every reference rollout, keyed ``<checkpoint>/<kind>``."""
+    torch.set_num_threads(1)
+    out: dict[str, np.ndarray] = {}
+    for name, scene in SCENE_OF.items():
+        model = load_model(CHECKPOINT_DIR / f"{name}.pt")
+        ep = episode_arrays[scene]
+        with torch.no_grad():
+            for start in (2, LATE_START):
+                state = episode_state(ep, start=start, steps=STEPS)
+                forces = push(state, STEPS)
+                key = f"{name}/start{start}"
+                out[f"{key}/plain"] = hrn_pyg.rollout(model, state, STEPS, forces, sleep=None).numpy()
+                out[f"{key}/sleep"] = hrn_pyg.rollout(model, state, STEPS, forces).numpy()
+                out[f"{key}/fixed"] = fixed_shape_rollout(model, state, STEPS, forces).pos.numpy()
+                rate = float(model.config.dropout_rate) or 0.1
+                if model.config.dropout_modules:
+                    g = torch.Generator().manual_seed(3)
+                    out[f"{key}/sample"] = hrn_pyg.sample(model, state, k=3, steps=STEPS, rate=rate,
+                                                          forces=forces, generator=g).numpy()
+    for name, task in RL_TASKS.items():
+        from hrn_pyg.rl.hrn_dynamics import HRNDynamics
+
+        dyn = HRNDynamics(load_model(CHECKPOINT_DIR / f"{name}.pt"), task, pool_seeds=RL_POOL)
+        g = torch.Generator().manual_seed(5)
+        states = dyn.reset_states(4, g)
+        forces = torch.randn(4, dyn.num_objects, 3, generator=g) * 5.0
+        forces[1] = 0.0  # an environment at rest with no push: its objects sleep
+        out[f"rl/{name}/start"] = states.numpy()
+        for rate in (0.0, 0.2):
+            nxt = dyn.sample_next(states, forces, 2, rate, g)
+            out[f"rl/{name}/rate{rate}"] = nxt.numpy()
+            out[f"rl/{name}/rate{rate}/again"] = dyn.sample_next(nxt[:, 0], forces, 2, rate, g).numpy()
+    return out
+
+
+def checkpoint_digests() -> dict[str, str]:
+    return {name: hashlib.sha256((CHECKPOINT_DIR / f"{name}.pt").read_bytes()).hexdigest()[:16] for name in SCENE_OF}
+
+
+def write() -> None:
+    eps = episodes()
+    arrays = {f"episode/{scene}/{k}": v for scene, ep in eps.items() for k, v in ep.items()}
+    arrays.update(compute(eps))
+    arrays.update({f"digest/{k}": np.array(v) for k, v in checkpoint_digests().items()})
+    tmp = FILE.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(FILE)
+    print(f"wrote {FILE} ({FILE.stat().st_size / 1e6:.2f} MB, {len(arrays)} arrays)")
+
+
+def read() -> dict[str, np.ndarray]:
+    with np.load(FILE, allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+def stored_episodes(arrays: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for key, value in arrays.items():
+        if key.startswith("episode/"):
+            _, scene, field = key.split("/")
+            out.setdefault(scene, {})[field] = value
+    return out
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write", action="store_true", help="remake the reference file")
+    if parser.parse_args().write:
+        write()
