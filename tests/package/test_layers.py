@@ -154,3 +154,20 @@ def test_the_checker_finds_a_cycle_and_an_upward_import():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert layer_of("hrn_pyg.sim.step") > layer_of("hrn_pyg.nn.hrn") > layer_of("hrn_pyg.data.graph")
     assert layer_of("hrn_pyg.rl.ppo") > layer_of("hrn_pyg.sampling.sample")
+
+
+def test_the_three_stages_of_a_step_are_chained_in_one_place():
+    """``build_inputs``, ``run_network`` and ``decode`` are called only by
+    :func:`hrn_pyg.sim.step.predict`; every other caller goes through it."""
+    calls = []
+    for name, path in module_files().items():
+        tree = ast.parse(path.read_text(), str(path))
+        for function in ast.walk(tree):
+            if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(function):
+                if isinstance(node, ast.Call):
+                    callee = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+                    if callee in ("build_inputs", "run_network", "decode"):
+                        calls.append((name, function.name, callee))
+    assert sorted(set(calls)) == [("hrn_pyg.sim.step", "predict", c) for c in ("build_inputs", "decode", "run_network")]

@@ -133,18 +133,46 @@ def _seeded_rollout(seed: int, steps: int = 12):
         env.close()
 
 
+def _collected(seed: int, global_seed: int, frames: int = 24):
+    """One batch of a single-process Collector over ``HRNEnv(seed=seed)``, torch's global
+    generator seeded ``global_seed`` first (the environment's seed alone must decide)."""
+    env = HRNEnv("cube_push", batch_size=2, seed=seed)
+    torch.manual_seed(global_seed)
+    collector = Collector(env, _fixed_policy(env), frames_per_batch=frames, total_frames=frames,
+                          auto_register_policy_transforms=False)
+    try:
+        (batch,) = list(collector)
+        return batch
+    finally:
+        collector.shutdown()
+
+
+def _assert_same_frames(a, b, what):
+    for key in FRAME_KEYS:
+        assert torch.equal(a[key], b[key]), f"{what}: {key} differs"
+
+
+def _assert_other_frames(a, b, what):
+    for key in ("observation", "action", ("next", "observation")):
+        assert not torch.equal(a[key], b[key]), f"{what}: the same {key}"
+
+
 def test_parallel_env_two_workers_rollout_and_seed():
-    """``set_seed`` governs the whole collection: the same seed gives the same frames
-    (observations, actions, rewards, ...) bit for bit, another seed other ones, and the two
-    workers of one seed are not copies of each other."""
+    """The seed governs the whole collection: the same seed gives the same frames
+    (observations, actions, rewards, ...) bit for bit, another seed other ones; in a
+    ``ParallelEnv`` (``set_seed``) the two workers of one seed are not copies of each other, and
+    in a single-process Collector the environment's own seed decides, whatever the state of
+    torch's global generator."""
     td = _seeded_rollout(7)
     assert td.shape == (2, 2, 12)
     assert torch.isfinite(td["next", "state"]).all()
     assert td["next", "done"].any()
-
     again, other = _seeded_rollout(7), _seeded_rollout(8)
-    for key in FRAME_KEYS:
-        assert torch.equal(td[key], again[key]), f"seed 7 twice: {key} differs"
-    for key in ("observation", "action", ("next", "observation")):
-        assert not torch.equal(td[key], other[key]), f"seeds 7 and 8: the same {key}"
-        assert not torch.equal(td[key][0], td[key][1]), f"seed 7: both workers have the same {key}"
+    _assert_same_frames(td, again, "ParallelEnv, seed 7 twice")
+    _assert_other_frames(td, other, "ParallelEnv, seeds 7 and 8")
+    _assert_other_frames(td[0], td[1], "ParallelEnv, seed 7: the two workers")
+
+    batch = _collected(7, global_seed=1)
+    assert batch.numel() == 24 and batch["next", "done"].any()
+    _assert_same_frames(batch, _collected(7, global_seed=2), "Collector, seed 7 twice")
+    _assert_other_frames(batch, _collected(8, global_seed=1), "Collector, seeds 7 and 8")
