@@ -1,1 +1,1 @@
-"""Small shared helpers: atomic files, checkpoints, schedules, metric logs."""
+"""Small shared helpers at the bottom of the package: input checks, atomic files, checkpoints, schedules, metric logs."""
