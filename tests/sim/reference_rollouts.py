@@ -97,11 +97,17 @@ def checkpoint_digests() -> dict[str, str]:
     return {name: hashlib.sha256((CHECKPOINT_DIR / f"{name}.pt").read_bytes()).hexdigest()[:16] for name in SCENE_OF}
 
 
+def machine() -> dict[str, str]:
+    """What decides the floating-point kernels torch runs: its version and the CPU's vector unit."""
+    return {"torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability()}
+
+
 def write() -> None:
     eps = episodes()
     arrays = {f"episode/{scene}/{k}": v for scene, ep in eps.items() for k, v in ep.items()}
     arrays.update(compute(eps))
     arrays.update({f"digest/{k}": np.array(v) for k, v in checkpoint_digests().items()})
+    arrays.update({f"machine/{k}": np.array(v) for k, v in machine().items()})
     tmp = FILE.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, **arrays)
     tmp.replace(FILE)

@@ -23,7 +23,13 @@ def test_the_references_are_of_the_shipped_checkpoints(stored):
 
 
 def test_every_reference_rollout_is_reproduced_bit_for_bit(stored, computed):
-    expected = {k for k in stored if not k.startswith(("episode/", "digest/"))}
+    """Bit for bit where torch and the CPU's vector unit are those the references were written
+    with; elsewhere other kernels may round differently, and the rollouts must agree closely."""
+    expected = {k for k in stored if not k.startswith(("episode/", "digest/", "machine/"))}
     assert set(computed) == expected
-    differ = [k for k in sorted(expected) if not np.array_equal(computed[k], stored[k])]
-    assert not differ, f"rollouts differ from the references: {differ}"
+    same_machine = {k: str(stored[f"machine/{k}"]) for k in ref.machine()} == ref.machine()
+    if same_machine:
+        differ = [k for k in sorted(expected) if not np.array_equal(computed[k], stored[k])]
+    else:
+        differ = [k for k in sorted(expected) if not np.allclose(computed[k], stored[k], rtol=0, atol=1e-4)]
+    assert not differ, f"rollouts differ from the references ({'bit for bit' if same_machine else 'to 0.1 mm'}): {differ}"
