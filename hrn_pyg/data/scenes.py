@@ -78,6 +78,7 @@ from hrn_pyg.data.voxelise import (
     write_obj,
     write_tetrahedral_vtk,
 )
+from hrn_pyg.utils.files import quiet_stdout
 
 GRAVITY = 9.81
 #: Nominal density (kg/m^3) giving a static body's leaves a mass: they never move, but the
@@ -290,25 +291,6 @@ class TowerConfig(SceneConfig):
 # ---------------------------------------------------------------------------------------------
 # pybullet helpers
 # ---------------------------------------------------------------------------------------------
-
-
-@contextlib.contextmanager
-def _quiet_stdout():
-    """Silence pybullet's C-level prints (``loadSoftBody`` prints node/tet counts to fd 1)."""
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # captured stdout without a real fd
-        yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(fd)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), fd)
-        yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
 
 
 def _rotation_matrices(quaternions: np.ndarray) -> np.ndarray:
@@ -622,7 +604,7 @@ class Scene:
         path = os.path.join(self._tmpdir.name, f"soft_{len(self._objects)}.vtk")
         write_tetrahedral_vtk(path, nodes, tets)
         mu = 10.0 ** log10_mu
-        with _quiet_stdout():
+        with quiet_stdout():
             body = p.loadSoftBody(
                 path, basePosition=list(position), baseOrientation=list(orientation), mass=mass,
                 useNeoHookean=1, NeoHookeanMu=mu, NeoHookeanLambda=NEO_HOOKEAN_LAMBDA_OVER_MU * mu,
@@ -638,7 +620,7 @@ class Scene:
         vertices, faces = grid_sheet(size, self.config.pitch)
         path = os.path.join(self._tmpdir.name, f"cloth_{len(self._objects)}.obj")
         write_obj(path, vertices, faces)
-        with _quiet_stdout():
+        with quiet_stdout():
             body = p.loadSoftBody(
                 path, basePosition=list(position), mass=mass, useMassSpring=1, useBendingSprings=1,
                 springElasticStiffness=10.0 ** log10_k, springDampingStiffness=0.1,

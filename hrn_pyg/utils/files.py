@@ -1,10 +1,12 @@
-"""Atomic file writing: a reader never sees half a file, a killed writer leaves none behind."""
+"""Files: atomic writing (a reader never sees half a file, a killed writer leaves none behind) and
+silencing C-level prints."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -52,3 +54,23 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+@contextlib.contextmanager
+def quiet_stdout():
+    """Silence C-level prints to file descriptor 1 inside the block (pybullet's ``loadSoftBody``
+    and ``vhacd`` print there); a stdout without a real descriptor is left as it is."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # captured stdout without a real fd
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)

@@ -1,0 +1,244 @@
+r"""Meshes as they come: read, clean, size, fill with leaves, and decompose for collision.
+
+A user's mesh is rarely a tidy solid. An OBJ exported with textures repeats every vertex on a
+texture seam, so its faces do not share edges and it reads as many open pieces; a scanned toy
+has holes; a cup is concave, and pybullet's mesh collision for a moving body is the convex hull,
+so its cavity would be solid. This module takes such meshes as they are:
+
+* :func:`load_mesh` reads any file trimesh reads into one mesh, or names the problem;
+* :func:`clean_mesh` merges duplicate vertices (positions only: texture and normal seams
+  vanish), drops degenerate and repeated faces, keeps every piece;
+* :func:`sized_mesh` scales a mesh so its longest extent is ``size`` and centres its bounding box;
+* :func:`solid_points` is the leaf lattice: a closed mesh is filled as
+  :func:`hrn_pyg.data.voxelise.voxelise` fills it; an open one by the generalised winding number
+  (:func:`winding_numbers`): a lattice point is inside when
+  :math:`|w(p)| \ge \tfrac12` with
+
+  .. math:: w(p) = \frac{1}{4\pi} \sum_{f} \Omega_f(p), \qquad
+      \tan\frac{\Omega_f}{2} = \frac{a \cdot (b \times c)}
+      {|a||b||c| + (a \cdot b)|c| + (b \cdot c)|a| + (c \cdot a)|b|}
+
+  (:math:`a, b, c` the triangle's corners relative to :math:`p`), which is 1 inside a closed
+  surface, 0 outside, and degrades gracefully across holes; a mesh that encloses nothing (a
+  sheet) falls back to its convex hull, with a warning that says so;
+* :func:`convex_parts` writes the convex decomposition pybullet collides a concave rigid body
+  with (its V-HACD), cached on disk by the mesh's digest so a dataset decomposes each mesh once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from hrn_pyg.data.voxelise import voxelise
+from hrn_pyg.utils.files import quiet_stdout
+
+#: primitive shapes a scene may name instead of a mesh file, each with its longest extent 1 m
+PRIMITIVES = ("box", "sphere", "cylinder", "capsule", "cone")
+#: the fewest leaves a body may have (one leaf has no shape)
+MIN_LEAVES = 2
+#: lattice points tested against the faces at a time by :func:`winding_numbers` (memory bound)
+WINDING_CHUNK = 2**22
+#: a lattice point is inside an open mesh when the winding number's magnitude reaches this
+INSIDE_WINDING = 0.5
+#: an open mesh encloses a volume when some lattice point has a winding number this large (a
+#: surface that bounds nothing, a sheet or a cap, stays near 0.5 even right beside itself)
+ENCLOSED_WINDING = 0.75
+
+
+class MeshWarning(UserWarning):
+    """A mesh was taken differently than it was given (e.g. replaced by its convex hull)."""
+
+
+def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
+    """The mesh in ``path`` (any format trimesh reads; the pieces of a scene are concatenated).
+
+    Raises FileNotFoundError for a missing file and ValueError naming the file for one that is
+    not a mesh, is empty, or has NaN or infinite vertices.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds for a file it cannot read
+        raise ValueError(f"{path}: not a mesh trimesh can read ({type(exc).__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"{path}: holds no triangle mesh (trimesh read a {type(mesh).__name__})")
+    check_mesh(mesh, str(path))
+    return mesh
+
+
+def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> None:
+    """Raise ValueError naming ``name`` if ``mesh`` has no faces or non-finite vertices."""
+    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
+        raise ValueError(f"{name}: empty mesh (no vertices or no faces)")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise ValueError(f"{name}: vertices contain NaN or infinite values")
+
+
+def primitive_mesh(name: str) -> trimesh.Trimesh:
+    """The primitive ``name`` (one of :data:`PRIMITIVES`), centred, longest extent 1 m."""
+    if name == "box":
+        mesh = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    elif name == "sphere":
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    elif name == "cylinder":
+        mesh = trimesh.creation.cylinder(radius=0.5, height=1.0, sections=32)
+    elif name == "capsule":
+        mesh = trimesh.creation.capsule(height=0.5, radius=0.25, count=(16, 16))
+    elif name == "cone":
+        mesh = trimesh.creation.cone(radius=0.5, height=1.0, sections=32)
+    else:
+        raise ValueError(f"unknown primitive {name!r}; choose from {', '.join(PRIMITIVES)}")
+    return sized_mesh(mesh, size=1.0)
+
+
+def clean_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
+    """A copy of ``mesh`` with duplicate vertices merged by position (texture and normal seams
+    join), degenerate and repeated faces dropped and unused vertices removed; every piece kept.
+
+    Raises ValueError if nothing with an area is left.
+    """
+    check_mesh(mesh, name)
+    out = trimesh.Trimesh(vertices=np.asarray(mesh.vertices, dtype=np.float64),
+                          faces=np.asarray(mesh.faces, dtype=np.int64), process=False)
+    out.merge_vertices(merge_tex=True, merge_norm=True)
+    out.update_faces(out.nondegenerate_faces())
+    out.update_faces(out.unique_faces())
+    out.remove_unreferenced_vertices()
+    if len(out.faces) == 0 or not out.area > 0:
+        raise ValueError(f"{name}: no face with an area (a degenerate mesh)")
+    if out.is_watertight:
+        out.fix_normals()
+    return out
+
+
+def sized_mesh(mesh: trimesh.Trimesh, size: float | None = None, scale: float | None = None) -> trimesh.Trimesh:
+    """A copy of ``mesh`` scaled by ``scale``, or so that its longest extent is ``size`` (m), with
+    its bounding box centred at the origin."""
+    if (size is None) == (scale is None):
+        raise ValueError("give one of size and scale")
+    factor = scale if scale is not None else size
+    if not (math.isfinite(factor) and factor > 0):
+        raise ValueError(f"{'size' if scale is None else 'scale'} must be a finite number > 0, got {factor}")
+    out = mesh.copy()
+    out.apply_translation(-out.bounds.mean(axis=0))
+    if scale is None:
+        longest = float(out.extents.max())
+        if not longest > 0:
+            raise ValueError("mesh: zero extent, cannot be sized")
+        factor = size / longest
+    out.apply_scale(factor)
+    return out
+
+
+def winding_numbers(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """The generalised winding number of ``mesh`` at each point (module docstring).
+
+    **Shapes:** points ``(P, 3)`` -> ``(P,)`` float64; ``F`` faces are summed in chunks of
+    :data:`WINDING_CHUNK` point-face pairs.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    triangles = np.asarray(mesh.triangles, dtype=np.float64)  # [F, 3, 3]
+    out = np.empty(len(points))
+    step = max(1, WINDING_CHUNK // max(len(triangles), 1))
+    for start in range(0, len(points), step):
+        rel = triangles[None, :, :, :] - points[start:start + step, None, None, :]  # [p, F, 3, 3]
+        a, b, c = rel[:, :, 0], rel[:, :, 1], rel[:, :, 2]
+        la, lb, lc = (np.linalg.norm(v, axis=-1) for v in (a, b, c))
+        numerator = np.einsum("pfk,pfk->pf", a, np.cross(b, c))
+        denominator = (la * lb * lc + np.einsum("pfk,pfk->pf", a, b) * lc
+                       + np.einsum("pfk,pfk->pf", b, c) * la + np.einsum("pfk,pfk->pf", c, a) * lb)
+        out[start:start + step] = np.arctan2(numerator, denominator).sum(axis=1) / (2.0 * math.pi)
+    return out
+
+
+def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh") -> tuple[np.ndarray, str]:
+    """The leaf lattice of a mesh: ``(points [L, 3], how)``, ``how`` one of ``"fill"`` (a closed
+    mesh, :func:`hrn_pyg.data.voxelise.voxelise`), ``"winding"`` (an open one: its surface voxels
+    and the other lattice points with :math:`|w| \\ge` :data:`INSIDE_WINDING`) or ``"convex hull"`` (an
+    open mesh that encloses nothing, no point reaching :data:`ENCLOSED_WINDING`, e.g. a sheet;
+    a :class:`MeshWarning` says so).
+
+    Raises ValueError when fewer than :data:`MIN_LEAVES` lattice points are found, naming a
+    pitch that would give more.
+    """
+    if not (math.isfinite(pitch) and pitch > 0):
+        raise ValueError(f"pitch must be a finite number > 0, got {pitch}")
+    check_mesh(mesh, name)
+    if mesh.is_watertight:
+        how, points = "fill", _filled(mesh, pitch, name)
+    else:
+        grid = mesh.voxelized(pitch)  # the voxels the surface passes through (any mesh)
+        shell = grid.matrix
+        # the other cells of the box: their centres lie off the surface, where w is well defined
+        cells = np.argwhere(~shell)
+        winding = np.abs(winding_numbers(mesh, grid.indices_to_points(cells))) if len(cells) else np.zeros(0)
+        if len(winding) and winding.max() >= ENCLOSED_WINDING:
+            how = "winding"
+            filled = shell.copy()
+            filled[tuple(cells[winding >= INSIDE_WINDING].T)] = True
+            points = grid.indices_to_points(np.argwhere(filled))
+        else:
+            warnings.warn(f"{name} encloses no volume (an open surface): its convex hull is used instead",
+                          MeshWarning, stacklevel=2)
+            how, points = "convex hull", _filled(mesh.convex_hull, pitch, name)
+    return np.asarray(points, dtype=np.float64), how
+
+
+def _filled(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:
+    try:
+        points = voxelise(mesh, pitch)
+    except ValueError:
+        points = np.zeros((0, 3))
+    if len(points) < MIN_LEAVES:
+        raise ValueError(f"{name}: {len(points)} leaf at pitch {pitch} m, a body needs {MIN_LEAVES}; its longest "
+                         f"extent is {float(mesh.extents.max()):.4g} m, use a pitch of at most half of it")
+    return points
+
+
+def mesh_digest(mesh: trimesh.Trimesh) -> str:
+    """A SHA-256 of a mesh's vertices and faces (what decides its decomposition)."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    return digest.hexdigest()
+
+
+def convex_parts(mesh: trimesh.Trimesh, cache_dir: str | os.PathLike, resolution: int = 100_000) -> Path:
+    """An OBJ of the convex parts pybullet collides ``mesh`` with (pybullet's V-HACD), for a
+    concave rigid body; made once per mesh and kept in ``cache_dir`` under the mesh's digest.
+
+    The file is written next to its final name and moved into place, so two workers that
+    decompose the same mesh at once leave one whole file.
+    """
+    import pybullet
+
+    cache = Path(cache_dir)
+    cache.mkdir(parents=True, exist_ok=True)
+    key = f"{mesh_digest(mesh)[:24]}_r{resolution}"
+    out = cache / f"{key}_parts.obj"
+    if out.is_file():
+        return out
+    source = cache / f"{key}_{os.getpid()}_source.obj"
+    partial = cache / f"{key}_{os.getpid()}_parts.obj"
+    log = cache / f"{key}_{os.getpid()}.log"
+    try:
+        mesh.export(source)
+        with quiet_stdout():
+            pybullet.vhacd(str(source), str(partial), str(log), resolution=resolution)
+        if not partial.is_file() or partial.stat().st_size == 0:
+            raise ValueError(f"the convex decomposition of a mesh failed (see {log})")
+        os.replace(partial, out)
+    finally:
+        for leftover in (source, partial):
+            leftover.unlink(missing_ok=True)
+    log.unlink(missing_ok=True)
+    return out
