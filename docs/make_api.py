@@ -31,6 +31,7 @@ MODULES = (
     "hrn_pyg.data.meshes",
     "hrn_pyg.data.effects",
     "hrn_pyg.data.scenes",
+    "hrn_pyg.data.scene_file",
     "hrn_pyg.data.io",
     "hrn_pyg.data.dataset",
     "hrn_pyg.data.symmetry",

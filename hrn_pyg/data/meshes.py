@@ -19,8 +19,9 @@ so its cavity would be solid. This module takes such meshes as they are:
       {|a||b||c| + (a \cdot b)|c| + (b \cdot c)|a| + (c \cdot a)|b|}
 
   (:math:`a, b, c` the triangle's corners relative to :math:`p`), which is 1 inside a closed
-  surface, 0 outside, and degrades gracefully across holes; a mesh that encloses nothing (a
-  sheet) falls back to its convex hull, with a warning that says so;
+  surface, 0 outside, and degrades gracefully across holes; a mesh that encloses nothing at
+  the pitch (a sheet, thin walls) keeps the voxels its surface passes through, with a warning
+  that says so;
 * :func:`convex_parts` writes the convex decomposition pybullet collides a concave rigid body
   with (its V-HACD), cached on disk by the mesh's digest so a dataset decomposes each mesh once.
 """
@@ -160,19 +161,34 @@ def winding_numbers(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh") -> tuple[np.ndarray, str]:
+def too_many_leaves(count: float, pitch: float, max_leaves: int, name: str) -> ValueError:
+    """The error of a body with ``count`` leaves at ``pitch``, more than ``max_leaves``; it names
+    a pitch that fits (leaf counts scale as the pitch's inverse cube)."""
+    fits = pitch * (count / max_leaves) ** (1 / 3)
+    return ValueError(f"{name} has about {int(count)} leaves at pitch {pitch} m, more than {max_leaves}; "
+                      f"a pitch of {fits:.3g} m fits")
+
+
+def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh",
+                 max_leaves: int | None = None) -> tuple[np.ndarray, str]:
     """The leaf lattice of a mesh: ``(points [L, 3], how)``, ``how`` one of ``"fill"`` (a closed
     mesh, :func:`hrn_pyg.data.voxelise.voxelise`), ``"winding"`` (an open one: its surface voxels
-    and the other lattice points with :math:`|w| \\ge` :data:`INSIDE_WINDING`) or ``"convex hull"`` (an
-    open mesh that encloses nothing, no point reaching :data:`ENCLOSED_WINDING`, e.g. a sheet;
-    a :class:`MeshWarning` says so).
+    and the other lattice points with :math:`|w| \\ge` :data:`INSIDE_WINDING`) or ``"surface"`` (an
+    open mesh that encloses nothing, no point reaching :data:`ENCLOSED_WINDING`: a sheet, or a
+    cup whose walls are thinner than a voxel; its leaves are the voxels its surface passes
+    through, and a :class:`MeshWarning` says so).
 
-    Raises ValueError when fewer than :data:`MIN_LEAVES` lattice points are found, naming a
-    pitch that would give more.
+    Raises ValueError when fewer than :data:`MIN_LEAVES` lattice points are found, or more than
+    ``max_leaves`` (checked on the volume, or the bounding box of an open mesh, before the
+    lattice is built), naming a pitch that would do.
     """
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"pitch must be a finite number > 0, got {pitch}")
     check_mesh(mesh, name)
+    if max_leaves is not None:
+        estimate = (mesh.volume if mesh.is_watertight else float(np.prod(mesh.extents))) / pitch**3
+        if estimate > max_leaves:
+            raise too_many_leaves(estimate, pitch, max_leaves, name)
     if mesh.is_watertight:
         how, points = "fill", _filled(mesh, pitch, name)
     else:
@@ -187,9 +203,12 @@ def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh") -> tup
             filled[tuple(cells[winding >= INSIDE_WINDING].T)] = True
             points = grid.indices_to_points(np.argwhere(filled))
         else:
-            warnings.warn(f"{name} encloses no volume (an open surface): its convex hull is used instead",
+            warnings.warn(f"{name} encloses no volume at pitch {pitch} m (an open surface, or walls "
+                          "thinner than a voxel): its leaves are the voxels its surface passes through",
                           MeshWarning, stacklevel=2)
-            how, points = "convex hull", _filled(mesh.convex_hull, pitch, name)
+            how, points = "surface", np.asarray(grid.points)
+            if len(points) < MIN_LEAVES:
+                raise ValueError(f"{name}: {len(points)} leaf at pitch {pitch} m, a body needs {MIN_LEAVES}")
     return np.asarray(points, dtype=np.float64), how
 
 

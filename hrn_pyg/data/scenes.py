@@ -37,7 +37,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -309,7 +309,7 @@ def _log_stiffness(log10_value: float, log10_range: tuple[float, float]) -> floa
 
 
 @dataclass
-class _Object:
+class SceneObject:
     """One simulated object: its pybullet body and its leaves."""
 
     material: int
@@ -361,7 +361,7 @@ class Scene:
         self.rng = np.random.default_rng(self.seed)
         self.params: dict = self.draw_params(self.rng)
         self._client: int | None = None
-        self._objects: list[_Object] = []
+        self._objects: list[SceneObject] = []
         self._tmpdir: tempfile.TemporaryDirectory | None = None
         self.last_forces: np.ndarray | None = None
         self.t = 0
@@ -545,7 +545,7 @@ class Scene:
         if self._client is None:
             raise RuntimeError("scene: call reset() first")
 
-    def _object_positions(self, obj: _Object) -> np.ndarray:
+    def _object_positions(self, obj: SceneObject) -> np.ndarray:
         c = self._client
         if obj.material in (RIGID, STATIC):
             pos, quat = p.getBasePositionAndOrientation(obj.body, physicsClientId=c)
@@ -554,7 +554,7 @@ class Scene:
         _, verts = p.getMeshData(obj.body, -1, flags=p.MESH_DATA_SIMULATION_MESH, physicsClientId=c)
         return np.asarray(verts, dtype=np.float64)
 
-    def _kick_deformable(self, obj: _Object, dv: np.ndarray, spin: np.ndarray) -> np.ndarray:
+    def _kick_deformable(self, obj: SceneObject, dv: np.ndarray, spin: np.ndarray) -> np.ndarray:
         """Set node velocities to ``v_mean + dv + spin x (x - x_mean)``; return per-leaf forces.
 
         pybullet's ``resetBaseVelocity`` on a soft body overwrites every node's velocity with
@@ -594,7 +594,7 @@ class Scene:
         p.changeDynamics(body, -1, lateralFriction=self.config.friction, physicsClientId=c)
         if static:
             mass = STATIC_DENSITY * float(mesh.volume)
-        self._objects.append(_Object(STATIC if static else RIGID, body, mass, 1.0, leaves))
+        self._objects.append(SceneObject(STATIC if static else RIGID, body, mass, 1.0, leaves))
         return len(self._objects) - 1
 
     def _add_soft_cube(self, side: float, mass: float, log10_mu: float, position,
@@ -611,7 +611,7 @@ class Scene:
                 NeoHookeanDamping=NEO_HOOKEAN_DAMPING, useSelfCollision=0,
                 frictionCoeff=self.config.friction, collisionMargin=SOFT_COLLISION_MARGIN,
                 physicsClientId=self._client)
-        self._objects.append(_Object(SOFT, body, mass, _log_stiffness(log10_mu, SOFT_LOG10_MU_RANGE),
+        self._objects.append(SceneObject(SOFT, body, mass, _log_stiffness(log10_mu, SOFT_LOG10_MU_RANGE),
                                      nodes))
         self._check_node_count(self._objects[-1])
         return len(self._objects) - 1
@@ -627,12 +627,12 @@ class Scene:
                 springBendingStiffness=0.05 * 10.0 ** log10_k, useSelfCollision=0,
                 frictionCoeff=self.config.friction, collisionMargin=SOFT_COLLISION_MARGIN,
                 useFaceContact=1, physicsClientId=self._client)
-        self._objects.append(_Object(CLOTH, body, mass, _log_stiffness(log10_k, CLOTH_LOG10_K_RANGE),
+        self._objects.append(SceneObject(CLOTH, body, mass, _log_stiffness(log10_k, CLOTH_LOG10_K_RANGE),
                                      vertices))
         self._check_node_count(self._objects[-1])
         return len(self._objects) - 1
 
-    def _check_node_count(self, obj: _Object) -> None:
+    def _check_node_count(self, obj: SceneObject) -> None:
         got = len(self._object_positions(obj))
         if got != len(obj.local_leaves):
             raise RuntimeError(f"pybullet made {got} nodes from a mesh of {len(obj.local_leaves)}")
@@ -933,10 +933,22 @@ def config_to_dict(config: SceneConfig) -> dict:
             for f in dataclasses.fields(config)}
 
 
-def simulate_episode(scene: str, seed: int, steps: int | None = None,
+class SceneSource(Protocol):
+    """Anything that makes a seeded :class:`Scene`, as a scene read from a file does
+    (:class:`hrn_pyg.data.scene_file.SceneSpec`)."""
+
+    name: str
+
+    def make_scene(self, seed: int) -> Scene: ...
+
+
+def simulate_episode(scene: str | SceneSource, seed: int, steps: int | None = None,
                      config: SceneConfig | None = None, *,
                      after_reset: Callable[[Scene], None] | None = None) -> dict[str, np.ndarray]:
     """Run one episode with the scene's scripted/random actions; return the episode arrays.
+
+    ``scene`` is a built-in scene's name (with an optional ``config``) or a scene read from a
+    file (:func:`hrn_pyg.data.scene_file.read_scene_file`, whose settings are its own).
 
     ``after_reset(scene)``, if given, runs once after ``reset()`` and before step 0 (e.g.
     :meth:`Scene.nudge` to perturb the initial state of a ground-truth ensemble); the recorded
@@ -949,7 +961,12 @@ def simulate_episode(scene: str, seed: int, steps: int | None = None,
     """
     from hrn_pyg.data.hierarchy import build_hierarchy
 
-    sim = make_scene(scene, seed, config)
+    if isinstance(scene, str):
+        sim = make_scene(scene, seed, config)
+    elif config is not None:
+        raise ValueError("config: a scene file carries its own settings")
+    else:
+        sim = scene.make_scene(seed)
     if steps is not None:
         if not isinstance(steps, (int, np.integer)) or steps < 1:
             raise ValueError(f"steps: must be an integer >= 1, got {steps}")
@@ -976,15 +993,16 @@ def simulate_episode(scene: str, seed: int, steps: int | None = None,
             "object_material": sim.object_material,
             "object_stiffness": sim.object_stiffness,
             "seed": np.array(sim.seed, dtype=np.int64),
-            "scene": np.array(scene),
-            "params": np.array(json.dumps({"params": sim.params, "config": config_to_dict(sim.config)},
+            "scene": np.array(sim.name),
+            "params": np.array(json.dumps({"params": sim.params, "config": config_to_dict(sim.config),
+                                           **({} if isinstance(scene, str) else {"scene_file": scene.text})},
                                           sort_keys=True)),
             "dt": np.array(sim.dt, dtype=np.float64),
         }
     finally:
         sim.close()
     if not np.all(np.isfinite(positions)):
-        raise RuntimeError(f"{scene} seed {seed}: pybullet produced non-finite positions")
+        raise RuntimeError(f"{sim.name} seed {seed}: pybullet produced non-finite positions")
     episode["hierarchy_parent"] = np.asarray(
         build_hierarchy(positions[0].astype(np.float64), leaf_mass.astype(np.float64), leaf_object),
         dtype=np.int64)

@@ -87,13 +87,14 @@ def test_winding_numbers_are_one_inside_zero_outside_and_a_hole_is_bridged():
     assert abs(winding_numbers(holed, np.zeros((1, 3)))[0] - 1.0) < 0.05
 
 
-def test_an_open_sheet_becomes_its_convex_hull_with_a_warning():
+def test_an_open_sheet_keeps_its_surface_voxels_with_a_warning():
     vertices, faces = grid_sheet(0.2, 0.02)
     vertices[:, 2] = 0.05 * np.sin(vertices[:, 0] * 20)  # a wavy sheet: it bounds nothing
     sheet = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    with pytest.warns(MeshWarning, match="convex hull"):
+    with pytest.warns(MeshWarning, match="encloses no volume"):
         points, how = solid_points(sheet, 0.01, "sheet")
-    assert how == "convex hull" and len(points) > 0
+    assert how == "surface" and len(points) == len(sheet.voxelized(0.01).points)
+    assert np.abs(points[:, 2] - 0.05 * np.sin(points[:, 0] * 20)).max() < 0.01 * np.sqrt(3)  # on the sheet
 
 
 @pytest.mark.parametrize("name", PRIMITIVES)

@@ -1,0 +1,223 @@
+"""Scenes from files (hrn_pyg.data.scene_file): pybullet_data meshes make a dataset, ranges are
+drawn per seed, overlaps are redrawn or named, and every bad input is one line with nothing
+written."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pybullet_data
+import pytest
+
+from hrn_pyg.cli import main
+from hrn_pyg.data import scene_file
+from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
+from hrn_pyg.data.io import load_episode
+from hrn_pyg.data.scene_file import FileScene, overlapping, read_scene_file, start_box
+from hrn_pyg.data.scenes import simulate_episode
+
+DATA = Path(pybullet_data.getDataPath())
+
+MESHES = f"""
+steps = 6
+pitch = 0.025
+
+[[objects]]                       # rigid, several pieces and seams in the file
+mesh = "{DATA / 'duck.obj'}"
+material = "rigid"
+size = {{ min = 0.15, max = 0.2 }}
+mass = 0.4
+position = [0.0, 0.0, 0.3]
+yaw = {{ min = 0, max = 360 }}
+
+[[objects]]                       # concave and open: collides as its convex parts
+mesh = "{DATA / 'objects' / 'mug.obj'}"
+material = "rigid"
+size = 0.15
+mass = 0.3
+position = [0.35, 0.0, 0.1]
+velocity = [-0.5, 0.0, 0.0]
+
+[[objects]]                       # soft, from a mesh with 209 pieces before its seams are merged
+mesh = "{DATA / 'torus' / 'torus_textured.obj'}"
+material = "soft"
+size = 0.2
+mass = 0.3
+position = [-0.35, 0.0, 0.15]
+stiffness = {{ min = 0.3, max = 0.7 }}
+
+[[pushes]]
+object = 0
+steps = [1, 2]
+force = [2.0, 0.0, 0.0]
+"""
+
+PRIMITIVES_AND_CLOTH = """
+steps = 3
+pitch = 0.05
+
+[[objects]]
+mesh = "box"
+material = "static"
+scale = 0.4
+position = [0.0, 0.0, 0.2]
+
+[[objects]]
+mesh = "capsule"
+material = "rigid"
+size = 0.2
+position = [0.5, 0.0, 0.3]
+spin = [0.0, 0.0, 3.0]
+
+[[objects]]
+mesh = "sheet"
+material = "cloth"
+size = 0.3
+mass = 0.1
+position = [0.0, 0.0, 0.6]
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "scene.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(autouse=True)
+def cache_in_tmp(tmp_path, monkeypatch):
+    monkeypatch.setattr(scene_file, "CACHE_DIR", tmp_path / "cache")
+
+
+def test_a_scene_file_of_pybullet_meshes_generates_a_dataset(tmp_path, capsys):
+    path = write(tmp_path, MESHES)
+    out = tmp_path / "data"
+    assert main(["generate", "--scene-file", str(path), "--episodes", "2", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["scene"] == "scene" and meta["complete"] and meta["scene_text"] == MESHES
+    for seed in (0, 1):
+        episode = load_episode(out / f"episode_{seed:06d}.npz")
+        assert episode["positions"].shape[0] == 7 and np.all(np.isfinite(episode["positions"]))
+        assert episode["object_material"].tolist() == [RIGID, RIGID, SOFT]
+        counts = np.bincount(episode["leaf_object"])
+        assert np.all(counts > 50)
+        pushed = episode["forces"][1:3, episode["leaf_object"] == 0].sum(axis=1)
+        np.testing.assert_allclose(pushed, [[2.0, 0.0, 0.0]] * 2, atol=1e-5)
+        assert np.all(episode["forces"][3:] == 0)
+    assert main(["generate", "--scene-file", str(path), "--episodes", "2", "--out", str(out), "--no-progress"]) == 0
+    assert json.loads((out / "meta.json").read_text())["already_done"] == 2  # a rerun redoes nothing
+
+
+def test_primitives_a_static_body_and_a_cloth_sheet():
+    episode = simulate_episode(read_scene_file_text(PRIMITIVES_AND_CLOTH), seed=4)
+    assert episode["object_material"].tolist() == [STATIC, RIGID, CLOTH]
+    x, obj = episode["positions"], episode["leaf_object"]
+    assert np.array_equal(x[0, obj == 0], x[-1, obj == 0])  # the static box never moves
+    capsule = x[:, obj == 1]
+    assert np.ptp(capsule[-1, :, 0]) < 0.25  # a 20 cm capsule
+    sheet = x[0, obj == 2]
+    assert len(sheet) == 7 * 7 and np.ptp(sheet[:, 2]) < 1e-6  # a flat 30 cm sheet at pitch 5 cm
+
+
+def read_scene_file_text(text: str, tmp: Path | None = None):
+    import tempfile
+
+    folder = Path(tempfile.mkdtemp()) if tmp is None else tmp
+    return read_scene_file(write(folder, text))
+
+
+def test_ranges_are_drawn_per_seed_within_their_bounds_and_repeat(tmp_path):
+    spec = read_scene_file(write(tmp_path, MESHES))
+    a, b, again = (FileScene(spec, s).params for s in (0, 1, 0))
+    assert a == again and a != b
+    for params in (a, b):
+        duck, torus = params["objects"][0], params["objects"][2]
+        assert 0.15 <= duck["size"] <= 0.2 and 0.0 <= duck["yaw"] <= 360.0
+        assert 0.3 <= torus["stiffness"] <= 0.7
+        assert params["objects"][1]["size"] == 0.15
+
+
+def test_objects_that_may_overlap_are_redrawn_and_those_that_always_do_are_named(tmp_path):
+    sometimes = """
+steps = 2
+[[objects]]
+mesh = "box"
+material = "rigid"
+size = 0.2
+position = [0.0, 0.0, 0.1]
+[[objects]]
+mesh = "sphere"
+material = "rigid"
+size = 0.2
+position = { min = [-0.5, 0.0, 0.1], max = [0.5, 0.0, 0.1] }
+"""
+    spec = read_scene_file(write(tmp_path, sometimes))
+    for seed in range(20):
+        drawn = FileScene(spec, seed).params["objects"]
+        assert overlapping(spec, drawn) == []
+        assert abs(drawn[1]["position"][0]) >= 0.2
+    always = sometimes.replace("position = { min = [-0.5, 0.0, 0.1], max = [0.5, 0.0, 0.1] }",
+                               "position = [0.05, 0.0, 0.1]")
+    with pytest.raises(ValueError, match="objects 0 and 1 overlap"):
+        FileScene(read_scene_file(write(tmp_path, always, "always.toml")), 0)
+    box = start_box(spec.objects[0], {"size": 0.2, "position": [0.0, 0.0, 0.1], "yaw": 45.0})
+    np.testing.assert_allclose(box[1] - box[0], [0.2 * np.sqrt(2), 0.2 * np.sqrt(2), 0.2])
+
+
+BASE = """
+steps = 4
+[[objects]]
+mesh = "box"
+material = "rigid"
+size = 0.2
+position = [0.0, 0.0, 0.1]
+"""
+
+BAD = [
+    (BASE.replace('material = "rigid"', 'material = "jelly"'), "unknown material 'jelly'"),
+    (BASE.replace('mesh = "box"', 'mesh = "pyramid"'), "unknown primitive 'pyramid'"),
+    (BASE.replace('mesh = "box"', 'mesh = "no/such/file.obj"'), "mesh file not found"),
+    (BASE.replace("size = 0.2", "size = { min = 0.3, max = 0.2 }"), r"min \[?0.3\]? > max"),
+    (BASE.replace("size = 0.2", "colour = 1\nsize = 0.2"), "unknown key 'colour'; the keys are mesh, material"),
+    (BASE.replace("steps = 4", "steps = 4\nsubsteps = 0"), "substeps"),
+    (BASE.replace("steps = 4\n", ""), "steps .* is required"),
+    (BASE.replace("size = 0.2", "size = 0.2\nscale = 2"), "one of size"),
+    (BASE.replace("position = [0.0, 0.0, 0.1]", "position = [0.0, 0.1]"), "list of 3 numbers"),
+    (BASE.replace("size = 0.2", "size = nan"), "finite"),
+    (BASE.replace("size = 0.2", "size = 0.001"), "use a pitch of at most"),
+    (BASE.replace("size = 0.2", "size = 20.0"), "a pitch of .* m fits"),
+    (BASE + '[[pushes]]\nobject = 3\nsteps = [0, 1]\nforce = [1.0, 0.0, 0.0]\n', "an index into objects"),
+    (BASE + '[[pushes]]\nobject = 0\nsteps = [2, 9]\nforce = [1.0, 0.0, 0.0]\n', "within 0..3"),
+    (BASE.replace('material = "rigid"', 'material = "static"') + '[[pushes]]\nobject = 0\nsteps = [0, 1]\n'
+     'force = [1.0, 0.0, 0.0]\n', "static and cannot be pushed"),
+    (BASE + '[[objects]]\nmesh = "sphere"\nmaterial = "rigid"\nsize = 0.2\nposition = [0.05, 0.0, 0.1]\n',
+     "objects 0 and 1 overlap"),
+    ("steps = 4\n[objects\n", "not TOML"),
+]
+
+
+@pytest.mark.parametrize("text, message", BAD, ids=[m for _, m in BAD])
+def test_bad_scene_files_are_one_line_and_write_nothing(tmp_path, capsys, text, message):
+    path = write(tmp_path, text)
+    out = tmp_path / "data"
+    code = main(["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    import re
+
+    assert re.search(message, err), err
+    assert not out.exists()
+
+
+def test_a_missing_scene_file_and_a_mesh_that_is_not_a_mesh(tmp_path, capsys):
+    out = tmp_path / "data"
+    assert main(["generate", "--scene-file", str(tmp_path / "none.toml"), "--episodes", "1", "--out", str(out)]) == 2
+    assert "scene file not found" in capsys.readouterr().err
+    (tmp_path / "notes.obj").write_text("not a mesh\n")
+    path = write(tmp_path, BASE.replace('mesh = "box"', 'mesh = "notes.obj"'))
+    assert main(["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "notes.obj" in err and len(err.splitlines()) == 1
+    assert not out.exists()
