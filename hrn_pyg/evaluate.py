@@ -329,8 +329,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--stride", type=int, default=10, help="steps between window starts in an episode")
     parser.add_argument("--limit", type=int, default=None, help="score at most this many trajectories")
-    parser.add_argument("--split", default="test", choices=("test", "val"),
-                        help="held-out split to score (val for model selection, test for reporting)")
+    parser.add_argument("--split", default="test", choices=("test", "val", "all"),
+                        help="held-out split to score (val for model selection, test for reporting; all: "
+                             "every episode, for a dataset not split by seed such as a scene file's)")
     parser.add_argument("--no-figure", action="store_true")
 
 

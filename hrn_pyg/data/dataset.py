@@ -37,6 +37,8 @@ from hrn_pyg.data.graph import (
 from hrn_pyg.data.io import load_episode
 
 SPLITS = ("train", "val", "test")
+#: every episode of a folder, for scoring a dataset that is not split by seed (a scene file's)
+ALL = "all"
 #: Seeds with ``seed % SPLIT_MODULUS`` equal to these residues form the val and test splits.
 SPLIT_MODULUS = 10
 VAL_RESIDUE = 8
@@ -103,7 +105,8 @@ class EpisodeWindows(Dataset):
     Args:
         root: folder of ``episode_<seed:06d>.npz`` files, or several such folders whose
             episodes are pooled (a fine-tuning on a mix of datasets); a seed may occur once.
-        split: ``train``, ``val`` or ``test`` (disjoint by seed, see :func:`split_of_seed`).
+        split: ``train``, ``val`` or ``test`` (disjoint by seed, see :func:`split_of_seed`), or
+            ``all`` (every episode, for scoring a dataset that is not split by seed).
         horizon: ``T``, the number of predicted steps per window (1 for one-step training,
             up to 6 for recurrent training).
         collision_radius: ``r_c`` for the window's ``collision`` edges at step ``t``; None
@@ -126,8 +129,8 @@ class EpisodeWindows(Dataset):
         cache_episodes: int = 4,
         transform: Callable[[HeteroData], HeteroData] | None = None,
     ) -> None:
-        if split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if split not in SPLITS + (ALL,):
+            raise ValueError(f"split must be one of {SPLITS + (ALL,)}, got {split!r}")
         if int(horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if collision_radius is not None and not float(collision_radius) >= 0:
@@ -156,7 +159,7 @@ class EpisodeWindows(Dataset):
         if twice:
             raise ValueError(f"episode seed(s) {twice[:5]} occur in more than one of the folders "
                              f"{[str(f) for f in folders]}: give each dataset its own seed range")
-        chosen = [(seed, path) for seed, path in found if split_of_seed(seed) == split]
+        chosen = [(seed, path) for seed, path in found if split == ALL or split_of_seed(seed) == split]
         if not chosen:
             raise ValueError(f"no episodes of split {split!r} among the {len(found)} in "
                              f"{', '.join(str(f) for f in folders)}")

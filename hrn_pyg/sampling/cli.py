@@ -65,12 +65,13 @@ def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroDat
     return model if device is None else model.to(device)
 
 
-def initial_state(args: argparse.Namespace, steps: int | None) -> tuple[HeteroData, dict]:
-    """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin."""
+def initial_state(args: argparse.Namespace, steps: int | None, source=None) -> tuple[HeteroData, dict]:
+    """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin;
+    ``source`` is :func:`scene_source` of ``args`` when the caller has it."""
     if args.data:
         from hrn_pyg.data.dataset import EpisodeWindows
 
-        dataset = EpisodeWindows(args.data, split="test", horizon=steps or 1)
+        dataset = EpisodeWindows(args.data, split=args.split, horizon=steps or 1)
         index = int(args.window)
         if not 0 <= index < len(dataset):
             raise ValueError(f"--window must be in [0, {len(dataset) - 1}], got {index}")
@@ -80,13 +81,26 @@ def initial_state(args: argparse.Namespace, steps: int | None) -> tuple[HeteroDa
     from hrn_pyg.data.scenes import simulate_episode
 
     total = args.start + (steps or 30)
-    episode = simulate_episode(args.scene, int(args.seed), steps=total)
+    episode = simulate_episode(scene_source(args) if source is None else source, int(args.seed), steps=total)
     graph = episode_state(episode, start=args.start, steps=total - args.start)
-    return graph, {"scene": args.scene, "seed": int(args.seed), "start_step": int(args.start)}
+    where = {"scene_file": str(args.scene_file)} if args.scene_file else {"scene": args.scene}
+    return graph, {**where, "seed": int(args.seed), "start_step": int(args.start)}
+
+
+def scene_source(args: argparse.Namespace):
+    """The built-in scene's name, or the :class:`~hrn_pyg.data.scene_file.SceneSpec` of ``--scene-file``."""
+    if not args.scene_file:
+        return args.scene
+    from hrn_pyg.data.scene_file import read_scene_file
+
+    return read_scene_file(args.scene_file)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", required=True, help="scene name (picks the default checkpoint)")
+    scene = parser.add_mutually_exclusive_group(required=True)
+    scene.add_argument("--scene", help="a built-in scene's name (picks the default checkpoint)")
+    scene.add_argument("--scene-file", default=None,
+                       help="a scene file (TOML, docs/own_objects.md); needs --model")
     parser.add_argument("--k", type=int, default=16, help="number of sampled futures")
     parser.add_argument("--rate", type=float, default=None,
                         help="dropout rate at test time (default: the model's calibrated rate, "
@@ -97,7 +111,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--data", default=None, help="episode folder: use a window of its test split")
     source.add_argument("--seed", type=int, default=9, help="simulate a fresh episode with this seed (default)")
-    parser.add_argument("--window", type=int, default=0, help="window index within --data's test split")
+    parser.add_argument("--window", type=int, default=0, help="window index within --data's --split")
+    parser.add_argument("--split", default="test", choices=("test", "val", "all"),
+                        help="the split of --data the window is taken from (all: every episode)")
     parser.add_argument("--start", type=int, default=HISTORY, help="start step of a --seed episode")
     parser.add_argument("--steps", type=int, default=None, help="predicted steps (default 30, or the episode's)")
     parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
@@ -128,7 +144,11 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     if args.cuda_graph and device.type != "cuda":
         raise ValueError(f"--cuda-graph needs a CUDA device, got {device}")
-    model_path = resolve_model(args.scene, args.model)
+    if args.scene_file and not args.model:
+        raise ValueError("--scene-file needs --model (the shipped checkpoints each know one built-in scene)")
+    source = scene_source(args)
+    name = args.scene or source.name
+    model_path = resolve_model(name, args.model)
     model = load_model(model_path, device)
     if args.compile:
         model.compile()  # same numbers; shapes that change (new contacts) compile once more
@@ -138,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         rate, rate_source = default_rate(model, calibration_record(model_path) is not None)
     else:
         rate, rate_source = float(args.rate), "--rate"
-    graph, origin = initial_state(args, args.steps)
+    graph, origin = initial_state(args, args.steps, source)
     store = graph[NODE]
     steps = int(store.force_seq.shape[1]) if args.steps is None else int(args.steps)
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
@@ -147,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
     sleep = None if (args.no_sleep or args.fixed_shape) else DEFAULT_SLEEP
     fixed = FixedShapeConfig(cuda_graph=args.cuda_graph) if args.fixed_shape else None
     samples = sample(model, graph, args.k, steps, rate, forces=forces, generator=generator,
-                     modules=modules, sleep=sleep, effects=scene_effects(args.scene), fixed_shape=fixed
+                     modules=modules, sleep=sleep, fixed_shape=fixed,
+                     effects=scene_effects(source) if isinstance(source, str) else source.effects
                      ).cpu().numpy()  # [K, steps, L, 3]
 
     leaf = store.is_leaf
@@ -158,11 +179,11 @@ def run(args: argparse.Namespace) -> int:
 
     from hrn_pyg.viz import object_colors, samples_figure, write_gif
 
-    out = Path(args.out) if args.out else Path("runs") / "sample" / args.scene
+    out = Path(args.out) if args.out else Path("runs") / "sample" / name
     out.mkdir(parents=True, exist_ok=True)
     colors = object_colors(np.asarray(leaf_object), static=np.asarray(store.is_static[leaf]))  # static light grey
     times = sorted({int(round(f * steps)) for f in FIGURE_COLUMNS})
-    title = f"{args.scene}: {args.k} samples, dropout {rate:g}"
+    title = f"{name}: {args.k} samples, dropout {rate:g}"
     samples_figure(truth, paths, times, colors, out / "samples.png", title=title)
     write_gif({"truth (dark) + samples": truth}, colors, out / "samples.gif", samples=paths)
 
@@ -174,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write(out / "samples.npz", write_npz)
     atomic_write_json(out / "samples.json", {
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
-        "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or checkpoint_path(args.scene)),
+        "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or checkpoint_path(name)),
         "device": str(device), "compiled": bool(args.compile),
         "fixed_shape": None if fixed is None else asdict(fixed), **origin,
     })

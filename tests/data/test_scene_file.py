@@ -221,3 +221,32 @@ def test_a_missing_scene_file_and_a_mesh_that_is_not_a_mesh(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "notes.obj" in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+def test_any_model_samples_and_scores_a_scene_file_dataset(tmp_path, capsys):
+    """``hrn-pyg sample --scene-file`` and ``hrn-pyg evaluate --split all`` on a scene file's
+    episodes (seeds 0 and 1: none of them in the seed-based test split)."""
+    from hrn_pyg.nn.hrn import HRN, HRNConfig
+    from hrn_pyg.train import TrainConfig, model_payload
+    from hrn_pyg.utils.checkpoint import save_checkpoint
+
+    path = write(tmp_path, PRIMITIVES_AND_CLOTH.replace("steps = 3", "steps = 12"))
+    data = tmp_path / "data"
+    assert main(["generate", "--scene-file", str(path), "--episodes", "2", "--out", str(data), "--no-progress"]) == 0
+    checkpoint = tmp_path / "model.pt"
+    save_checkpoint(checkpoint, model_payload(HRN(HRNConfig(hidden=16, effect_dim=16)), TrainConfig(), 0))
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--data", str(data), "--split", "all", "--model", f"a={checkpoint}", "--out", str(out),
+                 "--horizons", "2,4", "--stride", "4", "--long-horizons", "8", "--no-figure", "--device", "cpu"]) == 0
+    result = json.loads((out / "results.json").read_text())
+    assert result["split"] == "all" and result["long_trajectories"] == 2
+    assert main(["evaluate", "--data", str(data), "--model", f"a={checkpoint}", "--out", str(tmp_path / "e2"),
+                 "--no-figure"]) == 2  # the default test split of seeds 0, 1 is empty: one clear line
+    assert "no episodes of split 'test'" in capsys.readouterr().err
+    samples = tmp_path / "samples"
+    assert main(["sample", "--scene-file", str(path), "--model", str(checkpoint), "--k", "2", "--rate", "0.2",
+                 "--steps", "3", "--seed", "1", "--out", str(samples), "--device", "cpu"]) == 0
+    record = json.loads((samples / "samples.json").read_text())
+    assert record["scene_file"] == str(path) and record["k"] == 2 and (samples / "samples.png").is_file()
+    assert main(["sample", "--scene-file", str(path), "--out", str(samples)]) == 2
+    assert "--scene-file needs --model" in capsys.readouterr().err
