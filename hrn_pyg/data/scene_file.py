@@ -6,7 +6,8 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
     pitch = 0.02                   # optional: voxel size of the leaves (m), substeps, physics_hz, friction
 
     [[objects]]
-    mesh = "duck.obj"              # a file trimesh reads (relative to this file) or a primitive:
+    mesh = "duck.obj"              # a file trimesh reads (relative to this file, absolute, or
+                                   # pybullet_data:<path> for pybullet's own) or a primitive:
                                    # box, sphere, cylinder, capsule, cone; cloth: "sheet"
     material = "rigid"             # rigid, soft, cloth or static
     size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor
@@ -87,6 +88,8 @@ OBJECT_KEYS = ("mesh", "material", "size", "scale", "mass", "position", "orienta
 PUSH_KEYS = ("object", "steps", "force")
 #: a cloth is a square sheet of side ``size``
 SHEET = "sheet"
+#: a mesh named ``pybullet_data:<path>`` is one of the meshes that ship with pybullet
+PYBULLET_DATA = "pybullet_data:"
 #: draws of one seed tried before objects that overlap at the start are an error
 OVERLAP_TRIES = 100
 #: the most leaves one object may have (the model's cost grows with them)
@@ -108,8 +111,9 @@ def _value(raw: Any, where: str, length: int | None) -> Value:
         if np.any(low > high):
             raise ValueError(f"{where}: min {low.tolist()} > max {high.tolist()}")
         return low, high
-    if isinstance(raw, bool) or not isinstance(raw, (int, float, list)):
-        raise ValueError(f"{where}: expected a number{' or a list' if length else ''}, got {raw!r}")
+    numbers = raw if isinstance(raw, list) else [raw]
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in numbers):
+        raise ValueError(f"{where}: expected a number{' or a list of numbers' if length else ''}, got {raw!r}")
     array = np.asarray(raw, dtype=np.float64)
     if length is None and array.ndim != 0:
         raise ValueError(f"{where}: expected a number, got {raw!r}")
@@ -276,7 +280,7 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
     if mesh == SHEET and material != "cloth":
         raise ValueError(f"{where}: mesh = {SHEET!r} is for cloth only")
     if mesh not in PRIMITIVES and mesh != SHEET:
-        path = Path(mesh) if Path(mesh).is_absolute() else base / mesh
+        path = mesh_path(mesh, base)
         if not path.is_file():
             looks_like_file = any(sep in mesh for sep in "/\\.")
             if looks_like_file:
@@ -321,6 +325,16 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
     if spec.base_mesh is not None and not spec.base_mesh.volume > 0 and material != "cloth":
         raise ValueError(f"{where}: the mesh has no volume")
     return spec
+
+
+def mesh_path(mesh: str, base: Path) -> Path:
+    """Where a scene file's ``mesh`` is: an absolute path, ``pybullet_data:<path>`` (a mesh that
+    ships with pybullet, wherever it is installed) or a path relative to the file's folder."""
+    if mesh.startswith(PYBULLET_DATA):
+        import pybullet_data
+
+        return Path(pybullet_data.getDataPath()) / mesh[len(PYBULLET_DATA):]
+    return Path(mesh) if Path(mesh).is_absolute() else base / mesh
 
 
 def _push(raw: Any, where: str, objects: tuple[ObjectSpec, ...], steps: int) -> PushSpec:

@@ -25,7 +25,7 @@ steps = 6
 pitch = 0.025
 
 [[objects]]                       # rigid, several pieces and seams in the file
-mesh = "{DATA / 'duck.obj'}"
+mesh = "pybullet_data:duck.obj"
 material = "rigid"
 size = {{ min = 0.15, max = 0.2 }}
 mass = 0.4
@@ -250,3 +250,45 @@ def test_any_model_samples_and_scores_a_scene_file_dataset(tmp_path, capsys):
     assert record["scene_file"] == str(path) and record["k"] == 2 and (samples / "samples.png").is_file()
     assert main(["sample", "--scene-file", str(path), "--out", str(samples)]) == 2
     assert "--scene-file needs --model" in capsys.readouterr().err
+
+
+# ---- property-based: malformed scene files are refused in one line, never with a crash --------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from hrn_pyg.data.scene_file import parse_scene  # noqa: E402
+
+VALID_OBJECT = {"mesh": "box", "material": "rigid", "size": 0.2, "position": [0.0, 0.0, 0.1]}
+ANY_VALUE = st.recursive(
+    st.none() | st.booleans() | st.integers(-10, 10) | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=6),
+    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.sampled_from(["min", "max", "x"]), inner, max_size=3),
+    max_leaves=8,
+)
+OBJECT_KEYS_AND_MORE = st.sampled_from(list(scene_file.OBJECT_KEYS) + ["colour", "Mesh"])
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=OBJECT_KEYS_AND_MORE, value=ANY_VALUE, steps=ANY_VALUE)
+def test_a_malformed_field_is_a_value_error_naming_where(tmp_path, key, value, steps):
+    table = {"steps": steps, "objects": [{**VALID_OBJECT, key: value}]}
+    try:
+        spec = parse_scene(table, name="fuzz", base=tmp_path)
+    except (ValueError, FileNotFoundError) as exc:
+        message = str(exc)
+        assert message.startswith("fuzz") and "\n" not in message, message
+        return
+    assert spec.objects[0].material in ("rigid", "soft", "cloth", "static")
+    assert isinstance(spec.config.steps, int) and spec.config.steps >= 1
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=st.text(alphabet=st.sampled_from(list('steps=1[]{}"objects.mesh =box\n,0')), max_size=60))
+def test_any_text_is_a_scene_or_one_line_of_error(tmp_path, text):
+    path = tmp_path / "fuzz.toml"
+    path.write_text(text)
+    try:
+        read_scene_file(path)
+    except (ValueError, FileNotFoundError) as exc:
+        assert str(exc).strip() and "\n" not in str(exc).strip()
