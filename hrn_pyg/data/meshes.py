@@ -219,7 +219,8 @@ def _filled(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:
         points = np.zeros((0, 3))
     if len(points) < MIN_LEAVES:
         raise ValueError(f"{name}: {len(points)} leaf at pitch {pitch} m, a body needs {MIN_LEAVES}; its longest "
-                         f"extent is {float(mesh.extents.max()):.4g} m, use a pitch of at most half of it")
+                         f"extent is {float(mesh.extents.max()):.4g} m: make it at least {2 * pitch:.4g} m "
+                         f"long, or use a pitch of at most {float(mesh.extents.max()) / 2:.4g} m")
     return points
 
 

@@ -322,8 +322,9 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
         raise ValueError(f"{where}.friction: must be >= 0")
     if spec.orientation is not None and np.any(np.linalg.norm(spec.orientation[0]) == 0):
         raise ValueError(f"{where}.orientation: a quaternion [x, y, z, w] of nonzero length")
-    if spec.base_mesh is not None and not spec.base_mesh.volume > 0 and material != "cloth":
-        raise ValueError(f"{where}: the mesh has no volume")
+    mesh_of = spec.base_mesh
+    if mesh_of is not None and not (mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
+        raise ValueError(f"{where}: the mesh has no volume (it is flat)")
     return spec
 
 

@@ -133,7 +133,7 @@ def test_bad_meshes_are_one_clear_error(tmp_path):
     flat = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [2, 0, 0]], faces=[[0, 1, 2]], process=False)
     with pytest.raises(ValueError, match="no face with an area"):
         clean_mesh(flat, "flat")
-    with pytest.raises(ValueError, match="use a pitch of at most"):
+    with pytest.raises(ValueError, match="make it at least 10 m long, or use a pitch of at most 0.5 m"):
         solid_points(primitive_mesh("sphere"), 5.0, "ball")
 
 

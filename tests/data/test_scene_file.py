@@ -186,7 +186,7 @@ BAD = [
     (BASE.replace("size = 0.2", "size = 0.2\nscale = 2"), "one of size"),
     (BASE.replace("position = [0.0, 0.0, 0.1]", "position = [0.0, 0.1]"), "list of 3 numbers"),
     (BASE.replace("size = 0.2", "size = nan"), "finite"),
-    (BASE.replace("size = 0.2", "size = 0.001"), "use a pitch of at most"),
+    (BASE.replace("size = 0.2", "size = 0.001"), "make it at least 0.1 m long, or use a pitch of at most"),
     (BASE.replace("size = 0.2", "size = 20.0"), "a pitch of .* m fits"),
     (BASE + '[[pushes]]\nobject = 3\nsteps = [0, 1]\nforce = [1.0, 0.0, 0.0]\n', "an index into objects"),
     (BASE + '[[pushes]]\nobject = 0\nsteps = [2, 9]\nforce = [1.0, 0.0, 0.0]\n', "within 0..3"),
@@ -292,3 +292,12 @@ def test_any_text_is_a_scene_or_one_line_of_error(tmp_path, text):
         read_scene_file(path)
     except (ValueError, FileNotFoundError) as exc:
         assert str(exc).strip() and "\n" not in str(exc).strip()
+
+
+def test_a_flat_mesh_has_no_volume(tmp_path, capsys):
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n")
+    path = write(tmp_path, BASE.replace('mesh = "box"', 'mesh = "flat.obj"'))
+    assert main(["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "the mesh has no volume" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "d").exists()
