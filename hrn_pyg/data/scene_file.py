@@ -8,7 +8,8 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
     [[objects]]
     mesh = "duck.obj"              # a file trimesh reads (relative to this file, absolute, or
                                    # pybullet_data:<path> for pybullet's own) or a primitive:
-                                   # box, sphere, cylinder, capsule, cone; cloth: "sheet"
+                                   # box, sphere, cylinder, capsule, cone; cloth: "sheet" (a square
+                                   # of side size on the lattice) or a surface mesh file
     material = "rigid"             # rigid, soft, cloth or static
     size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor
     mass = 0.5                     # kg
@@ -218,8 +219,13 @@ class SceneSpec:
         drawn = self.draw(np.random.default_rng(seed))["objects"]
         for index, (obj, values) in enumerate(zip(self.objects, drawn)):
             mesh = posed_mesh(obj, values)
-            if mesh is not None:
-                leaves_of(mesh, self.config.pitch, f"{self.name}: objects[{index}]")
+            if mesh is None:
+                continue
+            where = f"{self.name}: objects[{index}]"
+            if obj.material == "cloth":
+                surface_leaves(mesh, where)
+            else:
+                leaves_of(mesh, self.config.pitch, where)
 
     def to_dict(self) -> dict:
         """The spec as JSON-able data (for an episode's record)."""
@@ -275,8 +281,8 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
     mesh = raw.get("mesh")
     if not isinstance(mesh, str) or not mesh:
         raise ValueError(f"{where}: mesh (a file or one of {', '.join(PRIMITIVES)}) is required")
-    if material == "cloth" and mesh != SHEET:
-        raise ValueError(f"{where}: a cloth is a sheet: mesh = {SHEET!r}")
+    if material == "cloth" and mesh in PRIMITIVES:
+        raise ValueError(f"{where}: a cloth is a surface: mesh = {SHEET!r} or a surface mesh file")
     if mesh == SHEET and material != "cloth":
         raise ValueError(f"{where}: mesh = {SHEET!r} is for cloth only")
     if mesh not in PRIMITIVES and mesh != SHEET:
@@ -290,7 +296,7 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
         mesh = str(path.resolve())
     if ("size" in raw) == ("scale" in raw):
         raise ValueError(f"{where}: give one of size (longest extent, m) and scale")
-    if material == "cloth" and "scale" in raw:
+    if mesh == SHEET and "scale" in raw:
         raise ValueError(f"{where}: a sheet takes size (its side, m), not scale")
     if "orientation" in raw and "yaw" in raw:
         raise ValueError(f"{where}: give orientation or yaw, not both")
@@ -323,7 +329,7 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
     if spec.orientation is not None and np.any(np.linalg.norm(spec.orientation[0]) == 0):
         raise ValueError(f"{where}.orientation: a quaternion [x, y, z, w] of nonzero length")
     mesh_of = spec.base_mesh
-    if mesh_of is not None and not (mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
+    if mesh_of is not None and material != "cloth" and not (mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
         raise ValueError(f"{where}: the mesh has no volume (it is flat)")
     return spec
 
@@ -419,7 +425,7 @@ class FileScene(Scene):
             elif material == SOFT:
                 self._add_soft_mesh(obj, drawn, f"objects[{index}]")
             else:
-                self._add_sheet(drawn)
+                self._add_cloth(obj, drawn, f"objects[{index}]")
             self._start_moving(self._objects[-1], drawn)
 
     def scripted_action(self, t: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -485,8 +491,14 @@ class FileScene(Scene):
         self._objects.append(SceneObject(SOFT, body, mass, float(drawn["stiffness"]), nodes))
         self._check_node_count(self._objects[-1])
 
-    def _add_sheet(self, drawn: dict) -> None:
-        vertices, faces = grid_sheet(float(drawn["size"]), self.config.pitch)
+    def _add_cloth(self, obj: ObjectSpec, drawn: dict, where: str) -> None:
+        """A mass-spring cloth: a square sheet on the lattice, or a surface mesh whose (merged)
+        vertices are the leaves."""
+        mesh = posed_mesh(obj, drawn)
+        if mesh is None:
+            vertices, faces = grid_sheet(float(drawn["size"]), self.config.pitch)
+        else:
+            vertices, faces = surface_leaves(mesh, f"{self.spec.name}: {where}"), np.asarray(mesh.faces)
         path = os.path.join(self._tmpdir.name, f"cloth_{len(self._objects)}.obj")
         write_obj(path, vertices, faces)
         log10_k = CLOTH_LOG10_K_RANGE[0] + float(drawn["stiffness"]) * (CLOTH_LOG10_K_RANGE[1] - CLOTH_LOG10_K_RANGE[0])
@@ -510,6 +522,14 @@ class FileScene(Scene):
         if obj.material in (SOFT, CLOTH):
             x = self._object_positions(obj)
             obj.velocity = velocity + np.cross(spin, x - x.mean(axis=0))
+
+
+def surface_leaves(mesh: trimesh.Trimesh, name: str) -> np.ndarray:
+    """A cloth's leaves: the vertices of its surface mesh, at most :data:`MAX_LEAVES`."""
+    if len(mesh.vertices) > MAX_LEAVES:
+        raise ValueError(f"{name}: a cloth mesh of {len(mesh.vertices)} vertices, more than {MAX_LEAVES}; "
+                         "simplify it")
+    return np.asarray(mesh.vertices, dtype=np.float64)
 
 
 def leaves_of(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:

@@ -301,3 +301,19 @@ def test_a_flat_mesh_has_no_volume(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "the mesh has no volume" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "d").exists()
+
+
+def test_a_cloth_from_a_surface_mesh_has_its_vertices_as_leaves(tmp_path):
+    import trimesh
+
+    from hrn_pyg.data.voxelise import grid_sheet as sheet
+
+    vertices, faces = sheet(0.3, 0.05)
+    vertices[:, 2] = 0.02 * np.cos(vertices[:, 0] * 10)  # a wavy cloth
+    trimesh.Trimesh(vertices=vertices, faces=faces, process=False).export(tmp_path / "wavy.obj")
+    text = BASE + '[[objects]]\nmesh = "wavy.obj"\nmaterial = "cloth"\nsize = 0.3\nmass = 0.1\nposition = [0.0, 0.0, 0.5]\n'
+    episode = simulate_episode(read_scene_file(write(tmp_path, text)), seed=0)
+    assert episode["object_material"].tolist() == [RIGID, CLOTH]
+    cloth = episode["positions"][0, episode["leaf_object"] == 1]
+    assert len(cloth) == len(vertices)
+    assert np.ptp(cloth[:, 2]) > 0.015  # the wave (0.019 m from crest to trough) is kept
