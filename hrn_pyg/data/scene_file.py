@@ -65,9 +65,6 @@ from hrn_pyg.data.meshes import (
 )
 from hrn_pyg.data.scenes import (
     CLOTH_LOG10_K_RANGE,
-    NEO_HOOKEAN_DAMPING,
-    NEO_HOOKEAN_LAMBDA_OVER_MU,
-    SOFT_COLLISION_MARGIN,
     SOFT_LOG10_MU_RANGE,
     STATIC_DENSITY,
     Scene,
@@ -77,10 +74,7 @@ from hrn_pyg.data.scenes import (
 from hrn_pyg.data.voxelise import (
     grid_sheet,
     lattice_tetrahedra,
-    write_obj,
-    write_tetrahedral_vtk,
 )
-from hrn_pyg.utils.files import quiet_stdout
 
 #: keys of the file's top level, of an object and of a push
 SCENE_KEYS = ("steps", "pitch", "substeps", "physics_hz", "friction", "objects", "pushes")
@@ -475,21 +469,10 @@ class FileScene(Scene):
         return p.createCollisionShape(p.GEOM_MESH, fileName=str(convex_parts(mesh, CACHE_DIR)), physicsClientId=c)
 
     def _add_soft_mesh(self, obj: ObjectSpec, drawn: dict, where: str) -> None:
-        pitch = self.config.pitch
-        nodes, tets = lattice_tetrahedra(self._leaves(posed_mesh(obj, drawn), where), pitch)
-        path = os.path.join(self._tmpdir.name, f"soft_{len(self._objects)}.vtk")
-        write_tetrahedral_vtk(path, nodes, tets)
-        log10_mu = SOFT_LOG10_MU_RANGE[0] + float(drawn["stiffness"]) * (SOFT_LOG10_MU_RANGE[1] - SOFT_LOG10_MU_RANGE[0])
-        mu, mass = 10.0 ** log10_mu, float(drawn["mass"])
-        with quiet_stdout():
-            body = p.loadSoftBody(
-                path, basePosition=list(drawn["position"]), baseOrientation=quaternion(drawn), mass=mass,
-                useNeoHookean=1, NeoHookeanMu=mu, NeoHookeanLambda=NEO_HOOKEAN_LAMBDA_OVER_MU * mu,
-                NeoHookeanDamping=NEO_HOOKEAN_DAMPING, useSelfCollision=0,
-                frictionCoeff=drawn.get("friction", self.config.friction), collisionMargin=SOFT_COLLISION_MARGIN,
-                physicsClientId=self._client)
-        self._objects.append(SceneObject(SOFT, body, mass, float(drawn["stiffness"]), nodes))
-        self._check_node_count(self._objects[-1])
+        """A soft body: the tetrahedra of the mesh's voxel lattice."""
+        nodes, tets = lattice_tetrahedra(self._leaves(posed_mesh(obj, drawn), where), self.config.pitch)
+        self._add_soft_lattice(nodes, tets, float(drawn["mass"]), stiffness_exponent(drawn, SOFT_LOG10_MU_RANGE),
+                               drawn["position"], quaternion(drawn), drawn.get("friction", self.config.friction))
 
     def _add_cloth(self, obj: ObjectSpec, drawn: dict, where: str) -> None:
         """A mass-spring cloth: a square sheet on the lattice, or a surface mesh whose (merged)
@@ -499,19 +482,8 @@ class FileScene(Scene):
             vertices, faces = grid_sheet(float(drawn["size"]), self.config.pitch)
         else:
             vertices, faces = surface_leaves(mesh, f"{self.spec.name}: {where}"), np.asarray(mesh.faces)
-        path = os.path.join(self._tmpdir.name, f"cloth_{len(self._objects)}.obj")
-        write_obj(path, vertices, faces)
-        log10_k = CLOTH_LOG10_K_RANGE[0] + float(drawn["stiffness"]) * (CLOTH_LOG10_K_RANGE[1] - CLOTH_LOG10_K_RANGE[0])
-        mass = float(drawn["mass"])
-        with quiet_stdout():
-            body = p.loadSoftBody(
-                path, basePosition=list(drawn["position"]), baseOrientation=quaternion(drawn), mass=mass,
-                useMassSpring=1, useBendingSprings=1, springElasticStiffness=10.0 ** log10_k,
-                springDampingStiffness=0.1, springBendingStiffness=0.05 * 10.0 ** log10_k, useSelfCollision=0,
-                frictionCoeff=drawn.get("friction", self.config.friction), collisionMargin=SOFT_COLLISION_MARGIN,
-                useFaceContact=1, physicsClientId=self._client)
-        self._objects.append(SceneObject(CLOTH, body, mass, float(drawn["stiffness"]), vertices))
-        self._check_node_count(self._objects[-1])
+        self._add_cloth_mesh(vertices, faces, float(drawn["mass"]), stiffness_exponent(drawn, CLOTH_LOG10_K_RANGE),
+                             drawn["position"], quaternion(drawn), drawn.get("friction", self.config.friction))
 
     def _start_moving(self, obj: SceneObject, drawn: dict) -> None:
         """The drawn start velocity and spin (a soft body's nodes move as one rigid body)."""
@@ -522,6 +494,12 @@ class FileScene(Scene):
         if obj.material in (SOFT, CLOTH):
             x = self._object_positions(obj)
             obj.velocity = velocity + np.cross(spin, x - x.mean(axis=0))
+
+
+def stiffness_exponent(drawn: dict, log10_range: tuple[float, float]) -> float:
+    """The drawn ``stiffness`` in [0, 1] as the exponent of pybullet's modulus over ``log10_range``."""
+    low, high = log10_range
+    return low + float(drawn["stiffness"]) * (high - low)
 
 
 def surface_leaves(mesh: trimesh.Trimesh, name: str) -> np.ndarray:

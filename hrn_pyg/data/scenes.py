@@ -601,6 +601,11 @@ class Scene:
                        orientation=(0, 0, 0, 1)) -> int:
         nodes, tets = lattice_tetrahedra(voxelise(box_mesh(side), self.config.pitch),
                                          self.config.pitch)
+        return self._add_soft_lattice(nodes, tets, mass, log10_mu, position, orientation, self.config.friction)
+
+    def _add_soft_lattice(self, nodes: np.ndarray, tets: np.ndarray, mass: float, log10_mu: float, position,
+                          orientation, friction: float) -> int:
+        """A Neo-Hookean soft body of the tetrahedral mesh ``nodes [M, 3]``, ``tets [T, 4]``."""
         path = os.path.join(self._tmpdir.name, f"soft_{len(self._objects)}.vtk")
         write_tetrahedral_vtk(path, nodes, tets)
         mu = 10.0 ** log10_mu
@@ -609,7 +614,7 @@ class Scene:
                 path, basePosition=list(position), baseOrientation=list(orientation), mass=mass,
                 useNeoHookean=1, NeoHookeanMu=mu, NeoHookeanLambda=NEO_HOOKEAN_LAMBDA_OVER_MU * mu,
                 NeoHookeanDamping=NEO_HOOKEAN_DAMPING, useSelfCollision=0,
-                frictionCoeff=self.config.friction, collisionMargin=SOFT_COLLISION_MARGIN,
+                frictionCoeff=friction, collisionMargin=SOFT_COLLISION_MARGIN,
                 physicsClientId=self._client)
         self._objects.append(SceneObject(SOFT, body, mass, _log_stiffness(log10_mu, SOFT_LOG10_MU_RANGE),
                                      nodes))
@@ -618,15 +623,21 @@ class Scene:
 
     def _add_cloth(self, size: float, mass: float, log10_k: float, position) -> int:
         vertices, faces = grid_sheet(size, self.config.pitch)
+        return self._add_cloth_mesh(vertices, faces, mass, log10_k, position, None, self.config.friction)
+
+    def _add_cloth_mesh(self, vertices: np.ndarray, faces: np.ndarray, mass: float, log10_k: float, position,
+                        orientation, friction: float) -> int:
+        """A mass-spring cloth whose nodes are ``vertices [M, 3]`` (``orientation`` None: unrotated)."""
         path = os.path.join(self._tmpdir.name, f"cloth_{len(self._objects)}.obj")
         write_obj(path, vertices, faces)
+        pose = {} if orientation is None else {"baseOrientation": list(orientation)}
         with quiet_stdout():
             body = p.loadSoftBody(
                 path, basePosition=list(position), mass=mass, useMassSpring=1, useBendingSprings=1,
                 springElasticStiffness=10.0 ** log10_k, springDampingStiffness=0.1,
                 springBendingStiffness=0.05 * 10.0 ** log10_k, useSelfCollision=0,
-                frictionCoeff=self.config.friction, collisionMargin=SOFT_COLLISION_MARGIN,
-                useFaceContact=1, physicsClientId=self._client)
+                frictionCoeff=friction, collisionMargin=SOFT_COLLISION_MARGIN,
+                useFaceContact=1, physicsClientId=self._client, **pose)
         self._objects.append(SceneObject(CLOTH, body, mass, _log_stiffness(log10_k, CLOTH_LOG10_K_RANGE),
                                      vertices))
         self._check_node_count(self._objects[-1])
