@@ -38,7 +38,7 @@ import numpy as np
 import trimesh
 
 from hrn_pyg.data.voxelise import voxelise
-from hrn_pyg.utils.files import quiet_stdout
+from hrn_pyg.utils.files import import_pybullet, quiet_stdout
 
 #: primitive shapes a scene may name instead of a mesh file, each with its longest extent 1 m
 PRIMITIVES = ("box", "sphere", "cylinder", "capsule", "cone")
@@ -239,8 +239,7 @@ def convex_parts(mesh: trimesh.Trimesh, cache_dir: str | os.PathLike, resolution
     The file is written next to its final name and moved into place, so two workers that
     decompose the same mesh at once leave one whole file.
     """
-    import pybullet
-
+    pybullet = import_pybullet()
     cache = Path(cache_dir)
     cache.mkdir(parents=True, exist_ok=True)
     key = f"{mesh_digest(mesh)[:24]}_r{resolution}"

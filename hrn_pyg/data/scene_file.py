@@ -42,13 +42,12 @@ from __future__ import annotations
 import math
 import os
 import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pybullet as p
 import trimesh
 
 from hrn_pyg.data.effects import SceneEffects
@@ -75,6 +74,9 @@ from hrn_pyg.data.voxelise import (
     grid_sheet,
     lattice_tetrahedra,
 )
+from hrn_pyg.utils.files import import_pybullet
+
+p = import_pybullet()
 
 #: keys of the file's top level, of an object and of a push
 SCENE_KEYS = ("steps", "pitch", "substeps", "physics_hz", "friction", "objects", "pushes")
@@ -220,11 +222,6 @@ class SceneSpec:
                 surface_leaves(mesh, where)
             else:
                 leaves_of(mesh, self.config.pitch, where)
-
-    def to_dict(self) -> dict:
-        """The spec as JSON-able data (for an episode's record)."""
-        return {"name": self.name, "source": self.source, "text": self.text,
-                "config": {k: v for k, v in asdict(self.config).items()}}
 
 
 def read_scene_file(path: str | os.PathLike) -> SceneSpec:

@@ -33,38 +33,12 @@ import dataclasses
 import json
 import math
 import os
-import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
 import numpy as np
-
-
-def _import_pybullet():
-    """Import pybullet without the build-time banner its C code prints on import."""
-    streams = []
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            streams.append(stream.fileno())
-            stream.flush()
-        except (AttributeError, OSError, ValueError):  # captured streams without a real fd
-            pass
-    saved = [os.dup(fd) for fd in streams]
-    try:
-        with open(os.devnull, "w") as devnull:
-            for fd in streams:
-                os.dup2(devnull.fileno(), fd)
-        import pybullet
-    finally:
-        for fd, copy in zip(streams, saved):
-            os.dup2(copy, fd)
-            os.close(copy)
-    return pybullet
-
-
-p = _import_pybullet()
 
 from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
@@ -78,7 +52,9 @@ from hrn_pyg.data.voxelise import (
     write_obj,
     write_tetrahedral_vtk,
 )
-from hrn_pyg.utils.files import quiet_stdout
+from hrn_pyg.utils.files import import_pybullet, quiet_stdout
+
+p = import_pybullet()
 
 GRAVITY = 9.81
 #: Nominal density (kg/m^3) giving a static body's leaves a mass: they never move, but the

@@ -16,6 +16,7 @@ import argparse
 import io
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -31,6 +32,9 @@ from hrn_pyg.sim.fixed_shape import FixedShapeConfig
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
+
+if TYPE_CHECKING:
+    from hrn_pyg.data.scene_file import SceneSpec
 
 #: columns of the PNG, as fractions of the horizon (t = 0 is the start state)
 FIGURE_COLUMNS = (0.0, 0.25, 0.5, 0.75, 1.0)
@@ -65,7 +69,8 @@ def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroDat
     return model if device is None else model.to(device)
 
 
-def initial_state(args: argparse.Namespace, steps: int | None, source=None) -> tuple[HeteroData, dict]:
+def initial_state(args: argparse.Namespace, steps: int | None,
+                  source: str | SceneSpec | None = None) -> tuple[HeteroData, dict]:
     """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin;
     ``source`` is :func:`scene_source` of ``args`` when the caller has it."""
     if args.data:
@@ -87,7 +92,7 @@ def initial_state(args: argparse.Namespace, steps: int | None, source=None) -> t
     return graph, {**where, "seed": int(args.seed), "start_step": int(args.start)}
 
 
-def scene_source(args: argparse.Namespace):
+def scene_source(args: argparse.Namespace) -> str | SceneSpec:
     """The built-in scene's name, or the :class:`~hrn_pyg.data.scene_file.SceneSpec` of ``--scene-file``."""
     if not args.scene_file:
         return args.scene

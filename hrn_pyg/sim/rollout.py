@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.effects import SceneEffects, plan_effects
+from hrn_pyg.data.effects import EffectPlan, SceneEffects, plan_effects
 from hrn_pyg.data.graph import NODE, set_state
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sim import sleeping
@@ -60,7 +60,8 @@ def iterate(
     every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
     ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.data.effects.SceneEffects`;
     None: what the data show): a scene in which nothing can touch gets no collision search at
-    all. The arguments are checked when the generator starts.
+    all. The arguments are checked, and the plan, the start graph and the objects made, when
+    this is called; the steps run as they are taken from the iterator.
     """
     check_forces(graph, steps, forces)
     plan = plan_effects(graph, steps, forces, effects)
@@ -74,8 +75,16 @@ def iterate(
         objects = sleeper.objects.of_node, sleeper.objects.count
     else:
         objects = object_of(graph) if model.config.rigid_fit else None
+    return _steps(model, graph, steps, forces, masks_fn, plan, sleeper, objects)
+
+
+def _steps(model: HRN, graph: HeteroData, steps: int, forces: Tensor | None, masks_fn: MasksFn | None,
+           plan: EffectPlan, sleeper: sleeping.Sleeper | None, objects: tuple[Tensor, int] | None
+           ) -> Iterator[Step]:
+    """The loop of :func:`iterate`, from its prepared start."""
+    no_force = torch.zeros_like(graph[NODE].pos) if forces is None else None
     for t in range(steps):  # time steps; each step is vectorised over particles
-        force = forces[t] if forces is not None else torch.zeros_like(store.pos)
+        force = forces[t] if forces is not None else no_force
         masks = masks_fn(t, graph) if masks_fn is not None else None
         active = plan.force_active[t]
         if sleeper is not None:

@@ -57,20 +57,36 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
 
 
 @contextlib.contextmanager
-def quiet_stdout():
-    """Silence C-level prints to file descriptor 1 inside the block (pybullet's ``loadSoftBody``
-    and ``vhacd`` print there); a stdout without a real descriptor is left as it is."""
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # captured stdout without a real fd
-        yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(fd)
+def silenced(*streams: IO[str]) -> Iterator[None]:
+    """Send what C code writes to the file descriptors of ``streams`` (default: stdout) to
+    ``/dev/null`` inside the block (pybullet prints a banner on import and counts from
+    ``loadSoftBody`` and ``vhacd``); a stream without a real descriptor is left as it is."""
+    fds = []
+    for stream in streams or (sys.stdout,):
+        try:
+            fds.append(stream.fileno())
+            stream.flush()
+        except (AttributeError, OSError, ValueError):  # captured streams without a real fd
+            pass
+    saved = [os.dup(fd) for fd in fds]
     try:
         with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), fd)
+            for fd in fds:
+                os.dup2(devnull.fileno(), fd)
         yield
     finally:
-        os.dup2(saved, fd)
-        os.close(saved)
+        for fd, copy in zip(fds, saved):
+            os.dup2(copy, fd)
+            os.close(copy)
+
+
+def quiet_stdout() -> contextlib.AbstractContextManager[None]:
+    """:func:`silenced` stdout."""
+    return silenced(sys.stdout)
+
+
+def import_pybullet():
+    """pybullet, imported without the build-time banner its C code prints on import."""
+    with silenced(sys.stdout, sys.stderr):
+        import pybullet
+    return pybullet

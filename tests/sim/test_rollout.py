@@ -179,3 +179,18 @@ def test_unroll_rejects_a_non_finite_start_once():
     g[NODE].prev_pos[0, 1] = float("nan")
     with pytest.raises(ValueError, match=r"prev_pos contains NaN or infinite values"):
         rollout(model, g, 2, sleep=None)
+
+
+def test_iterate_checks_its_arguments_when_called_not_when_stepped():
+    from stability.stability_helpers import fitted_model
+
+    from hrn_pyg.sim.rollout import iterate
+
+    model, graph = fitted_model(), toy_scene()
+    with pytest.raises(ValueError, match="steps must be >= 1"):
+        iterate(model, graph, 0)  # nothing taken from the iterator
+    bad = torch.full((3, graph["particle"].num_nodes, 3), float("nan"))
+    with pytest.raises(ValueError, match="forces contains NaN"):
+        iterate(model, graph, 3, bad)
+    steps = iterate(model, graph, 3)
+    assert len(list(steps)) == 3
