@@ -52,10 +52,11 @@ from torch_geometric.data import Batch, HeteroData
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy
 from hrn_pyg.data.io import load_episode, save_episode
-from hrn_pyg.data.scenes import make_scene, scene_config, simulate_episode
+from hrn_pyg.data.scene_file import builtin_scene, make_scene
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise
 from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sampling.sample import sample
@@ -132,11 +133,11 @@ def make_dataset(work: Path, point: Point, episodes: int, steps: int) -> Path:
         return folder
     folder.mkdir(parents=True, exist_ok=True)
     if (point.branching, point.leaf_group) == (8, 8):
-        config = scene_config(point.scene, pitch=point.pitch, steps=steps)
+        config = builtin_scene(point.scene, pitch=point.pitch, steps=steps)
         for seed in range(episodes):  # one pybullet episode per seed
             path = folder / f"episode_{seed:06d}.npz"
             if not path.is_file():
-                save_episode(path, simulate_episode(point.scene, seed, config=config))
+                save_episode(path, simulate_episode(config, seed))
     else:
         base = make_dataset(work, Point(point.scene, "base", "base", pitch=point.pitch), episodes, steps)
         hcfg = HierarchyConfig(branching=point.branching, leaf_group_size=point.leaf_group)
@@ -157,7 +158,7 @@ def pybullet_ms_per_step(scene: str, pitch: float, repeats: int, steps: int = 20
     """Median wall time (ms) of one model step of pybullet itself, and the leaf count."""
     times, leaves = [], 0
     for r in range(repeats):
-        sim = make_scene(scene, r, scene_config(scene, pitch=pitch))
+        sim = make_scene(builtin_scene(scene, pitch=pitch), r)
         try:
             leaves = len(sim.reset())
             start = time.perf_counter()

@@ -46,8 +46,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scaling import cubes_scene  # noqa: E402  (a sibling benchmark's scene builder)
 
 from hrn_pyg.data.candidates import build_candidates  # noqa: E402
+from hrn_pyg.data.episodes import simulate_episode  # noqa: E402
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_state  # noqa: E402
-from hrn_pyg.data.scenes import simulate_episode  # noqa: E402
 from hrn_pyg.nn.hrn import HRN, HRNConfig  # noqa: E402
 from hrn_pyg.nn.normalizer import fit_normalizer  # noqa: E402
 from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402

@@ -33,7 +33,7 @@ import torch
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import read_episode
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import scene_effects
+from hrn_pyg.data.scene_file import scene_effects
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
 from hrn_pyg.sim.rollout import rollout

@@ -38,9 +38,9 @@ import numpy as np
 import torch
 from torch_geometric.data import HeteroData
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_state
 from hrn_pyg.data.hierarchy import build_hierarchy
-from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.data.voxelise import box_mesh, voxelise
 from hrn_pyg.nn.hrn import HRN, MODULE_NAMES, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer

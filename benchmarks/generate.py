@@ -16,7 +16,7 @@ import torch
 
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.data.radius import collision_edges
-from hrn_pyg.data.scenes import SCENES, make_scene
+from hrn_pyg.data.scene_file import SCENES, make_scene
 from hrn_pyg.utils.files import atomic_write_json
 
 #: Collision radius for the edge-search timing (m): about one voxel pitch, as the model uses.

@@ -27,8 +27,9 @@ import time
 import torch
 
 from hrn_pyg.checkpoints import load_model, with_applied_options
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import MATERIALS, NODE
-from hrn_pyg.data.scenes import SCENES, simulate_episode
+from hrn_pyg.data.scene_file import SCENES
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.utils.files import atomic_write_json
@@ -119,8 +120,8 @@ def main() -> int:
             rows.append(row)
             print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
 
-    print(f"\n| scene | model | seed | passes | max move (m) | lowest leaf (m) | rigid shape change | "
-          f"rest drift (m) | soft extent ratio |")
+    print("\n| scene | model | seed | passes | max move (m) | lowest leaf (m) | rigid shape change | "
+          "rest drift (m) | soft extent ratio |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:

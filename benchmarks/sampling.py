@@ -30,8 +30,9 @@ import time
 
 import torch
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import scene_effects, simulate_episode
+from hrn_pyg.data.scene_file import scene_effects
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sampling.ensemble import episode_state

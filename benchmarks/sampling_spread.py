@@ -24,8 +24,8 @@ import platform
 import numpy as np
 import torch
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.cli import model_for
 from hrn_pyg.sampling.ensemble import episode_state

@@ -243,7 +243,7 @@ def run_child(extra: list[str], args: argparse.Namespace) -> dict:
 
 
 def fit_normalizer_file(path: str) -> None:
-    from hrn_pyg.data.scenes import simulate_episode
+    from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.nn.normalizer import Normalizer, fit_normalizer
     from hrn_pyg.sampling.ensemble import episode_state
 

@@ -6,7 +6,7 @@ Cases (all on the CPU, shipped checkpoints, the pybullet episode's own forces):
   full pybullet test episodes (``seed % 10 == 9``; ``--seeds``, default 9, 19, 29), rolled out
   from step 2 (:func:`hrn_pyg.sampling.ensemble.episode_state`) to the episode's end;
 * ``field``: one pybullet world of 64 objects, sixteen of the ``tower`` scene's towers (three
-  stacked cubes and a ball each, drawn as in :class:`hrn_pyg.data.scenes.Tower`) on a 4 x 4 grid
+  stacked cubes and a ball each, drawn as in the built-in tower scene) on a 4 x 4 grid
   ``--field-spacing`` (1.5 m) apart, rolled out with ``tower.pt`` (the model of exactly this
   neighbourhood; it sees only relative positions, so the grid offsets do not matter to it).
   Only the balls of the first ``--field-moving`` (2) towers are pushed, by the tower scene's
@@ -14,7 +14,7 @@ Cases (all on the CPU, shipped checkpoints, the pybullet episode's own forces):
   So a few objects move (2 balls and whatever they topple) and most rest, the case sleeping
   is for. The grid is wide enough that the other towers are out of the moving balls' reach.
 
-Both settings get the scene's declared effects (:func:`hrn_pyg.data.scenes.scene_effects`; the
+Both settings get the scene's declared effects (:func:`hrn_pyg.data.scene_file.scene_effects`; the
 field: the tower's). For each case: a rollout with every object awake (``sleep=None``) and one with
 ``SleepConfig()`` (the defaults of :mod:`hrn_pyg.sim.sleeping`), ``--repeats`` >= 3 times each in one
 process, the two settings interleaved so they see the same machine load (one torch thread by
@@ -46,7 +46,6 @@ import os
 import platform
 import statistics
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -55,14 +54,13 @@ from tqdm.auto import tqdm
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.effects import SceneEffects
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import (
-    SCENES,
-    Tower,
-    TowerConfig,
-    _yaw_quaternion,
+from hrn_pyg.data.scene_file import (
+    SceneSpec,
+    builtin_scene,
+    parse_scene,
     scene_effects,
-    simulate_episode,
 )
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
@@ -78,58 +76,44 @@ HORIZON = 15
 QUICK_STEPS = 40
 
 
-@dataclass(frozen=True)
-class TowerFieldConfig(TowerConfig):
-    """``towers`` towers of the tower scene on a square grid ``spacing`` apart; the balls of the
-    first ``moving`` towers are pushed (the tower scene's schedule), the rest stay at rest."""
-
-    towers: int = 16
-    spacing: float = 1.5
-    moving: int = 2
-
-
-class TowerField(Tower):
-    """Many independent towers in one world: objects ``4 k .. 4 k + 2`` are tower ``k``'s cubes
-    (bottom to top), ``4 k + 3`` its ball."""
-
-    name = "tower_field"
-    config_cls = TowerFieldConfig
-
-    def __init__(self, seed: int, config: TowerFieldConfig | None = None) -> None:
-        super().__init__(seed, config)
-        self.actuated = tuple(4 * k + 3 for k in range(self.config.moving))
-
-    def draw_params(self, rng):
-        towers = [{k: v for k, v in super(TowerField, self).draw_params(rng).items() if k != "last_push_step"}
-                  for _ in range(self.config.towers)]
-        return {"towers": towers, **self._schedule_params(rng)}
-
-    def build(self):
-        cfg = self.config
-        side = math.ceil(math.sqrt(cfg.towers))
-        for k, pr in enumerate(self.params["towers"]):  # a few towers, each a handful of bodies
-            ox, oy = cfg.spacing * (k % side), cfg.spacing * (k // side)
-            for level, (mass, yaw) in enumerate(zip(pr["cube_masses"], pr["yaws"])):
-                self._add_rigid("box", cfg.cube_side, mass, (ox, oy, cfg.cube_side * (level + 0.5)),
-                                _yaw_quaternion(yaw))
-            d, h = pr["ball_distance"], pr["ball_heading"]
-            self._add_rigid("sphere", cfg.ball_radius, pr["ball_mass"],
-                            (ox + d * math.cos(h), oy + d * math.sin(h), cfg.ball_radius))
-
-    def _aim(self, index):
-        ball = self._object_positions(self._objects[index]).mean(axis=0)
-        base = self._object_positions(self._objects[index - 3]).mean(axis=0)
-        to_tower = base - ball
-        return math.atan2(to_tower[1], to_tower[0]) + float(self.rng.uniform(*self.config.aim_noise_range))
+def tower_field(towers: int = 16, spacing: float = 1.5, moving: int = 2) -> SceneSpec:
+    """``towers`` towers of the tower scene on a square grid ``spacing`` apart, as one scene:
+    objects ``4 k .. 4 k + 2`` are tower ``k``'s cubes (bottom to top), ``4 k + 3`` its ball; the
+    balls of the first ``moving`` towers are pushed as in the tower scene (each its own random
+    schedule, aimed at its own tower), the rest stay at rest."""
+    tower = builtin_scene("tower")
+    side = math.ceil(math.sqrt(towers))
+    draw = {}
+    objects, pushes = [], []
+    for k in range(towers):  # a few towers, each a handful of bodies
+        ox, oy = spacing * (k % side), spacing * (k // side)
+        draw |= {f"cube_masses_{k}": "[uniform(cube_mass_range), uniform(cube_mass_range), uniform(cube_mass_range)]",
+                 f"ball_mass_{k}": "uniform(ball_mass_range)", f"yaws_{k}": "uniform(-0.2, 0.2, 3)",
+                 f"ball_distance_{k}": "uniform(ball_distance_range)", f"ball_heading_{k}": "uniform(0, 2 * pi)"}
+        objects += [{"mesh": "box", "material": "rigid", "size": "cube_side", "mass": f"cube_masses_{k}[{level}]",
+                     "position": f"[{ox}, {oy}, cube_side * {level + 0.5}]",
+                     "orientation": f"yaw_quaternion(yaws_{k}[{level}])"} for level in range(3)]
+        objects.append({"mesh": "sphere", "material": "rigid", "size": "2 * ball_radius", "mass": f"ball_mass_{k}",
+                        "position": f"[{ox} + ball_distance_{k} * cos(ball_heading_{k}), "
+                                    f"{oy} + ball_distance_{k} * sin(ball_heading_{k}), ball_radius]"})
+        if k < moving:
+            pushes.append({"object": 4 * k + 3, "steps": "[0, last_push_step]",
+                           "random": {"force": "force_range", "hold": "hold_range", "pause": "pause_range",
+                                      "aim": 4 * k, "aim_noise": "aim_noise_range"}})
+    draw["last_push_step"] = "integer(last_push_step_range)"
+    settings = {key: value.tolist() if hasattr(value, "tolist") else value for key, value in tower.settings.items()}
+    table = {**{f: getattr(tower.config, f) for f in ("steps", "substeps", "physics_hz", "pitch", "friction",
+                                                      "rolling_friction")},
+             "effects": {"forces": True, "collisions": True}, "settings": settings, "draw": draw,
+             "objects": objects, "pushes": pushes}
+    return parse_scene(table, name="tower_field")
 
 
 def make_case(scene: str, seed: int, steps: int | None, moving: int, spacing: float) -> tuple[HeteroData, torch.Tensor]:
     """The initial graph (step 2 of the pybullet episode, with its ground truth) and the forces
     ``[S, N, 3]`` of the steps to the end."""
     if scene == "field":
-        SCENES.setdefault(TowerField.name, TowerField)  # simulate_episode looks scenes up by name
-        episode = simulate_episode(TowerField.name, seed, steps,
-                                   TowerFieldConfig(moving=moving, spacing=spacing))
+        episode = simulate_episode(tower_field(moving=moving, spacing=spacing), seed, steps)
     else:
         episode = simulate_episode(scene, seed, steps)
     graph = episode_state(episode, start=2)
@@ -382,7 +366,7 @@ def main(argv: list[str] | None = None) -> dict:
         "quick": args.quick, "repeats": args.repeats,
         "statistic": "median over repeats of (rollout time / steps); settings interleaved, one process",
         "error": "position MSE per coordinate over movable leaves against pybullet, at t+15 and the episode end",
-        "field": {"towers": TowerFieldConfig.towers, "moving": args.field_moving, "spacing": args.field_spacing,
+        "field": {"towers": 16, "moving": args.field_moving, "spacing": args.field_spacing,
                   "model": args.models.get("field", CHECKPOINTS["field"])},
         "models": {case: args.models.get(case, path) for case, path in CHECKPOINTS.items()},
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),

@@ -36,7 +36,7 @@ from accuracy_vs_time import HORIZONS, STRIDE, pybullet_ms_per_step  # noqa: E40
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import EpisodeWindows  # noqa: E402
 from hrn_pyg.data.graph import NODE  # noqa: E402
-from hrn_pyg.data.scenes import scene_effects  # noqa: E402
+from hrn_pyg.data.scene_file import scene_effects  # noqa: E402
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise  # noqa: E402
 from hrn_pyg.sim.rollout import rollout  # noqa: E402
 from hrn_pyg.utils.files import atomic_write_json  # noqa: E402
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> dict:
     pybullet_ms, pybullet_leaves = pybullet_ms_per_step(SCENE, pitch, args.repeats)
     leaves = int(store.is_leaf.sum())
     speedup = pybullet_ms / model_ms
-    print(f"| model | pitch | leaves | ms/step | pybullet ms/step | speed-up | pos MSE t+5 | pos MSE t+15 | shape MSE t+15 |")
+    print("| model | pitch | leaves | ms/step | pybullet ms/step | speed-up | pos MSE t+5 | pos MSE t+15 | shape MSE t+15 |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     pos, shape = errors["position"], errors["shape"]
     print(f"| {args.model} | {pitch:g} | {leaves} | {model_ms:.2f} | {pybullet_ms:.2f} | x{speedup:.1f} | "

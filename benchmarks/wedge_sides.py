@@ -44,8 +44,8 @@ import numpy as np
 import torch
 
 from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scenes import config_to_dict, simulate_episode
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
     episode_state,
@@ -77,7 +77,7 @@ def split_seeds(split: str, count: int, first: int = 0) -> list[int]:
 def ensemble_end(cache: str, seed: int, members: int, steps: int, std: float, config) -> np.ndarray:
     """Leaf positions ``[members, L, 3]`` of a pybullet ensemble at step ``steps``, from ``cache``
     when an earlier run stored them for the same scene settings, seed, size and spread."""
-    key = json.dumps({"scene": config_to_dict(config), "seed": seed, "members": members, "steps": steps,
+    key = json.dumps({"scene": config.settings_dict(), "seed": seed, "members": members, "steps": steps,
                       "std": std}, sort_keys=True)
     path = Path(cache) / f"{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz" if cache else None
     if path is not None and path.is_file():
@@ -124,9 +124,9 @@ def main(argv: list[str] | None = None) -> dict:
         raise ValueError("--episodes must be >= 1, --k and --members >= 2")
     torch.set_num_threads(args.threads)
     config = ridge_config(args.data)
-    steps = args.steps or config.steps - HISTORY
-    if not 1 <= steps <= config.steps - HISTORY:
-        raise ValueError(f"--steps must be in [1, {config.steps - HISTORY}], got {steps}")
+    steps = args.steps or config.config.steps - HISTORY
+    if not 1 <= steps <= config.config.steps - HISTORY:
+        raise ValueError(f"--steps must be in [1, {config.config.steps - HISTORY}], got {steps}")
     model = load_model(args.model)
     if args.rates:
         rates = [float(r) for r in args.rates.split(",") if r]
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = []
     start = time.perf_counter()
     for i, seed in enumerate(seeds):
-        episode = simulate_episode("wedge", seed, steps=HISTORY + steps, config=config)
+        episode = simulate_episode(config, seed, steps=HISTORY + steps)
         fine_end = torch.as_tensor(ensemble_end(args.cache, seed, args.members, HISTORY + steps,
                                                 args.fine_std, config))
         coarse_end = torch.as_tensor(ensemble_end(args.cache, seed, args.members, HISTORY + steps,
@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> dict:
     table = "\n".join(lines)
     print(table)
     out = {"what": "wedge ridge drops: probability of ending at x < 0, samples vs pybullet ensembles",
-           "model": args.model, "data": args.data, "scene_config": config_to_dict(config),
+           "model": args.model, "data": args.data, "scene_config": config.settings_dict(),
            "split": args.split, "seeds": seeds, "steps": steps, "k": args.k, "members": args.members,
            "fine_std": args.fine_std, "coarse_std": args.coarse_std, "rates": rates,
            "sample_seed": args.sample_seed, "results": results, "episodes": rows, "markdown": table,

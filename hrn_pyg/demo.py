@@ -40,8 +40,8 @@ def checkpoint_dir() -> Path:
 
 
 def _held_out_episodes(scene: str, folder: Path) -> Path:
+    from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.data.io import save_episode
-    from hrn_pyg.data.scenes import simulate_episode
 
     for seed in DEMO_SEEDS:
         path = folder / f"episode_{seed:06d}.npz"

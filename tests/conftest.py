@@ -22,8 +22,8 @@ def _single_thread():
 @pytest.fixture(scope="session")
 def tiny_episodes(tmp_path_factory) -> Path:
     """Ten short pybullet ``cube_collision`` episodes (about a second to make)."""
+    from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.data.io import save_episode
-    from hrn_pyg.data.scenes import simulate_episode
 
     folder = tmp_path_factory.mktemp("cube_collision")
     for seed in TINY_SEEDS:

@@ -16,7 +16,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hrn_pyg.data.scenes import SCENES, simulate_episode  # noqa: E402
+from hrn_pyg.data.episodes import simulate_episode
+from hrn_pyg.data.scene_file import SCENES  # noqa: E402
 from hrn_pyg.viz import save_figure  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))

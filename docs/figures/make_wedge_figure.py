@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
     episode_state,
@@ -46,14 +46,14 @@ def wedge_outline(width: float, height: float) -> np.ndarray:
 
 def paths(model, episode: dict, config, k: int, members: int, std: float, rate: float, seed: int):
     """Ball-centre paths ``[K, T, 3]`` of the samples and ``[M, T, 3]`` of the ensemble."""
-    steps = config.steps - HISTORY
+    steps = config.config.steps - HISTORY
     graph = episode_state(episode, start=HISTORY, steps=steps)
     gen = torch.Generator().manual_seed(0)
     futures = sample(model, graph, k, steps, rate, forces=graph[NODE].force_seq.transpose(0, 1),
                      generator=gen)  # [K, T, L, 3]
     start = torch.as_tensor(episode["positions"][:HISTORY + 1]).float()
     futures = torch.cat([start.expand(k, -1, -1, -1), futures], dim=1)
-    ens = torch.as_tensor(ground_truth_ensemble("wedge", seed, members, config.steps,
+    ens = torch.as_tensor(ground_truth_ensemble("wedge", seed, members, config.config.steps,
                                                 PerturbationConfig(position_std=std), config)).float()
     obj, mass = episode["leaf_object"], episode["leaf_mass"]
     return ball_centres(futures, obj, mass).numpy(), ball_centres(ens, obj, mass).numpy()
@@ -70,13 +70,13 @@ def draw(sides: dict, seed: int, model_path: str, data: str, out: Path, members:
     rate = float(sides["rates"][0] if rate is None else rate)
     if f"below@{rate:g}" not in sides["episodes"][0]:
         raise ValueError(f"--rate {rate:g} was not scored in the JSON (rates {sides['rates']})")
-    episode = simulate_episode("wedge", seed, config=config)
+    episode = simulate_episode(config, seed)
     params = json.loads(str(episode["params"]))["params"]
     samples, ensemble = paths(load_model(model_path), episode, config, sides["k"], members, std, rate, seed)
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), dpi=110, gridspec_kw={"width_ratios": [2.2, 1.2, 1]})
     ax = axes[0]
-    ax.add_patch(plt.Polygon(wedge_outline(config.wedge_width, params["wedge_height"]), closed=True,
+    ax.add_patch(plt.Polygon(wedge_outline(config.settings["wedge_width"], params["wedge_height"]), closed=True,
                              facecolor=WEDGE_COLOR, edgecolor="#707070", zorder=1, label="wedge"))
     for path in ensemble:
         ax.plot(path[:, 0], path[:, 2], color=TRUTH_COLOR, lw=0.8, alpha=0.5, zorder=2)
@@ -86,8 +86,8 @@ def draw(sides: dict, seed: int, model_path: str, data: str, out: Path, members:
                label=f"pybullet, {len(ensemble)} starts ±{1e3 * std:g} mm")
     ax.scatter(samples[:, -1, 0], samples[:, -1, 2], s=14, color=SAMPLE_COLOR, zorder=5,
                label=f"model, {len(samples)} samples at rate {rate:g}")
-    xs = np.concatenate([samples[..., 0].ravel(), ensemble[..., 0].ravel(), [-config.wedge_width / 2,
-                                                                             config.wedge_width / 2]])
+    xs = np.concatenate([samples[..., 0].ravel(), ensemble[..., 0].ravel(), [-config.settings["wedge_width"] / 2,
+                                                                             config.settings["wedge_width"] / 2]])
     zs = np.concatenate([samples[..., 2].ravel(), ensemble[..., 2].ravel(), [0.0]])
     pad = 0.05 * (xs.max() - xs.min())
     ax.set_xlim(xs.min() - pad, xs.max() + pad)

@@ -4,15 +4,15 @@ Episode ``i`` (``0 <= i < --episodes``) has seed ``--seed-offset + i`` and is wr
 ``<out>/episode_<seed:06d>.npz`` (:func:`hrn_pyg.data.io.save_episode`, atomic). A rerun skips
 files that exist, so a killed run loses at most the episodes in flight. ``--shard i/N`` keeps
 the episodes whose index is ``i`` modulo ``N``, so N machines can split one dataset.
-``<out>/meta.json`` (atomic) records the scene, its configuration and the counts.
-``--scene-file FILE`` simulates a scene read from a TOML file
-(:mod:`hrn_pyg.data.scene_file`) instead of a built-in one; its meta.json keeps the file's text.
+``<out>/meta.json`` (atomic) records the scene, its settings and the counts. ``--scene-file
+FILE`` simulates a scene read from a TOML file (:mod:`hrn_pyg.data.scene_file`) instead of a
+built-in one; its meta.json keeps the file's text. ``--set NAME=VALUE`` changes a setting of
+either.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import multiprocessing as mp
 import os
@@ -21,9 +21,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.io import save_episode
-from hrn_pyg.data.scene_file import read_scene_file
-from hrn_pyg.data.scenes import SCENES, config_to_dict, scene_config, simulate_episode
+from hrn_pyg.data.scene_file import SCENES, builtin_scene, read_scene_file
 from hrn_pyg.utils.files import atomic_write_json
 
 
@@ -40,21 +40,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--substeps", type=int, default=None, help="physics steps per model step")
     parser.add_argument("--physics-hz", type=float, default=None, help="physics rate (Hz)")
     parser.add_argument("--pitch", type=float, default=None, help="voxel size of the leaves (m)")
-    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides",
-                        help="any other field of the scene's config, VALUE as JSON, e.g. "
-                             "offset_range=[-0.003,0.003] (repeatable)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
+                        help="any other setting of the scene (its file's top level or [settings]), VALUE as "
+                             "JSON, e.g. offset_range=[-0.003,0.003] (repeatable)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def parse_overrides(items: list[str], scene: str) -> dict:
+def parse_overrides(items: list[str]) -> dict:
     """``["offset_range=[-0.003,0.003]", ...]`` -> ``{"offset_range": (-0.003, 0.003)}``: each
-    VALUE read as JSON, lists becoming tuples (the configs' ranges); the field names are checked
-    against the scene's config by :func:`~hrn_pyg.data.scenes.scene_config`."""
+    VALUE read as JSON, lists becoming tuples; the names are checked against the scene's settings
+    by :meth:`~hrn_pyg.data.scene_file.SceneSpec.with_settings`."""
     overrides = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep or not name:
-            raise ValueError(f"--set: expected FIELD=VALUE, got {item!r}")
+            raise ValueError(f"--set: expected NAME=VALUE, got {item!r}")
         if name in ("steps", "substeps", "physics_hz", "pitch"):
             raise ValueError(f"--set: {name} has its own option (--{name.replace('_', '-')})")
         try:
@@ -63,7 +63,6 @@ def parse_overrides(items: list[str], scene: str) -> dict:
             raise ValueError(f"--set {name}: VALUE must be JSON (a number or a list such as [0.1,0.2]), "
                              f"got {text!r}") from None
         overrides[name] = tuple(value) if isinstance(value, list) else value
-    scene_config(scene, **overrides)  # unknown fields and bad values fail here, before any work
     return overrides
 
 
@@ -85,33 +84,14 @@ def episode_path(out: str, seed: int) -> str:
 
 def _generate_one(task: tuple[str, str, int, dict, str]) -> tuple[int, bool]:
     """Worker: simulate one episode and write it; ``(seed, written)``. ``kind`` is ``"scene"``
-    (``source`` a built-in scene's name, ``fields`` its config) or ``"file"`` (``source`` a
-    scene file, ``fields`` holding at most ``steps``)."""
-    kind, source, seed, fields, path = task
+    (``source`` a built-in scene's name) or ``"file"`` (``source`` a scene file); ``settings``
+    replace the scene's own."""
+    kind, source, seed, settings, path = task
     if os.path.exists(path):
         return seed, False
-    if kind == "file":
-        episode = simulate_episode(read_scene_file(source), seed, steps=fields.get("steps"))
-    else:
-        episode = simulate_episode(source, seed, config=scene_config(source, **fields))
-    save_episode(path, episode)
+    spec = read_scene_file(source) if kind == "file" else builtin_scene(source)
+    save_episode(path, simulate_episode(spec.with_settings(**settings), seed))
     return seed, True
-
-
-def _file_source(args: argparse.Namespace) -> tuple[str, dict, dict]:
-    """A scene file's name, its worker fields and what meta.json records of it."""
-    for option in ("substeps", "physics_hz", "pitch"):
-        if getattr(args, option) is not None:
-            raise ValueError(f"--{option.replace('_', '-')}: a scene file sets it itself")
-    if getattr(args, "overrides", []):
-        raise ValueError("--set: a scene file sets its fields itself (edit the file)")
-    spec = read_scene_file(args.scene_file)
-    spec.check(args.seed_offset)  # overlaps and leaf counts fail here, before anything is written
-    if args.steps is not None and args.steps < 1:
-        raise ValueError(f"steps: must be >= 1, got {args.steps}")
-    config = config_to_dict(spec.config) | ({"steps": args.steps} if args.steps is not None else {})
-    fields = {"steps": args.steps} if args.steps is not None else {}
-    return spec.name, fields, {"scene_file": str(args.scene_file), "scene_text": spec.text, "config": config}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,15 +105,20 @@ def run(args: argparse.Namespace) -> int:
     if args.seed_offset < 0:
         raise ValueError(f"seed-offset: must be >= 0, got {args.seed_offset}")
     shard_index, shard_count = parse_shard(args.shard)
+    settings = {k: v for k, v in (dict(steps=args.steps, substeps=args.substeps, physics_hz=args.physics_hz,
+                                       pitch=args.pitch) | parse_overrides(getattr(args, "overrides", []))).items()
+                if v is not None}
     if getattr(args, "scene_file", None) is not None:
-        name, fields, record = _file_source(args)
         kind, source = "file", str(Path(args.scene_file).resolve())
+        spec = read_scene_file(args.scene_file).with_settings(**settings)
+        record = {"scene_file": str(args.scene_file), "scene_text": spec.text}
     else:
-        overrides = parse_overrides(getattr(args, "overrides", []), args.scene)
-        config = scene_config(args.scene, steps=args.steps, substeps=args.substeps,
-                              physics_hz=args.physics_hz, pitch=args.pitch, **overrides)
-        fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
-        name, kind, source, record = args.scene, "scene", args.scene, {"config": config_to_dict(config)}
+        kind, source = "scene", args.scene
+        spec = builtin_scene(args.scene, **settings)
+        record = {}
+    spec.check(args.seed_offset)  # overlaps and leaf counts fail here, before anything is written
+    name, fields = spec.name, settings
+    record["config"] = spec.settings_dict()
 
     os.makedirs(args.out, exist_ok=True)
     meta_path = os.path.join(args.out, "meta.json")

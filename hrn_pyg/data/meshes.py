@@ -37,11 +37,15 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from hrn_pyg.data.voxelise import voxelise
+from hrn_pyg.data.voxelise import box_mesh, sphere_mesh, voxelise, wedge_mesh
 from hrn_pyg.utils.files import import_pybullet, quiet_stdout
 
-#: primitive shapes a scene may name instead of a mesh file, each with its longest extent 1 m
-PRIMITIVES = ("box", "sphere", "cylinder", "capsule", "cone")
+#: primitive shapes a scene may name instead of a mesh file
+PRIMITIVES = ("box", "sphere", "cylinder", "capsule", "cone", "wedge")
+#: each primitive's extents ``(x, y, z)`` when it is given by its longest extent (1 m here)
+PRIMITIVE_PROPORTIONS: dict[str, tuple[float, float, float]] = {
+    "box": (1.0, 1.0, 1.0), "sphere": (1.0, 1.0, 1.0), "cylinder": (1.0, 1.0, 1.0), "capsule": (0.5, 0.5, 1.0),
+    "cone": (1.0, 1.0, 1.0), "wedge": (1.0, 1.0, 0.5)}
 #: the fewest leaves a body may have (one leaf has no shape)
 MIN_LEAVES = 2
 #: lattice points tested against the faces at a time by :func:`winding_numbers` (memory bound)
@@ -84,21 +88,33 @@ def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> None:
         raise ValueError(f"{name}: vertices contain NaN or infinite values")
 
 
-def primitive_mesh(name: str) -> trimesh.Trimesh:
-    """The primitive ``name`` (one of :data:`PRIMITIVES`), centred, longest extent 1 m."""
-    if name == "box":
-        mesh = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    elif name == "sphere":
-        mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
-    elif name == "cylinder":
-        mesh = trimesh.creation.cylinder(radius=0.5, height=1.0, sections=32)
-    elif name == "capsule":
-        mesh = trimesh.creation.capsule(height=0.5, radius=0.25, count=(16, 16))
-    elif name == "cone":
-        mesh = trimesh.creation.cone(radius=0.5, height=1.0, sections=32)
-    else:
+def primitive_mesh(name: str, extents: np.ndarray | None = None) -> trimesh.Trimesh:
+    """The primitive ``name`` (one of :data:`PRIMITIVES`) at ``extents`` ``[x, y, z]`` (m; default
+    its :data:`PRIMITIVE_PROPORTIONS`, longest extent 1 m), its bounding box centred at the
+    origin, except the wedge, whose base is centred on the origin (its ridge along y, its apex up).
+
+    Round primitives take their diameter from ``x`` (a cylinder, capsule or cone is upright, a
+    sphere is round: ``y`` and ``z`` are read from ``x``).
+    """
+    if name not in PRIMITIVES:
         raise ValueError(f"unknown primitive {name!r}; choose from {', '.join(PRIMITIVES)}")
-    return sized_mesh(mesh, size=1.0)
+    x, y, z = (float(e) for e in (PRIMITIVE_PROPORTIONS[name] if extents is None else extents))
+    if not all(math.isfinite(e) and e > 0 for e in (x, y, z)):
+        raise ValueError(f"extents must be finite and > 0, got {[x, y, z]}")
+    if name == "box":
+        return box_mesh((x, y, z))
+    if name == "sphere":
+        return sphere_mesh(x / 2)
+    if name == "wedge":
+        return wedge_mesh(x, z, y)
+    if name == "cylinder":
+        mesh = trimesh.creation.cylinder(radius=x / 2, height=z, sections=32)
+    elif name == "capsule":
+        mesh = trimesh.creation.capsule(height=max(z - x, 0.0), radius=x / 2, count=(16, 16))
+    else:
+        mesh = trimesh.creation.cone(radius=x / 2, height=z, sections=32)
+    mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    return mesh
 
 
 def clean_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:

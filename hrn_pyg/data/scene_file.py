@@ -3,42 +3,66 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
 .. code-block:: toml
 
     steps = 150                    # model steps per episode
-    pitch = 0.02                   # optional: voxel size of the leaves (m), substeps, physics_hz, friction
+    pitch = 0.02                   # optional: voxel size of the leaves (m), substeps, physics_hz,
+                                   # friction, rolling_friction (the ground's)
 
     [[objects]]
     mesh = "duck.obj"              # a file trimesh reads (relative to this file, absolute, or
                                    # pybullet_data:<path> for pybullet's own) or a primitive:
-                                   # box, sphere, cylinder, capsule, cone; cloth: "sheet" (a square
-                                   # of side size on the lattice) or a surface mesh file
+                                   # box, sphere, cylinder, capsule, cone, wedge; cloth: "sheet" (a
+                                   # square of side size on the lattice) or a surface mesh file
     material = "rigid"             # rigid, soft, cloth or static
-    size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor
+    size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor;
+                                   # a primitive also takes extents = [x, y, z] (m)
     mass = 0.5                     # kg
-    position = [0.0, 0.0, 0.3]     # m, the centre of the bounding box
+    position = [0.0, 0.0, 0.3]     # m, the centre of the bounding box (a wedge: of its base)
     yaw = { min = 0, max = 360 }   # degrees; or orientation = [x, y, z, w]
     velocity = [0.5, 0.0, 0.0]     # m/s at the start
     spin = [0.0, 0.0, 2.0]         # rad/s at the start
     stiffness = 0.5                # soft and cloth: 0..1 over the package's fixed stiffness range
+                                   # (or pybullet's own exponent: log10_mu, log10_spring_k)
     friction = 0.6
 
     [[pushes]]
-    object = 0                     # index into objects
-    steps = [20, 25]               # first and last model step of the push
-    force = [3.0, 0.0, 0.0]        # N, on the object's centre of mass
+    object = 0                     # index into objects (or a list of them)
+    steps = [20, 25]               # first and last model step of the push (every = n: each n-th)
+    force = [3.0, 0.0, 0.0]        # N on the centre of mass; or velocity = [...] (m/s, a change
+                                   # of velocity in one step), with towards = i a speed towards
+                                   # object i; spin = [...] (rad/s, soft and cloth); or a random
+                                   # schedule: random = { force = [0, 8], hold = [3, 8],
+                                   # pause = [0, 5], aim = i, aim_noise = [-0.3, 0.3] }
 
 Any number or vector may be a range ``{ min = ..., max = ... }`` (vectors element-wise), drawn
-per seed, so one file describes a whole dataset. The draws of a seed come in file order (the
-objects' fields in the order above, then the pushes); when the drawn objects' bounding boxes
-overlap at the start, the whole draw is repeated (up to :data:`OVERLAP_TRIES` times) from the
-same seed's random stream; objects that overlap whatever is drawn are an error naming them.
+per seed, so one file describes a whole dataset. A value may also be a string holding an
+expression (:mod:`hrn_pyg.data.expressions`) over the file's named ``[settings]`` (values a user
+changes with ``--set name=value``) and its ``[draw]`` table (values drawn per seed, in the
+table's order, with ``uniform`` and ``integer``), e.g. two cubes a drawn distance apart:
+
+.. code-block:: toml
+
+    [settings]
+    distance_range = [0.3, 0.6]
+    [draw]
+    distance = "uniform(distance_range)"
+    [[objects]]
+    position = "[-distance / 2, 0, 0.05]"
+
+The draws of a seed come in file order: the ``[draw]`` table, the objects' fields in the order
+above, then the pushes; a random push schedule draws along the episode. When two objects
+overlap at the start (their oriented bounding boxes, deeper than :data:`TOUCHING`), the whole
+draw is repeated (up to :data:`OVERLAP_TRIES` times) from the same seed's random stream;
+objects that overlap whatever is drawn are an error naming them. ``pass_through = [[i, j]]``
+lets two objects pass through each other (pybullet does not collide them, and they may start
+overlapping); ``overlap = "allow"`` keeps every draw as it comes.
 
 :func:`read_scene_file` reads and validates a file into a :class:`SceneSpec` (every mistake is
-one line naming the key); :meth:`SceneSpec.make_scene` gives the pybullet
-:class:`~hrn_pyg.data.scenes.Scene` of a seed, which
-:func:`hrn_pyg.data.scenes.simulate_episode` runs like a built-in scene.
+one line naming the key); :meth:`SceneSpec.make_scene` gives the pybullet scene of a seed. The
+package's own scenes are such files (:data:`SCENES`, :func:`builtin_scene`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import tomllib
@@ -51,8 +75,10 @@ import numpy as np
 import trimesh
 
 from hrn_pyg.data.effects import SceneEffects
+from hrn_pyg.data.expressions import CONSTANTS, evaluate, names_in
 from hrn_pyg.data.graph import CLOTH, MATERIALS, RIGID, SOFT, STATIC
 from hrn_pyg.data.meshes import (
+    PRIMITIVE_PROPORTIONS,
     PRIMITIVES,
     clean_mesh,
     convex_parts,
@@ -64,47 +90,62 @@ from hrn_pyg.data.meshes import (
 )
 from hrn_pyg.data.scenes import (
     CLOTH_LOG10_K_RANGE,
+    SOFT_COLLISION_MARGIN,
     SOFT_LOG10_MU_RANGE,
     STATIC_DENSITY,
     Scene,
     SceneConfig,
     SceneObject,
 )
-from hrn_pyg.data.voxelise import (
-    grid_sheet,
-    lattice_tetrahedra,
-)
+from hrn_pyg.data.voxelise import grid_sheet, lattice_tetrahedra
 from hrn_pyg.utils.files import import_pybullet
 
 p = import_pybullet()
 
-#: keys of the file's top level, of an object and of a push
-SCENE_KEYS = ("steps", "pitch", "substeps", "physics_hz", "friction", "objects", "pushes")
-OBJECT_KEYS = ("mesh", "material", "size", "scale", "mass", "position", "orientation", "yaw", "velocity",
-               "spin", "stiffness", "friction")
-PUSH_KEYS = ("object", "steps", "force")
+#: the settings of a scene's top level (:class:`~hrn_pyg.data.scenes.SceneConfig`'s fields)
+TOP_SETTINGS = tuple(f.name for f in dataclasses.fields(SceneConfig))
+#: keys of the file's top level, of an object, of a push and of a random push schedule
+SCENE_KEYS = (*TOP_SETTINGS, "effects", "pass_through", "overlap", "settings", "draw", "objects", "pushes")
+OBJECT_KEYS = ("mesh", "material", "size", "scale", "extents", "mass", "position", "orientation", "yaw", "velocity",
+               "spin", "stiffness", "log10_mu", "log10_spring_k", "friction")
+PUSH_KEYS = ("object", "steps", "every", "force", "velocity", "towards", "spin", "random")
+RANDOM_KEYS = ("force", "hold", "pause", "aim", "aim_noise")
+#: object fields drawn per seed, in the order they are drawn, with their length (None: a number)
+OBJECT_FIELDS: dict[str, int | None] = {
+    "size": None, "scale": None, "extents": 3, "mass": None, "position": 3, "orientation": 4, "yaw": None,
+    "velocity": 3, "spin": 3, "stiffness": None, "log10_mu": None, "log10_spring_k": None, "friction": None}
 #: a cloth is a square sheet of side ``size``
 SHEET = "sheet"
 #: a mesh named ``pybullet_data:<path>`` is one of the meshes that ship with pybullet
 PYBULLET_DATA = "pybullet_data:"
 #: draws of one seed tried before objects that overlap at the start are an error
 OVERLAP_TRIES = 100
+#: boxes that meet by no more than this (m) touch; they do not overlap
+TOUCHING = 1e-9
 #: the most leaves one object may have (the model's cost grows with them)
 MAX_LEAVES = 20_000
 #: where convex decompositions are cached (``HRN_PYG_CACHE`` overrides it)
 CACHE_DIR = Path(os.environ.get("HRN_PYG_CACHE", Path.home() / ".cache" / "hrn_pyg")) / "convex_parts"
+#: the package's own scenes, one file each
+BUILTIN_DIR = Path(__file__).with_name("builtin_scenes")
+SCENES: tuple[str, ...] = ("soft_bounce", "cube_collision", "wedge", "multi_material", "cube_push", "tower")
 
-#: ``{"min": ..., "max": ...}`` read into a pair of arrays, or a fixed value
-Value = tuple[np.ndarray, np.ndarray]
+#: a fixed value or a ``{min, max}`` range as ``(low, high)`` arrays, or an expression
+Value = tuple[np.ndarray, np.ndarray] | str
 
 
 def _value(raw: Any, where: str, length: int | None) -> Value:
-    """A number or vector (``length``), or a ``{min, max}`` range of them, as ``(low, high)``."""
+    """A number or vector (``length``), a ``{min, max}`` range of them as ``(low, high)``, or an
+    expression (a string; its names are checked by :func:`_check_names`)."""
+    if isinstance(raw, str):
+        return raw
     if isinstance(raw, dict):
-        unknown = sorted(set(raw) - {"min", "max"})
-        if unknown or set(raw) != {"min", "max"}:
+        if set(raw) != {"min", "max"}:
             raise ValueError(f"{where}: a range needs exactly the keys min and max, got {sorted(raw)}")
-        low, high = _value(raw["min"], f"{where}.min", length)[0], _value(raw["max"], f"{where}.max", length)[0]
+        low, high = _value(raw["min"], f"{where}.min", length), _value(raw["max"], f"{where}.max", length)
+        if isinstance(low, str) or isinstance(high, str):
+            raise ValueError(f"{where}: a range's min and max are numbers; draw with uniform() in an expression")
+        low, high = low[0], high[0]
         if np.any(low > high):
             raise ValueError(f"{where}: min {low.tolist()} > max {high.tolist()}")
         return low, high
@@ -127,44 +168,84 @@ def _check_keys(table: dict, allowed: tuple[str, ...], where: str) -> None:
         raise ValueError(f"{where}: unknown key {unknown[0]!r}; the keys are {', '.join(allowed)}")
 
 
-def _draw(rng: np.random.Generator, value: Value) -> np.ndarray:
+def _check_names(text: str, known: set[str], where: str) -> None:
+    try:
+        unknown = sorted(names_in(text) - known - set(CONSTANTS))
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    if unknown:
+        raise ValueError(f"{where}: unknown name {unknown[0]!r} in {text!r}; the names known here are "
+                         f"{', '.join(sorted(known)) or 'none'}")
+
+
+def _draw(rng: np.random.Generator, value: Value, names: dict, where: str, length: int | None) -> Any:
+    """One seed's value of a field (JSON-able: a float, an int or a list)."""
+    if isinstance(value, str):
+        try:
+            drawn = evaluate(value, names, rng)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        array = np.asarray(drawn, dtype=np.float64)
+        if (length is None and array.ndim != 0) or (length is not None and array.shape != (length,)):
+            expected = "a number" if length is None else f"{length} numbers"
+            raise ValueError(f"{where}: {value!r} gives {array.tolist()}, expected {expected}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{where}: {value!r} is not finite ({array.tolist()})")
+        return array.tolist()
     low, high = value
-    return low.copy() if np.array_equal(low, high) else np.asarray(rng.uniform(low, high))
+    return (low.copy() if np.array_equal(low, high) else np.asarray(rng.uniform(low, high))).tolist()
+
+
+def _json(value: Any) -> Any:
+    """A drawn value as JSON (arrays as lists)."""
+    return value.tolist() if isinstance(value, np.ndarray) else value
 
 
 @dataclass(frozen=True)
 class ObjectSpec:
-    """One object of a scene file; every field a ``(low, high)`` pair (equal when fixed)."""
+    """One object of a scene file: every field a ``(low, high)`` pair (equal when fixed), an
+    expression, or None when not given."""
 
     mesh: str
     material: str
-    size: Value | None
-    scale: Value | None
-    mass: Value
-    position: Value
-    orientation: Value | None
-    yaw: Value | None
-    velocity: Value
-    spin: Value
-    stiffness: Value
-    friction: Value | None
+    size: Value | None = None
+    scale: Value | None = None
+    extents: Value | None = None
+    mass: Value = (np.array(1.0), np.array(1.0))
+    position: Value = (np.zeros(3), np.zeros(3))
+    orientation: Value | None = None
+    yaw: Value | None = None
+    velocity: Value = (np.zeros(3), np.zeros(3))
+    spin: Value = (np.zeros(3), np.zeros(3))
+    stiffness: Value | None = None
+    log10_mu: Value | None = None
+    log10_spring_k: Value | None = None
+    friction: Value | None = None
+
+    @property
+    def primitive(self) -> bool:
+        return self.mesh in PRIMITIVES
 
     @cached_property
     def base_mesh(self) -> trimesh.Trimesh | None:
         """The object's mesh cleaned (seams merged), before sizing; None for a sheet."""
         if self.mesh == SHEET:
             return None
-        return primitive_mesh(self.mesh) if self.mesh in PRIMITIVES else clean_mesh(load_mesh(self.mesh), self.mesh)
+        return primitive_mesh(self.mesh) if self.primitive else clean_mesh(load_mesh(self.mesh), self.mesh)
 
 
 @dataclass(frozen=True)
 class PushSpec:
-    """A scripted push: ``force`` (N) on object ``object`` from model step ``first`` to ``last``."""
+    """A scripted push (see the module's docstring): its fields as read, expressions or values."""
 
-    object: int
-    first: int
-    last: int
-    force: Value
+    objects: tuple[int, ...]
+    steps: Value
+    every: Value | None = None
+    force: Value | None = None
+    velocity: Value | None = None
+    towards: int | None = None
+    spin: Value | None = None
+    random: dict[str, Value] | None = None
 
 
 @dataclass(frozen=True)
@@ -175,38 +256,106 @@ class SceneSpec:
     config: SceneConfig
     objects: tuple[ObjectSpec, ...]
     pushes: tuple[PushSpec, ...] = ()
+    settings: dict[str, Any] = field(default_factory=dict)
+    draws: tuple[tuple[str, str], ...] = ()
+    pass_through: tuple[tuple[int, int], ...] = ()
+    allow_overlap: bool = False
+    declared_effects: dict[str, bool] = field(default_factory=dict)
     source: str = ""
     text: str = field(default="", repr=False)
 
     @property
     def effects(self) -> SceneEffects:
-        """Pushed objects need the force module; a lone object no collision search."""
-        return SceneEffects(forces=bool(self.pushes), collisions=len(self.objects) > 1 or None)
+        """What the file declares; else pushed objects need the force module and a lone object
+        no collision search."""
+        derived = {"forces": bool(self.pushes), "collisions": len(self.objects) > 1 or None}
+        return SceneEffects(**(derived | self.declared_effects))
+
+    @property
+    def uses_deformables(self) -> bool:
+        return any(o.material in ("soft", "cloth") for o in self.objects)
+
+    def settings_dict(self) -> dict[str, Any]:
+        """Every setting a user may change (the top level's and ``[settings]``), JSON-able."""
+        top = {f.name: getattr(self.config, f.name) for f in dataclasses.fields(self.config)}
+        return top | {k: _json(v) for k, v in self.settings.items()}
+
+    def with_settings(self, **overrides: Any) -> SceneSpec:
+        """A copy with settings replaced (``None`` values ignored); unknown names are an error
+        naming the settings there are."""
+        overrides = {k: v for k, v in overrides.items() if v is not None}
+        known = set(TOP_SETTINGS) | set(self.settings)
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"{self.name}: unknown setting {unknown[0]!r}; the settings are {', '.join(sorted(known))}")
+        top = {k: v for k, v in overrides.items() if k in TOP_SETTINGS}
+        try:
+            config = dataclasses.replace(self.config, **top)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{self.name}: {exc}") from None
+        settings = dict(self.settings)
+        for key, value in overrides.items():
+            if key not in TOP_SETTINGS:
+                settings[key] = _setting(value, f"{self.name}: settings.{key}")
+        return dataclasses.replace(self, config=config, settings=settings)
 
     def make_scene(self, seed: int) -> FileScene:
         """The pybullet scene of seed ``seed`` (call ``reset()`` to start it)."""
         return FileScene(self, seed)
 
+    def names(self) -> dict[str, Any]:
+        """What an expression may read before the draws: the settings and the scene's constants."""
+        cfg = self.config
+        return {"steps": cfg.steps, "substeps": cfg.substeps, "physics_hz": cfg.physics_hz, "pitch": cfg.pitch,
+                "friction": cfg.friction, "rolling_friction": cfg.rolling_friction, "dt": cfg.dt,
+                "soft_margin": SOFT_COLLISION_MARGIN, **self.settings}
+
     def draw(self, rng: np.random.Generator) -> dict:
-        """One seed's values of every range, redrawn while objects overlap (JSON-able)."""
+        """One seed's values: the ``[draw]`` table, then every object's and push's fields,
+        redrawn while objects overlap (JSON-able)."""
         for _ in range(OVERLAP_TRIES):
-            params = {"objects": [self._draw_object(o, rng) for o in self.objects],
-                      "pushes": [_draw(rng, push.force).tolist() for push in self.pushes]}
-            if not overlapping(self, params["objects"]):
+            params = self._draw_once(rng)
+            if self.allow_overlap or not overlapping(self, params["objects"]):
                 return params
         first, second = overlapping(self, params["objects"])[0]
         raise ValueError(f"{self.name}: objects {first} and {second} overlap at the start in every one of "
                          f"{OVERLAP_TRIES} draws; move them apart")
 
-    @staticmethod
-    def _draw_object(obj: ObjectSpec, rng: np.random.Generator) -> dict:
+    def _draw_once(self, rng: np.random.Generator) -> dict:
+        names = self.names()
+        drawn_names: dict[str, Any] = {}
+        for name, text in self.draws:
+            try:
+                names[name] = evaluate(text, names, rng)
+            except ValueError as exc:
+                raise ValueError(f"{self.name}: draw.{name}: {exc}") from None
+            drawn_names[name] = _json(names[name])
+        objects = [self._draw_object(i, o, rng, names) for i, o in enumerate(self.objects)]
+        pushes = [self._draw_push(i, q, rng, names) for i, q in enumerate(self.pushes)]
+        return {**drawn_names, "objects": objects, "pushes": pushes}
+
+    def _draw_object(self, index: int, obj: ObjectSpec, rng: np.random.Generator, names: dict) -> dict:
+        where = f"{self.name}: objects[{index}]"
         drawn = {}
-        for name in ("size", "scale", "mass", "position", "orientation", "yaw", "velocity", "spin", "stiffness",
-                     "friction"):
+        for name, length in OBJECT_FIELDS.items():
             value = getattr(obj, name)
             if value is not None:
-                number = _draw(rng, value)
-                drawn[name] = number.tolist()
+                drawn[name] = _draw(rng, value, names, f"{where}.{name}", length)
+        _check_object_values(drawn, obj, where)
+        return drawn
+
+    def _draw_push(self, index: int, push: PushSpec, rng: np.random.Generator, names: dict) -> dict:
+        where = f"{self.name}: pushes[{index}]"
+        drawn: dict[str, Any] = {"steps": _draw(rng, push.steps, names, f"{where}.steps", 2)}
+        for key, length in (("every", None), ("force", 3), ("velocity", None if push.towards is not None else 3),
+                            ("spin", 3)):
+            value = getattr(push, key)
+            if value is not None:
+                drawn[key] = _draw(rng, value, names, f"{where}.{key}", length)
+        if push.random is not None:
+            drawn["random"] = {key: _draw(rng, value, names, f"{where}.random.{key}", None if key == "aim" else 2)
+                               for key, value in push.random.items()}
+        _check_push_values(drawn, len(self.objects), where)
         return drawn
 
     def check(self, seed: int = 0) -> None:
@@ -222,6 +371,68 @@ class SceneSpec:
                 surface_leaves(mesh, where)
             else:
                 leaves_of(mesh, self.config.pitch, where)
+
+
+def _whole(value: Any, where: str, low: int = 0) -> int:
+    number = float(value)
+    if number != round(number) or number < low:
+        raise ValueError(f"{where}: a whole number >= {low}, got {value}")
+    return int(number)
+
+
+def _check_object_values(drawn: dict, obj: ObjectSpec, where: str) -> None:
+    """A drawn object's values in their domains (ranges and fixed values were checked when read)."""
+    for key in ("size", "scale", "mass"):
+        if key in drawn and not drawn[key] > 0:
+            raise ValueError(f"{where}.{key}: must be > 0, got {drawn[key]}")
+    if "extents" in drawn and not min(drawn["extents"]) > 0:
+        raise ValueError(f"{where}.extents: must be > 0, got {drawn['extents']}")
+    if "stiffness" in drawn and not 0.0 <= drawn["stiffness"] <= 1.0:
+        raise ValueError(f"{where}.stiffness: must lie in [0, 1], got {drawn['stiffness']}")
+    if "friction" in drawn and drawn["friction"] < 0:
+        raise ValueError(f"{where}.friction: must be >= 0, got {drawn['friction']}")
+    if "orientation" in drawn and not np.linalg.norm(drawn["orientation"]) > 0:
+        raise ValueError(f"{where}.orientation: a quaternion [x, y, z, w] of nonzero length")
+    if obj.material == "static" and (np.any(drawn["velocity"]) or np.any(drawn["spin"])):
+        raise ValueError(f"{where}: a static object cannot have a velocity or a spin")
+
+
+def _check_push_values(drawn: dict, n_objects: int, where: str) -> None:
+    first, last = drawn["steps"]  # steps past the episode's end are never reached (a shortened episode)
+    if not (first == round(first) and last == round(last) and 0 <= first <= last):
+        raise ValueError(f"{where}.steps: [first, last] whole model steps with 0 <= first <= last, got {drawn['steps']}")
+    drawn["steps"] = [int(first), int(last)]
+    if "every" in drawn:
+        drawn["every"] = _whole(drawn["every"], f"{where}.every", 1)
+    if "random" in drawn:
+        schedule = drawn["random"]
+        for key in ("hold", "pause"):
+            lo, hi = (_whole(v, f"{where}.random.{key}") for v in schedule[key])
+            if lo > hi or (key == "hold" and lo < 1):
+                raise ValueError(f"{where}.random.{key}: [low, high] steps with {'1' if key == 'hold' else '0'} "
+                                 f"<= low <= high, got {schedule[key]}")
+            schedule[key] = [lo, hi]
+        if schedule["force"][0] > schedule["force"][1] or schedule["force"][0] < 0:
+            raise ValueError(f"{where}.random.force: [low, high] N with 0 <= low <= high, got {schedule['force']}")
+        if "aim" in schedule:
+            schedule["aim"] = _whole(schedule["aim"], f"{where}.random.aim")
+            if schedule["aim"] >= n_objects:
+                raise ValueError(f"{where}.random.aim: an index into objects (0..{n_objects - 1})")
+
+
+def _setting(raw: Any, where: str) -> Any:
+    """A ``[settings]`` value: a number or a (nested) list of numbers (lists as arrays)."""
+    if isinstance(raw, (list, tuple)):
+        try:
+            array = np.asarray(raw, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: a number or a list of numbers, got {raw!r}") from None
+        if array.dtype == object or not np.all(np.isfinite(array)) or any(isinstance(x, bool) for x in np.ravel(raw)):
+            raise ValueError(f"{where}: finite numbers, got {raw!r}")
+        return array
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not math.isfinite(raw):
+        raise ValueError(f"{where}: a finite number or a list of numbers, got {raw!r}")
+    return raw
 
 
 def read_scene_file(path: str | os.PathLike) -> SceneSpec:
@@ -243,26 +454,75 @@ def parse_scene(table: dict, name: str = "scene", base: Path = Path("."), source
     _check_keys(table, SCENE_KEYS, name)
     if "steps" not in table:
         raise ValueError(f"{name}: steps (model steps per episode) is required")
-    settings = {key: table[key] for key in ("steps", "pitch", "substeps", "physics_hz", "friction") if key in table}
-    for key, value in settings.items():
+    top = {key: table[key] for key in TOP_SETTINGS if key in table}
+    for key, value in top.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"{name}: {key} must be a number, got {value!r}")
     try:
-        config = SceneConfig(**settings)
+        config = SceneConfig(**top)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: {exc}") from None
+    settings = _table(table, "settings", name)
+    settings = {key: _setting(value, f"{name}: settings.{key}") for key, value in settings.items()}
+    clash = sorted(set(settings) & (set(TOP_SETTINGS) | set(CONSTANTS) | {"dt", "soft_margin"}))
+    if clash:
+        raise ValueError(f"{name}: settings.{clash[0]}: the name is taken (a scene setting or a constant)")
+    known = set(settings) | set(TOP_SETTINGS) | {"dt", "soft_margin"}
+    draws = []
+    for key, expression in _table(table, "draw", name).items():
+        if not isinstance(expression, str):
+            raise ValueError(f"{name}: draw.{key}: an expression (a string) such as \"uniform(0, 1)\", got {expression!r}")
+        if key in known or key in ("objects", "pushes"):
+            raise ValueError(f"{name}: draw.{key}: the name is taken")
+        _check_names(expression, known, f"{name}: draw.{key}")
+        draws.append((key, expression))
+        known.add(key)
     objects = table.get("objects")
     if not isinstance(objects, list) or not objects:
         raise ValueError(f"{name}: needs at least one [[objects]] table")
-    specs = tuple(_object(o, f"{name}: objects[{i}]", base) for i, o in enumerate(objects))
+    specs = tuple(_object(o, f"{name}: objects[{i}]", base, known) for i, o in enumerate(objects))
     pushes = table.get("pushes", [])
     if not isinstance(pushes, list):
         raise ValueError(f"{name}: pushes must be a list of [[pushes]] tables")
-    push_specs = tuple(_push(q, f"{name}: pushes[{i}]", specs, config.steps) for i, q in enumerate(pushes))
-    return SceneSpec(name=name, config=config, objects=specs, pushes=push_specs, source=source, text=text)
+    push_specs = tuple(_push(q, f"{name}: pushes[{i}]", specs, config.steps, known) for i, q in enumerate(pushes))
+    return SceneSpec(name=name, config=config, objects=specs, pushes=push_specs, settings=settings,
+                     draws=tuple(draws), pass_through=_pairs(table.get("pass_through", []), len(specs), name),
+                     allow_overlap=_overlap_rule(table.get("overlap", "redraw"), name),
+                     declared_effects=_effects(table.get("effects", {}), name), source=source, text=text)
 
 
-def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
+def _table(table: dict, key: str, name: str) -> dict:
+    value = table.get(key, {})
+    if not isinstance(value, dict):
+        raise ValueError(f"{name}: {key} must be a table [{key}]")
+    return value
+
+
+def _pairs(raw: Any, n_objects: int, name: str) -> tuple[tuple[int, int], ...]:
+    ok = isinstance(raw, list) and all(
+        isinstance(pair, list) and len(pair) == 2 and all(isinstance(i, int) and not isinstance(i, bool)
+                                                          and 0 <= i < n_objects for i in pair) and pair[0] != pair[1]
+        for pair in raw)
+    if not ok:
+        raise ValueError(f"{name}: pass_through: a list of [i, j] pairs of object indices (0..{n_objects - 1}), "
+                         f"got {raw!r}")
+    return tuple((min(i, j), max(i, j)) for i, j in raw)
+
+
+def _overlap_rule(raw: Any, name: str) -> bool:
+    if raw not in ("redraw", "allow"):
+        raise ValueError(f"{name}: overlap: \"redraw\" (the default) or \"allow\", got {raw!r}")
+    return raw == "allow"
+
+
+def _effects(raw: Any, name: str) -> dict[str, bool]:
+    if not isinstance(raw, dict) or set(raw) - {"forces", "collisions"} or not all(
+            isinstance(v, bool) for v in raw.values()):
+        raise ValueError(f"{name}: effects: a table of forces = true/false and collisions = true/false, got {raw!r}")
+    return dict(raw)
+
+
+def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
     if not isinstance(raw, dict):
         raise ValueError(f"{where}: expected a table")
     _check_keys(raw, OBJECT_KEYS, where)
@@ -285,44 +545,67 @@ def _object(raw: Any, where: str, base: Path) -> ObjectSpec:
             raise ValueError(f"{where}: unknown primitive {mesh!r}; choose from {', '.join(PRIMITIVES)} "
                              "or give a mesh file")
         mesh = str(path.resolve())
-    if ("size" in raw) == ("scale" in raw):
-        raise ValueError(f"{where}: give one of size (longest extent, m) and scale")
+    if sum(key in raw for key in ("size", "scale", "extents")) != 1:
+        raise ValueError(f"{where}: give one of size (longest extent, m), scale and extents")
+    if "extents" in raw and mesh not in PRIMITIVES:
+        raise ValueError(f"{where}: extents are for primitives; size or scale a mesh file")
     if mesh == SHEET and "scale" in raw:
         raise ValueError(f"{where}: a sheet takes size (its side, m), not scale")
     if "orientation" in raw and "yaw" in raw:
         raise ValueError(f"{where}: give orientation or yaw, not both")
     if "position" not in raw:
         raise ValueError(f"{where}: position (m, the centre of the bounding box) is required")
-    spec = ObjectSpec(
-        mesh=mesh, material=material,
-        size=_value(raw["size"], f"{where}.size", None) if "size" in raw else None,
-        scale=_value(raw["scale"], f"{where}.scale", None) if "scale" in raw else None,
-        mass=_value(raw.get("mass", 1.0), f"{where}.mass", None),
-        position=_value(raw["position"], f"{where}.position", 3),
-        orientation=_value(raw["orientation"], f"{where}.orientation", 4) if "orientation" in raw else None,
-        yaw=_value(raw["yaw"], f"{where}.yaw", None) if "yaw" in raw else None,
-        velocity=_value(raw.get("velocity", [0.0, 0.0, 0.0]), f"{where}.velocity", 3),
-        spin=_value(raw.get("spin", [0.0, 0.0, 0.0]), f"{where}.spin", 3),
-        stiffness=_value(raw.get("stiffness", 0.5), f"{where}.stiffness", None),
-        friction=_value(raw["friction"], f"{where}.friction", None) if "friction" in raw else None,
-    )
-    if material == "static" and (np.any(spec.velocity[1] != 0) or np.any(spec.velocity[0] != 0)
-                                 or np.any(spec.spin[0] != 0) or np.any(spec.spin[1] != 0)):
-        raise ValueError(f"{where}: a static object cannot have a velocity or a spin")
+    own = {"soft": "log10_mu", "cloth": "log10_spring_k"}.get(material)
+    for key in ("log10_mu", "log10_spring_k"):
+        if key in raw and key != own:
+            raise ValueError(f"{where}: {key} is for {'soft' if key == 'log10_mu' else 'cloth'} objects")
+    if own in raw and "stiffness" in raw:
+        raise ValueError(f"{where}: give stiffness or {own}, not both")
+    values = {}
+    for key, length in OBJECT_FIELDS.items():
+        if key in raw:
+            values[key] = _value(raw[key], f"{where}.{key}", length)
+            if isinstance(values[key], str):
+                _check_names(values[key], known, f"{where}.{key}")
+    if material in ("soft", "cloth") and own not in raw and "stiffness" not in raw:
+        values["stiffness"] = (np.array(0.5), np.array(0.5))
+    spec = ObjectSpec(mesh=mesh, material=material, **values)
+    fixed = {k: v for k, v in values.items() if not isinstance(v, str)}
     for key in ("size", "scale", "mass"):
-        value = getattr(spec, key)
-        if value is not None and value[0] <= 0:
-            raise ValueError(f"{where}.{key}: must be > 0, got {value[0].tolist()}")
-    if not (0.0 <= spec.stiffness[0] and spec.stiffness[1] <= 1.0):
-        raise ValueError(f"{where}.stiffness: must lie in [0, 1], got {spec.stiffness[0]}..{spec.stiffness[1]}")
-    if spec.friction is not None and spec.friction[0] < 0:
+        if key in fixed and fixed[key][0] <= 0:
+            raise ValueError(f"{where}.{key}: must be > 0, got {fixed[key][0].tolist()}")
+    if "extents" in fixed and np.any(fixed["extents"][0] <= 0):
+        raise ValueError(f"{where}.extents: must be > 0, got {fixed['extents'][0].tolist()}")
+    if "stiffness" in fixed and not (0.0 <= fixed["stiffness"][0] and fixed["stiffness"][1] <= 1.0):
+        raise ValueError(f"{where}.stiffness: must lie in [0, 1], got {fixed['stiffness'][0]}..{fixed['stiffness'][1]}")
+    if "friction" in fixed and fixed["friction"][0] < 0:
         raise ValueError(f"{where}.friction: must be >= 0")
-    if spec.orientation is not None and np.any(np.linalg.norm(spec.orientation[0]) == 0):
+    if "orientation" in fixed and np.linalg.norm(fixed["orientation"][0]) == 0:
         raise ValueError(f"{where}.orientation: a quaternion [x, y, z, w] of nonzero length")
-    mesh_of = spec.base_mesh
-    if mesh_of is not None and material != "cloth" and not (mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
-        raise ValueError(f"{where}: the mesh has no volume (it is flat)")
+    if material == "static" and any(key in fixed and (np.any(fixed[key][0]) or np.any(fixed[key][1]))
+                                    for key in ("velocity", "spin")):
+        raise ValueError(f"{where}: a static object cannot have a velocity or a spin")
+    if spec.primitive:
+        if "extents" in fixed:
+            check_extents(mesh, fixed["extents"][0], where)
+            check_extents(mesh, fixed["extents"][1], where)
+    else:
+        mesh_of = spec.base_mesh
+        if mesh_of is not None and material != "cloth" and not (
+                mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
+            raise ValueError(f"{where}: the mesh has no volume (it is flat)")
     return spec
+
+
+def check_extents(mesh: str, extents: Any, where: str) -> None:
+    """Round primitives need equal extents across their round axes (a sphere: all three)."""
+    x, y, z = (float(e) for e in extents)
+    if mesh == "sphere" and not x == y == z:
+        raise ValueError(f"{where}.extents: a sphere's three extents are equal, got {[x, y, z]}")
+    if mesh in ("cylinder", "capsule", "cone") and x != y:
+        raise ValueError(f"{where}.extents: a {mesh} is round: x and y (its diameter) are equal, got {[x, y, z]}")
+    if mesh == "capsule" and z < x:
+        raise ValueError(f"{where}.extents: a capsule is at least as long (z) as it is wide, got {[x, y, z]}")
 
 
 def mesh_path(mesh: str, base: Path) -> Path:
@@ -335,80 +618,162 @@ def mesh_path(mesh: str, base: Path) -> Path:
     return Path(mesh) if Path(mesh).is_absolute() else base / mesh
 
 
-def _push(raw: Any, where: str, objects: tuple[ObjectSpec, ...], steps: int) -> PushSpec:
+def _push(raw: Any, where: str, objects: tuple[ObjectSpec, ...], steps: int, known: set[str]) -> PushSpec:
     if not isinstance(raw, dict):
         raise ValueError(f"{where}: expected a table")
     _check_keys(raw, PUSH_KEYS, where)
-    index = raw.get("object")
-    if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(objects):
-        raise ValueError(f"{where}.object: an index into objects (0..{len(objects) - 1}), got {index!r}")
-    if objects[index].material == "static":
-        raise ValueError(f"{where}.object: object {index} is static and cannot be pushed")
-    span = raw.get("steps")
-    if (not isinstance(span, list) or len(span) != 2 or not all(isinstance(s, int) and not isinstance(s, bool)
-                                                                   for s in span)
+    targets = raw.get("object")
+    targets = targets if isinstance(targets, list) and targets else [targets]
+    for index in targets:
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(objects):
+            raise ValueError(f"{where}.object: an index into objects (0..{len(objects) - 1}) or a list of them, "
+                             f"got {raw.get('object')!r}")
+        if objects[index].material == "static":
+            raise ValueError(f"{where}.object: object {index} is static and cannot be pushed")
+    kinds = [key for key in ("force", "velocity", "random") if key in raw]
+    if len(kinds) != 1 and not (kinds == [] and "spin" in raw):
+        raise ValueError(f"{where}: give one of force (N), velocity (m/s) and random (a schedule)")
+    if "steps" not in raw:
+        raise ValueError(f"{where}.steps: [first, last] model steps is required")
+    span = raw["steps"]
+    if not isinstance(span, str) and (
+            not isinstance(span, list) or len(span) != 2
+            or not all(isinstance(s, int) and not isinstance(s, bool) for s in span)
             or not 0 <= span[0] <= span[1] < steps):
         raise ValueError(f"{where}.steps: [first, last] model steps within 0..{steps - 1}, got {span!r}")
-    if "force" not in raw:
-        raise ValueError(f"{where}: force (N, a list of 3 numbers) is required")
-    return PushSpec(object=index, first=span[0], last=span[1], force=_value(raw["force"], f"{where}.force", 3))
+    towards = raw.get("towards")
+    if towards is not None:
+        if "velocity" not in raw:
+            raise ValueError(f"{where}.towards: needs velocity, a speed (m/s) towards that object")
+        if isinstance(towards, bool) or not isinstance(towards, int) or not 0 <= towards < len(objects):
+            raise ValueError(f"{where}.towards: an index into objects (0..{len(objects) - 1}), got {towards!r}")
+    if "spin" in raw and any(objects[i].material not in ("soft", "cloth") for i in targets):
+        raise ValueError(f"{where}.spin: spins are for soft and cloth objects")
+    if "random" in raw and "every" in raw:
+        raise ValueError(f"{where}: a random schedule sets its own timing (no every)")
+    lengths = {"steps": 2, "every": None, "force": 3, "velocity": None if towards is not None else 3, "spin": 3}
+    values = {}
+    for key, length in lengths.items():
+        if key in raw:
+            values[key] = _value(raw[key], f"{where}.{key}", length)
+            if isinstance(values[key], str):
+                _check_names(values[key], known, f"{where}.{key}")
+    random = None
+    if "random" in raw:
+        table = raw["random"]
+        if not isinstance(table, dict):
+            raise ValueError(f"{where}.random: a table of {', '.join(RANDOM_KEYS)}")
+        _check_keys(table, RANDOM_KEYS, f"{where}.random")
+        for key in ("force", "hold"):
+            if key not in table:
+                raise ValueError(f"{where}.random.{key} is required")
+        random = {}
+        for key in RANDOM_KEYS:
+            if key in table or key == "pause":
+                raw_value = table.get(key, [0, 0])
+                random[key] = _value(raw_value, f"{where}.random.{key}", None if key == "aim" else 2)
+                if isinstance(random[key], str):
+                    _check_names(random[key], known, f"{where}.random.{key}")
+    return PushSpec(objects=tuple(targets), towards=towards, random=random, **values)
 
 
 def posed_mesh(obj: ObjectSpec, drawn: dict) -> trimesh.Trimesh | None:
-    """The object's mesh sized by its drawn ``size`` or ``scale``, centred (None: a sheet)."""
-    if obj.base_mesh is None:
+    """The object's mesh at its drawn ``size``, ``scale`` or ``extents``, in its body frame: the
+    bounding box centred (a wedge: the middle of its base at the origin). None: a sheet."""
+    if obj.mesh == SHEET:
         return None
+    if obj.primitive:
+        return primitive_mesh(obj.mesh, primitive_extents(obj.mesh, drawn))
     if "size" in drawn:
         return sized_mesh(obj.base_mesh, size=float(drawn["size"]))
     return sized_mesh(obj.base_mesh, scale=float(drawn["scale"]))
 
 
-def quaternion(drawn: dict) -> list[float]:
-    """The drawn orientation as a unit quaternion ``[x, y, z, w]`` (yaw in degrees)."""
+def primitive_extents(mesh: str, drawn: dict) -> np.ndarray:
+    """The drawn ``extents`` of a primitive, or its proportions times ``size`` (its longest
+    extent, m) or ``scale`` (the unit primitive's longest extent is 1 m, so the same)."""
+    if "extents" in drawn:
+        return np.asarray(drawn["extents"], dtype=np.float64)
+    factor = float(drawn["size"] if "size" in drawn else drawn["scale"])
+    return np.asarray(PRIMITIVE_PROPORTIONS[mesh], dtype=np.float64) * factor
+
+
+def quaternion(drawn: dict) -> list[float] | None:
+    """The drawn orientation as a unit quaternion ``[x, y, z, w]`` (yaw in degrees); None when
+    neither is given. A quaternion of unit length (to 1e-12) is kept as given."""
     if "orientation" in drawn:
         q = np.asarray(drawn["orientation"], dtype=np.float64)
-        return (q / np.linalg.norm(q)).tolist()
-    yaw = math.radians(drawn.get("yaw", 0.0))
+        norm = float(np.linalg.norm(q))
+        return q.tolist() if abs(norm - 1.0) <= 1e-12 else (q / norm).tolist()
+    if "yaw" not in drawn:
+        return None
+    yaw = math.radians(drawn["yaw"])
     return [0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)]
 
 
-def start_box(obj: ObjectSpec, drawn: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The object's axis-aligned bounding box at the start, ``(low [3], high [3])``."""
-    centre = np.asarray(drawn["position"])
+def _rotation(drawn: dict) -> np.ndarray:
+    q = quaternion(drawn)
+    if q is None:
+        return np.eye(3)
+    x, y, z, w = q
+    return trimesh.transformations.quaternion_matrix([w, x, y, z])[:3, :3]
+
+
+def start_box(obj: ObjectSpec, drawn: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The object's oriented bounding box at the start: ``(centre [3], axes [3, 3] (rows),
+    half extents [3])``; a sheet is a square of no thickness."""
     mesh = posed_mesh(obj, drawn)
+    rotation = _rotation(drawn)
+    position = np.asarray(drawn["position"], dtype=np.float64)
     if mesh is None:
-        half = np.array([drawn["size"] / 2, drawn["size"] / 2, 0.0])
-        return centre - half, centre + half
-    x, y, z, w = quaternion(drawn)
-    rotation = trimesh.transformations.quaternion_matrix([w, x, y, z])[:3, :3]
-    corners = np.asarray(trimesh.bounds.corners(mesh.bounds)) @ rotation.T
-    return centre + corners.min(axis=0), centre + corners.max(axis=0)
+        return position, rotation.T, np.array([drawn["size"] / 2, drawn["size"] / 2, 0.0])
+    low, high = mesh.bounds
+    return position + rotation @ ((low + high) / 2), rotation.T, (high - low) / 2
+
+
+def boxes_overlap(a: tuple, b: tuple, touching: float = TOUCHING) -> bool:
+    """Whether two oriented boxes overlap by more than ``touching`` (m), by the separating-axis
+    test over their 15 candidate axes (the 6 face normals and the 9 edge cross products)."""
+    (ca, axes_a, ha), (cb, axes_b, hb) = a, b
+    between = cb - ca
+    candidates = [*axes_a, *axes_b] + [np.cross(u, v) for u in axes_a for v in axes_b]
+    for axis in candidates:
+        length = np.linalg.norm(axis)
+        if length < 1e-9:
+            continue
+        axis = axis / length
+        reach = np.sum(ha * np.abs(axes_a @ axis)) + np.sum(hb * np.abs(axes_b @ axis))
+        if abs(between @ axis) >= reach - touching:
+            return False
+    return True
 
 
 def overlapping(spec: SceneSpec, drawn: list[dict]) -> list[tuple[int, int]]:
-    """Pairs of objects whose start boxes overlap (touching is allowed)."""
+    """Pairs of objects whose start boxes overlap (touching is allowed; pass-through pairs are
+    left out)."""
     boxes = [start_box(o, d) for o, d in zip(spec.objects, drawn)]
     return [(i, j) for i in range(len(boxes)) for j in range(i + 1, len(boxes))
-            if np.all(boxes[i][0] < boxes[j][1]) and np.all(boxes[j][0] < boxes[i][1])]
+            if (i, j) not in spec.pass_through and boxes_overlap(boxes[i], boxes[j])]
 
 
 class FileScene(Scene):
     """The pybullet scene of a :class:`SceneSpec` and a seed (see :class:`~hrn_pyg.data.scenes.Scene`)."""
 
-    uses_deformables = True
-
     def __init__(self, spec: SceneSpec, seed: int) -> None:
         self.spec = spec
         self.name = spec.name
-        self.config_cls = SceneConfig
+        self.config_cls = type(spec.config)
         self.effects = spec.effects
-        self.actuated = tuple(sorted({q.object for q in spec.pushes}))
+        self.uses_deformables = spec.uses_deformables
+        self.actuated = tuple(sorted({i for q in spec.pushes for i in q.objects}))
+        self._schedules: dict[int, dict] = {}
         super().__init__(seed, spec.config)
 
     def draw_params(self, rng: np.random.Generator) -> dict:
         return self.spec.draw(rng)
 
     def build(self) -> None:
+        self._schedules = {}
         for index, (obj, drawn) in enumerate(zip(self.spec.objects, self.params["objects"])):
             material = MATERIALS.index(obj.material)
             if material in (RIGID, STATIC):
@@ -418,13 +783,68 @@ class FileScene(Scene):
             else:
                 self._add_cloth(obj, drawn, f"objects[{index}]")
             self._start_moving(self._objects[-1], drawn)
+        for i, j in self.spec.pass_through:
+            p.setCollisionFilterPair(self._objects[i].body, self._objects[j].body, -1, -1, 0,
+                                     physicsClientId=self._client)
 
+    # -- pushes -------------------------------------------------------------------------------
     def scripted_action(self, t: int) -> tuple[np.ndarray, np.ndarray | None]:
-        forces = self.zero_action()
-        for push, force in zip(self.spec.pushes, self.params["pushes"]):
-            if push.first <= t <= push.last:
-                forces[push.object] += force
-        return forces, None
+        forces, spins = self.zero_action(), None
+        for index, (push, drawn) in enumerate(zip(self.spec.pushes, self.params["pushes"])):
+            first, last = drawn["steps"]
+            if "random" in drawn:
+                if first <= t <= last:
+                    forces += self._random_push(index, drawn["random"], t - first)
+                continue
+            if not first <= t <= last or ("every" in drawn and (t - first) % drawn["every"] != 0):
+                continue
+            for target in push.objects:
+                obj = self._objects[target]
+                if "force" in drawn:
+                    forces[target] += drawn["force"]
+                elif "velocity" in drawn and push.towards is not None:
+                    forces[target] += obj.mass * drawn["velocity"] * self._heading(target, push.towards) / self.dt
+                elif "velocity" in drawn:
+                    forces[target] += obj.mass * np.asarray(drawn["velocity"]) / self.dt
+                if "spin" in drawn:
+                    spins = np.zeros((self.num_objects, 3)) if spins is None else spins
+                    spins[target] = drawn["spin"]
+        return forces, spins
+
+    def _heading(self, source: int, target: int) -> np.ndarray:
+        """The horizontal unit vector from object ``source``'s leaves' centre to ``target``'s, ``[3]``."""
+        towards = (self._object_positions(self._objects[target]).mean(axis=0)
+                   - self._object_positions(self._objects[source]).mean(axis=0))[None]
+        towards[:, 2] = 0.0
+        towards /= np.maximum(np.linalg.norm(towards, axis=1, keepdims=True), 1e-9)
+        return towards[0]
+
+    def _random_push(self, index: int, schedule: dict, t: int) -> np.ndarray:
+        """A random schedule's forces ``[O, 3]`` at its step ``t``: a horizontal force on each of
+        the push's objects (random heading, or towards ``aim`` give or take ``aim_noise``; random
+        magnitude), held ``hold`` steps, then ``pause`` steps of none; drawn along the episode."""
+        state = self._schedules.setdefault(index, {})
+        if t == 0:
+            state.update(current=self.zero_action(), push_end=0, next_change=0)
+        if t >= state["next_change"]:
+            push = self.zero_action()
+            for target in self.spec.pushes[index].objects:
+                if "aim" in schedule:
+                    at = self._object_positions(self._objects[schedule["aim"]]).mean(axis=0)
+                    source = self._object_positions(self._objects[target]).mean(axis=0)
+                    to_aim = at - source
+                    heading = math.atan2(to_aim[1], to_aim[0]) + float(self.rng.uniform(*schedule.get("aim_noise", (0, 0))))
+                else:
+                    heading = float(self.rng.uniform(0, 2 * np.pi))
+                magnitude = float(self.rng.uniform(*schedule["force"]))
+                push[target] = magnitude * np.array([math.cos(heading), math.sin(heading), 0.0])
+            state["current"] = push
+            state["push_end"] = t + int(self.rng.integers(schedule["hold"][0], schedule["hold"][1] + 1))
+            state["next_change"] = state["push_end"] + int(self.rng.integers(schedule["pause"][0],
+                                                                             schedule["pause"][1] + 1))
+        if t >= state["push_end"]:
+            return self.zero_action()
+        return state["current"].copy()
 
     # -- bodies -------------------------------------------------------------------------------
     def _leaves(self, mesh: trimesh.Trimesh, where: str) -> np.ndarray:
@@ -434,30 +854,35 @@ class FileScene(Scene):
         c = self._client
         mesh = posed_mesh(obj, drawn)
         leaves = self._leaves(mesh, where)
-        shape = self._collision_shape(obj, mesh, static)
+        shape = self._collision_shape(obj, mesh, drawn, static)
         mass = STATIC_DENSITY * float(mesh.volume) if static else float(drawn["mass"])
+        pose = {"baseOrientation": q} if (q := quaternion(drawn)) is not None else {}
         body = p.createMultiBody(0.0 if static else mass, shape, basePosition=list(drawn["position"]),
-                                 baseOrientation=quaternion(drawn), physicsClientId=c)
+                                 physicsClientId=c, **pose)
         p.changeDynamics(body, -1, lateralFriction=drawn.get("friction", self.config.friction), physicsClientId=c)
         self._objects.append(SceneObject(STATIC if static else RIGID, body, mass, 1.0, leaves))
 
-    def _collision_shape(self, obj: ObjectSpec, mesh: trimesh.Trimesh, static: bool) -> int:
-        """A primitive's own pybullet shape; a convex mesh as its hull; a concave one as its
-        convex parts (moving) or as its triangles (static)."""
-        c, extents = self._client, np.asarray(mesh.extents)
-        if obj.mesh == "box":
-            return p.createCollisionShape(p.GEOM_BOX, halfExtents=(extents / 2).tolist(), physicsClientId=c)
-        if obj.mesh == "sphere":
-            return p.createCollisionShape(p.GEOM_SPHERE, radius=float(extents.max() / 2), physicsClientId=c)
-        if obj.mesh == "cylinder":
-            return p.createCollisionShape(p.GEOM_CYLINDER, radius=float(extents[0] / 2), height=float(extents[2]),
-                                          physicsClientId=c)
-        if obj.mesh == "capsule":
-            radius = float(extents[0] / 2)
-            return p.createCollisionShape(p.GEOM_CAPSULE, radius=radius, height=float(extents[2] - 2 * radius),
-                                          physicsClientId=c)
+    def _collision_shape(self, obj: ObjectSpec, mesh: trimesh.Trimesh, drawn: dict, static: bool) -> int:
+        """A primitive's own pybullet shape at its nominal extents; a convex mesh as its hull; a
+        concave one as its convex parts (moving) or as its triangles (static)."""
+        c = self._client
+        if obj.primitive:
+            extents = primitive_extents(obj.mesh, drawn)
+            if obj.mesh == "box":
+                return p.createCollisionShape(p.GEOM_BOX, halfExtents=(np.asarray(mesh.extents) / 2).tolist(),
+                                              physicsClientId=c)
+            if obj.mesh == "sphere":
+                return p.createCollisionShape(p.GEOM_SPHERE, radius=float(extents[0] / 2), physicsClientId=c)
+            if obj.mesh == "cylinder":
+                return p.createCollisionShape(p.GEOM_CYLINDER, radius=float(extents[0] / 2), height=float(extents[2]),
+                                              physicsClientId=c)
+            if obj.mesh == "capsule":
+                radius = float(extents[0] / 2)
+                return p.createCollisionShape(p.GEOM_CAPSULE, radius=radius, height=float(extents[2] - 2 * radius),
+                                              physicsClientId=c)
+            return p.createCollisionShape(p.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=c)
         hull = mesh.convex_hull
-        if obj.mesh == "cone" or (mesh.is_watertight and hull.volume - mesh.volume <= 0.02 * hull.volume):
+        if mesh.is_watertight and hull.volume - mesh.volume <= 0.02 * hull.volume:
             return p.createCollisionShape(p.GEOM_MESH, vertices=hull.vertices.tolist(), physicsClientId=c)
         if static:
             return p.createCollisionShape(p.GEOM_MESH, vertices=mesh.vertices.tolist(),
@@ -468,8 +893,9 @@ class FileScene(Scene):
     def _add_soft_mesh(self, obj: ObjectSpec, drawn: dict, where: str) -> None:
         """A soft body: the tetrahedra of the mesh's voxel lattice."""
         nodes, tets = lattice_tetrahedra(self._leaves(posed_mesh(obj, drawn), where), self.config.pitch)
-        self._add_soft_lattice(nodes, tets, float(drawn["mass"]), stiffness_exponent(drawn, SOFT_LOG10_MU_RANGE),
-                               drawn["position"], quaternion(drawn), drawn.get("friction", self.config.friction))
+        exponent = drawn["log10_mu"] if "log10_mu" in drawn else stiffness_exponent(drawn, SOFT_LOG10_MU_RANGE)
+        self._add_soft_lattice(nodes, tets, float(drawn["mass"]), exponent, drawn["position"],
+                               quaternion(drawn) or (0.0, 0.0, 0.0, 1.0), drawn.get("friction", self.config.friction))
 
     def _add_cloth(self, obj: ObjectSpec, drawn: dict, where: str) -> None:
         """A mass-spring cloth: a square sheet on the lattice, or a surface mesh whose (merged)
@@ -479,8 +905,10 @@ class FileScene(Scene):
             vertices, faces = grid_sheet(float(drawn["size"]), self.config.pitch)
         else:
             vertices, faces = surface_leaves(mesh, f"{self.spec.name}: {where}"), np.asarray(mesh.faces)
-        self._add_cloth_mesh(vertices, faces, float(drawn["mass"]), stiffness_exponent(drawn, CLOTH_LOG10_K_RANGE),
-                             drawn["position"], quaternion(drawn), drawn.get("friction", self.config.friction))
+        exponent = (drawn["log10_spring_k"] if "log10_spring_k" in drawn
+                    else stiffness_exponent(drawn, CLOTH_LOG10_K_RANGE))
+        self._add_cloth_mesh(vertices, faces, float(drawn["mass"]), exponent, drawn["position"], quaternion(drawn),
+                             drawn.get("friction", self.config.friction))
 
     def _start_moving(self, obj: SceneObject, drawn: dict) -> None:
         """The drawn start velocity and spin (a soft body's nodes move as one rigid body)."""
@@ -514,3 +942,39 @@ def leaves_of(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:
     if len(points) > MAX_LEAVES:
         raise too_many_leaves(len(points), pitch, MAX_LEAVES, name)
     return points
+
+
+# -- the package's own scenes ----------------------------------------------------------------
+
+
+def builtin_scene(name: str, **settings: Any) -> SceneSpec:
+    """The built-in scene ``name`` (one of :data:`SCENES`), its settings replaced by ``settings``
+    (``None`` values ignored; an unknown name is an error naming the settings there are)."""
+    if name not in SCENES:
+        raise ValueError(f"scene: unknown {name!r}; choose one of {sorted(SCENES)}")
+    return _read_builtin(name).with_settings(**settings)
+
+
+_BUILTIN_CACHE: dict[str, SceneSpec] = {}
+
+
+def _read_builtin(name: str) -> SceneSpec:
+    if name not in _BUILTIN_CACHE:
+        _BUILTIN_CACHE[name] = read_scene_file(BUILTIN_DIR / f"{name}.toml")
+    return _BUILTIN_CACHE[name]
+
+
+def scene_spec(scene: str | SceneSpec) -> SceneSpec:
+    """A scene given by its built-in name or as a spec, as a spec."""
+    return builtin_scene(scene) if isinstance(scene, str) else scene
+
+
+def make_scene(scene: str | SceneSpec, seed: int) -> FileScene:
+    """The pybullet scene of a built-in scene's name or a spec, for ``seed``; ``reset()`` starts it."""
+    return scene_spec(scene).make_scene(seed)
+
+
+def scene_effects(scene: str | SceneSpec) -> SceneEffects:
+    """The :class:`~hrn_pyg.data.effects.SceneEffects` a scene declares (what to simulate)."""
+    return scene_spec(scene).effects
+

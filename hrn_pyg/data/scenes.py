@@ -1,8 +1,12 @@
-"""Ground-truth physics: the six pybullet scenes and the episode they produce.
+"""Ground-truth physics: a pybullet world stepped one model step at a time.
 
-Every scene runs headless (``pybullet.DIRECT``) in its own client, is seeded (one
-``numpy.random.Generator`` per scene draws every parameter and every random action), and stores
-what it drew together with its configuration in the episode (``params``, JSON).
+:class:`Scene` is the mechanics every scene shares: the ground, gravity, rigid, soft and cloth
+bodies, pushes, and the leaves read back each step. What a scene holds (its objects, their
+ranges, its pushes) is data: a scene file (:mod:`hrn_pyg.data.scene_file`; the package's own
+six scenes are files too), whose :class:`~hrn_pyg.data.scene_file.FileScene` builds the bodies.
+
+Every scene runs headless (``pybullet.DIRECT``) in its own client and is seeded (one
+``numpy.random.Generator`` per scene draws every parameter and every random action).
 
 Leaves (the particles the model sees), per material:
 
@@ -30,25 +34,17 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import math
 import os
 import tempfile
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import ClassVar
 
 import numpy as np
 
 from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.data.voxelise import (
-    box_mesh,
-    grid_sheet,
-    lattice_tetrahedra,
-    sphere_mesh,
-    voxelise,
-    wedge_mesh,
     write_obj,
     write_tetrahedral_vtk,
 )
@@ -79,24 +75,19 @@ CLOTH_LOG10_K_RANGE = (0.0, 3.0)
 
 
 # ---------------------------------------------------------------------------------------------
-# configurations: one frozen dataclass per scene, holding the ranges parameters are drawn from
+# the settings every scene has
 # ---------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Settings shared by every scene.
+    """Settings every scene has (a scene file's top level).
 
     ``steps``: model steps per episode; ``substeps``: physics steps per model step;
     ``physics_hz``: physics rate; ``pitch``: voxel size (m) for leaves; ``friction``: lateral
     friction of every body and the ground; ``rolling_friction``: the ground's rolling and
     spinning friction (0: a ball on the ground rolls or spins forever; > 0: it slows down and
     comes to rest). A field named ``*_range`` is ``(low, high)``.
-
-    Episodes are long (150-160 model steps; the wedge 140) and end in a rest phase: scripted
-    pushes stop early enough (``last_push_step_range``) for the objects to settle and stay still
-    for the last 40+ steps, so a model sees both contacts and long stretches of rest. (Resting
-    soft bodies and cloth keep pybullet's small contact jitter: node speeds of mm/s to cm/s.)
     """
 
     steps: int = 150
@@ -136,132 +127,6 @@ class SceneConfig:
     def dt(self) -> float:
         """Seconds per model step."""
         return self.substeps / self.physics_hz
-
-
-@dataclass(frozen=True)
-class SoftBounceConfig(SceneConfig):
-    """Soft cube resting on the ground, kicked up and spun once, falls, bounces and rests."""
-
-    steps: int = 160
-    cube_side: float = 0.2
-    mass_range: tuple[float, float] = (0.5, 1.5)
-    log10_mu_range: tuple[float, float] = (2.8, 3.4)
-    kick_step_range: tuple[int, int] = (2, 5)
-    up_speed_range: tuple[float, float] = (2.0, 3.0)
-    side_speed_range: tuple[float, float] = (0.0, 0.4)
-    spin_range: tuple[float, float] = (3.0, 8.0)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "mass_range", "kick_step_range", "up_speed_range", "side_speed_range", "spin_range")
-
-
-@dataclass(frozen=True)
-class CubeCollisionConfig(SceneConfig):
-    """Two rigid cubes on the ground pushed into each other by repeated impulses.
-
-    No impulse after the episode's ``last_push_step`` (drawn from ``last_push_step_range``):
-    the cubes slide to a stop and rest for the remaining steps.
-    """
-
-    steps: int = 160
-    cube_side: float = 0.1
-    mass_range: tuple[float, float] = (0.5, 2.0)
-    distance_range: tuple[float, float] = (0.35, 0.7)
-    push_speed_range: tuple[float, float] = (1.2, 2.5)
-    push_every_range: tuple[int, int] = (12, 20)
-    first_push_range: tuple[int, int] = (2, 4)
-    last_push_step_range: tuple[int, int] = (60, 80)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "mass_range", "distance_range", "push_speed_range", "push_every_range", "first_push_range",
-        "last_push_step_range")
-
-
-@dataclass(frozen=True)
-class WedgeConfig(SceneConfig):
-    """A ball dropped onto the ridge of a static wedge; a small offset picks the side.
-
-    The ground's rolling friction stops the ball once it has rolled off the wedge (after
-    ~1.3 m, by step 76-91 over seeds 0-25), so it rests for the last ~50 steps.
-    """
-
-    steps: int = 140
-    rolling_friction: float = 0.01
-    ball_radius: float = 0.075
-    ball_mass_range: tuple[float, float] = (0.3, 1.0)
-    wedge_width: float = 0.4
-    wedge_length: float = 0.3
-    wedge_height_range: tuple[float, float] = (0.15, 0.25)
-    drop_height_range: tuple[float, float] = (0.05, 0.2)
-    offset_range: tuple[float, float] = (-0.01, 0.01)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "ball_mass_range", "wedge_height_range", "drop_height_range")
-
-
-@dataclass(frozen=True)
-class MultiMaterialConfig(SceneConfig):
-    """A rigid cube, a soft cube and a cloth falling onto the ground (the cloth on top)."""
-
-    rigid_side: float = 0.1
-    soft_side: float = 0.2
-    cloth_size: float = 0.5
-    rigid_mass_range: tuple[float, float] = (0.5, 1.5)
-    soft_mass_range: tuple[float, float] = (0.5, 1.5)
-    cloth_mass_range: tuple[float, float] = (0.1, 0.3)
-    log10_mu_range: tuple[float, float] = (2.8, 3.4)
-    log10_cloth_k_range: tuple[float, float] = (1.0, 2.0)
-    cube_drop_range: tuple[float, float] = (0.02, 0.2)
-    cloth_height_range: tuple[float, float] = (0.45, 0.6)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "rigid_mass_range", "soft_mass_range", "cloth_mass_range", "cube_drop_range",
-        "cloth_height_range")
-
-
-@dataclass(frozen=True)
-class CubePushConfig(SceneConfig):
-    """Two rigid cubes that pass through each other, moved by random horizontal forces.
-
-    Each push is held ``hold_range`` steps, then ``pause_range`` steps without force; no push
-    after the episode's ``last_push_step`` (so the cubes settle and rest at the end).
-    """
-
-    cube_side: float = 0.1
-    mass_range: tuple[float, float] = (0.8, 1.2)
-    spread: float = 0.6
-    force_range: tuple[float, float] = (0.0, 15.0)
-    hold_range: tuple[int, int] = (3, 8)
-    pause_range: tuple[int, int] = (5, 30)
-    last_push_step_range: tuple[int, int] = (60, 80)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "mass_range", "force_range", "hold_range", "pause_range", "last_push_step_range")
-
-
-@dataclass(frozen=True)
-class TowerConfig(SceneConfig):
-    """Three stacked rigid cubes and a ball pushed by random forces (mostly towards them).
-
-    Pushes are scheduled as in :class:`CubePushConfig` but follow each other without pauses (a
-    ball that stops between pushes seldom topples the tower: 1 of 12 seeds with 5-30 step
-    pauses, 5 of 12 without); the episode's rest phase comes after ``last_push_step``, and the
-    ground's rolling friction stops the ball then.
-    """
-
-    rolling_friction: float = 0.05
-    cube_side: float = 0.1
-    #: each cube's horizontal offset from the stack's axis, per cube and axis (m; default a
-    #: straight stack). With ``force_range = (0, 0)``: towers that stand a little off-centre for a
-    #: whole episode, data for a model that must hold a stack at rest
-    stack_offset_range: tuple[float, float] = (0.0, 0.0)
-    ball_radius: float = 0.075
-    cube_mass_range: tuple[float, float] = (0.2, 0.5)
-    ball_mass_range: tuple[float, float] = (0.5, 1.0)
-    ball_distance_range: tuple[float, float] = (0.25, 0.45)
-    force_range: tuple[float, float] = (0.0, 8.0)
-    aim_noise_range: tuple[float, float] = (-0.35, 0.35)
-    hold_range: tuple[int, int] = (3, 8)
-    pause_range: tuple[int, int] = (0, 0)
-    last_push_step_range: tuple[int, int] = (60, 80)
-    nonnegative_ranges: ClassVar[tuple[str, ...]] = (
-        "cube_mass_range", "ball_mass_range", "ball_distance_range", "force_range", "hold_range",
-        "pause_range", "last_push_step_range")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -304,7 +169,8 @@ class SceneObject:
 class Scene:
     """A seeded pybullet scene stepped one model step at a time.
 
-    Life cycle: ``scene = make_scene(name, seed, config)``; ``x0 = scene.reset()``;
+    Life cycle: ``scene = make_scene(name_or_spec, seed)``
+    (:func:`hrn_pyg.data.scene_file.make_scene`); ``x0 = scene.reset()``;
     ``x = scene.step(action_forces)`` any number of times; ``scene.close()``. ``reset`` rebuilds
     the same world (same drawn parameters) so a policy can be replayed from the start.
 
@@ -344,7 +210,7 @@ class Scene:
 
     # -- subclass interface -------------------------------------------------------------------
     def draw_params(self, rng: np.random.Generator) -> dict:
-        """Draw this episode's parameters from the config's ranges (JSON-able dict)."""
+        """Draw this episode's parameters (JSON-able dict)."""
         raise NotImplementedError
 
     def build(self) -> None:
@@ -547,38 +413,6 @@ class Scene:
         p.resetBaseVelocity(obj.body, v_lin.tolist(), spin.tolist(), physicsClientId=self._client)
         return (obj.mass / n) * (v_new - v_old) / self.dt
 
-    def _add_rigid(self, mesh_kind: str, size, mass: float, position, orientation=(0, 0, 0, 1),
-                   static: bool = False) -> int:
-        """Add a rigid (or static, ``mass`` ignored) body whose leaves voxelise its mesh."""
-        c, pitch = self._client, self.config.pitch
-        if mesh_kind == "box":
-            mesh = box_mesh(size)
-            shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=(np.asarray(mesh.extents) / 2).tolist(),
-                                           physicsClientId=c)
-        elif mesh_kind == "sphere":
-            mesh = sphere_mesh(size)
-            shape = p.createCollisionShape(p.GEOM_SPHERE, radius=float(size), physicsClientId=c)
-        elif mesh_kind == "wedge":
-            mesh = wedge_mesh(*size)
-            shape = p.createCollisionShape(p.GEOM_MESH, vertices=mesh.vertices.tolist(),
-                                           physicsClientId=c)
-        else:
-            raise ValueError(f"mesh_kind: unknown {mesh_kind!r}")
-        leaves = voxelise(mesh, pitch)
-        body = p.createMultiBody(0.0 if static else mass, shape, basePosition=list(position),
-                                 baseOrientation=list(orientation), physicsClientId=c)
-        p.changeDynamics(body, -1, lateralFriction=self.config.friction, physicsClientId=c)
-        if static:
-            mass = STATIC_DENSITY * float(mesh.volume)
-        self._objects.append(SceneObject(STATIC if static else RIGID, body, mass, 1.0, leaves))
-        return len(self._objects) - 1
-
-    def _add_soft_cube(self, side: float, mass: float, log10_mu: float, position,
-                       orientation=(0, 0, 0, 1)) -> int:
-        nodes, tets = lattice_tetrahedra(voxelise(box_mesh(side), self.config.pitch),
-                                         self.config.pitch)
-        return self._add_soft_lattice(nodes, tets, mass, log10_mu, position, orientation, self.config.friction)
-
     def _add_soft_lattice(self, nodes: np.ndarray, tets: np.ndarray, mass: float, log10_mu: float, position,
                           orientation, friction: float) -> int:
         """A Neo-Hookean soft body of the tetrahedral mesh ``nodes [M, 3]``, ``tets [T, 4]``."""
@@ -596,10 +430,6 @@ class Scene:
                                      nodes))
         self._check_node_count(self._objects[-1])
         return len(self._objects) - 1
-
-    def _add_cloth(self, size: float, mass: float, log10_k: float, position) -> int:
-        vertices, faces = grid_sheet(size, self.config.pitch)
-        return self._add_cloth_mesh(vertices, faces, mass, log10_k, position, None, self.config.friction)
 
     def _add_cloth_mesh(self, vertices: np.ndarray, faces: np.ndarray, mass: float, log10_k: float, position,
                         orientation, friction: float) -> int:
@@ -623,374 +453,3 @@ class Scene:
         got = len(self._object_positions(obj))
         if got != len(obj.local_leaves):
             raise RuntimeError(f"pybullet made {got} nodes from a mesh of {len(obj.local_leaves)}")
-
-
-def _uniform(rng: np.random.Generator, rng_range) -> float:
-    return float(rng.uniform(*rng_range))
-
-
-def _integer(rng: np.random.Generator, rng_range) -> int:
-    return int(rng.integers(rng_range[0], rng_range[1] + 1))
-
-
-def _yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
-    return (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
-
-
-class SoftBounce(Scene):
-    """Soft cube kicked up (with spin) once, flies, lands and deforms."""
-
-    name = "soft_bounce"
-    effects = SceneEffects(forces=True, collisions=False)  # one body: nothing to collide with
-    config_cls = SoftBounceConfig
-    uses_deformables = True
-
-    def draw_params(self, rng):
-        cfg = self.config
-        axis_angle = rng.uniform(0, 2 * np.pi)
-        side_angle = rng.uniform(0, 2 * np.pi)
-        spin = _uniform(rng, cfg.spin_range)
-        side = _uniform(rng, cfg.side_speed_range)
-        return {
-            "mass": _uniform(rng, cfg.mass_range),
-            "log10_mu": _uniform(rng, cfg.log10_mu_range),
-            "yaw": float(rng.uniform(0, np.pi / 2)),
-            "kick_step": _integer(rng, cfg.kick_step_range),
-            "kick_velocity": [side * math.cos(side_angle), side * math.sin(side_angle),
-                              _uniform(rng, cfg.up_speed_range)],
-            "spin": [spin * math.cos(axis_angle), spin * math.sin(axis_angle), 0.0],
-        }
-
-    def build(self):
-        half = self.config.cube_side / 2
-        self._add_soft_cube(self.config.cube_side, self.params["mass"], self.params["log10_mu"],
-                            (0, 0, half + SOFT_COLLISION_MARGIN), _yaw_quaternion(self.params["yaw"]))
-
-    def scripted_action(self, t):
-        forces, spins = self.zero_action(), np.zeros((1, 3))
-        if t == self.params["kick_step"]:
-            forces[0] = self.params["mass"] * np.asarray(self.params["kick_velocity"]) / self.dt
-            spins[0] = self.params["spin"]
-        return forces, spins
-
-
-class CubeCollision(Scene):
-    """Two rigid cubes, repeatedly given impulses towards each other."""
-
-    name = "cube_collision"
-    effects = SceneEffects(forces=True, collisions=True)
-    config_cls = CubeCollisionConfig
-
-    def draw_params(self, rng):
-        cfg = self.config
-        return {
-            "masses": [_uniform(rng, cfg.mass_range), _uniform(rng, cfg.mass_range)],
-            "distance": _uniform(rng, cfg.distance_range),
-            "heading": float(rng.uniform(0, 2 * np.pi)),
-            "yaws": rng.uniform(0, np.pi / 2, size=2).tolist(),
-            "push_speeds": [_uniform(rng, cfg.push_speed_range) for _ in range(2)],
-            "push_every": _integer(rng, cfg.push_every_range),
-            "first_push": _integer(rng, cfg.first_push_range),
-            "last_push_step": _integer(rng, cfg.last_push_step_range),
-        }
-
-    def build(self):
-        pr, side = self.params, self.config.cube_side
-        direction = np.array([math.cos(pr["heading"]), math.sin(pr["heading"]), 0.0])
-        for sign, mass, yaw in zip((-1, 1), pr["masses"], pr["yaws"]):
-            pos = sign * pr["distance"] / 2 * direction + [0, 0, side / 2]
-            self._add_rigid("box", side, mass, pos, _yaw_quaternion(yaw))
-
-    def scripted_action(self, t):
-        pr, forces = self.params, self.zero_action()
-        if t > pr["last_push_step"]:
-            return forces, None
-        if t >= pr["first_push"] and (t - pr["first_push"]) % pr["push_every"] == 0:
-            x = np.stack([self._object_positions(o).mean(axis=0) for o in self._objects])
-            towards = x[::-1] - x
-            towards[:, 2] = 0.0
-            towards /= np.maximum(np.linalg.norm(towards, axis=1, keepdims=True), 1e-9)
-            forces = (np.asarray(pr["masses"]) * np.asarray(pr["push_speeds"]))[:, None] * towards / self.dt
-        return forces, None
-
-
-class Wedge(Scene):
-    """A ball dropped onto a static wedge's ridge; the sign of a small offset picks a side."""
-
-    name = "wedge"
-    effects = SceneEffects(forces=False, collisions=True)  # dropped, never pushed
-    config_cls = WedgeConfig
-
-    def draw_params(self, rng):
-        cfg = self.config
-        return {
-            "ball_mass": _uniform(rng, cfg.ball_mass_range),
-            "wedge_height": _uniform(rng, cfg.wedge_height_range),
-            "drop_height": _uniform(rng, cfg.drop_height_range),
-            "offset": _uniform(rng, cfg.offset_range),
-            "offset_y": float(rng.uniform(-0.25, 0.25) * cfg.wedge_length),
-        }
-
-    def build(self):
-        cfg, pr = self.config, self.params
-        self._add_rigid("sphere", cfg.ball_radius, pr["ball_mass"],
-                        (pr["offset"], pr["offset_y"],
-                         pr["wedge_height"] + cfg.ball_radius + pr["drop_height"]))
-        self._add_rigid("wedge", (cfg.wedge_width, pr["wedge_height"], cfg.wedge_length), 0.0,
-                        (0, 0, 0), static=True)
-
-
-class MultiMaterial(Scene):
-    """A rigid cube and a soft cube fall onto the ground, then a cloth drapes over them."""
-
-    name = "multi_material"
-    effects = SceneEffects(forces=False, collisions=True)  # falling, never pushed
-    config_cls = MultiMaterialConfig
-    uses_deformables = True
-
-    def draw_params(self, rng):
-        cfg = self.config
-        return {
-            "rigid_mass": _uniform(rng, cfg.rigid_mass_range),
-            "soft_mass": _uniform(rng, cfg.soft_mass_range),
-            "cloth_mass": _uniform(rng, cfg.cloth_mass_range),
-            "log10_mu": _uniform(rng, cfg.log10_mu_range),
-            "log10_cloth_k": _uniform(rng, cfg.log10_cloth_k_range),
-            "drops": [_uniform(rng, cfg.cube_drop_range) for _ in range(2)],
-            "yaws": rng.uniform(0, np.pi / 2, size=2).tolist(),
-            "cloth_height": _uniform(rng, cfg.cloth_height_range),
-            "cloth_offset": rng.uniform(-0.05, 0.05, size=2).tolist(),
-            "gap": float(rng.uniform(0.02, 0.08)),
-        }
-
-    def build(self):
-        cfg, pr = self.config, self.params
-        x_rigid = -(cfg.rigid_side / 2 + pr["gap"] / 2)
-        x_soft = cfg.soft_side / 2 + pr["gap"] / 2
-        self._add_rigid("box", cfg.rigid_side, pr["rigid_mass"],
-                        (x_rigid, 0, cfg.rigid_side / 2 + pr["drops"][0]), _yaw_quaternion(pr["yaws"][0]))
-        self._add_soft_cube(cfg.soft_side, pr["soft_mass"], pr["log10_mu"],
-                            (x_soft, 0, cfg.soft_side / 2 + SOFT_COLLISION_MARGIN + pr["drops"][1]),
-                            _yaw_quaternion(pr["yaws"][1]))
-        self._add_cloth(cfg.cloth_size, pr["cloth_mass"], pr["log10_cloth_k"],
-                        (pr["cloth_offset"][0], pr["cloth_offset"][1], pr["cloth_height"]))
-
-
-class _RandomForces(Scene):
-    """Shared random-action script: a horizontal force on each actuated object, held for a
-    random number of steps (so pushes have an effect), then a random pause without force (its
-    length drawn from ``pause_range``; may be 0); from step ``last_push_step + 1`` on no force
-    at all, so every episode ends at rest."""
-
-    def draw_params(self, rng):
-        return self._schedule_params(rng)
-
-    def _schedule_params(self, rng: np.random.Generator) -> dict:
-        """The pushes' schedule; drawn after the scene's own parameters, so those are the same
-        for a seed whatever the schedule (the RL pools start from them)."""
-        return {"last_push_step": _integer(rng, self.config.last_push_step_range)}
-
-    def _aim(self, index: int) -> float:
-        """Heading (rad) around which object ``index``'s random force is drawn; uniform here."""
-        return float(self.rng.uniform(0, 2 * np.pi))
-
-    def _draw_push(self) -> np.ndarray:
-        """Forces ``[O, 3]`` of a new push (horizontal, random heading and magnitude)."""
-        push = self.zero_action()
-        for i in self.actuated:
-            heading = self._aim(i)
-            magnitude = _uniform(self.rng, self.config.force_range)
-            push[i] = magnitude * np.array([math.cos(heading), math.sin(heading), 0.0])
-        return push
-
-    def scripted_action(self, t):
-        if t == 0:
-            self._current = self.zero_action()
-            self._push_end = self._next_change = 0
-        if t > self.params["last_push_step"]:
-            return self.zero_action(), None
-        if t >= self._next_change:
-            self._current = self._draw_push()
-            self._push_end = t + _integer(self.rng, self.config.hold_range)
-            self._next_change = self._push_end + _integer(self.rng, self.config.pause_range)
-        if t >= self._push_end:
-            return self.zero_action(), None
-        return self._current.copy(), None
-
-
-class CubePush(_RandomForces):
-    """Two rigid cubes that do not collide with each other, pushed by random forces."""
-
-    name = "cube_push"
-    # pybullet lets the cubes pass through each other, but the models were trained with the
-    # collision edges the data graphs have when they overlap, so the search stays on
-    effects = SceneEffects(forces=True, collisions=None)
-    config_cls = CubePushConfig
-    actuated = (0, 1)
-
-    def draw_params(self, rng):
-        cfg = self.config
-        return {
-            "masses": [_uniform(rng, cfg.mass_range) for _ in range(2)],
-            "xy": rng.uniform(-cfg.spread / 2, cfg.spread / 2, size=(2, 2)).tolist(),
-            "yaws": rng.uniform(0, np.pi / 2, size=2).tolist(),
-            **self._schedule_params(rng),
-        }
-
-    def build(self):
-        cfg, pr = self.config, self.params
-        for (x, y), mass, yaw in zip(pr["xy"], pr["masses"], pr["yaws"]):
-            self._add_rigid("box", cfg.cube_side, mass, (x, y, cfg.cube_side / 2), _yaw_quaternion(yaw))
-        a, b = self._objects[0].body, self._objects[1].body
-        p.setCollisionFilterPair(a, b, -1, -1, 0, physicsClientId=self._client)
-
-
-class Tower(_RandomForces):
-    """Three stacked rigid cubes and a ball pushed by random forces aimed roughly at them."""
-
-    name = "tower"
-    effects = SceneEffects(forces=True, collisions=True)
-    config_cls = TowerConfig
-    actuated = (3,)
-
-    def draw_params(self, rng):
-        cfg = self.config
-        return {
-            "cube_masses": [_uniform(rng, cfg.cube_mass_range) for _ in range(3)],
-            "ball_mass": _uniform(rng, cfg.ball_mass_range),
-            "yaws": rng.uniform(-0.2, 0.2, size=3).tolist(),
-            "ball_distance": _uniform(rng, cfg.ball_distance_range),
-            "ball_heading": float(rng.uniform(0, 2 * np.pi)),
-            **self._schedule_params(rng),
-            # drawn last and only when asked for, so the straight stacks' episodes do not change
-            "stack_offsets": (rng.uniform(*cfg.stack_offset_range, size=(3, 2)).tolist()
-                              if cfg.stack_offset_range != (0.0, 0.0) else [[0.0, 0.0]] * 3),
-        }
-
-    def build(self):
-        cfg, pr = self.config, self.params
-        offsets = pr.get("stack_offsets", [[0.0, 0.0]] * 3)
-        for k, (mass, yaw, (dx, dy)) in enumerate(zip(pr["cube_masses"], pr["yaws"], offsets)):
-            self._add_rigid("box", cfg.cube_side, mass, (dx, dy, cfg.cube_side * (k + 0.5)),
-                            _yaw_quaternion(yaw))
-        d, h = pr["ball_distance"], pr["ball_heading"]
-        self._add_rigid("sphere", cfg.ball_radius, pr["ball_mass"],
-                        (d * math.cos(h), d * math.sin(h), cfg.ball_radius))
-
-    def _aim(self, index):
-        ball = self._object_positions(self._objects[index]).mean(axis=0)
-        base = self._object_positions(self._objects[0]).mean(axis=0)
-        to_tower = base - ball
-        return math.atan2(to_tower[1], to_tower[0]) + _uniform(self.rng, self.config.aim_noise_range)
-
-
-SCENES: dict[str, type[Scene]] = {
-    cls.name: cls for cls in (SoftBounce, CubeCollision, Wedge, MultiMaterial, CubePush, Tower)
-}
-
-
-def scene_config(scene: str, **overrides) -> SceneConfig:
-    """The scene's default config with ``overrides`` (``None`` values ignored); validated."""
-    cls = _scene_class(scene)
-    names = {f.name for f in dataclasses.fields(cls.config_cls)}
-    unknown = sorted(set(overrides) - names)
-    if unknown:
-        raise ValueError(f"config: unknown field(s) {unknown} for scene {scene!r}")
-    return cls.config_cls(**{k: v for k, v in overrides.items() if v is not None})
-
-
-def scene_effects(scene: str) -> SceneEffects:
-    """The :class:`~hrn_pyg.data.effects.SceneEffects` scene ``scene`` declares (what to simulate)."""
-    return _scene_class(scene).effects
-
-
-def make_scene(scene: str, seed: int, config: SceneConfig | None = None) -> Scene:
-    """A :class:`Scene` for ``scene`` (a key of :data:`SCENES`); call ``reset()`` to start it."""
-    return _scene_class(scene)(seed, config)
-
-
-def _scene_class(scene: str) -> type[Scene]:
-    if scene not in SCENES:
-        raise ValueError(f"scene: unknown {scene!r}; choose one of {sorted(SCENES)}")
-    return SCENES[scene]
-
-
-def config_to_dict(config: SceneConfig) -> dict:
-    return {f.name: (list(v) if isinstance(v := getattr(config, f.name), tuple) else v)
-            for f in dataclasses.fields(config)}
-
-
-class SceneSource(Protocol):
-    """Anything that makes a seeded :class:`Scene`, as a scene read from a file does
-    (:class:`hrn_pyg.data.scene_file.SceneSpec`)."""
-
-    name: str
-
-    def make_scene(self, seed: int) -> Scene: ...
-
-
-def simulate_episode(scene: str | SceneSource, seed: int, steps: int | None = None,
-                     config: SceneConfig | None = None, *,
-                     after_reset: Callable[[Scene], None] | None = None) -> dict[str, np.ndarray]:
-    """Run one episode with the scene's scripted/random actions; return the episode arrays.
-
-    ``scene`` is a built-in scene's name (with an optional ``config``) or a scene read from a
-    file (:func:`hrn_pyg.data.scene_file.read_scene_file`, whose settings are its own).
-
-    ``after_reset(scene)``, if given, runs once after ``reset()`` and before step 0 (e.g.
-    :meth:`Scene.nudge` to perturb the initial state of a ground-truth ensemble); the recorded
-    ``positions[0]`` is the state after it.
-
-    **Shapes** (``S`` steps, ``L`` leaves, ``O`` objects, ``N`` hierarchy nodes)
-    ``positions [S+1, L, 3]`` f32, ``forces [S, L, 3]`` f32, ``leaf_mass [L]`` f32,
-    ``leaf_object [L]`` i64, ``object_material [O]`` i64, ``object_stiffness [O]`` f32,
-    ``hierarchy_parent [N]`` i64, ``seed``/``scene``/``params``/``dt`` scalars.
-    """
-    from hrn_pyg.data.hierarchy import build_hierarchy
-
-    if isinstance(scene, str):
-        sim = make_scene(scene, seed, config)
-    elif config is not None:
-        raise ValueError("config: a scene file carries its own settings")
-    else:
-        sim = scene.make_scene(seed)
-    if steps is not None:
-        if not isinstance(steps, (int, np.integer)) or steps < 1:
-            raise ValueError(f"steps: must be an integer >= 1, got {steps}")
-        sim.config = dataclasses.replace(sim.config, steps=int(steps))
-    n_steps = sim.config.steps
-    try:
-        x = sim.reset()
-        if after_reset is not None:
-            after_reset(sim)
-            x = sim.leaf_positions()
-        positions = np.empty((n_steps + 1, len(x), 3), dtype=np.float32)
-        forces = np.empty((n_steps, len(x), 3), dtype=np.float32)
-        positions[0] = x
-        for t in range(n_steps):
-            action, spins = sim.scripted_action(t)
-            positions[t + 1] = sim.step(action, spins)
-            forces[t] = sim.last_forces
-        leaf_mass, leaf_object = sim.leaf_mass, sim.leaf_object
-        episode = {
-            "positions": positions,
-            "forces": forces,
-            "leaf_mass": leaf_mass,
-            "leaf_object": leaf_object,
-            "object_material": sim.object_material,
-            "object_stiffness": sim.object_stiffness,
-            "seed": np.array(sim.seed, dtype=np.int64),
-            "scene": np.array(sim.name),
-            "params": np.array(json.dumps({"params": sim.params, "config": config_to_dict(sim.config),
-                                           **({} if isinstance(scene, str) else {"scene_file": scene.text})},
-                                          sort_keys=True)),
-            "dt": np.array(sim.dt, dtype=np.float64),
-        }
-    finally:
-        sim.close()
-    if not np.all(np.isfinite(positions)):
-        raise RuntimeError(f"{sim.name} seed {seed}: pybullet produced non-finite positions")
-    episode["hierarchy_parent"] = np.asarray(
-        build_hierarchy(positions[0].astype(np.float64), leaf_mass.astype(np.float64), leaf_object),
-        dtype=np.int64)
-    return episode

@@ -46,7 +46,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
                        goal: Tensor | None = None, history_steps: int = 0) -> dict:
     """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
 
-    The ground-truth check of a policy: builds ``hrn_pyg.data.scenes.make_scene(task, seed)``,
+    The ground-truth check of a policy: builds ``hrn_pyg.data.scene_file.make_scene(task, seed)``,
     applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
     judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
     displacement) after every step, stopping at the first success. ``goal`` ``(2,)`` is the
@@ -64,7 +64,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
     task = get_task(task)
     if history_steps < 0:
         raise ValueError(f"history_steps must be >= 0, got {history_steps}")
-    from hrn_pyg.data.scenes import make_scene
+    from hrn_pyg.data.scene_file import make_scene
 
     actions = torch.as_tensor(actions, dtype=torch.float32).cpu()  # pybullet takes numpy
     forces = action_to_forces(task, actions)                                  # (T, O, 3)

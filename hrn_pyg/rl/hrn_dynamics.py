@@ -90,7 +90,7 @@ class HRNDynamics:
     def __init__(self, model: HRN, task: str | TaskConfig, pool_seeds: Sequence[int] = POOL_SEEDS,
                  sleep: SleepConfig | None = DEFAULT_SLEEP) -> None:
         # pybullet only where a pool is built
-        from hrn_pyg.data.scenes import make_scene
+        from hrn_pyg.data.scene_file import make_scene
 
         self.task = get_task(task)
         #: objects at rest sleep (:func:`hrn_pyg.sim.sleeping.state_from_history`); None: all awake

@@ -186,11 +186,11 @@ def build_start(scene: str, seed: int, steps: int, members: int,
     The start is step :data:`~hrn_pyg.sampling.ensemble.HISTORY` of the unperturbed episode;
     the truth is the ``members`` ensemble's leaves at step ``HISTORY + steps``.
     """
+    from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.data.graph import STATIC
-    from hrn_pyg.data.scenes import simulate_episode
 
     if episode is None:
-        episode = simulate_episode(scene, seed, steps=HISTORY + steps, config=config)
+        episode = simulate_episode(scene if config is None else config, seed, steps=HISTORY + steps)
     ensemble = ground_truth_ensemble(scene, seed, members, HISTORY + steps, perturbation, config)
     graph = episode_state(episode, start=HISTORY, steps=steps)
     forces = graph[NODE].force_seq.transpose(0, 1)
@@ -203,9 +203,9 @@ def build_start(scene: str, seed: int, steps: int, members: int,
 
 
 def data_starts(folder: str | Path, scene: str, limit: int) -> tuple[list[int], Any, dict[int, Path]]:
-    """Validation seeds (at most ``limit``, lowest first), scene config and episode files of a
+    """Validation seeds (at most ``limit``, lowest first), the scene with its recorded settings, and episode files of a
     folder written by ``hrn-pyg generate``."""
-    from hrn_pyg.data.scenes import scene_config
+    from hrn_pyg.data.scene_file import builtin_scene
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -217,7 +217,7 @@ def data_starts(folder: str | Path, scene: str, limit: int) -> tuple[list[int], 
         if meta.get("scene") not in (None, scene):
             raise ValueError(f"--data: {folder} holds {meta['scene']!r} episodes, not {scene!r}")
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
-        config = scene_config(scene, **fields) if fields else None
+        config = builtin_scene(scene, **fields) if fields else None
     files = {}
     for path in folder.iterdir():
         match = EPISODE_PATTERN.match(path.name)

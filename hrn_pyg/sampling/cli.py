@@ -24,7 +24,7 @@ from torch_geometric.data import HeteroData
 
 from hrn_pyg.checkpoints import checkpoint_path, load_model, resolve_model
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scenes import scene_effects
+from hrn_pyg.data.scene_file import scene_effects
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
@@ -83,7 +83,7 @@ def initial_state(args: argparse.Namespace, steps: int | None,
         window = dataset[index]
         return window, {"data": str(args.data), "window": index,
                         "episode_seed": int(window.episode_seed), "start_step": int(window.start_step)}
-    from hrn_pyg.data.scenes import simulate_episode
+    from hrn_pyg.data.episodes import simulate_episode
 
     total = args.start + (steps or 30)
     episode = simulate_episode(scene_source(args) if source is None else source, int(args.seed), steps=total)

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch_geometric.data import HeteroData
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import (
     HISTORY,
     NODE,
@@ -29,7 +30,8 @@ from hrn_pyg.data.graph import (
     leaf_to_ancestor_mean,
     set_state,
 )
-from hrn_pyg.data.scenes import Scene, SceneConfig, simulate_episode
+from hrn_pyg.data.scene_file import SceneSpec
+from hrn_pyg.data.scenes import Scene
 
 
 @dataclass(frozen=True)
@@ -78,14 +80,15 @@ def ground_truth_ensemble(
     members: int,
     steps: int | None = None,
     perturbation: PerturbationConfig = PerturbationConfig(),
-    config: SceneConfig | None = None,
+    config: SceneSpec | None = None,
 ) -> np.ndarray:
     """Leaf positions of ``members`` perturbed replays of episode ``(scene, seed)``.
 
-    Each member is :func:`hrn_pyg.data.scenes.simulate_episode` with an ``after_reset`` hook that
+    Each member is :func:`hrn_pyg.data.episodes.simulate_episode` with an ``after_reset`` hook that
     nudges the objects by :func:`draw_offsets` (one ``numpy`` generator seeded with
     ``perturbation.seed`` serves all members in order, so the ensemble repeats). Leaves keep the
-    order of the unperturbed episode (same meshes, same objects).
+    order of the unperturbed episode (same meshes, same objects). ``config``: the scene with
+    changed settings (:func:`hrn_pyg.data.scene_file.builtin_scene`); None: ``scene`` as it is.
 
     **Shapes:** returns ``(members, S + 1, L, 3)`` float32, ``S`` = ``steps`` or the config's.
     """
@@ -98,7 +101,7 @@ def ground_truth_ensemble(
         sim.nudge(offsets, velocities)
 
     runs = [  # one pybullet simulation per member: the simulator is not batched
-        simulate_episode(scene, seed, steps, config, after_reset=nudge)["positions"] for _ in range(members)
+        simulate_episode(scene if config is None else config, seed, steps, after_reset=nudge)["positions"] for _ in range(members)
     ]
     return np.stack(runs)
 

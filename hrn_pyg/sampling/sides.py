@@ -69,8 +69,8 @@ def split_difference(p_model, p_truth) -> float:
 
 
 def ridge_config(folder: str | Path):
-    """The wedge scene config recorded in a generated folder's ``meta.json``."""
-    from hrn_pyg.data.scenes import scene_config
+    """The wedge scene with the settings recorded in a generated folder's ``meta.json``."""
+    from hrn_pyg.data.scene_file import builtin_scene
 
     meta_path = Path(folder) / "meta.json"
     if not meta_path.is_file():
@@ -79,4 +79,4 @@ def ridge_config(folder: str | Path):
     if meta.get("scene", "wedge") != "wedge":
         raise ValueError(f"{folder} holds {meta.get('scene')!r} episodes, not wedge")
     fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
-    return scene_config("wedge", **fields)
+    return builtin_scene("wedge", **fields)

@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hrn_pyg.data.scenes import SCENES, simulate_episode
+from hrn_pyg.data.episodes import simulate_episode
+from hrn_pyg.data.scene_file import SCENES
 
 REFERENCE = Path(__file__).resolve().parents[1] / "sim" / "reference_rollouts.npz"
 SEED, STEPS = 9, 60

@@ -12,7 +12,7 @@ from toy_scene import toy_scene
 
 from hrn_pyg.data.effects import SceneEffects, can_collide, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, replicate, set_state
-from hrn_pyg.data.scenes import SCENES, scene_effects
+from hrn_pyg.data.scene_file import SCENES, scene_effects
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sim.rollout import rollout, unroll
 from hrn_pyg.sim.step import build_inputs, run_network, step

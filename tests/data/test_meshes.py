@@ -101,8 +101,20 @@ def test_an_open_sheet_keeps_its_surface_voxels_with_a_warning():
 def test_primitives_are_closed_centred_and_one_metre_long(name):
     mesh = primitive_mesh(name)
     assert mesh.is_watertight
-    np.testing.assert_allclose(mesh.extents.max(), 1.0)
-    np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(mesh.extents.max(), 1.0, rtol=0.01)  # an icosphere's vertices miss the axes
+    centre = [0.0, 0.0, 0.25] if name == "wedge" else [0.0, 0.0, 0.0]  # a wedge stands on its base
+    np.testing.assert_allclose(mesh.bounds.mean(axis=0), centre, atol=1e-12)
+
+
+@pytest.mark.parametrize("name, extents", [("box", (0.3, 0.2, 0.1)), ("cylinder", (0.1, 0.1, 0.3)),
+                                           ("capsule", (0.1, 0.1, 0.3)), ("cone", (0.2, 0.2, 0.1)),
+                                           ("wedge", (0.4, 0.3, 0.2))])
+def test_primitives_take_their_extents(name, extents):
+    mesh = primitive_mesh(name, np.array(extents))
+    assert mesh.is_watertight
+    np.testing.assert_allclose(mesh.extents, extents, rtol=1e-3)
+    with pytest.raises(ValueError, match="extents must be finite and > 0"):
+        primitive_mesh(name, np.array([0.1, 0.0, 0.1]))
 
 
 def test_sized_mesh_scales_the_longest_extent_and_centres_the_box():

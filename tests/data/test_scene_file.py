@@ -13,10 +13,10 @@ import pytest
 
 from hrn_pyg.cli import main
 from hrn_pyg.data import scene_file
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.data.io import load_episode
-from hrn_pyg.data.scene_file import FileScene, overlapping, read_scene_file, start_box
-from hrn_pyg.data.scenes import simulate_episode
+from hrn_pyg.data.scene_file import FileScene, boxes_overlap, overlapping, read_scene_file, start_box
 
 DATA = Path(pybullet_data.getDataPath())
 
@@ -162,8 +162,23 @@ position = { min = [-0.5, 0.0, 0.1], max = [0.5, 0.0, 0.1] }
                                "position = [0.05, 0.0, 0.1]")
     with pytest.raises(ValueError, match="objects 0 and 1 overlap"):
         FileScene(read_scene_file(write(tmp_path, always, "always.toml")), 0)
-    box = start_box(spec.objects[0], {"size": 0.2, "position": [0.0, 0.0, 0.1], "yaw": 45.0})
-    np.testing.assert_allclose(box[1] - box[0], [0.2 * np.sqrt(2), 0.2 * np.sqrt(2), 0.2])
+    centre, axes, half = start_box(spec.objects[0], {"size": 0.2, "position": [0.0, 0.0, 0.1], "yaw": 45.0})
+    np.testing.assert_allclose(half, [0.1, 0.1, 0.1])
+    np.testing.assert_allclose(axes[0], [np.sqrt(0.5), np.sqrt(0.5), 0.0], atol=1e-12)
+
+
+def test_oriented_boxes_overlap_only_where_they_do():
+    """A cube turned by 45 degrees reaches sqrt(2) times further along x than it does square on:
+    axis-aligned boxes would call the first pair overlapping, the oriented test does not."""
+    spec = read_scene_file_text(BASE)
+    cube = spec.objects[0]
+    turned = start_box(cube, {"size": 0.2, "position": [0.0, 0.0, 0.1], "yaw": 45.0})
+    square = start_box(cube, {"size": 0.2, "position": [0.2, 0.2, 0.1], "yaw": 0.0})  # beside its slanted face
+    assert not boxes_overlap(turned, square)
+    near = start_box(cube, {"size": 0.2, "position": [0.22, 0.0, 0.1], "yaw": 0.0})  # into its corner
+    assert boxes_overlap(turned, near)
+    below = start_box(cube, {"size": 0.2, "position": [0.0, 0.0, 0.3], "yaw": 10.0})  # stacked: touching only
+    assert not boxes_overlap(turned, below)
 
 
 BASE = """

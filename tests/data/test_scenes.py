@@ -5,15 +5,9 @@ import json
 import numpy as np
 import pytest
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.io import load_episode, save_episode
-from hrn_pyg.data.scenes import (
-    SCENES,
-    CubePushConfig,
-    SoftBounceConfig,
-    make_scene,
-    scene_config,
-    simulate_episode,
-)
+from hrn_pyg.data.scene_file import SCENES, builtin_scene, make_scene
 
 STEPS = 3
 
@@ -49,8 +43,8 @@ def test_rigid_leaves_keep_their_distances():
 
 
 def test_soft_cube_deforms_on_landing():
-    cfg = SoftBounceConfig(kick_step_range=(2, 2), up_speed_range=(2.5, 2.5))
-    ep = simulate_episode("soft_bounce", seed=0, steps=30, config=cfg)
+    spec = builtin_scene("soft_bounce", kick_step_range=(2, 2), up_speed_range=(2.5, 2.5))
+    ep = simulate_episode(spec, seed=0, steps=30)
     x = ep["positions"].astype(np.float64)
     rest = np.linalg.norm(x[0][:, None] - x[0][None], axis=-1)
     change = [np.abs(np.linalg.norm(xt[:, None] - xt[None], axis=-1) - rest).max() for xt in x]
@@ -74,7 +68,7 @@ def test_seeded_generation_is_byte_identical(tmp_path):
 
 
 def test_cube_push_cubes_pass_through_each_other():
-    scene = make_scene("cube_push", seed=0, config=CubePushConfig())
+    scene = make_scene("cube_push", seed=0)
     try:
         scene.reset()
         # put cube 1 onto cube 0 by pushing it there; they must not collide (stay on the ground)
@@ -109,9 +103,11 @@ def test_bad_input():
     with pytest.raises(ValueError, match="scene"):
         simulate_episode("nope", seed=0)
     with pytest.raises(ValueError, match="pitch"):
-        scene_config("cube_collision", pitch=0.0)
-    with pytest.raises(ValueError, match="mass_range"):
-        scene_config("cube_collision", mass_range=(2.0, 1.0))
+        builtin_scene("cube_collision", pitch=0.0)
+    with pytest.raises(ValueError, match="unknown setting 'cube_sides'; the settings are .*cube_side"):
+        builtin_scene("cube_collision", cube_sides=0.2)
+    with pytest.raises(ValueError, match=r"draw.masses: .*mass_range.*low 2.0 > high 1.0"):
+        make_scene(builtin_scene("cube_collision", mass_range=(2.0, 1.0)), 0)
     with pytest.raises(ValueError, match="steps"):
         simulate_episode("cube_collision", seed=0, steps=0)
     scene = make_scene("wedge", seed=0)
@@ -134,36 +130,36 @@ def _max_leaf_speed(ep, steps):
 
 
 def test_long_episode_defaults():
-    steps = {name: scene_config(name).steps for name in SCENES}
+    steps = {name: builtin_scene(name).config.steps for name in SCENES}
     assert steps == {"soft_bounce": 160, "cube_collision": 160, "wedge": 140,
                      "multi_material": 150, "cube_push": 150, "tower": 150}
     for name in ("cube_collision", "cube_push", "tower"):  # pushes stop well before the end
-        cfg = scene_config(name)
-        assert cfg.last_push_step_range[1] <= cfg.steps - 70
+        spec = builtin_scene(name)
+        assert spec.settings["last_push_step_range"][1] <= spec.config.steps - 70
 
 
 @pytest.mark.parametrize("scene", ["cube_collision", "wedge", "cube_push", "tower"])
 def test_rigid_scenes_end_at_rest(scene):
     ep = simulate_episode(scene, seed=0)
-    assert len(ep["forces"]) == scene_config(scene).steps
+    assert len(ep["forces"]) == builtin_scene(scene).config.steps
     assert np.abs(ep["forces"][-40:]).max() == 0
     assert _max_leaf_speed(ep, 40).max() < 0.01
     assert _max_leaf_speed(ep, len(ep["forces"])).max() > 0.5  # but things did move
 
 
 def test_cube_collision_pushes_stop_after_last_push_step():
-    cfg = scene_config("cube_collision", steps=30, first_push_range=(2, 2), push_every_range=(5, 5),
-                       last_push_step_range=(12, 12))
-    ep = simulate_episode("cube_collision", seed=0, config=cfg)
+    spec = builtin_scene("cube_collision", steps=30, first_push_range=(2, 2), push_every_range=(5, 5),
+                         last_push_step_range=(12, 12))
+    ep = simulate_episode(spec, seed=0)
     pushed = np.nonzero(np.abs(ep["forces"]).sum(axis=(1, 2)) > 0)[0].tolist()
     assert pushed == [2, 7, 12]
     assert json.loads(str(ep["params"]))["params"]["last_push_step"] == 12
 
 
 def test_random_forces_alternate_pushes_and_pauses():
-    cfg = scene_config("cube_push", steps=16, force_range=(5.0, 10.0), hold_range=(2, 2),
-                       pause_range=(3, 3), last_push_step_range=(10, 10))
-    ep = simulate_episode("cube_push", seed=0, config=cfg)
+    spec = builtin_scene("cube_push", steps=16, force_range=(5.0, 10.0), hold_range=(2, 2),
+                         pause_range=(3, 3), last_push_step_range=(10, 10))
+    ep = simulate_episode(spec, seed=0)
     pushed = np.nonzero(np.abs(ep["forces"]).sum(axis=(1, 2)) > 0)[0].tolist()
     assert pushed == [0, 1, 5, 6, 10]
 
@@ -172,17 +168,19 @@ def test_schedule_does_not_change_the_initial_state():
     """The RL pools start from make_scene(name, seed): the push schedule is drawn last."""
     for name in ("cube_push", "tower"):
         a = make_scene(name, seed=3)
-        b = make_scene(name, seed=3, config=scene_config(name, last_push_step_range=(5, 9)))
-        a.params.pop("last_push_step")
-        b.params.pop("last_push_step")
+        b = make_scene(builtin_scene(name, last_push_step_range=(5, 9)), seed=3)
+        assert a.params["last_push_step"] != b.params["last_push_step"]
+        for params in (a.params, b.params):
+            params.pop("last_push_step")
+            params.pop("pushes")
         assert a.params == b.params
 
 
 def test_ground_rolling_friction_stops_a_rolling_ball():
-    rolls = scene_config("wedge", rolling_friction=0.0)
-    assert _max_leaf_speed(simulate_episode("wedge", seed=0, config=rolls), 40).max() > 0.5
+    rolls = builtin_scene("wedge", rolling_friction=0.0)
+    assert _max_leaf_speed(simulate_episode(rolls, seed=0), 40).max() > 0.5
     with pytest.raises(ValueError, match="rolling_friction"):
-        scene_config("wedge", rolling_friction=-0.1)
+        builtin_scene("wedge", rolling_friction=-0.1)
 
 
 def test_tower_stack_offsets_leave_straight_stacks_alone_and_stand_still_unpushed():
@@ -191,8 +189,8 @@ def test_tower_stack_offsets_leave_straight_stacks_alone_and_stand_still_unpushe
     else drawn); an unpushed off-centre stack stands: pybullet's cubes move under 5 mm in 40 steps."""
     straight = simulate_episode("tower", seed=4, steps=2)
     assert make_scene("tower", seed=4).params["stack_offsets"] == [[0.0, 0.0]] * 3
-    config = scene_config("tower", stack_offset_range=(-0.015, 0.015), force_range=(0.0, 0.0))
-    offset = simulate_episode("tower", seed=4, steps=40, config=config)
+    spec = builtin_scene("tower", stack_offset_range=(-0.015, 0.015), force_range=(0.0, 0.0))
+    offset = simulate_episode(spec, seed=4, steps=40)
     cubes = straight["leaf_object"] < 3
     start = offset["positions"][0]
     for cube in range(3):
@@ -201,4 +199,4 @@ def test_tower_stack_offsets_leave_straight_stacks_alone_and_stand_still_unpushe
         assert 0 < np.abs(shift).max() <= 0.015 + 1e-4
     assert np.abs(offset["positions"][-1][cubes] - start[cubes]).max() < 0.005
     with pytest.raises(ValueError, match="stack_offset_range"):
-        scene_config("tower", stack_offset_range=(0.01, -0.01))
+        make_scene(builtin_scene("tower", stack_offset_range=(0.01, -0.01)), 0)

@@ -8,9 +8,10 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import check_env_specs
 
 from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE, set_state
 from hrn_pyg.data.io import save_episode
-from hrn_pyg.data.scenes import make_scene, simulate_episode
+from hrn_pyg.data.scene_file import make_scene
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.rl.dynamics import StochasticDynamics

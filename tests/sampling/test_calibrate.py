@@ -14,12 +14,16 @@ import torch
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import build_parser, main
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE, STATIC
-from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sampling import calibrate as cal
-from hrn_pyg.sampling.ensemble import PerturbationConfig, episode_state, ground_truth_ensemble
+from hrn_pyg.sampling.ensemble import (
+    PerturbationConfig,
+    episode_state,
+    ground_truth_ensemble,
+)
 from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.train import TrainConfig, model_payload

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.data.scenes import simulate_episode
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
     draw_offsets,

@@ -44,7 +44,7 @@ def test_scores_by_hand():
 
 def test_ridge_config_reads_the_folder_and_refuses_other_scenes(tmp_path):
     (tmp_path / "meta.json").write_text(json.dumps({"scene": "wedge", "config": {"offset_range": [-0.003, 0.003]}}))
-    assert ridge_config(tmp_path).offset_range == (-0.003, 0.003)
+    assert ridge_config(tmp_path).settings["offset_range"].tolist() == [-0.003, 0.003]
     (tmp_path / "meta.json").write_text(json.dumps({"scene": "tower", "config": {}}))
     with pytest.raises(ValueError, match="not wedge"):
         ridge_config(tmp_path)

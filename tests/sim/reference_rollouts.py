@@ -39,7 +39,7 @@ RL_POOL = (10_000, 10_001, 10_002)
 
 def episodes() -> dict[str, dict[str, np.ndarray]]:
     """One short pybullet episode per scene (only when writing)."""
-    from hrn_pyg.data.scenes import simulate_episode
+    from hrn_pyg.data.episodes import simulate_episode
 
     out = {}
     for scene in sorted(set(SCENE_OF.values())):

@@ -7,10 +7,10 @@ import torch
 from stability.stability_helpers import fitted_model
 from toy_scene import toy_scene
 
-from hrn_pyg.sim import fixed_shape
 from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.graph import NODE, replicate
 from hrn_pyg.sampling.sample import make_masks_fn
+from hrn_pyg.sim import fixed_shape
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig, fixed_shape_rollout
 from hrn_pyg.sim.rollout import rollout
 
@@ -116,7 +116,7 @@ def test_shipped_model_on_a_pybullet_state(scene):
     from stability.stability_helpers import trained_checkpoint
 
     from hrn_pyg.checkpoints import load_model
-    from hrn_pyg.data.scenes import simulate_episode
+    from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.sampling.ensemble import episode_state
 
     model = load_model(trained_checkpoint(scene)).eval()

@@ -183,7 +183,7 @@ def test_a_scene_wholly_asleep_keeps_its_contacts_without_a_search(monkeypatch):
 
 
 def _tower_at_rest():
-    from hrn_pyg.data.scenes import simulate_episode
+    from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.sampling.ensemble import episode_state
 
     graph = episode_state(simulate_episode("tower", 9, steps=3), start=2)

@@ -25,8 +25,9 @@ from stability_helpers import SLOW, fitted_model, slow, trained_checkpoint
 from toy_scene import toy_scene
 
 from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import COLLISION, NODE
-from hrn_pyg.data.scenes import SCENES, simulate_episode
+from hrn_pyg.data.scene_file import SCENES
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sampling.ensemble import episode_state
