@@ -4,7 +4,7 @@ Built from TorchRL pieces: a :class:`~torchrl.modules.ProbabilisticActor` with a
 :class:`~torchrl.modules.TanhNormal` head and a :class:`~torchrl.modules.ValueOperator`, a
 single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
 ``SyncDataCollector``), :class:`~torchrl.objectives.value.GAE` and
-:class:`~torchrl.objectives.ClipPPOLoss`. Four modes:
+:class:`~torchrl.objectives.ClipPPOLoss`. Five modes:
 
 - ``deterministic``: dropout rate 0.
 - ``action_noise``: rate 0, Gaussian noise on the actions (``PPOConfig.action_noise_std`` of
@@ -12,6 +12,13 @@ single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
 - ``stochastic``: the dropout rate held constant (cube_push: 0.1 on the force module).
 - ``stochastic_annealed``: the rate brought linearly to 0 over ``anneal_updates`` PPO
   updates (tower: 0.1 -> 0 over 1200).
+- ``stochastic_unrelaxed``: the constant rate of ``stochastic`` without reward relaxation: the
+  next state is one of the ``k`` samples drawn at random and only its own goal test rewards
+  (the ablation that separates a stochastic model from an optimistic reward).
+
+Every update logs the partial-hit share of its batch: the fraction of steps at which some but
+not all of the ``k`` samples met the goal (:func:`~hrn_pyg.rl.env.partial_hits`), the only
+steps at which relaxation changes a reward.
 
 The rate of the stochastic modes is ``--dropout-rate`` when given, else the model's calibrated
 rate (``hrn-pyg calibrate``; :attr:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.calibrated_rate`), else
@@ -29,6 +36,9 @@ Output (``--out``, default ``runs/rl/<task>``)::
                                   dynamics) stops the command with an error and is kept
                                   (``--restart``: afresh)
     <mode>/seed<k>/curve.png      this run's average episode length
+    <mode>/seed<k>/eval.csv       with --eval-every N: every N updates, the deterministic policy
+                                  at rate 0 on fixed evaluation scenes, in the learned model and
+                                  replayed in pybullet (rl/success_curve.py)
     episode_length.png            every mode found under --out: median over seeds, range shaded
     summary.json                  per run: final evaluation in the learned model (dropout off),
                                   curve metrics (final average length, updates to reach it) and,
@@ -73,10 +83,10 @@ from hrn_pyg.rl.curves import (
     write_summary,
 )
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
-from hrn_pyg.rl.env import HRNEnv
+from hrn_pyg.rl.env import HRNEnv, partial_hits
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
 from hrn_pyg.rl.stats import write_comparison
-from hrn_pyg.rl.tasks import MODES, TASKS, TaskConfig, get_task
+from hrn_pyg.rl.tasks import MODES, TASKS, UNRELAXED_MODES, TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.checkpoint import (
     load_checkpoint,
@@ -93,7 +103,7 @@ from hrn_pyg.viz import plot_curves
 
 LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
               "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
-              "loss_critic", "loss_entropy", "seconds"]
+              "loss_critic", "loss_entropy", "partial_hit_share", "seconds"]
 
 
 @dataclass(frozen=True)
@@ -158,7 +168,8 @@ class PPOConfig:
 def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
                   anneal_updates: int | None = None, rate: float | None = None) -> tuple[LinearSchedule, float]:
     """The dropout schedule over PPO updates and the action-noise level of a mode; the
-    stochastic modes start at ``rate`` (None: ``task.dropout_rate``)."""
+    stochastic modes start at ``rate`` (None: ``task.dropout_rate``). Whether a mode relaxes the
+    reward is :data:`~hrn_pyg.rl.tasks.UNRELAXED_MODES` (:func:`mode_relaxes`)."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
     rate = task.dropout_rate if rate is None else float(rate)
@@ -171,9 +182,16 @@ def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
         return LinearSchedule(0.0, 0.0, 0), 0.0
     if mode == "action_noise":
         return LinearSchedule(0.0, 0.0, 0), config.action_noise_std
-    if mode == "stochastic":
+    if mode in ("stochastic", "stochastic_unrelaxed"):
         return LinearSchedule(rate, rate, 0), 0.0
     return LinearSchedule(rate, 0.0, steps), 0.0
+
+
+def mode_relaxes(mode: str) -> bool:
+    """Whether a mode's environment relaxes the reward over the ``k`` samples."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
+    return mode not in UNRELAXED_MODES
 
 
 # ---------------------------------------------------------------------------- networks
@@ -254,7 +272,7 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
            progress: bool, device: str | torch.device | None, restart: bool = False) -> dict:
     torch.manual_seed(seed)
     env = HRNEnv(task, dynamics, batch_size=config.num_envs, dropout_rate=schedule(0),
-                 action_noise_std=noise, seed=seed, device=device)
+                 action_noise_std=noise, relax=mode_relaxes(mode), seed=seed, device=device)
     actor, critic = build_actor_critic(env, config.hidden)
     gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=True)
     loss_module = ClipPPOLoss(actor, critic, clip_epsilon=config.clip_epsilon,
@@ -296,7 +314,8 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
                     row = {"step": update, "update": update,
                            "frames": (update + 1) * config.frames_per_batch,
                            "dropout_rate": rate, "action_noise_std": noise,
-                           **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
+                           **_episode_stats(batch, env.num_samples), **stats,
+                           "seconds": time.perf_counter() - start}
                     log.append(row)
                     env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
                     if (update + 1) % config.checkpoint_every == 0 or stop.requested:
@@ -402,12 +421,16 @@ def _ppo_update(batch: TensorDictBase, gae: GAE, loss_module: ClipPPOLoss,
     return {k: float(sums[k]) / steps if k in sums else 0.0 for k in keys}
 
 
-def _episode_stats(batch: TensorDictBase) -> dict[str, float | int | str]:
-    """Episodes that ended in this batch: count, mean length and success rate."""
+def _episode_stats(batch: TensorDictBase, k: int) -> dict[str, float | int | str]:
+    """Episodes that ended in this batch ``(B, T)``: count, mean length and success rate; and
+    the batch's partial-hit share, the fraction of its ``B * T`` steps at which some but not
+    all of the ``k`` samples met the goal."""
     done = batch["next", "done"].squeeze(-1)
     n = int(done.sum())
+    share = partial_hits(batch["next", "goal_hits"], k).double().mean()
     out: dict[str, float | int | str] = {"episodes": n,
-                                         "reward_mean": float(batch["next", "reward"].mean())}
+                                         "reward_mean": float(batch["next", "reward"].mean()),
+                                         "partial_hit_share": float(share)}
     if n:
         out["mean_episode_length"] = float(batch["next", "t"].squeeze(-1)[done].float().mean())
         out["success_rate"] = float(batch["next", "terminated"].squeeze(-1)[done].float().mean())
@@ -428,7 +451,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = PPOConfig()
     parser.add_argument("--task", choices=sorted(TASKS), default="cube_push")
     parser.add_argument("--mode", nargs="+", choices=MODES, default=list(MODES),
-                        help="one or more modes (default: all four)")
+                        help="one or more modes (default: all five)")
     parser.add_argument("--seeds", type=int, default=3, help="number of seeds per mode")
     parser.add_argument("--seed-start", type=int, default=0)
     parser.add_argument("--updates", type=int, default=d.updates, help="PPO updates per run")
