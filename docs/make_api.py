@@ -65,6 +65,7 @@ MODULES = (
     "hrn_pyg.rl.partial_hits",
     "hrn_pyg.rl.ppo",
     "hrn_pyg.rl.evaluate",
+    "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",
     "hrn_pyg.recipe",
 )

@@ -85,7 +85,15 @@ from hrn_pyg.rl.curves import (
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv, partial_hits
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
-from hrn_pyg.rl.stats import write_comparison
+from hrn_pyg.rl.stats import json_safe, write_comparison
+from hrn_pyg.rl.success_curve import (
+    EVAL_FIELDS,
+    EvalConfig,
+    curve_summary,
+    evaluate_point,
+    evaluation_env,
+    read_eval,
+)
 from hrn_pyg.rl.tasks import MODES, TASKS, UNRELAXED_MODES, TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.checkpoint import (
@@ -125,6 +133,10 @@ class PPOConfig:
     0.99^8) and ``lr = 3e-3``; with them PPO on the point-mass cube_push stand-in reached its
     final length in about 50 updates, where ``gamma = 0.99, lr = 1e-3`` had not started to
     learn after 150.
+
+    ``eval_every`` > 0 evaluates the policy apart from training every that many updates on
+    ``eval_scenes`` fixed scenes (:mod:`hrn_pyg.rl.success_curve`, ``eval.csv``); neither setting
+    changes training, so neither is part of a run's identity when it resumes.
     """
 
     updates: int = 100
@@ -145,6 +157,8 @@ class PPOConfig:
     ground_truth_episodes: int = 32
     checkpoint_every: int = 50
     threads: int = 1
+    eval_every: int = 0
+    eval_scenes: int = 32
 
     def __post_init__(self) -> None:
         for name in ("updates", "num_envs", "frames_per_batch", "epochs", "minibatch", "hidden",
@@ -163,6 +177,12 @@ class PPOConfig:
             raise ValueError(f"action_noise_std must be >= 0, got {self.action_noise_std}")
         if self.ground_truth_episodes < 0:
             raise ValueError(f"ground_truth_episodes must be >= 0, got {self.ground_truth_episodes}")
+        EvalConfig(self.eval_every, self.eval_scenes)  # raises on bad evaluation settings
+
+    @property
+    def evaluation(self) -> EvalConfig:
+        """The evaluation apart from training (:mod:`hrn_pyg.rl.success_curve`)."""
+        return EvalConfig(every=self.eval_every, episodes=self.eval_scenes)
 
 
 def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
@@ -286,8 +306,23 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
     start_update = 0 if restart else resume_run(out_dir / "policy.pt", identity, actor, critic, optim, env)
     if start_update == 0:
         (out_dir / "log.csv").unlink(missing_ok=True)
+        (out_dir / "eval.csv").unlink(missing_ok=True)
     log = CSVLog(out_dir / "log.csv", LOG_FIELDS)
     log.truncate_after(start_update - 1)  # rows past the checkpoint were never saved in it
+    evaluation = config.evaluation
+    eval_log, eval_env = None, None
+    if evaluation.every:
+        eval_log = CSVLog(out_dir / "eval.csv", EVAL_FIELDS)
+        eval_log.truncate_after(start_update)  # keyed by updates done: the checkpoint's own row stays
+        eval_env = evaluation_env(task, dynamics, evaluation, device=env.device)
+
+    def evaluate(updates_done: int) -> None:
+        row = evaluate_point(actor, eval_env, evaluation)
+        eval_log.append({"step": updates_done, "update": updates_done,
+                         "frames": updates_done * config.frames_per_batch, **row})
+
+    if eval_log is not None and start_update == 0:
+        evaluate(0)
 
     def checkpoint(update: int) -> None:
         save_checkpoint(out_dir / "policy.pt", {
@@ -318,6 +353,8 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
                            "seconds": time.perf_counter() - start}
                     log.append(row)
                     env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
+                    if eval_log is not None and evaluation.due(update + 1, config.updates):
+                        evaluate(update + 1)
                     if (update + 1) % config.checkpoint_every == 0 or stop.requested:
                         checkpoint(update + 1)
                     if bar is not None:
@@ -340,6 +377,8 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
               "resumed_at": start_update,
               "success_rate": success, "mean_episode_length": length,
               **curve_metrics(read_curve(out_dir / "log.csv"))}
+    if eval_log is not None:
+        result.update(json_safe(curve_summary(read_eval(out_dir / "eval.csv"))))  # None: never
     if hasattr(dynamics, "scene_seeds") and config.ground_truth_episodes > 0:
         result.update(ground_truth_success(actor, env, config.ground_truth_episodes))
     result["seconds"] = time.perf_counter() - start
@@ -351,7 +390,8 @@ def run_identity(task: TaskConfig, mode: str, seed: int, config: PPOConfig, sche
     """What a run is, for resuming: everything but the number of updates (so a finished run can
     be extended) and the evaluation sizes (they do not change training)."""
     ppo = {k: v for k, v in asdict(config).items()
-           if k not in ("updates", "eval_episodes", "ground_truth_episodes", "checkpoint_every")}
+           if k not in ("updates", "eval_episodes", "ground_truth_episodes", "checkpoint_every",
+                        "eval_every", "eval_scenes")}
     return {"task": task.to_dict(), "mode": mode, "seed": seed, "ppo_training": ppo,
             "schedule": asdict(schedule), "action_noise_std": noise, "dynamics": repr(dynamics)}
 
@@ -471,6 +511,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
     parser.add_argument("--ground-truth-episodes", type=int, default=d.ground_truth_episodes,
                         help="with --model: final-policy episodes replayed in pybullet (0: none)")
+    parser.add_argument("--eval-every", type=int, default=d.eval_every,
+                        help="every N updates: the deterministic policy at rate 0 on fixed evaluation "
+                             "scenes, in the model and (with --model) replayed in pybullet; eval.csv (0: none)")
+    parser.add_argument("--eval-scenes", type=int, default=d.eval_scenes,
+                        help="fixed evaluation scenes of --eval-every")
     parser.add_argument("--model", default=None,
                         help="learned HRN checkpoint; absent: point-mass development dynamics")
     parser.add_argument("--out", default=None, help="output folder (default runs/rl/<task>)")
@@ -496,7 +541,8 @@ def run(args: argparse.Namespace) -> int:
                      num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
                      lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
                      eval_episodes=args.eval_episodes,
-                     ground_truth_episodes=args.ground_truth_episodes)
+                     ground_truth_episodes=args.ground_truth_episodes,
+                     eval_every=args.eval_every, eval_scenes=args.eval_scenes)
     device = resolve_device(args.device)
     modes = list(dict.fromkeys(args.mode))
     dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep)
