@@ -67,6 +67,8 @@ MODULES = (
     "hrn_pyg.rl.evaluate",
     "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",
+    "hrn_pyg.rl.stats",
+    "hrn_pyg.rl.summary",
     "hrn_pyg.recipe",
 )
 

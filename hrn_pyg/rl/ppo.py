@@ -47,6 +47,10 @@ Output (``--out``, default ``runs/rl/<task>``)::
     comparison.json, .md          per mode: updates to fixed episode lengths, final length and
                                   success, median over seeds with bootstrap 95 % intervals, and
                                   each mode's difference from deterministic (rl/stats.py)
+    rl_<task>_summary.json        per run: partial-hit share (update 0, along training), frames to
+                                  50 / 80 % success and success AUC; per mode: IQM with stratified
+                                  bootstrap intervals, probability of improvement over
+                                  deterministic, performance profiles (rl/summary.py)
 
 With ``--model``, each run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
 final policy's episodes in the learned model (dropout 0) are replayed open loop in pybullet
@@ -94,6 +98,7 @@ from hrn_pyg.rl.success_curve import (
     evaluation_env,
     read_eval,
 )
+from hrn_pyg.rl.summary import write_task_summary
 from hrn_pyg.rl.tasks import MODES, TASKS, UNRELAXED_MODES, TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.checkpoint import (
@@ -566,6 +571,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_json(summary_path, keep + results)
     write_summary(out, keep + results)
     write_comparison(out, keep + results, task.name, task.max_steps)
+    write_task_summary(out, task)
     drawn = plot_episode_length(out, out / "episode_length.png",
                                 title=f"{task.name}: average episode length"
                                 + ("" if args.model else " (point-mass dynamics)"))
