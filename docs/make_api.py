@@ -64,9 +64,13 @@ MODULES = (
     "hrn_pyg.rl.dynamics",
     "hrn_pyg.rl.hrn_dynamics",
     "hrn_pyg.rl.env",
+    "hrn_pyg.rl.partial_hits",
     "hrn_pyg.rl.ppo",
     "hrn_pyg.rl.evaluate",
+    "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",
+    "hrn_pyg.rl.stats",
+    "hrn_pyg.rl.summary",
     "hrn_pyg.recipe",
 )
 

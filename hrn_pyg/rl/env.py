@@ -7,6 +7,13 @@ one sample, drawn uniformly with the environment's generator, becomes the next s
 reward is the task's ``step_penalty`` (0 by default, so returns are 1 on success and 0 otherwise
 and the discount alone favours short episodes). The episode is truncated after
 ``task.max_steps`` steps.
+
+Without relaxation (``relax=False``, the ``stochastic_unrelaxed`` training mode) the drawn
+sample is the next state whatever the others do, and the reward is that sample's own goal test:
+the environment is stochastic but is not judged optimistically. Every step also reports how
+many of the ``k`` samples met the goal (``goal_hits``), so that one can tell how often the
+spread of the samples straddles the goal (:func:`partial_hits`), which is the only case in
+which relaxation changes anything.
 """
 
 from __future__ import annotations
@@ -43,6 +50,8 @@ class HRNEnv(EnvBase):
 
     with dropout rate :math:`p` = :attr:`dropout_rate`, an attribute a schedule may change
     between PPO updates (:meth:`set_dropout_rate` does the same through ``ParallelEnv``).
+    With ``relax=False`` the next state is always the drawn sample
+    :math:`s^{(u)}_{t+1}` and :math:`r_t = \mathbb 1[\mathrm{goal}(s^{(u)}_{t+1})]`.
 
     Specs (``B`` = ``batch_size``, ``O`` objects, ``S`` = ``dynamics.state_dim``,
     ``A`` = ``task.action_dim``; ``env.specs`` prints them in full)::
@@ -52,6 +61,7 @@ class HRNEnv(EnvBase):
             state:       Unbounded((B, S), float32)        # what the dynamics continues from
             goal:        Unbounded((B, 2), float32)
             t:           Unbounded((B, 1), int64)          # steps taken in this episode
+            goal_hits:   Unbounded((B, 1), int64)          # samples of the last step in the goal (0 at reset)
         state_spec:      Composite(state, goal, t)          # read back by _step
         action_spec:     Bounded((B, A), float32, low=-max_force, high=max_force)   # Newton
         reward_spec:     Unbounded((B, 1), float32)
@@ -65,6 +75,8 @@ class HRNEnv(EnvBase):
         num_samples: ``k``; defaults to ``task.num_samples``.
         dropout_rate: defaults to ``task.dropout_rate``.
         action_noise_std: Gaussian action noise as a fraction of ``max_force`` (0: none).
+        relax: reward relaxation over the ``k`` samples (True, the seed paper's); False: the
+            next state and the reward are those of one sample drawn at random.
         seed: seeds the environment's own generator (on ``device``: the same seed draws other
             numbers on CUDA than on the CPU).
         device: where states, actions and rewards live; must be the dynamics' device. None:
@@ -76,7 +88,8 @@ class HRNEnv(EnvBase):
     def __init__(self, task: str | TaskConfig, dynamics: StochasticDynamics | None = None, *,
                  batch_size: int = 1, num_samples: int | None = None,
                  dropout_rate: float | None = None, action_noise_std: float = 0.0,
-                 seed: int | None = None, device: str | torch.device | None = None):
+                 relax: bool = True, seed: int | None = None,
+                 device: str | torch.device | None = None):
         task = get_task(task)
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -98,6 +111,7 @@ class HRNEnv(EnvBase):
         self.num_samples = k
         self.dropout_rate = task.dropout_rate if dropout_rate is None else dropout_rate
         self.action_noise_std = action_noise_std
+        self.relax = bool(relax)
         self._make_spec()
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
@@ -140,6 +154,7 @@ class HRNEnv(EnvBase):
         self.observation_spec = Composite(
             observation=Unbounded(shape=(*B, obs_dim), dtype=torch.float32),
             **{key: spec.clone() for key, spec in state.items()},
+            goal_hits=Unbounded(shape=(*B, 1), dtype=torch.int64),
             shape=B,
         )
         self.state_spec = state
@@ -175,6 +190,7 @@ class HRNEnv(EnvBase):
                 "state": state,
                 "goal": goal,
                 "t": torch.zeros(B, 1, dtype=torch.int64, device=self.device),
+                "goal_hits": torch.zeros(B, 1, dtype=torch.int64, device=self.device),
                 "done": false,
                 "terminated": false.clone(),
                 "truncated": false.clone(),
@@ -194,8 +210,8 @@ class HRNEnv(EnvBase):
         forces = action_to_forces(self.task, action)
         samples = self.dynamics.sample_next(state, forces, self.num_samples, self.dropout_rate,
                                             self.rng)                          # (B, k, S)
-        next_state, hit = relax_reward(self.task, self.dynamics.roots(samples), samples, goal,
-                                       self.rng)
+        in_goal = goal_reached(self.task, self.dynamics.roots(samples), goal.unsqueeze(1))  # (B, k)
+        next_state, hit = choose_next(in_goal, samples, self.rng, self.relax)
         t_next = t + 1
         terminated = hit.unsqueeze(-1)
         truncated = (t_next >= self.task.max_steps) & ~terminated
@@ -206,6 +222,7 @@ class HRNEnv(EnvBase):
                 "state": next_state,
                 "goal": goal,
                 "t": t_next,
+                "goal_hits": in_goal.sum(-1, keepdim=True),
                 "reward": reward,
                 "done": terminated | truncated,
                 "terminated": terminated,
@@ -228,11 +245,45 @@ def relax_reward(task: TaskConfig, sample_roots: Tensor, samples: Tensor, goal: 
     **Shapes**: sample_roots ``(B, k, O, 6)``, samples ``(B, k, S)``, goal ``(B, 2)`` ->
     next state ``(B, S)``, hit ``(B,)`` bool.
     """
-    B, k = samples.shape[:2]
     in_goal = goal_reached(task, sample_roots, goal.unsqueeze(1))               # (B, k)
-    hit = in_goal.any(-1)
+    return choose_next(in_goal, samples, generator, relax=True)
+
+
+def choose_next(in_goal: Tensor, samples: Tensor, generator: torch.Generator,
+                relax: bool = True) -> tuple[Tensor, Tensor]:
+    r"""The next state and the reward event from ``k`` samples and their goal tests.
+
+    One index :math:`u \sim \mathcal U\{1..k\}` is drawn per environment from ``generator``
+    (on its device) in either case, so relaxed and unrelaxed environments consume the same
+    random stream. With ``relax``: :math:`\text{hit} = \exists j\, g_j` and the next state is the
+    first sample in the goal, else sample :math:`u`. Without: the next state is sample
+    :math:`u` and :math:`\text{hit} = g_u`.
+
+    **Shapes**: in_goal ``(B, k)`` bool, samples ``(B, k, S)`` -> next state ``(B, S)``, hit
+    ``(B,)`` bool (on ``samples``' device).
+    """
+    B, k = samples.shape[:2]
+    if in_goal.shape != (B, k):
+        raise ValueError(f"in_goal must be ({B}, {k}) like the samples, got {tuple(in_goal.shape)}")
+    rows = torch.arange(B, device=samples.device)
     drawn = torch.randint(k, (B,), generator=generator, device=generator.device).to(samples.device)
-    first_hit = in_goal.to(torch.int8).argmax(-1)
-    choice = torch.where(hit, first_hit, drawn)
-    next_state = samples[torch.arange(B, device=samples.device), choice]
-    return next_state, hit
+    in_goal = in_goal.to(samples.device)
+    if relax:
+        hit = in_goal.any(-1)
+        choice = torch.where(hit, in_goal.to(torch.int8).argmax(-1), drawn)
+    else:
+        choice = drawn
+        hit = in_goal[rows, drawn]
+    return samples[rows, choice], hit
+
+
+def partial_hits(goal_hits: Tensor, k: int) -> Tensor:
+    r"""Whether some but not all of the ``k`` samples of a step met the goal:
+    :math:`0 < h < k` for the count :math:`h` of samples in the goal (the env's ``goal_hits``).
+
+    Only at such a step can relaxation change a reward; at rate 0 (``k`` identical samples) it
+    is never true. **Shapes**: any -> the same, bool.
+    """
+    if k < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    return (goal_hits > 0) & (goal_hits < k)

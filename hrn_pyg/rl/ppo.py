@@ -4,7 +4,7 @@ Built from TorchRL pieces: a :class:`~torchrl.modules.ProbabilisticActor` with a
 :class:`~torchrl.modules.TanhNormal` head and a :class:`~torchrl.modules.ValueOperator`, a
 single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
 ``SyncDataCollector``), :class:`~torchrl.objectives.value.GAE` and
-:class:`~torchrl.objectives.ClipPPOLoss`. Four modes:
+:class:`~torchrl.objectives.ClipPPOLoss`. Five modes:
 
 - ``deterministic``: dropout rate 0.
 - ``action_noise``: rate 0, Gaussian noise on the actions (``PPOConfig.action_noise_std`` of
@@ -12,6 +12,13 @@ single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
 - ``stochastic``: the dropout rate held constant (cube_push: 0.1 on the force module).
 - ``stochastic_annealed``: the rate brought linearly to 0 over ``anneal_updates`` PPO
   updates (tower: 0.1 -> 0 over 1200).
+- ``stochastic_unrelaxed``: the constant rate of ``stochastic`` without reward relaxation: the
+  next state is one of the ``k`` samples drawn at random and only its own goal test rewards
+  (the ablation that separates a stochastic model from an optimistic reward).
+
+Every update logs the partial-hit share of its batch: the fraction of steps at which some but
+not all of the ``k`` samples met the goal (:func:`~hrn_pyg.rl.env.partial_hits`), the only
+steps at which relaxation changes a reward.
 
 The rate of the stochastic modes is ``--dropout-rate`` when given, else the model's calibrated
 rate (``hrn-pyg calibrate``; :attr:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.calibrated_rate`), else
@@ -29,6 +36,9 @@ Output (``--out``, default ``runs/rl/<task>``)::
                                   dynamics) stops the command with an error and is kept
                                   (``--restart``: afresh)
     <mode>/seed<k>/curve.png      this run's average episode length
+    <mode>/seed<k>/eval.csv       with --eval-every N: every N updates, the deterministic policy
+                                  at rate 0 on fixed evaluation scenes, in the learned model and
+                                  replayed in pybullet (rl/success_curve.py)
     episode_length.png            every mode found under --out: median over seeds, range shaded
     summary.json                  per run: final evaluation in the learned model (dropout off),
                                   curve metrics (final average length, updates to reach it) and,
@@ -37,6 +47,10 @@ Output (``--out``, default ``runs/rl/<task>``)::
     comparison.json, .md          per mode: updates to fixed episode lengths, final length and
                                   success, median over seeds with bootstrap 95 % intervals, and
                                   each mode's difference from deterministic (rl/stats.py)
+    rl_<task>_summary.json        per run: partial-hit share (update 0, along training), frames to
+                                  50 / 80 % success and success AUC; per mode: IQM with stratified
+                                  bootstrap intervals, probability of improvement over
+                                  deterministic, performance profiles (rl/summary.py)
 
 With ``--model``, each run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
 final policy's episodes in the learned model (dropout 0) are replayed open loop in pybullet
@@ -73,10 +87,19 @@ from hrn_pyg.rl.curves import (
     write_summary,
 )
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
-from hrn_pyg.rl.env import HRNEnv
+from hrn_pyg.rl.env import HRNEnv, partial_hits
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
-from hrn_pyg.rl.stats import write_comparison
-from hrn_pyg.rl.tasks import MODES, TASKS, TaskConfig, get_task
+from hrn_pyg.rl.stats import json_safe, write_comparison
+from hrn_pyg.rl.success_curve import (
+    EVAL_FIELDS,
+    EvalConfig,
+    curve_summary,
+    evaluate_point,
+    evaluation_env,
+    read_eval,
+)
+from hrn_pyg.rl.summary import write_task_summary
+from hrn_pyg.rl.tasks import MODES, TASKS, UNRELAXED_MODES, TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.checkpoint import (
     load_checkpoint,
@@ -93,7 +116,7 @@ from hrn_pyg.viz import plot_curves
 
 LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
               "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
-              "loss_critic", "loss_entropy", "seconds"]
+              "loss_critic", "loss_entropy", "partial_hit_share", "seconds"]
 
 
 @dataclass(frozen=True)
@@ -115,6 +138,10 @@ class PPOConfig:
     0.99^8) and ``lr = 3e-3``; with them PPO on the point-mass cube_push stand-in reached its
     final length in about 50 updates, where ``gamma = 0.99, lr = 1e-3`` had not started to
     learn after 150.
+
+    ``eval_every`` > 0 evaluates the policy apart from training every that many updates on
+    ``eval_scenes`` fixed scenes (:mod:`hrn_pyg.rl.success_curve`, ``eval.csv``); neither setting
+    changes training, so neither is part of a run's identity when it resumes.
     """
 
     updates: int = 100
@@ -135,6 +162,8 @@ class PPOConfig:
     ground_truth_episodes: int = 32
     checkpoint_every: int = 50
     threads: int = 1
+    eval_every: int = 0
+    eval_scenes: int = 32
 
     def __post_init__(self) -> None:
         for name in ("updates", "num_envs", "frames_per_batch", "epochs", "minibatch", "hidden",
@@ -153,12 +182,19 @@ class PPOConfig:
             raise ValueError(f"action_noise_std must be >= 0, got {self.action_noise_std}")
         if self.ground_truth_episodes < 0:
             raise ValueError(f"ground_truth_episodes must be >= 0, got {self.ground_truth_episodes}")
+        EvalConfig(self.eval_every, self.eval_scenes)  # raises on bad evaluation settings
+
+    @property
+    def evaluation(self) -> EvalConfig:
+        """The evaluation apart from training (:mod:`hrn_pyg.rl.success_curve`)."""
+        return EvalConfig(every=self.eval_every, episodes=self.eval_scenes)
 
 
 def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
                   anneal_updates: int | None = None, rate: float | None = None) -> tuple[LinearSchedule, float]:
     """The dropout schedule over PPO updates and the action-noise level of a mode; the
-    stochastic modes start at ``rate`` (None: ``task.dropout_rate``)."""
+    stochastic modes start at ``rate`` (None: ``task.dropout_rate``). Whether a mode relaxes the
+    reward is :data:`~hrn_pyg.rl.tasks.UNRELAXED_MODES` (:func:`mode_relaxes`)."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
     rate = task.dropout_rate if rate is None else float(rate)
@@ -171,9 +207,16 @@ def mode_settings(mode: str, task: TaskConfig, config: PPOConfig,
         return LinearSchedule(0.0, 0.0, 0), 0.0
     if mode == "action_noise":
         return LinearSchedule(0.0, 0.0, 0), config.action_noise_std
-    if mode == "stochastic":
+    if mode in ("stochastic", "stochastic_unrelaxed"):
         return LinearSchedule(rate, rate, 0), 0.0
     return LinearSchedule(rate, 0.0, steps), 0.0
+
+
+def mode_relaxes(mode: str) -> bool:
+    """Whether a mode's environment relaxes the reward over the ``k`` samples."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
+    return mode not in UNRELAXED_MODES
 
 
 # ---------------------------------------------------------------------------- networks
@@ -254,7 +297,7 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
            progress: bool, device: str | torch.device | None, restart: bool = False) -> dict:
     torch.manual_seed(seed)
     env = HRNEnv(task, dynamics, batch_size=config.num_envs, dropout_rate=schedule(0),
-                 action_noise_std=noise, seed=seed, device=device)
+                 action_noise_std=noise, relax=mode_relaxes(mode), seed=seed, device=device)
     actor, critic = build_actor_critic(env, config.hidden)
     gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=True)
     loss_module = ClipPPOLoss(actor, critic, clip_epsilon=config.clip_epsilon,
@@ -268,8 +311,23 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
     start_update = 0 if restart else resume_run(out_dir / "policy.pt", identity, actor, critic, optim, env)
     if start_update == 0:
         (out_dir / "log.csv").unlink(missing_ok=True)
+        (out_dir / "eval.csv").unlink(missing_ok=True)
     log = CSVLog(out_dir / "log.csv", LOG_FIELDS)
     log.truncate_after(start_update - 1)  # rows past the checkpoint were never saved in it
+    evaluation = config.evaluation
+    eval_log, eval_env = None, None
+    if evaluation.every:
+        eval_log = CSVLog(out_dir / "eval.csv", EVAL_FIELDS)
+        eval_log.truncate_after(start_update)  # keyed by updates done: the checkpoint's own row stays
+        eval_env = evaluation_env(task, dynamics, evaluation, device=env.device)
+
+    def evaluate(updates_done: int) -> None:
+        row = evaluate_point(actor, eval_env, evaluation)
+        eval_log.append({"step": updates_done, "update": updates_done,
+                         "frames": updates_done * config.frames_per_batch, **row})
+
+    if eval_log is not None and start_update == 0:
+        evaluate(0)
 
     def checkpoint(update: int) -> None:
         save_checkpoint(out_dir / "policy.pt", {
@@ -296,9 +354,12 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
                     row = {"step": update, "update": update,
                            "frames": (update + 1) * config.frames_per_batch,
                            "dropout_rate": rate, "action_noise_std": noise,
-                           **_episode_stats(batch), **stats, "seconds": time.perf_counter() - start}
+                           **_episode_stats(batch, env.num_samples), **stats,
+                           "seconds": time.perf_counter() - start}
                     log.append(row)
                     env.dropout_rate = schedule(update + 1)  # the rate the next batch is collected at
+                    if eval_log is not None and evaluation.due(update + 1, config.updates):
+                        evaluate(update + 1)
                     if (update + 1) % config.checkpoint_every == 0 or stop.requested:
                         checkpoint(update + 1)
                     if bar is not None:
@@ -321,6 +382,8 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
               "resumed_at": start_update,
               "success_rate": success, "mean_episode_length": length,
               **curve_metrics(read_curve(out_dir / "log.csv"))}
+    if eval_log is not None:
+        result.update(json_safe(curve_summary(read_eval(out_dir / "eval.csv"))))  # None: never
     if hasattr(dynamics, "scene_seeds") and config.ground_truth_episodes > 0:
         result.update(ground_truth_success(actor, env, config.ground_truth_episodes))
     result["seconds"] = time.perf_counter() - start
@@ -332,7 +395,8 @@ def run_identity(task: TaskConfig, mode: str, seed: int, config: PPOConfig, sche
     """What a run is, for resuming: everything but the number of updates (so a finished run can
     be extended) and the evaluation sizes (they do not change training)."""
     ppo = {k: v for k, v in asdict(config).items()
-           if k not in ("updates", "eval_episodes", "ground_truth_episodes", "checkpoint_every")}
+           if k not in ("updates", "eval_episodes", "ground_truth_episodes", "checkpoint_every",
+                        "eval_every", "eval_scenes")}
     return {"task": task.to_dict(), "mode": mode, "seed": seed, "ppo_training": ppo,
             "schedule": asdict(schedule), "action_noise_std": noise, "dynamics": repr(dynamics)}
 
@@ -402,12 +466,16 @@ def _ppo_update(batch: TensorDictBase, gae: GAE, loss_module: ClipPPOLoss,
     return {k: float(sums[k]) / steps if k in sums else 0.0 for k in keys}
 
 
-def _episode_stats(batch: TensorDictBase) -> dict[str, float | int | str]:
-    """Episodes that ended in this batch: count, mean length and success rate."""
+def _episode_stats(batch: TensorDictBase, k: int) -> dict[str, float | int | str]:
+    """Episodes that ended in this batch ``(B, T)``: count, mean length and success rate; and
+    the batch's partial-hit share, the fraction of its ``B * T`` steps at which some but not
+    all of the ``k`` samples met the goal."""
     done = batch["next", "done"].squeeze(-1)
     n = int(done.sum())
+    share = partial_hits(batch["next", "goal_hits"], k).double().mean()
     out: dict[str, float | int | str] = {"episodes": n,
-                                         "reward_mean": float(batch["next", "reward"].mean())}
+                                         "reward_mean": float(batch["next", "reward"].mean()),
+                                         "partial_hit_share": float(share)}
     if n:
         out["mean_episode_length"] = float(batch["next", "t"].squeeze(-1)[done].float().mean())
         out["success_rate"] = float(batch["next", "terminated"].squeeze(-1)[done].float().mean())
@@ -428,7 +496,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = PPOConfig()
     parser.add_argument("--task", choices=sorted(TASKS), default="cube_push")
     parser.add_argument("--mode", nargs="+", choices=MODES, default=list(MODES),
-                        help="one or more modes (default: all four)")
+                        help="one or more modes (default: all five)")
     parser.add_argument("--seeds", type=int, default=3, help="number of seeds per mode")
     parser.add_argument("--seed-start", type=int, default=0)
     parser.add_argument("--updates", type=int, default=d.updates, help="PPO updates per run")
@@ -448,6 +516,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
     parser.add_argument("--ground-truth-episodes", type=int, default=d.ground_truth_episodes,
                         help="with --model: final-policy episodes replayed in pybullet (0: none)")
+    parser.add_argument("--eval-every", type=int, default=d.eval_every,
+                        help="every N updates: the deterministic policy at rate 0 on fixed evaluation "
+                             "scenes, in the model and (with --model) replayed in pybullet; eval.csv (0: none)")
+    parser.add_argument("--eval-scenes", type=int, default=d.eval_scenes,
+                        help="fixed evaluation scenes of --eval-every")
     parser.add_argument("--model", default=None,
                         help="learned HRN checkpoint; absent: point-mass development dynamics")
     parser.add_argument("--out", default=None, help="output folder (default runs/rl/<task>)")
@@ -473,7 +546,8 @@ def run(args: argparse.Namespace) -> int:
                      num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
                      lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
                      eval_episodes=args.eval_episodes,
-                     ground_truth_episodes=args.ground_truth_episodes)
+                     ground_truth_episodes=args.ground_truth_episodes,
+                     eval_every=args.eval_every, eval_scenes=args.eval_scenes)
     device = resolve_device(args.device)
     modes = list(dict.fromkeys(args.mode))
     dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep)
@@ -497,6 +571,7 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_json(summary_path, keep + results)
     write_summary(out, keep + results)
     write_comparison(out, keep + results, task.name, task.max_steps)
+    write_task_summary(out, task)
     drawn = plot_episode_length(out, out / "episode_length.png",
                                 title=f"{task.name}: average episode length"
                                 + ("" if args.model else " (point-mass dynamics)"))

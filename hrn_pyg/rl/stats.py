@@ -14,6 +14,12 @@ whose bound is infinite is reported as such ("> n updates"): the sweep cannot bo
 was run (:data:`REFERENCE_FRACTIONS`: three quarters and half of it), not read off the curves,
 so that they cannot be picked to favour a mode.
 
+**Aggregates over runs** (the second half, as ``rliable`` computes them, written here in
+torch): the interquartile mean (:func:`iqm`) with stratified-bootstrap intervals
+(:func:`stratified_bootstrap`), the probability that a run of one mode beats a run of another
+(:func:`probability_of_improvement`), performance profiles (:func:`performance_profile`) and
+IQM curves (:func:`iqm_curve`). :mod:`hrn_pyg.rl.summary` applies them to a sweep.
+
 Nothing here trains or steps an environment: it reads ``<mode>/seed<k>/log.csv`` through
 :mod:`hrn_pyg.rl.curves` and the per-run results ``hrn-pyg rl`` writes to ``summary.json``.
 """
@@ -21,6 +27,7 @@ Nothing here trains or steps an environment: it reads ``<mode>/seed<k>/log.csv``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -256,3 +263,178 @@ def write_comparison(out_root: str | Path, results: list[dict], task: str, max_s
     atomic_write_json(out_root / "comparison.json", json_safe(comparison))
     atomic_write_text(out_root / "comparison.md", comparison_markdown(comparison, task))
     return comparison
+
+
+# ---------------------------------------------------------------------------- rliable-style
+# Aggregates over runs that hold with few seeds (Agarwal et al., "Deep RL at the edge of the
+# statistical precipice", 2021, and their ``rliable`` library): the interquartile mean, the
+# stratified bootstrap, the probability of improvement and performance profiles. Scores are
+# ``(n, T)``: ``n`` runs (seeds) of ``T`` tasks; a 1-D tensor is one task. The bootstrap draws
+# runs with replacement within each task (the strata), never across tasks.
+
+
+#: scores of runs: ``(n,)`` or ``(n, T)``, a tensor or nested lists
+Scores = torch.Tensor | Sequence[float] | Sequence[Sequence[float]]
+
+
+def _as_runs(scores: Scores, what: str) -> torch.Tensor:
+    """``scores`` as a float64 ``(n, T)`` tensor; NaN (a missing score) is refused, ``+inf``
+    (a censored one: never reached) is allowed."""
+    x = torch.as_tensor(scores, dtype=torch.float64)
+    if x.dim() == 1:
+        x = x.unsqueeze(-1)
+    if x.dim() != 2 or x.shape[0] < 1 or x.shape[1] < 1:
+        raise ValueError(f"{what} must be (runs,) or (runs, tasks) with at least one run, got "
+                         f"shape {tuple(x.shape)}")
+    if torch.isnan(x).any():
+        raise ValueError(f"{what} holds NaN; pass math.inf for a run that never reached a level")
+    return x
+
+
+def iqm(scores: torch.Tensor) -> torch.Tensor:
+    r"""Interquartile mean over the last dimension: with the :math:`n` values sorted,
+    :math:`\frac{1}{n - 2c}\sum_{i=c}^{n-c-1} x_{(i)}`, :math:`c = \lfloor n/4 \rfloor` (the
+    25 % trimmed mean of ``scipy.stats.trim_mean``, what ``rliable`` calls IQM). A kept
+    :math:`+\infty` makes it infinite. **Shapes**: ``(..., n)`` -> ``(...)``.
+    """
+    n = scores.shape[-1]
+    if n < 1:
+        raise ValueError("iqm needs at least one value")
+    cut = n // 4
+    return scores.sort(dim=-1).values[..., cut:n - cut].mean(-1)
+
+
+def iqm_of_runs(scores: torch.Tensor) -> torch.Tensor:
+    """IQM over every run of every task, ``(..., n, T)`` -> ``(...)`` (``rliable``'s
+    ``aggregate_iqm``)."""
+    return iqm(scores.flatten(-2))
+
+
+def _resample(x: torch.Tensor, resamples: int, generator: torch.Generator) -> torch.Tensor:
+    """Stratified bootstrap resamples of ``x`` ``(n, T)``: runs drawn with replacement within
+    each task, ``(resamples, n, T)``."""
+    n, T = x.shape
+    index = torch.randint(n, (resamples, n, T), generator=generator)
+    return x[index, torch.arange(T)]
+
+
+def _percentile_interval(values: torch.Tensor, level: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Percentile interval along dim 0 of bootstrap statistics ``(R, ...)``; the index
+    convention of :func:`_interval`."""
+    ordered = values.sort(dim=0).values
+    r = ordered.shape[0]
+    lo_i = int(math.floor((1 - level) / 2 * (r - 1)))
+    hi_i = int(math.ceil((1 + level) / 2 * (r - 1)))
+    return ordered[lo_i], ordered[hi_i]
+
+
+def _check_bootstrap(resamples: int, level: float) -> None:
+    if not 0 < level < 1 or resamples < 1:
+        raise ValueError(f"need 0 < level < 1 and resamples >= 1, got {level}, {resamples}")
+
+
+def stratified_bootstrap(scores: Scores, statistic: Callable[[torch.Tensor], torch.Tensor] | None = None,
+                         resamples: int = RESAMPLES, level: float = LEVEL,
+                         seed: int = 0) -> dict[str, float | int]:
+    """A statistic of runs and its stratified-bootstrap percentile interval.
+
+    Args:
+        scores: ``(n,)`` or ``(n, T)``, ``+inf`` for a censored run.
+        statistic: ``(..., n, T) -> (...)``; None: the IQM over runs and tasks
+            (:func:`iqm_of_runs`).
+        resamples, level, seed: bootstrap size, interval level, generator seed (the result is
+            deterministic for a given seed).
+
+    Returns ``{"value", "low", "high", "n"}`` (``n`` runs per task).
+    """
+    _check_bootstrap(resamples, level)
+    statistic = iqm_of_runs if statistic is None else statistic
+    x = _as_runs(scores, "scores")
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = _percentile_interval(statistic(_resample(x, resamples, g)), level)
+    return {"value": float(statistic(x)), "low": float(lo), "high": float(hi), "n": x.shape[0]}
+
+
+def probability_of_improvement_point(x: torch.Tensor, y: torch.Tensor,
+                                     higher_is_better: bool = True) -> torch.Tensor:
+    r"""Probability that a run of X beats a run of Y, averaged over tasks:
+
+    .. math::
+        P(X > Y) = \frac{1}{T}\sum_{t=1}^{T} \frac{1}{n m} \sum_{i=1}^{n}\sum_{j=1}^{m}
+        \Big(\mathbb 1[x_{it} > y_{jt}] + \tfrac12 \mathbb 1[x_{it} = y_{jt}]\Big)
+
+    (the Mann-Whitney U statistic over :math:`nm`); "beats" is ">" or, with
+    ``higher_is_better=False``, "<". Two censored (infinite) runs tie.
+
+    **Shapes**: x ``(..., n, T)``, y ``(..., m, T)`` -> ``(...)``.
+    """
+    a, b = x.unsqueeze(-2), y.unsqueeze(-3)                       # (..., n, 1, T), (..., 1, m, T)
+    better = (a > b) if higher_is_better else (a < b)
+    wins = better.double() + 0.5 * (a == b).double()              # (..., n, m, T)
+    return wins.mean(dim=(-3, -2)).mean(-1)
+
+
+def probability_of_improvement(x: Scores, y: Scores, higher_is_better: bool = True, resamples: int = RESAMPLES,
+                               level: float = LEVEL, seed: int = 0) -> dict[str, float | int]:
+    """:func:`probability_of_improvement_point` of X over Y with a bootstrap interval, X and Y
+    resampled independently, each stratified by task. Returns ``{"value", "low", "high",
+    "n_x", "n_y"}``; a lower bound above 0.5 says X beats Y more often than not at ``level``.
+    """
+    _check_bootstrap(resamples, level)
+    xs, ys = _as_runs(x, "x"), _as_runs(y, "y")
+    if xs.shape[1] != ys.shape[1]:
+        raise ValueError(f"x and y must have the same tasks, got {xs.shape[1]} and {ys.shape[1]}")
+    g = torch.Generator().manual_seed(seed)
+    boot = probability_of_improvement_point(_resample(xs, resamples, g), _resample(ys, resamples, g),
+                                            higher_is_better)
+    lo, hi = _percentile_interval(boot, level)
+    return {"value": float(probability_of_improvement_point(xs, ys, higher_is_better)),
+            "low": float(lo), "high": float(hi), "n_x": xs.shape[0], "n_y": ys.shape[0]}
+
+
+def performance_profile_point(scores: torch.Tensor, taus: torch.Tensor,
+                              higher_is_better: bool = True) -> torch.Tensor:
+    r"""Fraction of runs (over every task) whose score passes each threshold :math:`\tau`:
+    :math:`\frac{1}{nT}\sum \mathbb 1[x > \tau]` (``rliable``'s run-score distribution), or
+    :math:`\mathbb 1[x \le \tau]` with ``higher_is_better=False`` (e.g. the share of runs that
+    reach a level within :math:`\tau` frames).
+
+    **Shapes**: scores ``(..., n, T)``, taus ``(K,)`` -> ``(..., K)``.
+    """
+    flat = scores.flatten(-2).unsqueeze(-1)                       # (..., nT, 1)
+    passed = (flat > taus) if higher_is_better else (flat <= taus)
+    return passed.double().mean(-2)
+
+
+def performance_profile(scores: Scores, taus: Sequence[float] | torch.Tensor, higher_is_better: bool = True, resamples: int = RESAMPLES,
+                        level: float = LEVEL, seed: int = 0) -> dict[str, list[float]]:
+    """:func:`performance_profile_point` at every ``tau`` with stratified-bootstrap intervals:
+    ``{"tau", "fraction", "low", "high"}``, one entry per threshold."""
+    _check_bootstrap(resamples, level)
+    x = _as_runs(scores, "scores")
+    t = torch.as_tensor(taus, dtype=torch.float64).reshape(-1)
+    if t.numel() < 1:
+        raise ValueError("performance_profile needs at least one threshold")
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = _percentile_interval(performance_profile_point(_resample(x, resamples, g), t,
+                                                            higher_is_better), level)
+    return {"tau": t.tolist(), "fraction": performance_profile_point(x, t, higher_is_better).tolist(),
+            "low": lo.tolist(), "high": hi.tolist()}
+
+
+def iqm_curve(curves: torch.Tensor | Sequence[Sequence[float]], resamples: int = RESAMPLES, level: float = LEVEL,
+              seed: int = 0) -> dict[str, list[float]]:
+    """IQM over runs at every point of a curve, with stratified-bootstrap intervals (the same
+    resampled runs at every point). ``curves`` ``(n, P)``: one row per run, one column per point
+    (evaluation or update). Returns ``{"iqm", "low", "high"}``, ``P`` values each."""
+    _check_bootstrap(resamples, level)
+    x = torch.as_tensor(curves, dtype=torch.float64)
+    if x.dim() != 2 or x.shape[0] < 1 or x.shape[1] < 1:
+        raise ValueError(f"curves must be (runs, points), got shape {tuple(x.shape)}")
+    if torch.isnan(x).any():
+        raise ValueError("curves hold NaN")
+    g = torch.Generator().manual_seed(seed)
+    index = torch.randint(x.shape[0], (resamples, x.shape[0]), generator=g)
+    boot = iqm(x[index].transpose(-1, -2))                        # (R, P)
+    lo, hi = _percentile_interval(boot, level)
+    return {"iqm": iqm(x.T).tolist(), "low": lo.tolist(), "high": hi.tolist()}

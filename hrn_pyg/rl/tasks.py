@@ -17,8 +17,8 @@ judges all ``k`` samples of all ``B`` environments.
 every goal starts at least ``goal_margin`` (5 cm, half a cube edge) away from being met
 (:func:`goal_clearance`), whatever the training mode, since every mode draws its goals here.
 
-Also the names of the four training modes (:data:`MODES`), shared by the PPO loop and the
-summaries.
+Also the names of the five training modes (:data:`MODES`), shared by the PPO loop and the
+summaries, and which of them train without reward relaxation (:data:`UNRELAXED_MODES`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,10 @@ from torch import Tensor
 #: Size of the goal entry in observations: a point on the ground plane (x, y).
 GOAL_DIM = 2
 #: The training modes (``hrn_pyg.rl.ppo.mode_settings``), in the order of tables and figures.
-MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed")
+MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed", "stochastic_unrelaxed")
+#: Modes whose environment takes one drawn sample as the next state and rewards only that sample
+#: (no reward relaxation): the ablation that tells the stochastic model from the relaxed reward.
+UNRELAXED_MODES = ("stochastic_unrelaxed",)
 #: Candidate goals drawn per environment for a ``region`` task; the first one far enough from
 #: every goal object is kept. A fixed number, so the random stream does not depend on the scene.
 GOAL_CANDIDATES = 128

@@ -3,7 +3,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics, dropout_spread
-from hrn_pyg.rl.env import HRNEnv, relax_reward
+from hrn_pyg.rl.env import HRNEnv, choose_next, partial_hits, relax_reward
 from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER, action_to_forces, get_task, goal_reached
 
 
@@ -84,6 +84,63 @@ def test_relax_reward_first_hit_and_random_choice_by_hand():
     nxt, hit = relax_reward(task, samples.reshape(2, 3, 2, 6), samples, goal, gen)
     assert hit.tolist() == [True, False]
     assert nxt[0, 0] == 0.05                                               # the first in the goal
+
+
+def test_without_relaxation_only_the_drawn_sample_counts():
+    """Sample 3 of 5 lands on the goal. Relaxed: every environment is rewarded and continues
+    from sample 3. Unrelaxed, same seed: the next state is the sample drawn at random (the same
+    draw the relaxed env made and ignored), rewarded exactly when that draw is sample 3; both
+    report 1 of 5 samples in the goal."""
+    dyn = ScriptedDynamics([5.0, 5.0, 5.0, 0.0, 5.0])
+    outs = {}
+    for relax in (True, False):
+        env = HRNEnv(CUBE_PUSH, dyn, batch_size=256, relax=relax, seed=3)
+        td = env.reset()
+        td["goal"] = torch.zeros(256, 2)
+        td["action"] = torch.zeros(256, CUBE_PUSH.action_dim)
+        outs[relax] = env.step(td)["next"]
+    relaxed, plain = outs[True], outs[False]
+    assert (relaxed["reward"] == 1).all() and (relaxed["goal_hits"] == 1).all()
+    assert (plain["goal_hits"] == 1).all()
+    tag = dyn.roots(plain["state"])[:, 0, 3].long()
+    assert set(tag.tolist()) == {0, 1, 2, 3, 4}
+    assert torch.equal(plain["reward"].squeeze(-1) == 1, tag == 3)
+    assert torch.equal(plain["terminated"].squeeze(-1), tag == 3)
+    assert 0.1 < float((tag == 3).float().mean()) < 0.3  # about one in five
+
+
+def test_choose_next_by_hand():
+    samples = torch.arange(2 * 3, dtype=torch.float32).reshape(2, 3, 1)
+    in_goal = torch.tensor([[False, True, True], [False, False, False]])
+    gen = torch.Generator().manual_seed(0)
+    drawn = torch.randint(3, (2,), generator=torch.Generator().manual_seed(0))
+    nxt, hit = choose_next(in_goal, samples, gen, relax=True)
+    assert hit.tolist() == [True, False]
+    assert nxt[:, 0].tolist() == [1.0, float(3 + drawn[1])]          # first hit; else the draw
+    nxt, hit = choose_next(in_goal, samples, torch.Generator().manual_seed(0), relax=False)
+    assert nxt[:, 0].tolist() == [float(drawn[0]), float(3 + drawn[1])]
+    assert hit.tolist() == [bool(in_goal[0, drawn[0]]), False]
+    with pytest.raises(ValueError, match="in_goal"):
+        choose_next(in_goal[:, :2], samples, gen)
+
+
+def test_partial_hits_by_hand():
+    hits = torch.tensor([[0], [1], [4], [5]])
+    assert partial_hits(hits, 5).squeeze(-1).tolist() == [False, True, True, False]
+    assert not partial_hits(torch.tensor([0, 1]), 1).any()  # one sample: never partial
+    with pytest.raises(ValueError, match="k"):
+        partial_hits(hits, 0)
+
+
+def test_goal_hits_counts_the_samples_in_the_goal():
+    """Two of five samples on the goal; reset reports 0."""
+    dyn = ScriptedDynamics([0.0, 5.0, 0.02, 5.0, 5.0])
+    env = HRNEnv(CUBE_PUSH, dyn, batch_size=3, seed=0)
+    td = env.reset()
+    assert (td["goal_hits"] == 0).all()
+    td["goal"] = torch.zeros(3, 2)
+    td["action"] = torch.zeros(3, CUBE_PUSH.action_dim)
+    assert (env.step(td)["next", "goal_hits"] == 2).all()
 
 
 def test_truncated_at_max_steps():

@@ -76,9 +76,11 @@ def _episode_stats_by_hand(batch) -> dict:
     won = batch["next", "terminated"].squeeze(-1).tolist()
     ended = [(t[b][i], won[b][i]) for b in range(len(done)) for i in range(len(done[b])) if done[b][i]]
     rewards = [r for row in batch["next", "reward"].squeeze(-1).tolist() for r in row]
+    hits = [h for row in batch["next", "goal_hits"].squeeze(-1).tolist() for h in row]
     return {"episodes": len(ended), "mean_episode_length": sum(n for n, _ in ended) / len(ended),
             "success_rate": sum(w for _, w in ended) / len(ended),
-            "reward_mean": sum(rewards) / len(rewards)}
+            "reward_mean": sum(rewards) / len(rewards),
+            "partial_hit_share": sum(0 < h < CUBE_PUSH.num_samples for h in hits) / len(hits)}
 
 
 def test_tiny_ppo_run_writes_log_and_checkpoint(tmp_path, monkeypatch):
@@ -245,7 +247,8 @@ def test_cli_unknown_task_or_mode_exits_2():
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
-    assert set(MODES) == {"deterministic", "action_noise", "stochastic", "stochastic_annealed"}
+    assert MODES == ("deterministic", "action_noise", "stochastic", "stochastic_annealed",
+                     "stochastic_unrelaxed")
 
 
 def test_replay_in_pybullet_judges_the_goal_on_ground_truth():

@@ -12,9 +12,14 @@ from hrn_pyg.rl.stats import (
     bootstrap_median_difference,
     compare_modes,
     comparison_markdown,
+    iqm,
+    iqm_curve,
     median,
+    performance_profile,
+    probability_of_improvement,
     reference_levels,
     run_table,
+    stratified_bootstrap,
     write_comparison,
 )
 
@@ -126,3 +131,67 @@ def test_comparison_from_logs_by_hand(tmp_path):
     assert loaded["modes"]["deterministic"]["updates_to_5"]["median"] is None
     assert written["modes"]["deterministic"]["updates_to_5"]["median"] == math.inf
     assert (tmp_path / "comparison.md").read_text() == text
+
+
+# ---------------------------------------------------------------------------- rliable-style
+def test_iqm_trims_a_quarter_at_each_end():
+    ten = torch.tensor([100.0, 1, 2, 3, 4, 5, 6, 7, 8, 9])
+    assert float(iqm(ten)) == pytest.approx((3 + 4 + 5 + 6 + 7 + 8) / 6)   # 2 cut at each end
+    assert float(iqm(torch.tensor([4.0, 1, 3]))) == pytest.approx(8 / 3)    # n < 4: the mean
+    assert float(iqm(torch.tensor([1.0, 2, 3, math.inf]))) == 2.5           # the inf is trimmed
+    assert math.isinf(float(iqm(torch.tensor([1.0, math.inf, math.inf]))))
+    assert iqm(torch.tensor([[1.0, 2, 3, 4], [5, 6, 7, 8]])).tolist() == [2.5, 6.5]
+
+
+def test_stratified_bootstrap_resamples_within_tasks_and_repeats():
+    # two tasks: every resample keeps task 0 at 0 and task 1 at 10, so the IQM over
+    # 8 values (2 trimmed at each end) is always 5: a zero-width interval
+    scores = torch.tensor([[0.0, 10.0]] * 4)
+    got = stratified_bootstrap(scores, resamples=500)
+    assert (got["value"], got["low"], got["high"], got["n"]) == (5.0, 5.0, 5.0, 4)
+    a = stratified_bootstrap([1.0, 2, 3, 4, 5, 9], resamples=500, seed=3)
+    assert a == stratified_bootstrap([1.0, 2, 3, 4, 5, 9], resamples=500, seed=3)
+    assert a["low"] < a["value"] < a["high"] and a["value"] == pytest.approx(3.5)
+    with pytest.raises(ValueError, match="NaN"):
+        stratified_bootstrap([1.0, math.nan])
+    with pytest.raises(ValueError, match="runs"):
+        stratified_bootstrap([])
+    with pytest.raises(ValueError, match="level"):
+        stratified_bootstrap([1.0], level=1.5)
+
+
+def test_probability_of_improvement_by_hand():
+    # pairs (x, y): 3>1, 3=3 (half), 4>1, 4>3: 3.5 of 4
+    got = probability_of_improvement([3.0, 4.0], [1.0, 3.0], resamples=300)
+    assert got["value"] == 0.875 and 0 <= got["low"] <= got["value"] <= got["high"] <= 1
+    assert probability_of_improvement([3.0, 4.0], [1.0, 3.0], higher_is_better=False,
+                                      resamples=10)["value"] == 0.125
+    # censored runs tie with each other and lose to any finite count when fewer is better
+    assert probability_of_improvement([math.inf, 5.0], [math.inf], higher_is_better=False,
+                                      resamples=10)["value"] == 0.75
+    # two tasks are averaged: task 0 always better (1), task 1 always worse (0)
+    x, y = torch.tensor([[2.0, 0.0], [3.0, 0.0]]), torch.tensor([[1.0, 1.0]])
+    assert probability_of_improvement(x, y, resamples=50)["value"] == 0.5
+    sep = probability_of_improvement([5.0, 6, 7], [1.0, 2, 3], resamples=300)
+    assert sep["low"] == sep["high"] == 1.0  # every resample separates them
+    with pytest.raises(ValueError, match="same tasks"):
+        probability_of_improvement(torch.ones(2, 2), torch.ones(2, 3))
+
+
+def test_performance_profile_by_hand():
+    got = performance_profile([0.1, 0.5, 0.9, 1.0], [0.0, 0.5, 1.0], resamples=200)
+    assert got["fraction"] == [1.0, 0.5, 0.0]   # strictly above each threshold
+    assert got["low"][0] == got["high"][0] == 1.0 and got["low"][2] == got["high"][2] == 0.0
+    lower = performance_profile([100.0, 300.0, math.inf], [100.0, 500.0], higher_is_better=False,
+                                resamples=10)
+    assert lower["fraction"] == pytest.approx([1 / 3, 2 / 3])  # runs that reached within tau frames
+    with pytest.raises(ValueError, match="threshold"):
+        performance_profile([1.0], [])
+
+
+def test_iqm_curve_by_hand():
+    got = iqm_curve([[0.0, 1.0], [0.0, 0.5], [1.0, 1.0]], resamples=200)
+    assert got["iqm"] == pytest.approx([1 / 3, 2.5 / 3])
+    assert all(lo <= v <= hi for lo, v, hi in zip(got["low"], got["iqm"], got["high"]))
+    with pytest.raises(ValueError, match="NaN"):
+        iqm_curve([[math.nan]])

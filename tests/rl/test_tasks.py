@@ -8,7 +8,7 @@ import torch
 
 from hrn_pyg.rl.dynamics import PointMassDynamics
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.ppo import PPOConfig, mode_settings
+from hrn_pyg.rl.ppo import PPOConfig, mode_relaxes, mode_settings
 from hrn_pyg.rl.tasks import (
     CUBE_PUSH,
     MODES,
@@ -109,7 +109,7 @@ def _mode_env(task, dynamics, mode: str, seed: int, batch: int) -> HRNEnv:
     """An environment set up as PPO sets it up for ``mode`` at its first update."""
     schedule, noise = mode_settings(mode, task, PPOConfig())
     return HRNEnv(task, dynamics, batch_size=batch, dropout_rate=schedule(0),
-                  action_noise_std=noise, seed=seed)
+                  action_noise_std=noise, relax=mode_relaxes(mode), seed=seed)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -125,7 +125,7 @@ def test_env_reset_never_starts_in_the_goal(mode):
             torch.testing.assert_close(td["observation"][:, -2:], td["goal"])
 
 
-@pytest.mark.parametrize("mode", ["deterministic", "stochastic", "stochastic_annealed"])
+@pytest.mark.parametrize("mode", ["deterministic", "stochastic", "stochastic_annealed", "stochastic_unrelaxed"])
 def test_zero_action_for_a_whole_episode_never_succeeds(mode):
     """Point-mass dynamics: with no force the objects stay put, at any dropout rate (the force
     noise scales with the force), so the episode runs to ``max_steps`` with reward 0. The

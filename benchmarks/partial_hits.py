@@ -1,0 +1,83 @@
+"""How often do the k sampled futures straddle the goal? The partial-hit share of a random
+policy (the policy at PPO update 0) for a grid of dropout rates and goal tolerances.
+
+A step is a partial hit when some but not all of the k samples meet the goal; only then can
+reward relaxation change a reward (:mod:`hrn_pyg.rl.partial_hits`). The share is counted over
+every step of ``--episodes`` episodes started from the validation scenes
+(:data:`hrn_pyg.rl.hrn_dynamics.VALIDATION_SEEDS`, apart from the RL training pool), so that a
+rate and a tolerance can be chosen (e.g. 10-30 % of steps) without looking at training scenes.
+
+Run: ``python benchmarks/partial_hits.py --task tower [--model PATH] [--rates 0.1 0.3 0.5]
+[--tolerances 0.06 0.1] [--episodes 64] [--out benchmarks/results/partial_hits_tower.json]``
+(the model defaults to ``hrn_pyg/checkpoints/<task>.pt``). Prints a table and writes JSON
+atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import torch
+
+from hrn_pyg.rl.hrn_dynamics import VALIDATION_SEEDS, HRNDynamics
+from hrn_pyg.rl.partial_hits import partial_hit_table
+from hrn_pyg.rl.tasks import TASKS, get_task
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
+from hrn_pyg.utils.files import atomic_write_json
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", choices=sorted(TASKS), default="tower")
+    parser.add_argument("--model", default=None, help="default hrn_pyg/checkpoints/<task>.pt")
+    parser.add_argument("--rates", type=float, nargs="+", default=[0.1, 0.3, 0.5])
+    parser.add_argument("--tolerances", type=float, nargs="+", default=None,
+                        help="goal radii, metres (default: the task's)")
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--num-envs", type=int, default=32)
+    parser.add_argument("--k", type=int, default=None, help="samples per step (default: the task's)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--pool", type=int, default=len(VALIDATION_SEEDS),
+                        help="validation scenes used (the first N of VALIDATION_SEEDS)")
+    parser.add_argument("--no-relax", action="store_true", help="episodes without reward relaxation")
+    parser.add_argument("--no-sleep", action="store_true")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=None, help="default benchmarks/results/partial_hits_<task>.json")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    task = get_task(args.task)
+    model = args.model or f"hrn_pyg/checkpoints/{task.name}.pt"
+    seeds = VALIDATION_SEEDS[:args.pool]
+    start = time.perf_counter()
+    dynamics = HRNDynamics.from_checkpoint(model, task, "cpu", pool_seeds=seeds,
+                                           sleep=None if args.no_sleep else DEFAULT_SLEEP)
+    rows = partial_hit_table(task, dynamics, args.rates, args.tolerances or [None], args.episodes,
+                             num_samples=args.k, num_envs=args.num_envs, relax=not args.no_relax,
+                             seed=args.seed)
+    seconds = time.perf_counter() - start
+    print(f"{task.name}: random policy, {args.episodes} episodes on {len(seeds)} validation scenes, "
+          f"k = {rows[0]['k']}, relax = {not args.no_relax} ({seconds:.0f} s)")
+    print("| tolerance (m) | rate | steps | partial-hit share | steps with any hit | success | mean length |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['tolerance']:.3f} | {r['rate']:.2f} | {r['steps']} | {r['partial_hit_share']:.3f} | "
+              f"{r['any_hit_steps']} | {r['success_rate']:.2f} | {r['mean_length']:.2f} |")
+    out = args.out or f"benchmarks/results/partial_hits_{task.name}.json"
+    meta = {
+        "what": "share of steps at which some but not all of the k samples meet the goal, random policy",
+        "task": task.name, "model": model, "validation_seeds": list(seeds), "episodes": args.episodes,
+        "num_envs": args.num_envs, "seed": args.seed, "relax": not args.no_relax,
+        "sleep": not args.no_sleep, "seconds": seconds,
+        "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch_threads": args.threads},
+        "rows": rows,
+    }
+    atomic_write_json(out, meta)
+    print(f"wrote {out}")
+    return meta
+
+
+if __name__ == "__main__":
+    main()
