@@ -10,10 +10,12 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
     mesh = "duck.obj"              # a file trimesh reads (relative to this file, absolute, or
                                    # pybullet_data:<path> for pybullet's own) or a primitive:
                                    # box, sphere, cylinder, capsule, cone, wedge; cloth: "sheet" (a
-                                   # square of side size on the lattice) or a surface mesh file
+                                   # square of side size on the lattice) or a surface mesh file;
+                                   # or a list of meshes, one drawn per seed
     material = "rigid"             # rigid, soft, cloth or static
     size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor;
-                                   # a primitive also takes extents = [x, y, z] (m)
+                                   # a primitive also takes extents = [x, y, z] (m; a round one
+                                   # takes its diameter from x)
     mass = 0.5                     # kg
     position = [0.0, 0.0, 0.3]     # m, the centre of the bounding box (a wedge: of its base)
     yaw = { min = 0, max = 360 }   # degrees; or orientation = [x, y, z, w]
@@ -67,7 +69,7 @@ import math
 import os
 import tomllib
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -203,10 +205,11 @@ def _json(value: Any) -> Any:
 
 @dataclass(frozen=True)
 class ObjectSpec:
-    """One object of a scene file: every field a ``(low, high)`` pair (equal when fixed), an
+    """One object of a scene file: its mesh (or the meshes one is drawn from per seed, each as
+    likely), its material, and every other field a ``(low, high)`` pair (equal when fixed), an
     expression, or None when not given."""
 
-    mesh: str
+    meshes: tuple[str, ...]
     material: str
     size: Value | None = None
     scale: Value | None = None
@@ -223,15 +226,23 @@ class ObjectSpec:
     friction: Value | None = None
 
     @property
-    def primitive(self) -> bool:
-        return self.mesh in PRIMITIVES
+    def mesh(self) -> str:
+        """The object's mesh when it has one (the first of its choices otherwise)."""
+        return self.meshes[0]
 
-    @cached_property
-    def base_mesh(self) -> trimesh.Trimesh | None:
-        """The object's mesh cleaned (seams merged), before sizing; None for a sheet."""
-        if self.mesh == SHEET:
-            return None
-        return primitive_mesh(self.mesh) if self.primitive else clean_mesh(load_mesh(self.mesh), self.mesh)
+
+@lru_cache(maxsize=256)
+def base_mesh(mesh: str) -> trimesh.Trimesh | None:
+    """A mesh file cleaned (seams merged), or a primitive at its unit size, before sizing; None
+    for a sheet. Kept in memory: a dataset draws the same few meshes again and again."""
+    if mesh == SHEET:
+        return None
+    return primitive_mesh(mesh) if mesh in PRIMITIVES else clean_mesh(load_mesh(mesh), mesh)
+
+
+def drawn_mesh(obj: ObjectSpec, drawn: dict) -> str:
+    """The mesh a seed drew for ``obj`` (``drawn["mesh"]`` is an index into its choices)."""
+    return obj.meshes[int(drawn.get("mesh", 0))]
 
 
 @dataclass(frozen=True)
@@ -336,7 +347,7 @@ class SceneSpec:
 
     def _draw_object(self, index: int, obj: ObjectSpec, rng: np.random.Generator, names: dict) -> dict:
         where = f"{self.name}: objects[{index}]"
-        drawn = {}
+        drawn = {"mesh": int(rng.integers(len(obj.meshes)))} if len(obj.meshes) > 1 else {}
         for name, length in OBJECT_FIELDS.items():
             value = getattr(obj, name)
             if value is not None:
@@ -529,25 +540,15 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
     material = raw.get("material")
     if material not in MATERIALS:
         raise ValueError(f"{where}: unknown material {material!r}; choose from {', '.join(MATERIALS)}")
-    mesh = raw.get("mesh")
-    if not isinstance(mesh, str) or not mesh:
-        raise ValueError(f"{where}: mesh (a file or one of {', '.join(PRIMITIVES)}) is required")
-    if material == "cloth" and mesh in PRIMITIVES:
-        raise ValueError(f"{where}: a cloth is a surface: mesh = {SHEET!r} or a surface mesh file")
-    if mesh == SHEET and material != "cloth":
-        raise ValueError(f"{where}: mesh = {SHEET!r} is for cloth only")
-    if mesh not in PRIMITIVES and mesh != SHEET:
-        path = mesh_path(mesh, base)
-        if not path.is_file():
-            looks_like_file = any(sep in mesh for sep in "/\\.")
-            if looks_like_file:
-                raise FileNotFoundError(f"{where}: mesh file not found: {path}")
-            raise ValueError(f"{where}: unknown primitive {mesh!r}; choose from {', '.join(PRIMITIVES)} "
-                             "or give a mesh file")
-        mesh = str(path.resolve())
+    raw_meshes = raw.get("mesh")
+    raw_meshes = raw_meshes if isinstance(raw_meshes, list) and raw_meshes else [raw_meshes]
+    meshes = tuple(_mesh(mesh, material, base, where) for mesh in raw_meshes)
+    if len(meshes) > 1 and SHEET in meshes:
+        raise ValueError(f"{where}: a sheet is not drawn among other meshes")
+    mesh = meshes[0]
     if sum(key in raw for key in ("size", "scale", "extents")) != 1:
         raise ValueError(f"{where}: give one of size (longest extent, m), scale and extents")
-    if "extents" in raw and mesh not in PRIMITIVES:
+    if "extents" in raw and any(m not in PRIMITIVES for m in meshes):
         raise ValueError(f"{where}: extents are for primitives; size or scale a mesh file")
     if mesh == SHEET and "scale" in raw:
         raise ValueError(f"{where}: a sheet takes size (its side, m), not scale")
@@ -569,7 +570,7 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
                 _check_names(values[key], known, f"{where}.{key}")
     if material in ("soft", "cloth") and own not in raw and "stiffness" not in raw:
         values["stiffness"] = (np.array(0.5), np.array(0.5))
-    spec = ObjectSpec(mesh=mesh, material=material, **values)
+    spec = ObjectSpec(meshes=meshes, material=material, **values)
     fixed = {k: v for k, v in values.items() if not isinstance(v, str)}
     for key in ("size", "scale", "mass"):
         if key in fixed and fixed[key][0] <= 0:
@@ -585,27 +586,31 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
     if material == "static" and any(key in fixed and (np.any(fixed[key][0]) or np.any(fixed[key][1]))
                                     for key in ("velocity", "spin")):
         raise ValueError(f"{where}: a static object cannot have a velocity or a spin")
-    if spec.primitive:
-        if "extents" in fixed:
-            check_extents(mesh, fixed["extents"][0], where)
-            check_extents(mesh, fixed["extents"][1], where)
-    else:
-        mesh_of = spec.base_mesh
+    for mesh in meshes:
+        mesh_of = base_mesh(mesh) if mesh not in PRIMITIVES else None
         if mesh_of is not None and material != "cloth" and not (
                 mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
             raise ValueError(f"{where}: the mesh has no volume (it is flat)")
     return spec
 
 
-def check_extents(mesh: str, extents: Any, where: str) -> None:
-    """Round primitives need equal extents across their round axes (a sphere: all three)."""
-    x, y, z = (float(e) for e in extents)
-    if mesh == "sphere" and not x == y == z:
-        raise ValueError(f"{where}.extents: a sphere's three extents are equal, got {[x, y, z]}")
-    if mesh in ("cylinder", "capsule", "cone") and x != y:
-        raise ValueError(f"{where}.extents: a {mesh} is round: x and y (its diameter) are equal, got {[x, y, z]}")
-    if mesh == "capsule" and z < x:
-        raise ValueError(f"{where}.extents: a capsule is at least as long (z) as it is wide, got {[x, y, z]}")
+def _mesh(mesh: Any, material: str, base: Path, where: str) -> str:
+    """A checked ``mesh`` entry: a primitive's name, ``sheet`` or a mesh file's absolute path."""
+    if not isinstance(mesh, str) or not mesh:
+        raise ValueError(f"{where}: mesh (a file or one of {', '.join(PRIMITIVES)}, or a list of them) is required")
+    if material == "cloth" and mesh in PRIMITIVES:
+        raise ValueError(f"{where}: a cloth is a surface: mesh = {SHEET!r} or a surface mesh file")
+    if mesh == SHEET and material != "cloth":
+        raise ValueError(f"{where}: mesh = {SHEET!r} is for cloth only")
+    if mesh in PRIMITIVES or mesh == SHEET:
+        return mesh
+    path = mesh_path(mesh, base)
+    if not path.is_file():
+        if any(sep in mesh for sep in "/\\."):
+            raise FileNotFoundError(f"{where}: mesh file not found: {path}")
+        raise ValueError(f"{where}: unknown primitive {mesh!r}; choose from {', '.join(PRIMITIVES)} "
+                         "or give a mesh file")
+    return str(path.resolve())
 
 
 def mesh_path(mesh: str, base: Path) -> Path:
@@ -680,13 +685,14 @@ def _push(raw: Any, where: str, objects: tuple[ObjectSpec, ...], steps: int, kno
 def posed_mesh(obj: ObjectSpec, drawn: dict) -> trimesh.Trimesh | None:
     """The object's mesh at its drawn ``size``, ``scale`` or ``extents``, in its body frame: the
     bounding box centred (a wedge: the middle of its base at the origin). None: a sheet."""
-    if obj.mesh == SHEET:
+    mesh = drawn_mesh(obj, drawn)
+    if mesh == SHEET:
         return None
-    if obj.primitive:
-        return primitive_mesh(obj.mesh, primitive_extents(obj.mesh, drawn))
+    if mesh in PRIMITIVES:
+        return primitive_mesh(mesh, primitive_extents(mesh, drawn))
     if "size" in drawn:
-        return sized_mesh(obj.base_mesh, size=float(drawn["size"]))
-    return sized_mesh(obj.base_mesh, scale=float(drawn["scale"]))
+        return sized_mesh(base_mesh(mesh), size=float(drawn["size"]))
+    return sized_mesh(base_mesh(mesh), scale=float(drawn["scale"]))
 
 
 def primitive_extents(mesh: str, drawn: dict) -> np.ndarray:
@@ -865,18 +871,18 @@ class FileScene(Scene):
     def _collision_shape(self, obj: ObjectSpec, mesh: trimesh.Trimesh, drawn: dict, static: bool) -> int:
         """A primitive's own pybullet shape at its nominal extents; a convex mesh as its hull; a
         concave one as its convex parts (moving) or as its triangles (static)."""
-        c = self._client
-        if obj.primitive:
-            extents = primitive_extents(obj.mesh, drawn)
-            if obj.mesh == "box":
+        c, name = self._client, drawn_mesh(obj, drawn)
+        if name in PRIMITIVES:
+            extents = primitive_extents(name, drawn)
+            if name == "box":
                 return p.createCollisionShape(p.GEOM_BOX, halfExtents=(np.asarray(mesh.extents) / 2).tolist(),
                                               physicsClientId=c)
-            if obj.mesh == "sphere":
+            if name == "sphere":
                 return p.createCollisionShape(p.GEOM_SPHERE, radius=float(extents[0] / 2), physicsClientId=c)
-            if obj.mesh == "cylinder":
+            if name == "cylinder":
                 return p.createCollisionShape(p.GEOM_CYLINDER, radius=float(extents[0] / 2), height=float(extents[2]),
                                               physicsClientId=c)
-            if obj.mesh == "capsule":
+            if name == "capsule":
                 radius = float(extents[0] / 2)
                 return p.createCollisionShape(p.GEOM_CAPSULE, radius=radius, height=float(extents[2] - 2 * radius),
                                               physicsClientId=c)

@@ -16,7 +16,13 @@ from hrn_pyg.data import scene_file
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.data.io import load_episode
-from hrn_pyg.data.scene_file import FileScene, boxes_overlap, overlapping, read_scene_file, start_box
+from hrn_pyg.data.scene_file import (
+    FileScene,
+    boxes_overlap,
+    overlapping,
+    read_scene_file,
+    start_box,
+)
 
 DATA = Path(pybullet_data.getDataPath())
 
@@ -332,3 +338,23 @@ def test_a_cloth_from_a_surface_mesh_has_its_vertices_as_leaves(tmp_path):
     cloth = episode["positions"][0, episode["leaf_object"] == 1]
     assert len(cloth) == len(vertices)
     assert np.ptp(cloth[:, 2]) > 0.015  # the wave (0.019 m from crest to trough) is kept
+
+
+def test_a_mesh_is_drawn_per_seed_from_a_list_and_primitives_take_extents(tmp_path):
+    text = BASE.replace('mesh = "box"', 'mesh = ["box", "cylinder", "wedge"]').replace(
+        "size = 0.2", 'extents = "[uniform(0.1, 0.3), uniform(0.1, 0.3), uniform(0.1, 0.3)]"')
+    spec = read_scene_file(write(tmp_path, text))
+    chosen = {}
+    for seed in range(12):
+        drawn = FileScene(spec, seed).params["objects"][0]
+        chosen.setdefault(drawn["mesh"], []).append(drawn["extents"])
+    assert sorted(chosen) == [0, 1, 2]  # every mesh is drawn
+    episode = simulate_episode(spec, seed=0)
+    x = episode["positions"][0]
+    extents = FileScene(spec, 0).params["objects"][0]["extents"]
+    name = spec.objects[0].meshes[FileScene(spec, 0).params["objects"][0]["mesh"]]
+    # the leaves fill the drawn box (voxels that meet the surface count: up to a pitch beyond it)
+    reach = np.ptp(x, axis=0)
+    assert np.all(reach <= np.array(extents) + 0.05 + 1e-6), (name, reach, extents)
+    with pytest.raises(ValueError, match="extents are for primitives"):
+        read_scene_file(write(tmp_path, text.replace('"wedge"]', '"pybullet_data:duck.obj"]'), "duck.toml"))
