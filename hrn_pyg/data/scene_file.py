@@ -11,7 +11,7 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
                                    # pybullet_data:<path> for pybullet's own) or a primitive:
                                    # box, sphere, cylinder, capsule, cone, wedge; cloth: "sheet" (a
                                    # square of side size on the lattice) or a surface mesh file;
-                                   # or a list of meshes, one drawn per seed
+                                   # or a list of meshes (a * matches files), one drawn per seed
     material = "rigid"             # rigid, soft, cloth or static
     size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor;
                                    # a primitive also takes extents = [x, y, z] (m; a round one
@@ -542,7 +542,8 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
         raise ValueError(f"{where}: unknown material {material!r}; choose from {', '.join(MATERIALS)}")
     raw_meshes = raw.get("mesh")
     raw_meshes = raw_meshes if isinstance(raw_meshes, list) and raw_meshes else [raw_meshes]
-    meshes = tuple(_mesh(mesh, material, base, where) for mesh in raw_meshes)
+    meshes = tuple(path for mesh in raw_meshes for path in _matching(mesh, base, where))
+    meshes = tuple(_mesh(mesh, material, base, where) for mesh in meshes)
     if len(meshes) > 1 and SHEET in meshes:
         raise ValueError(f"{where}: a sheet is not drawn among other meshes")
     mesh = meshes[0]
@@ -592,6 +593,18 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
                 mesh_of.volume > 0 if mesh_of.is_watertight else mesh_of.extents.min() > 0):
             raise ValueError(f"{where}: the mesh has no volume (it is flat)")
     return spec
+
+
+def _matching(mesh: Any, base: Path, where: str) -> list[Any]:
+    """The files a ``mesh`` entry with ``*`` names (sorted; relative to the scene file's folder),
+    or the entry itself."""
+    if not isinstance(mesh, str) or "*" not in mesh:
+        return [mesh]
+    pattern = mesh_path(mesh, base)
+    found = sorted(str(path) for path in pattern.parent.glob(pattern.name) if path.is_file())
+    if not found:
+        raise FileNotFoundError(f"{where}: no mesh file matches {pattern}")
+    return found
 
 
 def _mesh(mesh: Any, material: str, base: Path, where: str) -> str:

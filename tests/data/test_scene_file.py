@@ -358,3 +358,18 @@ def test_a_mesh_is_drawn_per_seed_from_a_list_and_primitives_take_extents(tmp_pa
     assert np.all(reach <= np.array(extents) + 0.05 + 1e-6), (name, reach, extents)
     with pytest.raises(ValueError, match="extents are for primitives"):
         read_scene_file(write(tmp_path, text.replace('"wedge"]', '"pybullet_data:duck.obj"]'), "duck.toml"))
+
+
+def test_a_mesh_pattern_draws_among_the_files_it_matches(tmp_path, capsys):
+    import trimesh
+
+    (tmp_path / "meshes").mkdir()
+    for i, size in enumerate((0.2, 0.3)):
+        trimesh.creation.box(extents=(size, 0.1, 0.1)).export(tmp_path / "meshes" / f"bar_{i}.obj")
+    spec = read_scene_file(write(tmp_path, BASE.replace('mesh = "box"', 'mesh = ["sphere", "meshes/bar_*.obj"]')))
+    assert [Path(m).name for m in spec.objects[0].meshes] == ["sphere", "bar_0.obj", "bar_1.obj"]
+    out = tmp_path / "data"
+    path = write(tmp_path, BASE.replace('mesh = "box"', 'mesh = "meshes/none_*.obj"'), "none.toml")
+    assert main(["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no mesh file matches" in err and len(err.splitlines()) == 1 and not out.exists()
