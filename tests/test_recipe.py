@@ -394,3 +394,18 @@ def test_a_stage_can_mix_in_another_dataset_and_its_recipe_is_part_of_the_identi
         bad["models"]["m"]["finetune"][0]["extra_datasets"] = value
         with pytest.raises(ValueError, match=word):
             parse_recipe(bad)
+
+
+def test_a_dataset_from_a_scene_file_generates_with_it_and_changes_with_its_text(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "drop.toml").write_text('steps = 4\n[[objects]]\nmesh = "box"\nmaterial = "rigid"\nsize = 0.2\n'
+                                        'position = [0.0, 0.0, 0.3]\n')
+    recipe = parse_recipe({"datasets": {"drop": {"scene": "drop.toml", "episodes": 2, "steps": 4}},
+                           "models": {"drop": {"dataset": "drop", "preset": "ours"}}})
+    dataset = recipe.dataset("drop")
+    assert dataset.generate_args(Path("data"))[:3] == ["generate", "--scene-file", "drop.toml"]
+    before = dataset.to_dict()["scene_sha256"]
+    (tmp_path / "drop.toml").write_text((tmp_path / "drop.toml").read_text().replace("0.3]", "0.4]"))
+    assert dataset.to_dict()["scene_sha256"] != before
+    assert main(dataset.generate_args(tmp_path / "data") + ["--no-progress"]) == 0
+    assert len(list((tmp_path / "data" / "drop").glob("episode_*.npz"))) == 2

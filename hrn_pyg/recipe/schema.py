@@ -19,6 +19,7 @@ type. Nothing here runs a process or writes a file.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shlex
@@ -51,7 +52,8 @@ OptionValue = str | int | float | bool
 
 @dataclass(frozen=True)
 class DatasetRecipe:
-    """One ``hrn-pyg generate`` dataset: episode ``i`` has seed ``seed_offset + i``."""
+    """One ``hrn-pyg generate`` dataset: episode ``i`` has seed ``seed_offset + i``; ``scene`` is a
+    built-in scene's name or a scene file (``*.toml``, relative to the folder the recipe runs in)."""
 
     name: str
     scene: str
@@ -72,11 +74,17 @@ class DatasetRecipe:
         overrides = d.pop("overrides")
         if overrides:
             d["set"] = {k: list(v) if isinstance(v, tuple) else v for k, v in overrides}
+        if self.from_file and Path(self.scene).is_file():  # a changed file is a changed dataset
+            d["scene_sha256"] = hashlib.sha256(Path(self.scene).read_bytes()).hexdigest()
         return d
+
+    @property
+    def from_file(self) -> bool:
+        return self.scene.endswith(".toml")
 
     def generate_args(self, data_dir: Path) -> list[str]:
         """``hrn-pyg generate`` arguments (no worker count: it does not change the bytes)."""
-        args = ["generate", "--scene", self.scene, "--episodes", str(self.episodes),
+        args = ["generate", "--scene-file" if self.from_file else "--scene", self.scene, "--episodes", str(self.episodes),
                 "--out", str(self.folder(data_dir)), "--steps", str(self.steps),
                 "--seed-offset", str(self.seed_offset)]
         if self.pitch is not None:
