@@ -3,8 +3,8 @@ r"""What a scene needs simulated: :class:`SceneEffects`, and the per-rollout pla
 A step of the HRN sums three kinds of effect on a particle (Fig. 2 of the seed paper): history,
 external force :math:`e_F` and collision :math:`e_C`. Many scenes need fewer: a lone soft cube
 bouncing on the ground has nothing to collide with, a ball dropped on a wedge is never pushed.
-A scene says so once (:class:`SceneEffects`, the ``effects`` of every scene class of
-:mod:`hrn_pyg.data.scenes`), and :func:`plan_effects` turns the declaration, the graph and the
+A scene says so once (:class:`SceneEffects`, the ``effects`` of a scene file,
+:mod:`hrn_pyg.data.scene_file`), and :func:`plan_effects` turns the declaration, the graph and the
 rollout's forces into an :class:`EffectPlan` *before* the first step:
 
 * ``force_active[t]``: does step :math:`t` run the force module. Read from the force tensor

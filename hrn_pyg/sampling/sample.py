@@ -188,7 +188,7 @@ def sample(
         sleep: objects at rest sleep, each copy's on its own (:mod:`hrn_pyg.sim.sleeping`; on by
             default); None runs every object of every copy at every step.
         effects: what the scene needs simulated (:class:`~hrn_pyg.data.effects.SceneEffects`, e.g.
-            :func:`hrn_pyg.data.scenes.scene_effects`); None: what the data show.
+            :func:`hrn_pyg.data.scene_file.scene_effects`); None: what the data show.
         fixed_shape: roll out with fixed-shape steps (:mod:`hrn_pyg.sim.fixed_shape`: no host read
             inside a step, optionally CUDA graphs); the same futures as with ``sleep=None``,
             which it needs.
