@@ -52,6 +52,8 @@ MIN_LEAVES = 2
 WINDING_CHUNK = 2**22
 #: a lattice point is inside an open mesh when the winding number's magnitude reaches this
 INSIDE_WINDING = 0.5
+#: how much finer V-HACD's voxel resolution is made when a concave mesh comes back as one part
+FINER_RESOLUTION = 4
 #: an open mesh encloses a volume when some lattice point has a winding number this large (a
 #: surface that bounds nothing, a sheet or a cap, stays near 0.5 even right beside itself)
 ENCLOSED_WINDING = 0.75
@@ -252,8 +254,10 @@ def convex_parts(mesh: trimesh.Trimesh, cache_dir: str | os.PathLike, resolution
     """An OBJ of the convex parts pybullet collides ``mesh`` with (pybullet's V-HACD), for a
     concave rigid body; made once per mesh and kept in ``cache_dir`` under the mesh's digest.
 
-    The file is written next to its final name and moved into place, so two workers that
-    decompose the same mesh at once leave one whole file.
+    V-HACD at a coarse voxel resolution can return a concave mesh as one part (a cup whose
+    cavity would be solid); then it runs again at :data:`FINER_RESOLUTION` times the resolution,
+    and the finer answer is kept. The file is written next to its final name and moved into
+    place, so two workers that decompose the same mesh at once leave one whole file.
     """
     pybullet = import_pybullet()
     cache = Path(cache_dir)
@@ -267,13 +271,22 @@ def convex_parts(mesh: trimesh.Trimesh, cache_dir: str | os.PathLike, resolution
     log = cache / f"{key}_{os.getpid()}.log"
     try:
         mesh.export(source)
-        with quiet_stdout():
-            pybullet.vhacd(str(source), str(partial), str(log), resolution=resolution)
-        if not partial.is_file() or partial.stat().st_size == 0:
-            raise ValueError(f"the convex decomposition of a mesh failed (see {log})")
+        for attempt in (resolution, FINER_RESOLUTION * resolution):
+            with quiet_stdout():
+                pybullet.vhacd(str(source), str(partial), str(log), resolution=attempt)
+            if not partial.is_file() or partial.stat().st_size == 0:
+                raise ValueError(f"the convex decomposition of a mesh failed (see {log})")
+            if part_count(partial) > 1:
+                break
         os.replace(partial, out)
     finally:
         for leftover in (source, partial):
             leftover.unlink(missing_ok=True)
     log.unlink(missing_ok=True)
     return out
+
+
+def part_count(path: str | os.PathLike) -> int:
+    """The convex parts in a V-HACD OBJ file (one ``o`` line each)."""
+    with open(path) as f:
+        return sum(1 for line in f if line.startswith("o "))
