@@ -80,7 +80,7 @@ def test_option_flags():
 
 
 def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
-    from hrn_pyg.data.scene_file import builtin_scene
+    from hrn_pyg.data.scene_file import builtin_scene, read_scene_file
 
     recipe = load_recipe(REPO / "data" / "recipes.toml")
     shipped = {p.stem for p in CHECKPOINT_DIR.glob("*.pt")}
@@ -88,7 +88,8 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
     assert made <= shipped
     assert shipped - made == {"cube_push_policy"}  # the RL policy comes from `hrn-pyg rl`
     for dataset in recipe.datasets:  # the datasets are the long episodes of the scene defaults
-        assert dataset.steps == builtin_scene(dataset.scene).config.steps >= 140
+        spec = read_scene_file(REPO / dataset.scene) if dataset.from_file else builtin_scene(dataset.scene)
+        assert dataset.steps == spec.config.steps >= 140
     wedge = next(m for m in recipe.models if m.name == "wedge")
     args = wedge.train_args(Path("data"), Path("runs/recipe"))
     assert args == [

@@ -601,7 +601,7 @@ def _matching(mesh: Any, base: Path, where: str) -> list[Any]:
     if not isinstance(mesh, str) or "*" not in mesh:
         return [mesh]
     pattern = mesh_path(mesh, base)
-    found = sorted(str(path) for path in pattern.parent.glob(pattern.name) if path.is_file())
+    found = sorted(str(path.resolve()) for path in pattern.parent.glob(pattern.name) if path.is_file())
     if not found:
         raise FileNotFoundError(f"{where}: no mesh file matches {pattern}")
     return found
@@ -709,12 +709,20 @@ def posed_mesh(obj: ObjectSpec, drawn: dict) -> trimesh.Trimesh | None:
 
 
 def primitive_extents(mesh: str, drawn: dict) -> np.ndarray:
-    """The drawn ``extents`` of a primitive, or its proportions times ``size`` (its longest
-    extent, m) or ``scale`` (the unit primitive's longest extent is 1 m, so the same)."""
-    if "extents" in drawn:
-        return np.asarray(drawn["extents"], dtype=np.float64)
-    factor = float(drawn["size"] if "size" in drawn else drawn["scale"])
-    return np.asarray(PRIMITIVE_PROPORTIONS[mesh], dtype=np.float64) * factor
+    """The drawn ``extents`` of a primitive (a round one: its diameter ``x``, and a sphere's
+    height too; a capsule at least as long as it is wide), or its proportions times ``size``
+    (its longest extent, m) or ``scale`` (the unit primitive's longest extent is 1 m)."""
+    if "extents" not in drawn:
+        factor = float(drawn["size"] if "size" in drawn else drawn["scale"])
+        return np.asarray(PRIMITIVE_PROPORTIONS[mesh], dtype=np.float64) * factor
+    x, y, z = (float(e) for e in drawn["extents"])
+    if mesh == "sphere":
+        return np.array([x, x, x])
+    if mesh in ("cylinder", "cone"):
+        return np.array([x, x, z])
+    if mesh == "capsule":  # at least as long as it is wide
+        return np.array([x, x, max(z, x)])
+    return np.array([x, y, z])
 
 
 def quaternion(drawn: dict) -> list[float] | None:
@@ -897,7 +905,7 @@ class FileScene(Scene):
                                               physicsClientId=c)
             if name == "capsule":
                 radius = float(extents[0] / 2)
-                return p.createCollisionShape(p.GEOM_CAPSULE, radius=radius, height=float(extents[2] - 2 * radius),
+                return p.createCollisionShape(p.GEOM_CAPSULE, radius=radius, height=max(float(extents[2]) - 2 * radius, 1e-4),
                                               physicsClientId=c)
             return p.createCollisionShape(p.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=c)
         hull = mesh.convex_hull

@@ -373,3 +373,15 @@ def test_a_mesh_pattern_draws_among_the_files_it_matches(tmp_path, capsys):
     assert main(["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no mesh file matches" in err and len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_round_primitives_read_their_diameter_from_x():
+    from hrn_pyg.data.scene_file import primitive_extents
+
+    assert primitive_extents("sphere", {"extents": [0.2, 0.1, 0.3]}).tolist() == [0.2, 0.2, 0.2]
+    assert primitive_extents("cylinder", {"extents": [0.2, 0.1, 0.3]}).tolist() == [0.2, 0.2, 0.3]
+    assert primitive_extents("capsule", {"extents": [0.2, 0.1, 0.1]}).tolist() == [0.2, 0.2, 0.2]  # never shorter than wide
+    assert primitive_extents("box", {"extents": [0.2, 0.1, 0.3]}).tolist() == [0.2, 0.1, 0.3]
+    short = BASE.replace('mesh = "box"', 'mesh = "capsule"').replace("size = 0.2", "extents = [0.2, 0.1, 0.1]")
+    episode = simulate_episode(read_scene_file_text(short), seed=0)  # pybullet takes the capsule
+    assert np.all(np.isfinite(episode["positions"]))
