@@ -70,11 +70,13 @@ def main(argv: list[str] | None = None) -> dict:
     seconds = time.perf_counter() - start
     print(f"{task.name}: {args.policy} policy, action noise {args.noise:g}, {args.episodes} episodes on {len(seeds)} validation scenes, "
           f"k = {rows[0]['k']}, relax = {not args.no_relax} ({seconds:.0f} s)")
-    print("| tolerance (m) | rate | steps | partial-hit share | steps with any hit | success | mean length |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("| tolerance (m) | rate | steps | partial-hit share | steps with any hit | partial / any hit "
+          "| success | mean length |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
+        of_hits = "-" if r["partial_of_hit_steps"] is None else f"{r['partial_of_hit_steps']:.2f}"
         print(f"| {r['tolerance']:.3f} | {r['rate']:.2f} | {r['steps']} | {r['partial_hit_share']:.3f} | "
-              f"{r['any_hit_steps']} | {r['success_rate']:.2f} | {r['mean_length']:.2f} |")
+              f"{r['any_hit_steps']} | {of_hits} | {r['success_rate']:.2f} | {r['mean_length']:.2f} |")
     suffix = "" if args.policy == "random" and args.noise == 0 else f"_{args.policy}_noise{args.noise:g}"
     out = args.out or f"benchmarks/results/partial_hits_{task.name}{suffix}.json"
     meta = {

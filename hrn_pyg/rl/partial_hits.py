@@ -59,7 +59,7 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
                       episodes: int, *, num_samples: int | None = None, num_envs: int = 32,
                       relax: bool = True, seed: int = 0, policy: Planner | None = None,
                       action_noise_std: float = 0.0) -> dict[str, float | int]:
-    """The partial-hit share of a policy at dropout ``rate``, over ``episodes`` episodes.
+    r"""The partial-hit share of a policy at dropout ``rate``, over ``episodes`` episodes.
 
     ``policy``: None, a uniformly random policy (the policy at update 0); else a planner
     (:mod:`hrn_pyg.rl.planners`) called on each observation, e.g. the task's scripted planner,
@@ -74,8 +74,17 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
 
     Returns ``steps`` (counted), ``partial_steps``, ``partial_hit_share``
     (``partial_steps / steps``), ``any_hit_steps`` (steps with at least one sample in the
-    goal), ``success_rate`` and ``mean_length`` of the episodes (relaxed or not, as ``relax``),
-    and the settings: ``rate``, ``tolerance`` (the task's goal radius), ``k``, ``episodes``.
+    goal), ``partial_of_hit_steps`` (``partial_steps / any_hit_steps``, None without a hit),
+    ``success_rate`` and ``mean_length`` of the episodes (relaxed or not, as ``relax``), and the
+    settings: ``rate``, ``tolerance`` (the task's goal radius), ``k``, ``episodes``,
+    ``action_noise_std``.
+
+    **A bound.** With relaxation a step with any sample in the goal ends the episode, so each
+    episode has at most one such step and
+    :math:`\text{share} \le \text{any\_hit\_steps} / \text{steps} \le 1 / \bar T` for a
+    mean episode length :math:`\bar T`: a policy that needs 10 steps cannot exceed 10 %
+    whatever the spread. ``partial_of_hit_steps`` says how the spread compares with the goal
+    where it matters (1: every goal-reaching step is straddled).
     """
     task = get_task(task)
     if episodes < 1 or num_envs < 1:
@@ -108,7 +117,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
     return {"rate": float(rate), "tolerance": task.goal_radius, "k": k, "episodes": episodes,
             "steps": steps, "partial_steps": partial, "partial_hit_share": partial / steps,
             "any_hit_steps": any_hit, "success_rate": successes / episodes,
-            "mean_length": length_sum / episodes, "action_noise_std": float(action_noise_std)}
+            "mean_length": length_sum / episodes, "action_noise_std": float(action_noise_std),
+            "partial_of_hit_steps": partial / any_hit if any_hit else None}
 
 
 def partial_hit_table(task: str | TaskConfig, dynamics: StochasticDynamics, rates: Sequence[float],
