@@ -29,7 +29,13 @@ from hrn_pyg.data.graph import HISTORY, object_centres
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
 from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, HRNDynamics
-from hrn_pyg.rl.planners import PLANNERS, Planner, greedy_push, length_thresholds, planner_policy
+from hrn_pyg.rl.planners import (
+    PLANNERS,
+    Planner,
+    greedy_push,
+    length_thresholds,
+    planner_policy,
+)
 from hrn_pyg.rl.tasks import TaskConfig, action_to_forces, get_task, goal_reached
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.files import atomic_write_json

@@ -1,4 +1,5 @@
-"""The two manipulation tasks of the seed paper (section 4.3): configs and goal tests.
+"""The manipulation tasks: the seed paper's two (section 4.3) and two with room to learn;
+configs and goal tests.
 
 ``cube_push``: two rigid cubes that pass through each other; the agent pushes the cubes (one
 horizontal force per cube) and succeeds when at least one cube's centre lies inside a goal
@@ -9,7 +10,18 @@ it can loft the ball) and succeeds when the middle cube's centre has left the to
 more than ``goal_radius`` (one cube edge). At most 15 steps. Dropout on the force and
 collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
 
-A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``) or the
+``cube_push_stop`` (the cube_push scene and model): a cube must *stop* (slower than 5 mm per
+step) inside a 3 cm disc drawn 0.15-0.3 m from the origin and at least 0.15 m from both cubes,
+within 20 steps. A full-force push at the goal overshoots; a push that brakes in time
+(:func:`hrn_pyg.rl.planners.stop_push`) succeeds. Dropout 0.3 on the force module.
+
+``tower_aside`` (the tower scene and model): the middle cube must reach a 4.5 cm disc 12-15 cm
+beside the tower, on a side at least 45 degrees off the line from the ball to the tower, within
+40 steps. Pushing the ball straight at the tower moves the stack along that line and never gets
+there; driving the ball around the tower first (:func:`hrn_pyg.rl.planners.aside_push`) does.
+Dropout 0.3 on the force and collision modules.
+
+A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``, ``aside``) or the
 tower axis (``displaced``). Goal tests take root states with any leading dimensions, so one call
 judges all ``k`` samples of all ``B`` environments.
 
@@ -186,12 +198,12 @@ CUBE_PUSH_STOP = TaskConfig(
     name="cube_push_stop", scene="cube_push", max_steps=20, num_objects=2,
     controlled_objects=(0, 1), force_axes=(0, 1), max_force=15.0, goal_kind="region",
     goal_objects=(0, 1), goal_radius=0.03, goal_speed=0.005, goal_distance=(0.15, 0.3),
-    goal_margin=0.12, dropout_modules=("force",), dropout_rate=0.1, anneal_updates=1200,
+    goal_margin=0.12, dropout_modules=("force",), dropout_rate=0.3, anneal_updates=1200,
 )
 TOWER_ASIDE = TaskConfig(
-    name="tower_aside", scene="tower", max_steps=30, num_objects=4, controlled_objects=(3,),
-    force_axes=(0, 1, 2), max_force=8.0, goal_kind="aside", goal_objects=(1,), goal_radius=0.06,
-    goal_distance=(0.12, 0.15), dropout_modules=("force", "collision"), dropout_rate=0.1,
+    name="tower_aside", scene="tower", max_steps=40, num_objects=4, controlled_objects=(3,),
+    force_axes=(0, 1, 2), max_force=8.0, goal_kind="aside", goal_objects=(1,), goal_radius=0.045,
+    goal_distance=(0.12, 0.15), dropout_modules=("force", "collision"), dropout_rate=0.3,
     anneal_updates=1200,
 )
 TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER, CUBE_PUSH_STOP, TOWER_ASIDE)}
