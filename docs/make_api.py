@@ -66,6 +66,7 @@ MODULES = (
     "hrn_pyg.rl.hrn_dynamics",
     "hrn_pyg.rl.env",
     "hrn_pyg.rl.partial_hits",
+    "hrn_pyg.rl.planners",
     "hrn_pyg.rl.ppo",
     "hrn_pyg.rl.evaluate",
     "hrn_pyg.rl.success_curve",

@@ -98,7 +98,7 @@ class HRNEnv(EnvBase):
         if dynamics is None:
             from hrn_pyg.rl.dynamics import PointMassDynamics
 
-            dynamics = PointMassDynamics.for_task(task.name, task.dropout_modules, device)
+            dynamics = PointMassDynamics.for_task(task.scene_name, task.dropout_modules, device)
         if dynamics.num_objects != task.num_objects:
             raise ValueError(f"dynamics has {dynamics.num_objects} objects, task {task.name!r} "
                              f"expects {task.num_objects}")

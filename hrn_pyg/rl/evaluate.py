@@ -68,7 +68,7 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
 
     actions = torch.as_tensor(actions, dtype=torch.float32).cpu()  # pybullet takes numpy
     forces = action_to_forces(task, actions)                                  # (T, O, 3)
-    scene = make_scene(task.name, seed)
+    scene = make_scene(task.scene_name, seed)
     try:
         leaves = torch.as_tensor(scene.reset(), dtype=torch.float32)
         before = leaves

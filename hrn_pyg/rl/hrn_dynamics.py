@@ -114,7 +114,7 @@ class HRNDynamics:
         histories, masses = [], []
         leaf_object = None
         for seed in pool_seeds:  # a few dozen scenes, built once
-            scene = make_scene(self.task.name, int(seed))
+            scene = make_scene(self.task.scene_name, int(seed))
             try:
                 frames = [scene.reset()]
                 for _ in range(HISTORY):
@@ -134,7 +134,7 @@ class HRNDynamics:
         self.num_leaves = int(leaf_object_t.numel())
         self.num_objects = int(self.task.num_objects)
         if int(leaf_object_t.max()) + 1 < self.num_objects:
-            raise ValueError(f"scene {self.task.name!r} has fewer objects than the task's {self.num_objects}")
+            raise ValueError(f"scene {self.task.scene_name!r} has fewer objects than the task's {self.num_objects}")
         self.state_dim = 9 * self.num_leaves + 1
         # one hierarchy (the first pool scene's, at rest) shared by every pool entry; each entry
         # keeps its own masses

@@ -33,6 +33,7 @@ from torchrl.envs.utils import step_mdp
 
 from hrn_pyg.rl.dynamics import StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv, partial_hits
+from hrn_pyg.rl.planners import Planner
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 
 
@@ -56,8 +57,15 @@ def with_tolerance(task: TaskConfig, tolerance: float | None) -> TaskConfig:
 @torch.no_grad()
 def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate: float,
                       episodes: int, *, num_samples: int | None = None, num_envs: int = 32,
-                      relax: bool = True, seed: int = 0) -> dict[str, float | int]:
-    """The partial-hit share of a random policy at dropout ``rate``, over ``episodes`` episodes.
+                      relax: bool = True, seed: int = 0, policy: Planner | None = None,
+                      action_noise_std: float = 0.0) -> dict[str, float | int]:
+    r"""The partial-hit share of a policy at dropout ``rate``, over ``episodes`` episodes.
+
+    ``policy``: None, a uniformly random policy (the policy at update 0); else a planner
+    (:mod:`hrn_pyg.rl.planners`) called on each observation, e.g. the task's scripted planner,
+    with Gaussian action noise of ``action_noise_std`` times the force bound added by the
+    environment (the ``action_noise`` mode's exploration, closer to what PPO tries than a
+    random policy).
 
     Runs rounds of ``num_envs`` environments (:class:`~hrn_pyg.rl.env.HRNEnv`, seeded with
     ``seed``; the actions from a second generator seeded with ``seed + 1``) until ``episodes``
@@ -66,15 +74,24 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
 
     Returns ``steps`` (counted), ``partial_steps``, ``partial_hit_share``
     (``partial_steps / steps``), ``any_hit_steps`` (steps with at least one sample in the
-    goal), ``success_rate`` and ``mean_length`` of the episodes (relaxed or not, as ``relax``),
-    and the settings: ``rate``, ``tolerance`` (the task's goal radius), ``k``, ``episodes``.
+    goal), ``partial_of_hit_steps`` (``partial_steps / any_hit_steps``, None without a hit),
+    ``success_rate`` and ``mean_length`` of the episodes (relaxed or not, as ``relax``), and the
+    settings: ``rate``, ``tolerance`` (the task's goal radius), ``k``, ``episodes``,
+    ``action_noise_std``.
+
+    **A bound.** With relaxation a step with any sample in the goal ends the episode, so each
+    episode has at most one such step and
+    :math:`\text{share} \le \text{any\_hit\_steps} / \text{steps} \le 1 / \bar T` for a
+    mean episode length :math:`\bar T`: a policy that needs 10 steps cannot exceed 10 %
+    whatever the spread. ``partial_of_hit_steps`` says how the spread compares with the goal
+    where it matters (1: every goal-reaching step is straddled).
     """
     task = get_task(task)
     if episodes < 1 or num_envs < 1:
         raise ValueError(f"episodes and num_envs must be >= 1, got {episodes}, {num_envs}")
     B = min(num_envs, episodes)
     env = HRNEnv(task, dynamics, batch_size=B, num_samples=num_samples, dropout_rate=rate,
-                 relax=relax, seed=seed)
+                 relax=relax, seed=seed, action_noise_std=action_noise_std)
     k = env.num_samples
     actions = torch.Generator(device=env.rng.device).manual_seed(seed + 1)
     steps = partial = any_hit = successes = length_sum = 0
@@ -83,7 +100,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
         alive = counted.clone()
         td = env.reset()
         for _ in range(task.max_steps):  # a loop over time steps
-            td["action"] = random_actions(task, B, actions).to(env.device)
+            drawn = random_actions(task, B, actions).to(env.device)  # drawn either way: one stream
+            td["action"] = drawn if policy is None else policy(task, td["observation"])
             td = env.step(td)
             hits = td["next", "goal_hits"].squeeze(-1)
             steps += int(alive.sum())
@@ -99,7 +117,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
     return {"rate": float(rate), "tolerance": task.goal_radius, "k": k, "episodes": episodes,
             "steps": steps, "partial_steps": partial, "partial_hit_share": partial / steps,
             "any_hit_steps": any_hit, "success_rate": successes / episodes,
-            "mean_length": length_sum / episodes}
+            "mean_length": length_sum / episodes, "action_noise_std": float(action_noise_std),
+            "partial_of_hit_steps": partial / any_hit if any_hit else None}
 
 
 def partial_hit_table(task: str | TaskConfig, dynamics: StochasticDynamics, rates: Sequence[float],

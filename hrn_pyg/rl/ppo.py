@@ -249,7 +249,7 @@ def load_dynamics(task: TaskConfig, model: str | None,
     """``None``: the point-mass development dynamics; a path: the learned HRN, on ``device``,
     with objects at rest asleep unless ``sleep=False`` (:class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`)."""
     if model is None:
-        return PointMassDynamics.for_task(task.name, task.dropout_modules, device)
+        return PointMassDynamics.for_task(task.scene_name, task.dropout_modules, device)
     path = Path(model)
     if not path.is_file():
         raise FileNotFoundError(f"--model checkpoint not found: {path}")

@@ -1,4 +1,5 @@
-"""The two manipulation tasks of the seed paper (section 4.3): configs and goal tests.
+"""The manipulation tasks: the seed paper's two (section 4.3) and two with room to learn;
+configs and goal tests.
 
 ``cube_push``: two rigid cubes that pass through each other; the agent pushes the cubes (one
 horizontal force per cube) and succeeds when at least one cube's centre lies inside a goal
@@ -9,7 +10,18 @@ it can loft the ball) and succeeds when the middle cube's centre has left the to
 more than ``goal_radius`` (one cube edge). At most 15 steps. Dropout on the force and
 collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
 
-A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``) or the
+``cube_push_stop`` (the cube_push scene and model): a cube must *stop* (slower than 5 mm per
+step) inside a 3 cm disc drawn 0.15-0.3 m from the origin and at least 0.15 m from both cubes,
+within 20 steps. A full-force push at the goal overshoots; a push that brakes in time
+(:func:`hrn_pyg.rl.planners.stop_push`) succeeds. Dropout 0.3 on the force module.
+
+``tower_aside`` (the tower scene and model): the middle cube must reach a 4.5 cm disc 12-15 cm
+beside the tower, on a side at least 45 degrees off the line from the ball to the tower, within
+40 steps. Pushing the ball straight at the tower moves the stack along that line and never gets
+there; driving the ball around the tower first (:func:`hrn_pyg.rl.planners.aside_push`) does.
+Dropout 0.3 on the force and collision modules.
+
+A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``, ``aside``) or the
 tower axis (``displaced``). Goal tests take root states with any leading dimensions, so one call
 judges all ``k`` samples of all ``B`` environments.
 
@@ -36,6 +48,10 @@ MODES = ("deterministic", "action_noise", "stochastic", "stochastic_annealed", "
 #: Modes whose environment takes one drawn sample as the next state and rewards only that sample
 #: (no reward relaxation): the ablation that tells the stochastic model from the relaxed reward.
 UNRELAXED_MODES = ("stochastic_unrelaxed",)
+#: Goal kinds: a goal object inside a disc drawn around the origin (``region``) or beside the
+#: goal object's start off the controlled object's line (``aside``), or farther than the radius
+#: from its start (``displaced``).
+GOAL_KINDS = ("region", "displaced", "aside")
 #: Candidate goals drawn per environment for a ``region`` task; the first one far enough from
 #: every goal object is kept. A fixed number, so the random stream does not depend on the scene.
 GOAL_CANDIDATES = 128
@@ -76,6 +92,22 @@ class TaskConfig:
         anneal_updates: PPO updates over which ``stochastic_annealed`` brings the rate to 0.
         num_samples: ``k``, futures sampled per step for reward relaxation.
         step_penalty: reward added on every step that does not reach the goal (<= 0).
+        scene: the scene the task is played in (a built-in scene file, ``hrn_pyg.data.scene_file``
+            ``make_scene``) and the point-mass layout; ``""``: the task's ``name``. Several tasks
+            may share one scene (and so one trained model).
+        goal_speed: for ``region`` and ``aside`` goals, if positive, a goal object counts only
+            when it is also slower than this, metres per step (the root velocity is the
+            per-step displacement): the object must *stop* in the disc, not pass through it.
+            0: no speed condition.
+
+    ``aside`` goals (:func:`sample_goal`): a disc of ``goal_radius`` for the goal objects whose
+    centre lies ``goal_distance[0]`` to ``goal_distance[1]`` from the first goal object's start,
+    along one of the two world axes (``±x``, ``±y``) that are 45-135 degrees off the line from
+    the first controlled object to the first goal object: pushing the controlled object
+    straight at the goal object moves it along that line, away from the disc.
+
+    ``scene`` and ``goal_speed`` are left out of :meth:`to_dict` at their defaults, so that the
+    records of runs made before they existed still match.
     """
 
     name: str
@@ -94,6 +126,8 @@ class TaskConfig:
     anneal_updates: int = 0
     num_samples: int = 5
     step_penalty: float = 0.0
+    scene: str = ""
+    goal_speed: float = 0.0
 
     def __post_init__(self) -> None:
         if self.max_steps < 1:
@@ -108,8 +142,18 @@ class TaskConfig:
             raise ValueError(f"force_axes must be distinct entries of (0, 1, 2), got {self.force_axes}")
         if self.max_force <= 0 or self.goal_radius <= 0:
             raise ValueError("max_force and goal_radius must be positive")
-        if self.goal_kind not in ("region", "displaced"):
-            raise ValueError(f"goal_kind must be 'region' or 'displaced', got {self.goal_kind!r}")
+        if self.goal_kind not in GOAL_KINDS:
+            raise ValueError(f"goal_kind must be one of {GOAL_KINDS}, got {self.goal_kind!r}")
+        if self.goal_speed < 0 or (self.goal_speed > 0 and self.goal_kind == "displaced"):
+            raise ValueError(f"goal_speed must be >= 0 and only set for a region or aside goal, "
+                             f"got {self.goal_speed} for {self.goal_kind!r}")
+        lo, hi = self.goal_distance
+        if not 0 <= lo <= hi:
+            raise ValueError(f"goal_distance must be 0 <= low <= high, got {self.goal_distance}")
+        if self.goal_kind == "aside" and lo < self.goal_radius + self.goal_margin:
+            raise ValueError(f"an aside goal's disc must start clear of the goal object: "
+                             f"goal_distance[0] ({lo}) < goal_radius + goal_margin "
+                             f"({self.goal_radius + self.goal_margin:g})")
         if self.goal_margin < 0:
             raise ValueError(f"goal_margin must be >= 0, got {self.goal_margin}")
         if self.goal_kind == "displaced" and self.goal_margin >= self.goal_radius:
@@ -126,8 +170,18 @@ class TaskConfig:
     def action_dim(self) -> int:
         return len(self.controlled_objects) * len(self.force_axes)
 
+    @property
+    def scene_name(self) -> str:
+        """The scene the task is played in: ``scene``, else ``name``."""
+        return self.scene or self.name
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The fields, without ``scene`` and ``goal_speed`` when they hold their defaults."""
+        out = asdict(self)
+        for key, default in (("scene", ""), ("goal_speed", 0.0)):
+            if out[key] == default:
+                del out[key]
+        return out
 
 
 CUBE_PUSH = TaskConfig(
@@ -140,7 +194,19 @@ TOWER = TaskConfig(
     max_force=8.0, goal_kind="displaced", goal_objects=(1,), goal_radius=0.1,
     dropout_modules=("force", "collision"), dropout_rate=0.1, anneal_updates=1200,
 )
-TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER)}
+CUBE_PUSH_STOP = TaskConfig(
+    name="cube_push_stop", scene="cube_push", max_steps=20, num_objects=2,
+    controlled_objects=(0, 1), force_axes=(0, 1), max_force=15.0, goal_kind="region",
+    goal_objects=(0, 1), goal_radius=0.03, goal_speed=0.005, goal_distance=(0.15, 0.3),
+    goal_margin=0.12, dropout_modules=("force",), dropout_rate=0.3, anneal_updates=1200,
+)
+TOWER_ASIDE = TaskConfig(
+    name="tower_aside", scene="tower", max_steps=40, num_objects=4, controlled_objects=(3,),
+    force_axes=(0, 1, 2), max_force=8.0, goal_kind="aside", goal_objects=(1,), goal_radius=0.045,
+    goal_distance=(0.12, 0.15), dropout_modules=("force", "collision"), dropout_rate=0.3,
+    anneal_updates=1200,
+)
+TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER, CUBE_PUSH_STOP, TOWER_ASIDE)}
 
 
 def get_task(task: str | TaskConfig) -> TaskConfig:
@@ -190,6 +256,13 @@ def sample_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> 
                              f"goal_radius - goal_margin = {task.goal_radius - task.goal_margin:g} m "
                              "apart, so the displaced goal would be met at reset")
         return goal
+    if task.goal_kind == "aside":
+        goal = aside_goal(task, roots, generator)
+        if not bool((goal_clearance(task, roots, goal) > task.goal_margin).all()):
+            raise ValueError(f"task {task.name!r}: a goal object starts within goal_radius + "
+                             f"goal_margin = {task.goal_radius + task.goal_margin:g} m of its "
+                             "aside goal, which would be (nearly) met at reset")
+        return goal
     lo, hi = task.goal_distance
     shape, dev = (B, GOAL_CANDIDATES), generator.device
     angle = torch.rand(shape, generator=generator, device=dev) * 2 * math.pi
@@ -206,11 +279,35 @@ def sample_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> 
     return candidates[torch.arange(B, device=roots.device), first]
 
 
+def aside_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> Tensor:
+    r"""Disc centres beside the first goal object, off the controlled object's line: ``(B, 2)``.
+
+    With :math:`g` the first goal object's and :math:`c` the first controlled object's ground
+    position and :math:`d = g - c`, the sideways axis is :math:`e = \hat x` if
+    :math:`|d_x| < |d_y|` else :math:`\hat y` (the world axis at least 45 degrees off
+    :math:`d`), and the centre is :math:`g + s\, \rho\, e` with a sign
+    :math:`s = \pm 1` and a distance :math:`\rho \sim \mathcal U[\text{goal\_distance}]`, two
+    draws per environment from ``generator`` (on its device), returned on ``roots``' device.
+    """
+    B = roots.shape[0]
+    g = roots[:, task.goal_objects[0], :2]
+    d = g - roots[:, task.controlled_objects[0], :2]
+    dev = generator.device
+    sign = torch.where(torch.rand(B, generator=generator, device=dev) < 0.5, -1.0, 1.0)
+    lo, hi = task.goal_distance
+    rho = lo + (hi - lo) * torch.rand(B, generator=generator, device=dev)
+    along_x = d[:, 0].abs() < d[:, 1].abs()                                   # (B,)
+    axis = torch.stack([along_x, ~along_x], -1).to(g.dtype)                  # (B, 2)
+    return g + (sign * rho).to(g.device, g.dtype).unsqueeze(-1) * axis
+
+
 def goal_clearance(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     r"""How far, metres, each state is from meeting the goal (``<= 0``: met, for ``region``).
 
-    ``region``: :math:`\min_{i \in G} \lVert x_i^{xy} - g \rVert - r` (distance of the nearest
-    goal object to the disc's rim); ``displaced``: :math:`r - \max_{i \in G} \lVert x_i^{xy} - g
+    ``region`` and ``aside``: :math:`\min_{i \in G} \lVert x_i^{xy} - g \rVert - r` (distance
+    of the nearest goal object to the disc's rim), with a ``goal_speed`` :math:`v_{\max} > 0`
+    :math:`\min_{i \in G} \max(\lVert x_i^{xy} - g \rVert - r,\ \lVert v_i \rVert - v_{\max})`;
+    ``displaced``: :math:`r - \max_{i \in G} \lVert x_i^{xy} - g
     \rVert` (room left before an object leaves the disc). :func:`goal_reached` is true exactly
     when the clearance is ``<= 0`` (``region``) or ``< 0`` (``displaced``).
 
@@ -218,15 +315,20 @@ def goal_clearance(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     """
     xy = roots[..., list(task.goal_objects), :2]                # (*lead, G, 2)
     dist = (xy - goal.unsqueeze(-2)).norm(dim=-1)               # (*lead, G)
-    if task.goal_kind == "region":
-        return dist.amin(-1) - task.goal_radius
-    return task.goal_radius - dist.amax(-1)
+    if task.goal_kind == "displaced":
+        return task.goal_radius - dist.amax(-1)
+    gap = dist - task.goal_radius
+    if task.goal_speed > 0:
+        speed = roots[..., list(task.goal_objects), 3:6].norm(dim=-1)   # (*lead, G)
+        gap = torch.maximum(gap, speed - task.goal_speed)
+    return gap.amin(-1)
 
 
 def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     r"""Whether each state meets the task's goal.
 
-    ``region``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert \le r`;
+    ``region`` and ``aside``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert \le r`
+    (and :math:`\lVert v_i \rVert \le v_{\max}` with a ``goal_speed`` :math:`v_{\max} > 0`);
     ``displaced``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert > r`.
 
     **Shapes**: roots ``(*lead, O, 6)``, goal broadcastable to ``(*lead, 2)`` (e.g. ``(B, 1, 2)``
@@ -234,6 +336,9 @@ def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     """
     xy = roots[..., list(task.goal_objects), :2]                # (*lead, G, 2)
     dist = (xy - goal.unsqueeze(-2)).norm(dim=-1)               # (*lead, G)
-    if task.goal_kind == "region":
-        return (dist <= task.goal_radius).any(-1)
-    return (dist > task.goal_radius).any(-1)
+    if task.goal_kind == "displaced":
+        return (dist > task.goal_radius).any(-1)
+    inside = dist <= task.goal_radius
+    if task.goal_speed > 0:
+        inside &= roots[..., list(task.goal_objects), 3:6].norm(dim=-1) <= task.goal_speed
+    return inside.any(-1)
