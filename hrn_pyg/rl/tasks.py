@@ -69,8 +69,8 @@ class TaskConfig:
         force_axes: force components the action sets for each controlled object (0=x, 1=y, 2=z);
             the action has ``len(controlled_objects) * len(force_axes)`` entries.
         max_force: bound on every action entry, Newton; the top of the random-force range
-            the task's training scenes were generated with (``hrn_pyg.data.scenes``
-            ``CubePushConfig.force_range`` 15 N, ``TowerConfig.force_range`` 8 N), because the
+            the task's training scenes were generated with (the ``force_range`` setting of the
+            scene files ``cube_push.toml``, 15 N, and ``tower.toml``, 8 N), because the
             learned model is only trusted inside the forces it was trained on.
         goal_kind: ``"region"`` (an object inside the goal disc) or ``"displaced"`` (an object
             farther than ``goal_radius`` from the goal point).
