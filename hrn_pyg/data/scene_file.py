@@ -380,6 +380,8 @@ class SceneSpec:
             where = f"{self.name}: objects[{index}]"
             if obj.material == "cloth":
                 surface_leaves(mesh, where)
+            elif obj.material == "soft":
+                soft_lattice(mesh, self.config.pitch, where)
             else:
                 leaves_of(mesh, self.config.pitch, where)
 
@@ -919,7 +921,7 @@ class FileScene(Scene):
 
     def _add_soft_mesh(self, obj: ObjectSpec, drawn: dict, where: str) -> None:
         """A soft body: the tetrahedra of the mesh's voxel lattice."""
-        nodes, tets = lattice_tetrahedra(self._leaves(posed_mesh(obj, drawn), where), self.config.pitch)
+        nodes, tets = soft_lattice(posed_mesh(obj, drawn), self.config.pitch, f"{self.spec.name}: {where}")
         exponent = drawn["log10_mu"] if "log10_mu" in drawn else stiffness_exponent(drawn, SOFT_LOG10_MU_RANGE)
         self._add_soft_lattice(nodes, tets, float(drawn["mass"]), exponent, drawn["position"],
                                quaternion(drawn) or (0.0, 0.0, 0.0, 1.0), drawn.get("friction", self.config.friction))
@@ -960,6 +962,19 @@ def surface_leaves(mesh: trimesh.Trimesh, name: str) -> np.ndarray:
         raise ValueError(f"{name}: a cloth mesh of {len(mesh.vertices)} vertices, more than {MAX_LEAVES}; "
                          "simplify it")
     return np.asarray(mesh.vertices, dtype=np.float64)
+
+
+def soft_lattice(mesh: trimesh.Trimesh, pitch: float, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A soft body's nodes ``[M, 3]`` and tetrahedra ``[T, 4]``: the lattice cells its leaves fill
+    (:func:`~hrn_pyg.data.voxelise.lattice_tetrahedra`); a body too thin for one whole cell at
+    the pitch is an error naming it."""
+    try:
+        return lattice_tetrahedra(leaves_of(mesh, pitch, name), pitch)
+    except ValueError as exc:
+        if "lattice cell" not in str(exc):
+            raise
+        raise ValueError(f"{name}: too thin for a soft body at pitch {pitch} m (no 2 x 2 x 2 block of leaves); "
+                         "make it larger or the pitch smaller") from None
 
 
 def leaves_of(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:

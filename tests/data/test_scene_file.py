@@ -216,6 +216,8 @@ BAD = [
     (BASE + '[[objects]]\nmesh = "sphere"\nmaterial = "rigid"\nsize = 0.2\nposition = [0.05, 0.0, 0.1]\n',
      "objects 0 and 1 overlap"),
     ("steps = 4\n[objects\n", "not TOML"),
+    (BASE.replace('material = "rigid"', 'material = "soft"').replace('mesh = "box"', 'mesh = "cylinder"').replace(
+        "size = 0.2", "extents = [0.3, 0.3, 0.05]"), "too thin for a soft body at pitch 0.05 m"),
 ]
 
 
