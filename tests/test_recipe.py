@@ -410,3 +410,20 @@ def test_a_dataset_from_a_scene_file_generates_with_it_and_changes_with_its_text
     assert dataset.to_dict()["scene_sha256"] != before
     assert main(dataset.generate_args(tmp_path / "data") + ["--no-progress"]) == 0
     assert len(list((tmp_path / "data" / "drop").glob("episode_*.npz"))) == 2
+
+
+def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart():
+    from hrn_pyg.data.scene_file import builtin_scene, read_scene_file
+
+    recipe = load_recipe(REPO / "data" / "shapes" / "recipe.toml")
+    spans = []
+    for dataset in recipe.datasets:
+        spec = read_scene_file(REPO / dataset.scene) if dataset.from_file else builtin_scene(dataset.scene)
+        assert dataset.steps == spec.config.steps
+        spans.append((dataset.seed_offset, dataset.seed_offset + dataset.episodes))
+    spans.sort()
+    assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))  # they train together
+    model = recipe.models[0]
+    assert set(model.extra_datasets()) | {model.dataset} == {d.name for d in recipe.datasets}
+    shared = load_recipe(REPO / "data" / "recipes.toml").dataset("cube_collision")
+    assert recipe.dataset("cube_collision") == shared  # one dataset, the same in both recipes
