@@ -170,6 +170,18 @@ def _check_keys(table: dict, allowed: tuple[str, ...], where: str) -> None:
         raise ValueError(f"{where}: unknown key {unknown[0]!r}; the keys are {', '.join(allowed)}")
 
 
+def _read_values(raw: dict, lengths: dict[str, int | None], known: set[str], where: str) -> dict[str, Value]:
+    """The fields of ``raw`` named in ``lengths`` (key -> vector length, None: a number), read by
+    :func:`_value`; an expression's names must be ``known``."""
+    values = {}
+    for key, length in lengths.items():
+        if key in raw:
+            values[key] = _value(raw[key], f"{where}.{key}", length)
+            if isinstance(values[key], str):
+                _check_names(values[key], known, f"{where}.{key}")
+    return values
+
+
 def _check_names(text: str, known: set[str], where: str) -> None:
     try:
         unknown = sorted(names_in(text) - known - set(CONSTANTS))
@@ -565,12 +577,7 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
             raise ValueError(f"{where}: {key} is for {'soft' if key == 'log10_mu' else 'cloth'} objects")
     if own in raw and "stiffness" in raw:
         raise ValueError(f"{where}: give stiffness or {own}, not both")
-    values = {}
-    for key, length in OBJECT_FIELDS.items():
-        if key in raw:
-            values[key] = _value(raw[key], f"{where}.{key}", length)
-            if isinstance(values[key], str):
-                _check_names(values[key], known, f"{where}.{key}")
+    values = _read_values(raw, OBJECT_FIELDS, known, where)
     if material in ("soft", "cloth") and own not in raw and "stiffness" not in raw:
         values["stiffness"] = (np.array(0.5), np.array(0.5))
     spec = ObjectSpec(meshes=meshes, material=material, **values)
@@ -672,12 +679,7 @@ def _push(raw: Any, where: str, objects: tuple[ObjectSpec, ...], steps: int, kno
     if "random" in raw and "every" in raw:
         raise ValueError(f"{where}: a random schedule sets its own timing (no every)")
     lengths = {"steps": 2, "every": None, "force": 3, "velocity": None if towards is not None else 3, "spin": 3}
-    values = {}
-    for key, length in lengths.items():
-        if key in raw:
-            values[key] = _value(raw[key], f"{where}.{key}", length)
-            if isinstance(values[key], str):
-                _check_names(values[key], known, f"{where}.{key}")
+    values = _read_values(raw, lengths, known, where)
     random = None
     if "random" in raw:
         table = raw["random"]
