@@ -2,7 +2,8 @@
 
 For every (scene, checkpoint) and every start seed: the pybullet scene at model step 2 (objects
 at rest, before any scripted push), rolled on by the model for ``--steps`` steps with no external
-force, which in pybullet leaves every object where it is. Reported per run:
+force, which in pybullet leaves every object where it is. Reported per run
+(:func:`hrn_pyg.sim.stability.stability_report`, the package's check):
 
 * ``finite`` and ``max_move`` (m): the package's 1000-step check asks for finite positions, no leaf
   further than 50 m from its start and ``min_z`` (lowest leaf) above -0.05 m (one voxel pitch);
@@ -28,56 +29,12 @@ import torch
 
 from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.episodes import simulate_episode
-from hrn_pyg.data.graph import MATERIALS, NODE
+from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.scene_file import SCENES
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.stability import stability_report
 from hrn_pyg.utils.files import atomic_write_json
-
-#: the package's 1000-step check (tests/stability/test_long_rollouts.py)
-SINK_DEPTH, BOUND = 0.05, 50.0
-RIGID, SOFT, CLOTH = (MATERIALS.index(m) for m in ("rigid", "soft", "cloth"))
-
-
-def mean_pairwise_distance(x: torch.Tensor) -> torch.Tensor:
-    """``[..., P, 3]`` -> ``[...]`` mean distance over ordered pairs of distinct points."""
-    d = (x[..., :, None, :] - x[..., None, :, :]).norm(dim=-1)
-    p = x.shape[-2]
-    return d.sum(dim=(-1, -2)) / max(p * (p - 1), 1)
-
-
-def score(traj: torch.Tensor, graph, settle: int) -> dict[str, float]:
-    """The metrics of the module docstring for one rollout ``traj`` ``[S, N, 3]``."""
-    store = graph[NODE]
-    leaves = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
-    start = store.pos
-    out = {
-        "finite": bool(torch.isfinite(traj).all()),
-        "max_move": float((traj[:, leaves] - start[leaves]).abs().max()),
-        "min_z": float(traj[:, leaves, 2].min()),
-        "rigid_shape": 0.0,
-        "rest_drift": 0.0,
-        "soft_extent": float("nan"),
-    }
-    material = store.material.argmax(dim=1)
-    mass = store.mass[:, 0]
-    extents = []
-    for obj in torch.unique(store.object[leaves]).tolist():  # a handful of objects per scene
-        idx = leaves[store.object[leaves] == obj]
-        kind = int(material[idx[0]])
-        w = (mass[idx] / mass[idx].sum())[:, None]
-        centre = (traj[:, idx] * w).sum(dim=1)  # [S, 3]
-        out["rest_drift"] = max(out["rest_drift"], float((centre[settle:] - centre[settle]).norm(dim=-1).max()))
-        if kind == RIGID:
-            change = mean_pairwise_distance(traj[-1, idx]) / mean_pairwise_distance(start[idx]) - 1.0
-            out["rigid_shape"] = max(out["rigid_shape"], abs(float(change)))
-        elif kind in (SOFT, CLOTH):
-            z0, z1 = start[idx, 2], traj[-1, idx, 2]
-            extents.append(float((z1.max() - z1.min()) / (z0.max() - z0.min()).clamp_min(1e-3)))
-    if extents:
-        out["soft_extent"] = max(extents)
-    out["passes_check"] = out["finite"] and out["max_move"] < BOUND and out["min_z"] > -SINK_DEPTH
-    return out
 
 
 def main() -> int:
@@ -115,7 +72,7 @@ def main() -> int:
                                  "passes_check": False, "error": str(exc).splitlines()[0]})
                     print(rows[-1], flush=True)
                     continue
-            row = {"scene": scene, "model": label or path, "seed": seed, **score(traj, graph, args.settle),
+            row = {"scene": scene, "model": label or path, "seed": seed, **stability_report(traj, graph, args.settle),
                    "seconds": time.perf_counter() - t0}
             rows.append(row)
             print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)

@@ -15,6 +15,13 @@ pybullet's ground truth, over the moving leaves:
 error). Each trajectory gives one number per metric and horizon; the table shows their mean and
 standard error. All test windows are rolled out together as one batched graph.
 
+**Diverged rollouts.** A model outside what it learned may leave the finite numbers (positions
+growing geometrically until they overflow). Such a trajectory is not dropped silently and does not
+stop the evaluation: the batch is split until the rollout that failed is alone
+(:func:`guarded_rollout`), its positions from the failing step on are NaN, and the tables give
+the mean over the trajectories that stayed finite with the count of those that did not
+(``diverged`` in the JSON, ``(k diverged)`` in a cell).
+
 **Long rollouts.** A second table scores one rollout per held-out episode, started at the
 earliest possible step (``t = 2``) and run to the episode's end, at the long horizons (default
 ``t+50`` and ``t+100``; a horizon past an episode's end is read at the end and labelled e.g.
@@ -42,7 +49,8 @@ from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
 from hrn_pyg.metrics_rest import REST_SPEED, REST_STEPS, rest_metrics
-from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.rollout import iterate, rollout
+from hrn_pyg.sim.step import NEXT_POS
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
@@ -83,19 +91,88 @@ def per_trajectory_errors(pred: Tensor, truth: Tensor, graph: Batch, prev_truth:
     return out
 
 
+def _diverged(err: ValueError) -> bool:
+    """Whether ``err`` is the error of a rollout step whose positions left the finite numbers."""
+    return str(err).startswith(NEXT_POS)
+
+
+@torch.no_grad()
+def guarded_rollout(model, windows: list, steps: int, device: torch.device | str = "cpu"
+                    ) -> tuple[Tensor, np.ndarray]:
+    """Roll ``windows`` out ``steps`` steps with their recorded forces, surviving divergence.
+
+    All windows run as one batched graph. When a step's positions are not finite, the batch is
+    halved and each half rolled again, down to the window that diverged, which is rolled alone up
+    to its failing step. Returns the positions ``[steps, N, 3]`` of the whole batch (the nodes of
+    window ``0``, then ``1``, ...: :meth:`Batch.from_data_list`'s order), NaN for a diverged
+    window from its failing step on, and for each window the step (1-based) at which it diverged,
+    ``0`` for none (``[E]`` int).
+    """
+    graph = Batch.from_data_list(windows).to(device)
+    forces = graph[NODE].force_seq[:, :steps].transpose(0, 1)
+    try:
+        return rollout(model, graph, steps, forces, sleep=None), np.zeros(len(windows), dtype=np.int64)
+    except ValueError as err:
+        if not _diverged(err):
+            raise
+    if len(windows) > 1:
+        half = len(windows) // 2
+        first, at_first = guarded_rollout(model, windows[:half], steps, device)
+        second, at_second = guarded_rollout(model, windows[half:], steps, device)
+        return torch.cat([first, second], dim=1), np.concatenate([at_first, at_second])
+    pred = torch.full((steps, graph[NODE].num_nodes, 3), float("nan"), device=graph[NODE].pos.device)
+    done = 0
+    try:
+        for done, result in enumerate(iterate(model, graph, steps, forces, sleep=None), start=1):
+            pred[done - 1] = result.pos
+    except ValueError as err:
+        if not _diverged(err):
+            raise
+    return pred, np.array([done + 1], dtype=np.int64)  # steps 1..done were finite
+
+
+def per_object_errors(pred: Tensor, truth: Tensor, graph: Batch) -> dict[str, Tensor]:
+    """Position and shape error of each object of each trajectory copy at one time.
+
+    The position error is the mean over the object's moving leaves of
+    :math:`\frac{1}{3}\lVert \hat x_l - x_l \rVert^2`, the shape error the fully-connected
+    pairwise-distance error over its leaves (as in :func:`per_trajectory_errors`, one object at
+    a time). Row ``c * O + o`` is object ``o`` of copy ``c`` (``O`` objects per copy, the span
+    of the object ids); an object with no moving leaf (static) is NaN.
+
+    **Shapes:** ``pred``, ``truth`` ``[N, 3]``; returns ``{"position": [B*O], "shape": [B*O]}``.
+    """
+    store = graph[NODE]
+    leaf_index, groups = shape_groups(graph)  # moving leaves, one group per (copy, object)
+    span = object_span(store.object)
+    copies = int(store.batch.max()) + 1 if "batch" in store else 1
+    rows = copies * span
+    pos_err = (pred - truth)[leaf_index].pow(2).mean(-1)
+    position = scatter(pos_err, groups, dim=0, dim_size=rows, reduce="mean")
+    shape = torch.full((rows,), float("nan"), dtype=pred.dtype, device=pred.device)
+    present = torch.unique(groups)
+    for g in present.tolist():  # a few objects per copy
+        member = groups == g
+        shape[g] = full_shape_loss(pred[leaf_index[member]], truth[leaf_index[member]], groups[member])
+    empty = torch.ones(rows, dtype=torch.bool, device=pred.device)
+    empty[present] = False
+    position[empty] = float("nan")
+    return {"position": position, "shape": shape}
+
+
 @torch.no_grad()
 def evaluate_model(model, windows: list, horizons: tuple[int, ...],
                    device: torch.device | str = "cpu") -> dict[str, dict[int, np.ndarray]]:
     """Roll ``model`` out from every window (one batched graph); errors ``{metric: {h: [B]}}``.
 
     ``model`` must already be on ``device``; the windows are moved there, the errors come back
-    to the CPU.
+    to the CPU. A window whose rollout diverged before a horizon has NaN errors there
+    (:func:`guarded_rollout`).
     """
     graph = Batch.from_data_list(windows).to(device)
     store = graph[NODE]
     steps = max(horizons)
-    forces = store.force_seq[:, :steps].transpose(0, 1)  # [steps, N, 3]
-    pred = rollout(model, graph, steps, forces, sleep=None)  # [steps, N, 3]: x_{t+1..t+steps}; the network alone
+    pred, _ = guarded_rollout(model, windows, steps, device)  # [steps, N, 3]: x_{t+1..t+steps}; the network alone
     truth = store.pos_seq.transpose(0, 1)  # [steps+3, N, 3]: x_{t-2..t+steps}
     result: dict[str, dict[int, np.ndarray]] = {m: {} for m in METRICS}
     for h in horizons:
@@ -107,15 +184,12 @@ def evaluate_model(model, windows: list, horizons: tuple[int, ...],
 
 
 def summarise(errors: dict[str, dict[int, np.ndarray]]) -> dict[str, dict[str, dict[str, float]]]:
-    """Mean and standard error over trajectories of each metric and horizon."""
-    out: dict[str, dict[str, dict[str, float]]] = {}
-    for m, by_h in errors.items():
-        out[m] = {}
-        for h, values in by_h.items():
-            n = len(values)
-            sem = float(values.std(ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
-            out[m][f"t+{h}"] = {"mean": float(values.mean()), "sem": sem, "n": n}
-    return out
+    """Mean and standard error over trajectories of each metric and horizon.
+
+    Over the finite values: ``n`` counts them, ``diverged`` the trajectories whose rollout left
+    the finite numbers before that horizon (NaN there).
+    """
+    return {m: {f"t+{h}": _mean_sem(values) for h, values in by_h.items()} for m, by_h in errors.items()}
 
 
 def markdown_table(summaries: dict[str, dict], horizons: tuple[int, ...], scene: str) -> str:
@@ -124,7 +198,7 @@ def markdown_table(summaries: dict[str, dict], horizons: tuple[int, ...], scene:
     rule = "|" + "---|" * (2 + len(METRICS) * len(horizons))
     rows = [head, rule]
     for name, s in summaries.items():
-        cells = [f"{s[m][f't+{h}']['mean']:.3g} ± {s[m][f't+{h}']['sem']:.2g}" for m in METRICS for h in horizons]
+        cells = [_cell(s[m][f"t+{h}"]) for m in METRICS for h in horizons]
         rows.append(f"| {scene} | {name} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
 
@@ -180,20 +254,24 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
     **Shapes** (``E`` windows, ``R`` objects at rest at the end of the ground truth, over all
     windows): returns ``errors`` ``{metric: {h: [E]}}``, ``steps`` ``{h: [E]}`` (the step each
     horizon was read at), ``ground_depth`` and ``truth_ground_depth`` ``[E]``,
-    ``rest_height_error`` and ``rest_drift`` ``[R]`` (numpy arrays).
+    ``rest_height_error`` and ``rest_drift`` ``[R]`` (numpy arrays), ``diverged_at`` ``[E]``
+    (the step a window's rollout left the finite numbers, 0 for none; its errors from there on and
+    its rest metrics are NaN).
     """
     lengths = np.array([int(w[NODE].force_seq.shape[1]) for w in windows])
     count = len(windows)
     errors = {m: {h: np.empty(count) for h in horizons} for m in METRICS}
     depth, truth_depth = np.empty(count), np.empty(count)
+    diverged_at = np.zeros(count, dtype=np.int64)
     height: list[np.ndarray] = []
     drift: list[np.ndarray] = []
     for length in np.unique(lengths).tolist():  # one batched rollout per distinct episode length
         members = np.flatnonzero(lengths == length)
-        graph = Batch.from_data_list([windows[i] for i in members]).to(device)
+        group = [windows[i] for i in members]
+        graph = Batch.from_data_list(group).to(device)
         store = graph[NODE]
-        forces = store.force_seq.transpose(0, 1)  # [T, N, 3]
-        pred = torch.cat([store.pos[None], rollout(model, graph, length, forces, sleep=None)])  # [T+1, N, 3]: x_2..x_S
+        steps, diverged_at[members] = guarded_rollout(model, group, length, device)
+        pred = torch.cat([store.pos[None], steps])  # [T+1, N, 3]: x_2..x_S
         truth = store.pos_seq[:, HISTORY:].transpose(0, 1)  # [T+1, N, 3]: x_2..x_S
         for h in horizons:
             s = min(h, length)
@@ -206,7 +284,7 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
         rest = rest_metrics(pred[:, leaf], truth[:, leaf], copy_object_ids(copy, store.object[leaf], n_obj),
                             ~store.is_static[leaf], copy, num_objects=len(members) * n_obj,
                             num_groups=len(members), mass=store.mass[leaf, 0])
-        depth[members] = rest.depth.cpu().numpy()
+        depth[members] = np.where(diverged_at[members] > 0, np.nan, rest.depth.cpu().numpy())
         truth_depth[members] = rest.truth_depth.cpu().numpy()
         height.append(rest.height_error[rest.at_rest].cpu().numpy())
         drift.append(rest.drift[rest.at_rest].cpu().numpy())
@@ -217,6 +295,7 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
         "truth_ground_depth": truth_depth,
         "rest_height_error": np.concatenate(height) if height else np.empty(0),
         "rest_drift": np.concatenate(drift) if drift else np.empty(0),
+        "diverged_at": diverged_at,
     }
 
 
@@ -235,11 +314,14 @@ def horizon_label(horizon: int, steps: np.ndarray) -> str:
 
 
 def _mean_sem(values: np.ndarray) -> dict[str, float]:
-    """Mean, standard error and count of a sample (NaN where undefined)."""
-    n = len(values)
-    mean = float(values.mean()) if n else float("nan")
-    sem = float(values.std(ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
-    return {"mean": mean, "sem": sem, "n": n}
+    """Mean, standard error and count of the finite values of a sample (NaN where undefined),
+    and ``diverged``: how many were not finite."""
+    values = np.asarray(values, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    n = len(finite)
+    mean = float(finite.mean()) if n else float("nan")
+    sem = float(finite.std(ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
+    return {"mean": mean, "sem": sem, "n": n, "diverged": len(values) - n}
 
 
 def summarise_long(result: dict[str, Any]) -> dict[str, dict]:
@@ -258,7 +340,7 @@ def summarise_long(result: dict[str, Any]) -> dict[str, dict]:
                                  "step_min": int(steps.min()), "step_max": int(steps.max())}
     depth = result["ground_depth"]
     rest = {
-        "ground_depth": {**_mean_sem(depth), "max": float(depth.max()) if len(depth) else float("nan")},
+        "ground_depth": {**_mean_sem(depth), "max": float(np.nanmax(depth)) if np.isfinite(depth).any() else float("nan")},
         "rest_height_error": _mean_sem(result["rest_height_error"]),
         "rest_drift": _mean_sem(result["rest_drift"]),
     }
@@ -266,10 +348,11 @@ def summarise_long(result: dict[str, Any]) -> dict[str, dict]:
 
 
 def _cell(stats: dict[str, float], count: bool = False) -> str:
+    diverged = f" ({stats['diverged']} diverged)" if stats.get("diverged") else ""
     if stats["n"] == 0:
-        return "n/a (no object at rest)" if count else "n/a"
+        return ("n/a (no object at rest)" if count else "n/a") + diverged
     text = f"{stats['mean']:.3g} ± {stats['sem']:.2g}"
-    return f"{text} (n={stats['n']})" if count else text
+    return (f"{text} (n={stats['n']})" if count else text) + diverged
 
 
 def long_table(summaries: dict[str, dict], scene: str) -> str:
@@ -385,6 +468,7 @@ def run(args: argparse.Namespace) -> int:
         "long_results": {name: s["long"] for name, s in long_summaries.items()},
         "rest": {name: s["rest"] for name, s in long_summaries.items()},
         "rest_truth": {"ground_depth": truth_depth},
+        "long_diverged": {name: int((r["diverged_at"] > 0).sum()) for name, r in long_results.items()},
         "rest_definition": {"speed_m_per_step": REST_SPEED, "steps": REST_STEPS},
     })
     if not args.no_figure:

@@ -46,7 +46,7 @@ def _train_tiny(data, out, seed: int):
 
 def _expected_summary(model_path, windows: list, horizons: tuple[int, ...]) -> dict[str, dict[str, dict]]:
     """Mean, standard error and count of :func:`per_trajectory_errors` over ``windows``, each window
-    rolled out on its own (the CLI batches them all), ``{metric: {"t+h": {mean, sem, n}}}``."""
+    rolled out on its own (the CLI batches them all), ``{metric: {"t+h": {mean, sem, n, diverged}}}``."""
     model = load_model(model_path)
     per_window: dict[str, dict[int, list[float]]] = {}
     for window in windows:
@@ -61,7 +61,7 @@ def _expected_summary(model_path, windows: list, horizons: tuple[int, ...]) -> d
             for metric, value in errors.items():
                 per_window.setdefault(metric, {}).setdefault(h, []).append(float(value[0]))
     return {metric: {f"t+{h}": {"mean": float(np.mean(v)), "sem": float(np.std(v, ddof=1) / np.sqrt(len(v))),
-                                "n": len(v)} for h, v in by_h.items()}
+                                "n": len(v), "diverged": 0} for h, v in by_h.items()}
             for metric, by_h in per_window.items()}
 
 
@@ -98,3 +98,30 @@ def test_evaluate_cli_writes_table_json_and_figure(tiny_episodes, tmp_path):
     figures = list((tmp_path / "e").glob("rollout_*.png"))
     assert len(figures) == 1 and figures[0].stat().st_size > 1000
     assert main(["evaluate", "--data", str(tiny_episodes), "--model", "nonsense", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_per_object_errors_split_the_trajectory_error_by_object(tiny_episodes):
+    from hrn_pyg.evaluate import per_object_errors
+
+    ds = EpisodeWindows(tiny_episodes, "test", horizon=3)
+    graph = Batch.from_data_list([ds[0], ds[1]])
+    store = graph[NODE]
+    truth, prev = store.pos_seq[:, 3], store.pos_seq[:, 2]
+    moved = truth.clone()
+    first = store.is_leaf & (store.object == 0) & (store.batch == 1)
+    moved[first] += torch.tensor([0.0, 0.3, 0.0])  # object 0 of copy 1 shifted 30 cm
+    centre = truth[first].mean(0)
+    moved[first] = centre + 1.1 * (moved[first] - centre - torch.tensor([0.0, 0.3, 0.0])) + torch.tensor([0.0, 0.3, 0.0])
+    per_object = per_object_errors(moved, truth, graph)
+    per_copy = per_trajectory_errors(moved, truth, graph, prev, prev)
+    objects = int(store.object.max()) + 1
+    assert per_object["position"].shape == per_object["shape"].shape == (2 * objects,)
+    changed = torch.zeros(2 * objects, dtype=torch.bool)
+    changed[objects] = True  # row c * O + o
+    assert torch.all(per_object["position"][~changed] == 0) and torch.all(per_object["shape"][~changed] == 0)
+    assert per_object["position"][objects] > 0.03 / 3 and per_object["shape"][objects] > 0
+    # the copy's error is the leaf-weighted mean of its objects' errors
+    leaves = torch.stack([(store.is_leaf & ~store.is_static & (store.batch == 1) & (store.object == o)).sum()
+                          for o in range(objects)]).float()
+    weighted = (per_object["position"][objects:] * leaves).sum() / leaves.sum()
+    assert torch.allclose(weighted, per_copy["position"][1])

@@ -18,6 +18,7 @@ from hrn_pyg.evaluate import (
     episode_start_windows,
     evaluate_long,
     evaluate_model,
+    guarded_rollout,
     horizon_label,
     select_windows,
     summarise,
@@ -181,6 +182,56 @@ def test_long_horizons_clip_to_each_episodes_end_and_match_the_short_path(mixed_
     assert summary["long"]["position"]["t+50"]["label"] == f"t+8..{end} (end)"
     assert summary["long"]["position"]["t+5"]["label"] == "t+5"
     assert summary["rest"]["ground_depth"]["n"] == 2
+
+
+# ---------------------------------------------------------------------------- diverged rollouts
+
+
+#: a trained model, whose response to a force near float32's largest overflows in that step
+#: (a two-step tiny model's does not: it stays near 1e35)
+SHIPPED = Path(__file__).resolve().parents[1] / "hrn_pyg" / "checkpoints" / "cube_collision.pt"
+
+
+def _poisoned(windows: list, which: int, step: int) -> list:
+    """Copies of ``windows`` whose window ``which`` gets a force near float32's largest at ``step``
+    (0-based), so with :data:`SHIPPED` its rollout leaves the finite numbers there and only there."""
+    out = [w.clone() for w in windows]
+    out[which]["particle"].force_seq[:, step] = 3e38
+    return out
+
+
+def test_a_diverged_window_is_counted_and_the_others_are_scored_as_alone(mixed_lengths):
+    model = load_model(SHIPPED)
+    clean = select_windows(EpisodeWindows(mixed_lengths, "test", horizon=6), 1, 4)
+    assert len(clean) == 4
+    windows = _poisoned(clean, which=2, step=3)
+    pred, diverged_at = guarded_rollout(model, windows, 6)
+    assert diverged_at.tolist() == [0, 0, 4, 0]  # steps 1..3 finite, step 4 not
+    counts = [w["particle"].num_nodes for w in windows]
+    bad = slice(sum(counts[:2]), sum(counts[:3]))
+    assert torch.isfinite(pred[:3, bad]).all() and torch.isnan(pred[3:, bad]).all()
+    keep = [0, 1, 3]
+    assert torch.isfinite(pred[:, [i for i in range(pred.shape[1]) if not bad.start <= i < bad.stop]]).all()
+    errors = evaluate_model(model, windows, (2, 6))
+    alone = evaluate_model(model, [clean[i] for i in keep], (2, 6))
+    for m in errors:
+        assert np.isfinite(errors[m][2]).all()  # before the failing step every window counts
+        assert np.isnan(errors[m][6][2]) and np.allclose(errors[m][6][keep], alone[m][6], rtol=1e-5, atol=1e-12)
+    summary = summarise(errors)
+    assert summary["position"]["t+6"]["n"] == 3 and summary["position"]["t+6"]["diverged"] == 1
+    assert summary["position"]["t+2"]["n"] == 4 and summary["position"]["t+2"]["diverged"] == 0
+    assert summary["position"]["t+6"]["mean"] == pytest.approx(float(np.mean(alone["position"][6])), rel=1e-5)
+
+
+def test_long_evaluation_reports_where_a_whole_episode_diverged(mixed_lengths):
+    model = load_model(SHIPPED)
+    windows = _poisoned(episode_start_windows(mixed_lengths, "test"), which=1, step=2)
+    result = evaluate_long(model, windows, (5, 50))
+    assert result["diverged_at"].tolist() == [0, 3]
+    assert np.isfinite(result["ground_depth"][0]) and np.isnan(result["ground_depth"][1])
+    summary = summarise_long(result)
+    assert summary["long"]["position"]["t+5"]["diverged"] == 1
+    assert summary["rest"]["ground_depth"]["n"] == 1 and summary["rest"]["ground_depth"]["diverged"] == 1
 
 
 # ------------------------------------------------------------------------------------------ the CLI
