@@ -1,0 +1,375 @@
+"""Shapes a model never saw: its errors per mesh and material, against its own test split.
+
+Four sections, all on the CPU, every rollout the network alone (no object sleeps) except where
+time is measured:
+
+1. **Unseen meshes.** For each ``--unseen`` folder (episodes of a scene file; every episode, as
+   ``hrn-pyg evaluate --split all``): windows ``--stride`` steps apart, rolled out with the
+   episode's own forces; at each horizon (``--horizons``, default 15 and 50) the position and
+   shape MSE of every object (:func:`hrn_pyg.evaluate.per_object_errors`), grouped by the mesh
+   the seed drew for it and its material. Beside each group: the same model's error on its
+   **own test split** (the ``--own`` folders' ``test`` splits, per material; ``--own-split val``
+   when choosing between checkpoints) and the ratio.
+   Windows whose rollout left the finite numbers are counted (``diverged``), not averaged.
+2. **Against the specialists.** For each ``--specialist DATA=PATH``: Table 1's errors (per
+   trajectory, :func:`hrn_pyg.evaluate.evaluate_model`) of the model and of the specialist on
+   ``DATA``'s test split, and their ratio (model / specialist; below 1: the model is better).
+3. **Rest.** For every mesh and material of the unseen folders, the first ``--rest-episodes``
+   episodes whose ground truth ends with every object at rest: the model started from the last
+   three states and run ``--rest-steps`` steps with no force, scored by the package's stability
+   check (:func:`hrn_pyg.sim.stability.stability_report`; objects should rest from step 0).
+4. **Time.** For one episode per unseen folder: the median seconds per step of the model
+   (the default rollout, objects at rest sleeping) and pybullet's seconds per step for the same
+   episode (simulated again here), one torch thread, in one process.
+
+Run (validation, for model selection; the test files are scored once, at the end)::
+
+    python benchmarks/unseen_shapes.py --model runs/recipe/shapes/model.pt \\
+        --unseen data/unseen_val_rigid --unseen data/unseen_val_soft \\
+        --own data/shapes_drop --own data/shapes_push --own data/soft_bounce_shapes --own data/cube_collision \\
+        --specialist data/cube_collision=hrn_pyg/checkpoints/cube_collision.pt \\
+        --specialist data/soft_bounce=hrn_pyg/checkpoints/soft_bounce.pt \\
+        --out benchmarks/results/unseen_shapes_validation.json --figures docs/figures/unseen
+
+``--quick`` (stride 30, no rest or time sections) scores many checkpoints fast.
+Prints markdown tables and writes JSON atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+import tomllib
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch_geometric.data import Batch
+
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.episodes import simulate_episode
+from hrn_pyg.data.graph import MATERIALS, NODE
+from hrn_pyg.data.io import load_episode
+from hrn_pyg.data.scene_file import read_scene_file
+from hrn_pyg.evaluate import (
+    comparison_figure,
+    evaluate_model,
+    guarded_rollout,
+    per_object_errors,
+    select_windows,
+    summarise,
+)
+from hrn_pyg.metrics_rest import objects_at_rest
+from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sim.rollout import iterate, rollout
+from hrn_pyg.sim.stability import stability_report
+from hrn_pyg.utils.files import atomic_write_json
+
+ERRORS = ("position", "shape")
+
+
+def mesh_name(mesh: str) -> str:
+    """A short name of a scene file's mesh: ``pybullet_data:torus/torus_textured.obj`` -> ``torus_textured``."""
+    return Path(mesh.split(":", 1)[-1]).stem
+
+
+def object_labels(path: Path) -> list[tuple[str, str]]:
+    """``(mesh, material)`` of each object of one episode file, from the scene file text and the
+    draws it records (a mesh list is indexed by the seed's draw)."""
+    episode = load_episode(path)
+    record = json.loads(str(episode["params"]))
+    objects = tomllib.loads(record["scene_file"])["objects"]
+    drawn = record["params"]["objects"]
+    labels = []
+    for index, (obj, draw) in enumerate(zip(objects, drawn, strict=True)):
+        mesh = obj["mesh"]
+        if isinstance(mesh, list):
+            mesh = mesh[int(draw.get("mesh", 0))]
+        material = MATERIALS[int(episode["object_material"][index])]
+        labels.append((mesh_name(mesh), material))
+    return labels
+
+
+def windows_of(folder: Path, split: str, horizon: int, stride: int, limit: int | None) -> list:
+    return select_windows(EpisodeWindows(folder, split, horizon=horizon), stride, limit)
+
+
+def object_errors(model, windows: list, horizons: tuple[int, ...], batch: int) -> list[dict]:
+    """One row per (window, object) with the object's errors at each horizon (NaN once its
+    window diverged); rolled ``batch`` windows at a time."""
+    rows = []
+    for first in range(0, len(windows), batch):
+        group = windows[first:first + batch]
+        graph = Batch.from_data_list(group)
+        store = graph[NODE]
+        pred, diverged_at = guarded_rollout(model, group, max(horizons))
+        truth = store.pos_seq.transpose(0, 1)  # x_{t-2} .. x_{t+H}
+        span = int(store.object.max()) + 1
+        per_h = {h: per_object_errors(pred[h - 1], truth[h + 2], graph) for h in horizons}
+        for c, window in enumerate(group):
+            for o in range(span):
+                row = {"seed": int(window.episode_seed), "object": o, "start": int(window.start_step),
+                       "diverged_at": int(diverged_at[c])}
+                for h in horizons:
+                    for m in ERRORS:
+                        row[f"{m}@{h}"] = float(per_h[h][m][c * span + o])
+                rows.append(row)
+    return rows
+
+
+def group_stats(rows: list[dict], key, horizons: tuple[int, ...]) -> dict[str, dict]:
+    """Mean and count of the finite values of each error, per group ``key(row)``."""
+    groups: dict[str, list[dict]] = defaultdict(list)
+    for row in rows:
+        groups[key(row)].append(row)
+    out = {}
+    for name, members in sorted(groups.items()):
+        stats = {"objects": len(members), "episodes": len({r["seed"] for r in members})}
+        for h in horizons:
+            for m in ERRORS:
+                values = np.array([r[f"{m}@{h}"] for r in members])
+                finite = values[np.isfinite(values)]
+                stats[f"{m}@{h}"] = float(finite.mean()) if len(finite) else float("nan")
+                stats[f"diverged@{h}"] = int(len(values) - len(finite))
+        out[name] = stats
+    return out
+
+
+def unseen_section(model, folders: list[Path], own: list[Path], args) -> dict:
+    horizons = args.horizons
+    labels: dict[int, list[tuple[str, str]]] = {}
+    rows = []
+    for folder in folders:
+        windows = windows_of(folder, "all", max(horizons), args.stride, args.limit)
+        for path in sorted(folder.glob("episode_*.npz")):
+            seed = int(load_episode(path)["seed"])
+            labels[seed] = object_labels(path)
+        for row in object_errors(model, windows, horizons, args.batch):
+            mesh, material = labels[row["seed"]][row["object"]]
+            rows.append({**row, "folder": folder.name, "mesh": mesh, "material": material})
+        print(f"  {folder}: {len(windows)} windows", flush=True)
+    own_rows = []
+    for folder in own:
+        windows = windows_of(folder, args.own_split, max(horizons), args.stride, args.limit)
+        materials = {}
+        for path in sorted(folder.glob("episode_*.npz")):
+            episode = load_episode(path)
+            materials[int(episode["seed"])] = [MATERIALS[int(m)] for m in episode["object_material"]]
+        for row in object_errors(model, windows, horizons, args.batch):
+            if np.isnan(row[f"position@{horizons[0]}"]) and row["diverged_at"] == 0:
+                continue  # a static object (the wedge, a ground plate): nothing to score
+            own_rows.append({**row, "folder": folder.name, "material": materials[row["seed"]][row["object"]]})
+        print(f"  {folder} ({args.own_split} split): {len(windows)} windows", flush=True)
+    unseen = group_stats(rows, lambda r: f"{r['mesh']} ({r['material']})", horizons)
+    own_stats = group_stats(own_rows, lambda r: r["material"], horizons)
+    for name, stats in unseen.items():
+        material = name.rsplit("(", 1)[1].rstrip(")")
+        reference = own_stats.get(material)
+        for h in horizons:
+            for m in ERRORS:
+                stats[f"ratio_{m}@{h}"] = stats[f"{m}@{h}"] / reference[f"{m}@{h}"] if reference else float("nan")
+    by_material = group_stats(rows, lambda r: r["material"], horizons)
+    for material, stats in by_material.items():
+        reference = own_stats.get(material)
+        for h in horizons:
+            for m in ERRORS:
+                stats[f"ratio_{m}@{h}"] = stats[f"{m}@{h}"] / reference[f"{m}@{h}"] if reference else float("nan")
+    return {"unseen": unseen, "unseen_by_material": by_material, "own_test": own_stats,
+            "own_by_folder": group_stats(own_rows, lambda r: f"{r['folder']} ({r['material']})", horizons)}
+
+
+def specialist_section(model, specialists: dict[str, str], args) -> dict:
+    out = {}
+    horizons = args.horizons
+    for data, path in specialists.items():
+        windows = windows_of(Path(data), "test", max(horizons), args.stride, args.limit)
+        ours = summarise(evaluate_model(model, windows, horizons))
+        theirs = summarise(evaluate_model(load_model(path), windows, horizons))
+        cells = {}
+        for m in ERRORS:
+            for h in horizons:
+                a, b = ours[m][f"t+{h}"], theirs[m][f"t+{h}"]
+                cells[f"{m}@{h}"] = {"model": a["mean"], "specialist": b["mean"], "ratio": a["mean"] / b["mean"],
+                                     "model_diverged": a["diverged"], "specialist_diverged": b["diverged"]}
+        out[Path(data).name] = {"specialist": path, "windows": len(windows), **cells}
+        print(f"  {data}: {len(windows)} windows", flush=True)
+    return out
+
+
+def rest_section(model, folders: list[Path], args) -> list[dict]:
+    """1000 steps from the resting end of unseen episodes, a few per (mesh, material)."""
+    wanted: dict[str, int] = defaultdict(int)
+    rows = []
+    for folder in folders:
+        for path in sorted(folder.glob("episode_*.npz")):
+            labels = object_labels(path)
+            names = [f"{m} ({k})" for m, k in labels]
+            if all(wanted[n] >= args.rest_episodes for n in names):
+                continue
+            episode = load_episode(path)
+            truth = torch.from_numpy(np.asarray(episode["positions"], dtype=np.float32))
+            obj = torch.as_tensor(np.asarray(episode["leaf_object"]), dtype=torch.long)
+            rest = objects_at_rest(truth, obj, torch.ones_like(obj, dtype=torch.bool), len(labels))
+            if not bool(rest.all()):
+                continue
+            total = truth.shape[0] - 1
+            graph = episode_state(episode, start=total - 1, steps=1)
+            del graph[NODE].pos_seq, graph[NODE].force_seq
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                try:
+                    traj = rollout(model, graph, args.rest_steps, sleep=None)
+                    report = stability_report(traj, graph, settle=0)
+                except ValueError as exc:  # left the finite numbers
+                    report = {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
+            for n in names:
+                wanted[n] += 1
+            rows.append({"folder": folder.name, "seed": int(episode["seed"]), "objects": names, **report,
+                         "seconds": time.perf_counter() - t0})
+            print(f"  rest {folder.name} seed {int(episode['seed'])} {names}: "
+                  f"{'holds' if report['holds'] else 'FAILS'}", flush=True)
+    return rows
+
+
+def time_section(model, folders: list[Path]) -> list[dict]:
+    rows = []
+    for folder in folders:
+        meta = json.loads((folder / "meta.json").read_text())
+        spec = read_scene_file(meta["scene_file"])
+        path = sorted(folder.glob("episode_*.npz"))[0]
+        seed = int(load_episode(path)["seed"])
+        t0 = time.perf_counter()
+        episode = simulate_episode(spec, seed)
+        bullet = (time.perf_counter() - t0) / episode["forces"].shape[0]
+        graph = episode_state(episode)
+        forces = graph[NODE].force_seq.transpose(0, 1)
+        steps = forces.shape[0]
+        per_step = []
+        with torch.no_grad():
+            t = time.perf_counter()
+            for _ in iterate(model, graph, steps, forces):
+                now = time.perf_counter()
+                per_step.append(now - t)
+                t = now
+        model_step = statistics.median(per_step)
+        rows.append({"folder": folder.name, "seed": seed, "steps": steps, "model_s_per_step": model_step,
+                     "pybullet_s_per_step": bullet, "speedup": bullet / model_step})
+        print(f"  time {folder.name}: model {model_step * 1e3:.1f} ms/step, pybullet {bullet * 1e3:.1f} ms/step",
+              flush=True)
+    return rows
+
+
+def figures(model, folders: list[Path], out: Path) -> list[str]:
+    written = []
+    for folder in folders:
+        window = windows_of(folder, "all", 50, 1000, 1)[0]
+        path = out / f"unseen_{folder.name}.png"
+        comparison_figure({"model": model}, window, path, times=(0, 10, 25, 50))
+        written.append(str(path))
+    return written
+
+
+def markdown(result: dict, horizons: tuple[int, ...]) -> str:
+    lines = []
+    head = " | ".join(f"{m} t+{h} | ratio" for h in horizons for m in ERRORS)
+    lines += [f"| mesh (material) | objects | {head} | diverged |", "|---|---|" + "---|---|" * 2 * len(horizons) + "---|"]
+    unseen = result["unseen"]
+    for block in ("unseen", "unseen_by_material"):
+        for name, s in unseen[block].items():
+            cells = " | ".join(f"{s[f'{m}@{h}']:.3g} | {s[f'ratio_{m}@{h}']:.2f}x" for h in horizons for m in ERRORS)
+            label = name if block == "unseen" else f"**all {name}**"
+            lines.append(f"| {label} | {s['objects']} | {cells} | {s[f'diverged@{max(horizons)}']} |")
+    for name, s in unseen["own_test"].items():
+        cells = " | ".join(f"{s[f'{m}@{h}']:.3g} | 1" for h in horizons for m in ERRORS)
+        lines.append(f"| own {result['own_split']} split ({name}) | {s['objects']} | {cells} | {s[f'diverged@{max(horizons)}']} |")
+    if result.get("specialists"):
+        lines += ["", "| test split | " + " | ".join(f"{m} t+{h} model / specialist" for h in horizons for m in ERRORS)
+                  + " |", "|---|" + "---|" * 2 * len(horizons)]
+        for name, s in result["specialists"].items():
+            cells = " | ".join(f"{s[f'{m}@{h}']['model']:.3g} / {s[f'{m}@{h}']['specialist']:.3g} "
+                               f"({s[f'{m}@{h}']['ratio']:.2f}x)" for h in horizons for m in ERRORS)
+            lines.append(f"| {name} | {cells} |")
+    if result.get("rest"):
+        lines += ["", "| folder | seed | objects | holds | max move (m) | lowest leaf (m) | rigid shape | drift (m) |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in result["rest"]:
+            if "error" in r:
+                lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | no | {r['error']} | | | |")
+                continue
+            lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | {'yes' if r['holds'] else 'no'} | "
+                         f"{r['max_move']:.3g} | {r['min_z']:.3g} | {100 * r['rigid_shape']:.2f} % | {r['rest_drift']:.3g} |")
+    if result.get("time"):
+        lines += ["", "| folder | model ms/step | pybullet ms/step | pybullet / model |", "|---|---|---|---|"]
+        for r in result["time"]:
+            lines.append(f"| {r['folder']} | {1e3 * r['model_s_per_step']:.1f} | {1e3 * r['pybullet_s_per_step']:.1f} | "
+                         f"{r['speedup']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True)
+    parser.add_argument("--unseen", action="append", default=[], help="a scene file's episode folder (repeatable)")
+    parser.add_argument("--own", action="append", default=[], help="a training dataset; its test split (repeatable)")
+    parser.add_argument("--own-split", default="test", choices=("test", "val"),
+                        help="the --own folders' split (val when choosing between checkpoints)")
+    parser.add_argument("--specialist", action="append", default=[], metavar="DATA=PATH")
+    parser.add_argument("--horizons", default="15,50")
+    parser.add_argument("--stride", type=int, default=10)
+    parser.add_argument("--limit", type=int, default=None, help="at most this many windows per folder")
+    parser.add_argument("--batch", type=int, default=64, help="windows per batched rollout")
+    parser.add_argument("--rest-episodes", type=int, default=2)
+    parser.add_argument("--rest-steps", type=int, default=1000)
+    parser.add_argument("--no-rest", action="store_true")
+    parser.add_argument("--no-time", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="stride 30, no rest or time sections")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
+    parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
+    args = parser.parse_args()
+    if args.quick:
+        args.stride, args.no_rest, args.no_time = 30, True, True
+    args.horizons = tuple(int(h) for h in args.horizons.split(","))
+    torch.set_num_threads(args.threads)
+    specialists = {}
+    for spec in args.specialist:
+        data, sep, path = spec.partition("=")
+        if not sep:
+            parser.error(f"--specialist expects DATA=PATH, got {spec!r}")
+        specialists[data] = path
+    model = load_model(args.model)
+    unseen = [Path(f) for f in args.unseen]
+    own = [Path(f) for f in args.own]
+    started = time.perf_counter()
+    result: dict = {"model": args.model, "unseen_folders": args.unseen, "own_folders": args.own,
+                    "own_split": args.own_split, "horizons": list(args.horizons), "stride": args.stride,
+                    "limit": args.limit,
+                    "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
+    print("errors on unseen meshes and the own test split", flush=True)
+    result["unseen"] = unseen_section(model, unseen, own, args)
+    print("against the specialists", flush=True)
+    result["specialists"] = specialist_section(model, specialists, args)
+    if not args.no_rest:
+        print(f"{args.rest_steps} steps from rest", flush=True)
+        result["rest"] = rest_section(model, unseen, args)
+    if not args.no_time:
+        print("time per step", flush=True)
+        result["time"] = time_section(model, unseen)
+    if args.figures:
+        result["figures"] = figures(model, unseen, Path(args.figures))
+    result["seconds"] = time.perf_counter() - started
+    table = markdown(result, args.horizons)
+    result["table"] = table
+    atomic_write_json(args.out, result)
+    print(table)
+    print(f"wrote {args.out} ({result['seconds']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
