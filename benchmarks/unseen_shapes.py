@@ -13,7 +13,8 @@ time is measured:
    Windows whose rollout left the finite numbers are counted (``diverged``), not averaged.
 2. **Against the specialists.** For each ``--specialist DATA=PATH``: Table 1's errors (per
    trajectory, :func:`hrn_pyg.evaluate.evaluate_model`) of the model and of the specialist on
-   ``DATA``'s test split, and their ratio (model / specialist; below 1: the model is better).
+   ``DATA``'s test split (``--own-split``), and their ratio (model / specialist; below 1: the model
+   is better).
 3. **Rest.** For every mesh and material of the unseen folders, the first ``--rest-episodes``
    episodes whose ground truth ends with every object at rest: the model started from the last
    three states and run ``--rest-steps`` steps with no force, scored by the package's stability
@@ -187,7 +188,7 @@ def specialist_section(model, specialists: dict[str, str], args) -> dict:
     out = {}
     horizons = args.horizons
     for data, path in specialists.items():
-        windows = windows_of(Path(data), "test", max(horizons), args.stride, args.limit)
+        windows = windows_of(Path(data), args.own_split, max(horizons), args.stride, args.limit)
         ours = summarise(evaluate_model(model, windows, horizons))
         theirs = summarise(evaluate_model(load_model(path), windows, horizons))
         cells = {}
@@ -288,7 +289,7 @@ def markdown(result: dict, horizons: tuple[int, ...]) -> str:
         cells = " | ".join(f"{s[f'{m}@{h}']:.3g} | 1" for h in horizons for m in ERRORS)
         lines.append(f"| own {result['own_split']} split ({name}) | {s['objects']} | {cells} | {s[f'diverged@{max(horizons)}']} |")
     if result.get("specialists"):
-        lines += ["", "| test split | " + " | ".join(f"{m} t+{h} model / specialist" for h in horizons for m in ERRORS)
+        lines += ["", f"| {result['own_split']} split | " + " | ".join(f"{m} t+{h} model / specialist" for h in horizons for m in ERRORS)
                   + " |", "|---|" + "---|" * 2 * len(horizons)]
         for name, s in result["specialists"].items():
             cells = " | ".join(f"{s[f'{m}@{h}']['model']:.3g} / {s[f'{m}@{h}']['specialist']:.3g} "
@@ -317,7 +318,8 @@ def main() -> int:
     parser.add_argument("--unseen", action="append", default=[], help="a scene file's episode folder (repeatable)")
     parser.add_argument("--own", action="append", default=[], help="a training dataset; its test split (repeatable)")
     parser.add_argument("--own-split", default="test", choices=("test", "val"),
-                        help="the --own folders' split (val when choosing between checkpoints)")
+                        help="the split of the --own and --specialist folders (val when choosing between "
+                             "checkpoints)")
     parser.add_argument("--specialist", action="append", default=[], metavar="DATA=PATH")
     parser.add_argument("--horizons", default="15,50")
     parser.add_argument("--stride", type=int, default=10)
