@@ -32,6 +32,7 @@ import argparse
 import json
 import math
 import sys
+import tomllib
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -202,22 +203,39 @@ def build_start(scene: str, seed: int, steps: int, members: int,
     return Start(int(seed), graph, forces, truth, moving)
 
 
-def data_starts(folder: str | Path, scene: str, limit: int) -> tuple[list[int], Any, dict[int, Path]]:
-    """Validation seeds (at most ``limit``, lowest first), the scene with its recorded settings, and episode files of a
-    folder written by ``hrn-pyg generate``."""
-    from hrn_pyg.data.scene_file import builtin_scene
+def data_scene(folder: Path, scene: str | None) -> tuple[str, Any]:
+    """The scene a folder written by ``hrn-pyg generate`` holds: its name and the spec to simulate
+    (a scene file's text as it was recorded, or a built-in scene with its recorded settings; None:
+    the built-in ``scene`` as it is). ``scene`` (optional) must agree with the folder's."""
+    from hrn_pyg.data.scene_file import builtin_scene, parse_scene
 
+    meta_path = folder / "meta.json"
+    if not meta_path.is_file():
+        if scene is None:
+            raise ValueError(f"--data: {folder} has no meta.json naming its scene; pass --scene")
+        return scene, None
+    meta = json.loads(meta_path.read_text())
+    if scene is not None and meta.get("scene") not in (None, scene):
+        raise ValueError(f"--data: {folder} holds {meta['scene']!r} episodes, not {scene!r}")
+    name = meta.get("scene") or scene
+    if meta.get("scene_text"):  # a scene file: the text the episodes were made from
+        source = Path(meta.get("scene_file") or folder / "scene.toml")
+        spec = parse_scene(tomllib.loads(meta["scene_text"]), name=name, base=source.parent,
+                           source=str(source), text=meta["scene_text"])
+        return name, spec
+    if name is None:
+        raise ValueError(f"--data: {folder}'s meta.json names no scene; pass --scene")
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
+    return name, builtin_scene(name, **fields) if fields else None
+
+
+def data_starts(folder: str | Path, scene: str | None, limit: int) -> tuple[list[int], str, Any, dict[int, Path]]:
+    """Validation seeds (at most ``limit``, lowest first), the scene's name and spec
+    (:func:`data_scene`) and the episode files of a folder written by ``hrn-pyg generate``."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"--data: no folder {folder}")
-    config = None
-    meta_path = folder / "meta.json"
-    if meta_path.is_file():
-        meta = json.loads(meta_path.read_text())
-        if meta.get("scene") not in (None, scene):
-            raise ValueError(f"--data: {folder} holds {meta['scene']!r} episodes, not {scene!r}")
-        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
-        config = builtin_scene(scene, **fields) if fields else None
+    name, config = data_scene(folder, scene)
     files = {}
     for path in folder.iterdir():
         match = EPISODE_PATTERN.match(path.name)
@@ -226,7 +244,7 @@ def data_starts(folder: str | Path, scene: str, limit: int) -> tuple[list[int], 
     if not files:
         raise ValueError(f"--data: no validation episodes (seed % 10 == 8) in {folder}")
     seeds = sorted(files)[:limit]
-    return seeds, config, {s: files[s] for s in seeds}
+    return seeds, name, config, {s: files[s] for s in seeds}
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -367,14 +385,18 @@ def allowed_modules(model: HRN, record: dict | None) -> tuple[str, ...]:
 
 # ----------------------------------------------------------------------------- CLI
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", required=True, help="scene the model simulates (picks the default checkpoint)")
+    parser.add_argument("--scene", default=None,
+                        help="built-in scene the model simulates (picks the default checkpoint); may be left "
+                             "out with --data, whose meta.json names the scene (a scene file's too)")
     parser.add_argument("--model", default=None, help="checkpoint (default hrn_pyg/checkpoints/<scene>.pt)")
     source = parser.add_mutually_exclusive_group()
-    source.add_argument("--data", default=None,
-                        help="episode folder from `hrn-pyg generate`: its validation episodes are the starts")
+    source.add_argument("--data", action="append", default=None,
+                        help="episode folder from `hrn-pyg generate`: its validation episodes are the starts "
+                             "(repeatable: a model of many scenes is calibrated on all of them)")
     source.add_argument("--seeds", default=None,
                         help="comma-separated validation seeds (seed %% 10 == 8) simulated fresh (default 8,18,28)")
-    parser.add_argument("--starts", type=int, default=4, help="with --data: at most this many validation episodes")
+    parser.add_argument("--starts", type=int, default=4,
+                        help="with --data: at most this many validation episodes per folder")
     parser.add_argument("--rates", default=",".join(f"{r:g}" for r in DEFAULT_RATES),
                         help="comma-separated candidate dropout rates, each in [0, 1)")
     parser.add_argument("--modules", nargs="+", default=None, metavar="SET",
@@ -406,11 +428,21 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--starts must be >= 1, got {args.starts}")
     perturbation = PerturbationConfig(position_std=args.position_std)
     seeds = parse_seeds(args.seeds) if args.seeds is not None else list(DEFAULT_SEEDS) if args.data is None else None
+    if args.scene is None and (args.data is None or args.model is None):
+        raise ValueError("--scene is required unless --data folders name their scenes and --model is given")
     model_path = resolve_model(args.scene, args.model)
     out = model_path if args.in_place else Path(args.out) if args.out else default_output(model_path)
     if out.resolve() == model_path.resolve() and not args.in_place:
         raise ValueError(f"the output {out} is the input checkpoint; pass --in-place to overwrite it, "
                          "or another --out")
+    # (name, spec or None, seed, episode file or None) of every start
+    plan: list[tuple[str, Any, int, Path | None]] = []
+    if args.data is not None:
+        for folder in args.data:
+            folder_seeds, name, config, files = data_starts(folder, args.scene, args.starts)
+            plan += [(name, config, seed, files[seed]) for seed in folder_seeds]
+    else:
+        plan = [(args.scene, None, seed, None) for seed in seeds]
     device = resolve_device(args.device)
     model = load_model(model_path, device)
     record_before = calibration_record(model_path)
@@ -419,15 +451,12 @@ def run(args: argparse.Namespace) -> int:
     model.config = replace(model.config, dropout_modules=allowed)  # masks on any allowed module
 
     # --- starts: episode and perturbed ensemble --------------------------------------------------
-    config, files = None, {}
-    if args.data is not None:
-        seeds, config, files = data_starts(args.data, args.scene, args.starts)
     starts = []
-    for seed in seeds:
-        episode = read_episode(files[seed]) if seed in files else None
-        print(f"simulating {args.scene} seed {seed}: {args.members} perturbed replays of "
+    for name, config, seed, path in plan:
+        episode = read_episode(path) if path is not None else None
+        print(f"simulating {name} seed {seed}: {args.members} perturbed replays of "
               f"{HISTORY + args.steps} steps", file=sys.stderr, flush=True)
-        starts.append(build_start(args.scene, seed, args.steps, args.members, perturbation, config, episode))
+        starts.append(build_start(name, seed, args.steps, args.members, perturbation, config, episode))
 
     # --- candidates ---------------------------------------------------------------------------
     candidates = calibrate(model, starts, rates, module_sets, args.k, args.steps, args.sample_seed,
@@ -441,8 +470,9 @@ def run(args: argparse.Namespace) -> int:
     record = {
         "rate": chosen["rate"], "modules": chosen["modules"],
         "spread_ratio_median": chosen["spread_ratio_median"], "energy_score_m": chosen["energy_score_m"],
-        "criterion": CRITERION, "scene": args.scene, "seeds": seeds,
-        "data": None if args.data is None else str(args.data),
+        "criterion": CRITERION, "scene": args.scene or sorted({name for name, *_ in plan}),
+        "seeds": [seed for *_, seed, _ in plan],
+        "data": None if args.data is None else [str(folder) for folder in args.data],
         "start_step": HISTORY, "steps": args.steps, "k": args.k, "members": args.members,
         "perturbation": perturbation.to_dict(), "sample_seed": args.sample_seed,
         "model_dropout_modules": list(allowed), "source": str(model_path), "note": edge,

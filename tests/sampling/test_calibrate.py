@@ -162,7 +162,31 @@ def test_data_folder_gives_its_validation_episodes(checkpoint, tiny_episodes, tm
     assert main(calibrate_argv(checkpoint, "--data", str(tiny_episodes), "--rates", "0.3", "--modules", "force",
                                "--out", str(out))) == 0
     record = cal.calibration_record(out)
-    assert record["seeds"] == [8] and record["data"] == str(tiny_episodes)  # seeds 0..9: only 8 validates
+    assert record["seeds"] == [8] and record["data"] == [str(tiny_episodes)]  # seeds 0..9: only 8 validates
+
+
+def test_scene_file_folders_name_their_scene(checkpoint, tiny_episodes, tmp_path, capsys):
+    """A folder made from a scene file is calibrated on without ``--scene`` (its meta.json keeps
+    the file's text); several folders give the starts of all of them."""
+    from hrn_pyg.data.scene_file import BUILTIN_DIR
+
+    scene_file = tmp_path / "two_cubes.toml"
+    scene_file.write_text((BUILTIN_DIR / f"{SCENE}.toml").read_text())
+    data = tmp_path / "two_cubes"
+    assert main(["generate", "--scene-file", str(scene_file), "--episodes", "2", "--seed-offset", "17",
+                 "--steps", str(HISTORY + STEPS), "--out", str(data), "--no-progress"]) == 0
+    scene_file.unlink()  # the recorded text is what is simulated, not the file as it is now
+    out = tmp_path / "files.pt"
+    argv = ["calibrate", "--model", str(checkpoint), "--data", str(data), "--k", str(K), "--members",
+            str(MEMBERS), "--steps", str(STEPS), "--rates", "0.3", "--modules", "force", "--no-progress",
+            "--out", str(out)]
+    assert main(argv) == 0
+    record = cal.calibration_record(out)
+    assert record["scene"] == ["two_cubes"] and record["seeds"] == [18] and record["data"] == [str(data)]
+    assert main([*argv, "--data", str(tiny_episodes)]) == 2  # a folder without meta.json needs --scene
+    assert "pass --scene" in capsys.readouterr().err
+    assert main(["calibrate", "--data", str(data), "--no-progress"]) == 2
+    assert "--scene is required" in capsys.readouterr().err
 
 
 def _spy_on_scoring(monkeypatch) -> list[torch.device]:
