@@ -18,6 +18,9 @@ Scores, over the episodes (issue 13's wedge criteria):
 * **energy score** of the ball's final centre (m), samples against the fine ensemble's
   members, and the deterministic rollout's (its distance to the members).
 
+``--scene-file`` scores another ridge instead, e.g. a roof the model never saw
+(``data/shapes/unseen/roof_drop.toml``; its ball is object 0 and its ridge runs along y at x = 0).
+
 Select settings with ``--split val`` (seeds with ``seed % 10 == 8``); ``--split test``
 (``== 9``) is the held-out report. Run: ``python benchmarks/wedge_sides.py [--model
 hrn_pyg/checkpoints/wedge.pt] [--data data/wedge_ridge] [--split val] [--episodes 20]
@@ -46,6 +49,7 @@ import torch
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE
+from hrn_pyg.data.scene_file import read_scene_file
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
     episode_state,
@@ -74,17 +78,21 @@ def split_seeds(split: str, count: int, first: int = 0) -> list[int]:
     return list(range(start, start + 10 * count, 10))
 
 
-def ensemble_end(cache: str, seed: int, members: int, steps: int, std: float, config) -> np.ndarray:
+def ensemble_end(cache: str, seed: int, members: int, steps: int, std: float, config,
+                 from_file: bool = False) -> np.ndarray:
     """Leaf positions ``[members, L, 3]`` of a pybullet ensemble at step ``steps``, from ``cache``
-    when an earlier run stored them for the same scene settings, seed, size and spread."""
-    key = json.dumps({"scene": config.settings_dict(), "seed": seed, "members": members, "steps": steps,
-                      "std": std}, sort_keys=True)
+    when an earlier run stored them for the same scene settings (and, for a scene file, the same
+    text), seed, size and spread."""
+    fields = {"scene": config.settings_dict(), "seed": seed, "members": members, "steps": steps, "std": std}
+    if from_file:
+        fields["scene_file_sha256"] = hashlib.sha256(config.text.encode()).hexdigest()
+    key = json.dumps(fields, sort_keys=True)
     path = Path(cache) / f"{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz" if cache else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as stored:
             if str(stored["key"]) == key:
                 return stored["end"]
-    runs = ground_truth_ensemble("wedge", seed, members, steps, PerturbationConfig(position_std=std), config)
+    runs = ground_truth_ensemble(config.name, seed, members, steps, PerturbationConfig(position_std=std), config)
     end = np.asarray(runs[:, steps], dtype=np.float32)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -103,6 +111,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--model", default="hrn_pyg/checkpoints/wedge.pt")
     parser.add_argument("--data", default="data/wedge_ridge",
                         help="folder whose meta.json holds the ridge-drop scene settings")
+    parser.add_argument("--scene-file", default=None,
+                        help="a ridge-drop scene file instead (ball: object 0; ridge along y at x = 0)")
     parser.add_argument("--split", choices=sorted(SPLITS), default="val")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--first-seed", type=int, default=0)
@@ -123,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.episodes < 1 or args.k < 2 or args.members < 2:
         raise ValueError("--episodes must be >= 1, --k and --members >= 2")
     torch.set_num_threads(args.threads)
-    config = ridge_config(args.data)
+    config = read_scene_file(args.scene_file) if args.scene_file else ridge_config(args.data)
     steps = args.steps or config.config.steps - HISTORY
     if not 1 <= steps <= config.config.steps - HISTORY:
         raise ValueError(f"--steps must be in [1, {config.config.steps - HISTORY}], got {steps}")
@@ -140,9 +150,9 @@ def main(argv: list[str] | None = None) -> dict:
     for i, seed in enumerate(seeds):
         episode = simulate_episode(config, seed, steps=HISTORY + steps)
         fine_end = torch.as_tensor(ensemble_end(args.cache, seed, args.members, HISTORY + steps,
-                                                args.fine_std, config))
+                                                args.fine_std, config, bool(args.scene_file)))
         coarse_end = torch.as_tensor(ensemble_end(args.cache, seed, args.members, HISTORY + steps,
-                                                  args.coarse_std, config))
+                                                  args.coarse_std, config, bool(args.scene_file)))
         graph = episode_state(episode, start=HISTORY, steps=steps)
         forces = graph[NODE].force_seq.transpose(0, 1)
         def centres(positions):  # [T, L, 3] -> [T, 3]
@@ -184,7 +194,7 @@ def main(argv: list[str] | None = None) -> dict:
                         "split_difference_coarse": split_difference(p, coarse_p),
                         "energy_score_m": float(np.mean([r[f"es_m@{rate:g}"] for r in rows])),
                         "share_below": float(p.mean())})
-    lines = [f"wedge ridge drops, {args.split} split, {len(seeds)} episodes, {steps} steps, k = {args.k}, "
+    lines = [f"{config.name} ridge drops, {args.split} split, {len(seeds)} episodes, {steps} steps, k = {args.k}, "
              f"{args.members} members per ensemble ({1e3 * args.fine_std:g} mm / {1e3 * args.coarse_std:g} mm); "
              f"share of episodes' members at x < 0: fine {fine_p.mean():.2f}, coarse {coarse_p.mean():.2f}",
              "", "| model | rate | Brier vs fine (<= 0.12) | split diff. vs coarse (<= 0.1) | energy score (mm) |",
@@ -196,7 +206,8 @@ def main(argv: list[str] | None = None) -> dict:
     table = "\n".join(lines)
     print(table)
     out = {"what": "wedge ridge drops: probability of ending at x < 0, samples vs pybullet ensembles",
-           "model": args.model, "data": args.data, "scene_config": config.settings_dict(),
+           "model": args.model, "data": None if args.scene_file else args.data,
+           "scene_file": args.scene_file, "scene_config": config.settings_dict(),
            "split": args.split, "seeds": seeds, "steps": steps, "k": args.k, "members": args.members,
            "fine_std": args.fine_std, "coarse_std": args.coarse_std, "rates": rates,
            "sample_seed": args.sample_seed, "results": results, "episodes": rows, "markdown": table,

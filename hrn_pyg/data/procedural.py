@@ -239,6 +239,22 @@ def union_volume(mesh: trimesh.Trimesh, grow: float = 0.0, cells: int = VOLUME_C
     return int(inside.sum()) * step**3
 
 
+def gable_roof(width: float = 0.4, length: float = 0.3, eaves: float = 0.08, ridge: float = 0.2) -> trimesh.Trimesh:
+    """A house roof for the two-outcome check, never a training kind: a box ``width x length``
+    (``x``, ``y``) of height ``eaves`` under a gable whose ridge runs along ``y`` at ``x = 0``,
+    ``ridge`` above the floor. Convex (a pentagonal prism), centred on its bounding box, in
+    metres as given (a scene file's ``size`` rescales its longest extent)."""
+    if not (width > 0 and length > 0 and 0 < eaves < ridge):
+        raise ValueError(f"gable_roof needs width, length > 0 and 0 < eaves < ridge, got "
+                         f"{width}, {length}, {eaves}, {ridge}")
+    half = width / 2
+    profile = [(-half, 0.0), (half, 0.0), (half, eaves), (0.0, ridge), (-half, eaves)]  # x, z
+    points = [(x, y, z) for x, z in profile for y in (-length / 2, length / 2)]
+    roof = trimesh.Trimesh(vertices=np.array(points), process=False).convex_hull
+    roof.apply_translation(-roof.bounds.mean(axis=0))
+    return roof
+
+
 def shape_record(path: Path, kind: str, seed: int) -> dict:
     """What ``index.json`` says of one written shape, read back from its file as a scene reads it."""
     mesh = clean_mesh(load_mesh(path), str(path))

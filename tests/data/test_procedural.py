@@ -187,3 +187,16 @@ def test_a_cup_that_coarse_v_hacd_fills_is_decomposed_at_a_finer_resolution(tmp_
     pieces = trimesh.load(parts, force="mesh").split(only_watertight=False)
     cavity = cup.bounds.mean(axis=0) + [0.0, 0.0, 0.25 * cup.extents[2]]  # above the floor, inside the walls
     assert not any(piece.convex_hull.contains([cavity])[0] for piece in pieces)
+
+
+def test_the_roof_is_a_closed_gable_with_its_ridge_on_the_y_axis():
+    from hrn_pyg.data.procedural import gable_roof
+
+    roof = gable_roof(width=0.4, length=0.3, eaves=0.08, ridge=0.2)
+    assert roof.is_watertight and roof.is_convex
+    assert np.allclose(roof.bounds, [[-0.2, -0.15, -0.1], [0.2, 0.15, 0.1]])
+    assert roof.volume == pytest.approx(0.4 * 0.3 * 0.08 + 0.5 * 0.4 * 0.12 * 0.3)
+    top = roof.vertices[np.isclose(roof.vertices[:, 2], 0.1)]
+    assert len(top) == 2 and np.allclose(top[:, 0], 0.0)  # the ridge: x = 0, along y
+    with pytest.raises(ValueError, match="eaves < ridge"):
+        gable_roof(eaves=0.3, ridge=0.2)
