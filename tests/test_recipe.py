@@ -427,3 +427,9 @@ def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart():
     assert set(model.extra_datasets()) | {model.dataset} == {d.name for d in recipe.datasets}
     shared = load_recipe(REPO / "data" / "recipes.toml").dataset("cube_collision")
     assert recipe.dataset("cube_collision") == shared  # one dataset, the same in both recipes
+    # calibrated on the validation episodes of all its datasets, the folders naming the scenes
+    args = model.calibrate_args(recipe.dataset(model.dataset).scene, Path("runs"),
+                                [Path("data") / n for n in (model.dataset, *model.extra_datasets())])
+    assert args[:9] == ["calibrate", "--data", "data/shapes_drop", "--data", "data/shapes_push", "--data",
+                        "data/soft_bounce_shapes", "--data", "data/cube_collision"]
+    assert "--scene" not in args and args[args.index("--starts") + 1] == "2"

@@ -269,8 +269,12 @@ class Runner:
 
     # -- publishing ----------------------------------------------------------------------------
     def calibrate_command(self, model: ModelRecipe) -> list[str]:
-        scene = self.recipe.dataset(model.dataset).scene
-        args = model.calibrate_args(scene, self.config.runs_dir)
+        dataset = self.recipe.dataset(model.dataset)
+        folders: tuple[Path, ...] = ()
+        if dataset.from_file:  # no --scene for a file: the datasets' folders name their scenes
+            names = (model.dataset, *model.extra_datasets())
+            folders = tuple(self.recipe.dataset(n).folder(self.config.data_dir) for n in names)
+        args = model.calibrate_args(dataset.scene, self.config.runs_dir, folders)
         return args + (["--device", self.config.device] if args and self.config.device else [])
 
     def calibrate(self, model: ModelRecipe) -> None:

@@ -7,7 +7,8 @@ free-form ``[models.<name>.train]`` table of extra ``hrn-pyg train`` options: ``
 becomes ``--key value``, ``true`` a bare ``--key``, ``false`` nothing). A model may add
 fine-tuning stages (``[[models.<name>.finetune]]``, each a table of train options) and a
 ``[models.<name>.calibrate]`` table of ``hrn-pyg calibrate`` options (a list of strings
-becomes one flag with several values). The train option ``extra-datasets`` names more recipe
+becomes one flag with several values); a model whose dataset is a scene file is calibrated on
+the validation episodes of all its datasets (``--data`` each) rather than on fresh seeds. The train option ``extra-datasets`` names more recipe
 datasets whose episodes join the model's dataset in a stage.
 
 :func:`load_recipe` and :func:`parse_recipe` validate everything up front: every problem is a
@@ -167,13 +168,16 @@ class ModelRecipe:
             return args + option_flags(options)
         return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"), *option_flags(options)]
 
-    def calibrate_args(self, scene: str, runs_dir: Path) -> list[str]:
+    def calibrate_args(self, scene: str, runs_dir: Path, data: Sequence[Path] = ()) -> list[str]:
         """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
-        model.pt into its calibrated copy; empty when the recipe has no calibrate table."""
+        model.pt into its calibrated copy; empty when the recipe has no calibrate table. With
+        ``data`` (episode folders) the starts are their validation episodes (``--data`` each,
+        the scenes named by the folders) instead of ``--scene``'s freshly simulated seeds."""
         if not self.calibrate:
             return []
         run = runs_dir / self.final_run
-        return ["calibrate", "--scene", scene, "--model", str(run / "model.pt"), "--out", str(run / CALIBRATED_NAME),
+        where = [flag for folder in data for flag in ("--data", str(folder))] if data else ["--scene", scene]
+        return ["calibrate", *where, "--model", str(run / "model.pt"), "--out", str(run / CALIBRATED_NAME),
                 *option_flags(dict(self.calibrate))]
 
 
