@@ -8,13 +8,17 @@ every step of ``--episodes`` episodes started from the validation scenes
 rate and a tolerance can be chosen (e.g. 10-30 % of steps) without looking at training scenes.
 
 Run: ``python benchmarks/partial_hits.py --task tower [--model PATH] [--rates 0.1 0.3 0.5]
-[--tolerances 0.06 0.1] [--episodes 64] [--policy random|planner] [--noise 0.1]
+[--tolerances 0.06 0.1] [--episodes 64] [--policy random|planner|clone:PATH] [--noise 0.1]
 [--out benchmarks/results/partial_hits_tower.json]`` (the model defaults to
 ``hrn_pyg/checkpoints/<scene>.pt``; the output to ``partial_hits_<task>.json`` for the random
-policy, ``partial_hits_<task>_<policy>_noise<noise>.json`` otherwise). ``--policy planner``
-runs the task's scripted planner (:data:`hrn_pyg.rl.planners.PLANNERS`) with ``--noise`` action
-noise: near the goal more often than a random policy, as PPO is once it learns. Prints a table and writes JSON
-atomically.
+policy, ``partial_hits_<task>_<policy>_noise<noise>.json`` otherwise, ``_clone[_noise<noise>]``
+for a clone). ``--policy planner`` runs the task's scripted planner
+(:data:`hrn_pyg.rl.planners.PLANNERS`) with ``--noise`` action noise: near the goal more often
+than a random policy, as PPO is once it learns. ``--policy clone:PATH`` runs a policy
+checkpoint (``hrn-pyg rl clone``) as PPO collects with it at update 0: actions drawn from its
+TanhNormal (``--deterministic``: its mean action). Each row holds the share over all steps
+(``partial_hit_share``) and over the goal-reaching steps (``near_miss_share``). Prints a table
+and writes JSON atomically.
 """
 
 from __future__ import annotations
@@ -26,12 +30,13 @@ import time
 
 import torch
 
+from hrn_pyg.rl.clone import ActorPolicy, load_policy_actor
 from hrn_pyg.rl.hrn_dynamics import VALIDATION_SEEDS, HRNDynamics
 from hrn_pyg.rl.partial_hits import partial_hit_table
 from hrn_pyg.rl.planners import PLANNERS
 from hrn_pyg.rl.tasks import TASKS, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
-from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.utils.files import atomic_write_json, file_sha256
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -48,8 +53,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--pool", type=int, default=len(VALIDATION_SEEDS),
                         help="validation scenes used (the first N of VALIDATION_SEEDS)")
     parser.add_argument("--no-relax", action="store_true", help="episodes without reward relaxation")
-    parser.add_argument("--policy", choices=("random", "planner"), default="random",
-                        help="random: uniform actions (update 0); planner: the task's scripted planner")
+    parser.add_argument("--policy", default="random",
+                        help="random: uniform actions (update 0 from scratch); planner: the task's scripted "
+                             "planner; clone:PATH: a policy checkpoint, sampled (update 0 from it)")
+    parser.add_argument("--deterministic", action="store_true",
+                        help="with clone:PATH: the policy's mean action instead of a draw")
     parser.add_argument("--noise", type=float, default=0.0,
                         help="Gaussian action noise, fraction of max force (0.1: the action_noise mode)")
     parser.add_argument("--no-sleep", action="store_true")
@@ -59,29 +67,43 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     task = get_task(args.task)
     model = args.model or f"hrn_pyg/checkpoints/{task.scene_name}.pt"
-    policy = None if args.policy == "random" else PLANNERS[task.name]
+    kind, _, policy_path = args.policy.partition(":")
+    if kind not in ("random", "planner", "clone") or (kind == "clone") != bool(policy_path):
+        parser.error(f"--policy must be random, planner or clone:PATH, got {args.policy!r}")
+    if kind == "planner" and task.name not in PLANNERS:
+        parser.error(f"no planner for task {task.name!r}; known: {', '.join(PLANNERS)}")
     seeds = VALIDATION_SEEDS[:args.pool]
     start = time.perf_counter()
     dynamics = HRNDynamics.from_checkpoint(model, task, "cpu", pool_seeds=seeds,
                                            sleep=None if args.no_sleep else DEFAULT_SLEEP)
+    policy, policy_sha = {"random": None, "planner": PLANNERS.get(task.name)}.get(kind), None
+    if kind == "clone":
+        policy = ActorPolicy(load_policy_actor(policy_path, task, dynamics), sample=not args.deterministic)
+        policy_sha = file_sha256(policy_path)
     rows = partial_hit_table(task, dynamics, args.rates, args.tolerances or [None], args.episodes,
                              num_samples=args.k, num_envs=args.num_envs, relax=not args.no_relax,
                              seed=args.seed, policy=policy, action_noise_std=args.noise)
     seconds = time.perf_counter() - start
     print(f"{task.name}: {args.policy} policy, action noise {args.noise:g}, {args.episodes} episodes on {len(seeds)} validation scenes, "
           f"k = {rows[0]['k']}, relax = {not args.no_relax} ({seconds:.0f} s)")
-    print("| tolerance (m) | rate | steps | partial-hit share | steps with any hit | partial / any hit "
-          "| success | mean length |")
+    print("| tolerance (m) | rate | steps | partial-hit share (all steps) | steps with any hit "
+          "| near-miss share (partial / any hit) | success | mean length |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        of_hits = "-" if r["partial_of_hit_steps"] is None else f"{r['partial_of_hit_steps']:.2f}"
+        of_hits = "-" if r["near_miss_share"] is None else f"{r['near_miss_share']:.2f}"
         print(f"| {r['tolerance']:.3f} | {r['rate']:.2f} | {r['steps']} | {r['partial_hit_share']:.3f} | "
               f"{r['any_hit_steps']} | {of_hits} | {r['success_rate']:.2f} | {r['mean_length']:.2f} |")
-    suffix = "" if args.policy == "random" and args.noise == 0 else f"_{args.policy}_noise{args.noise:g}"
+    if kind == "clone":
+        suffix = "_clone" + ("_mean" if args.deterministic else "") + (f"_noise{args.noise:g}" if args.noise else "")
+    else:
+        suffix = "" if kind == "random" and args.noise == 0 else f"_{kind}_noise{args.noise:g}"
     out = args.out or f"benchmarks/results/partial_hits_{task.name}{suffix}.json"
     meta = {
-        "what": f"share of steps at which some but not all of the k samples meet the goal, {args.policy} policy",
-        "policy": args.policy, "action_noise_std": args.noise, "task_config": task.to_dict(),
+        "what": f"share of steps at which some but not all of the k samples meet the goal, {kind} policy; "
+                "near_miss_share: the same share among the steps with at least one sample in the goal",
+        "policy": kind, "policy_checkpoint": policy_path or None, "policy_sha256": policy_sha,
+        "policy_sampled": kind == "clone" and not args.deterministic,
+        "action_noise_std": args.noise, "task_config": task.to_dict(),
         "task": task.name, "model": model, "validation_seeds": list(seeds), "episodes": args.episodes,
         "num_envs": args.num_envs, "seed": args.seed, "relax": not args.no_relax,
         "sleep": not args.no_sleep, "seconds": seconds,

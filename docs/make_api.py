@@ -68,6 +68,7 @@ MODULES = (
     "hrn_pyg.rl.partial_hits",
     "hrn_pyg.rl.planners",
     "hrn_pyg.rl.ppo",
+    "hrn_pyg.rl.clone",
     "hrn_pyg.rl.evaluate",
     "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",

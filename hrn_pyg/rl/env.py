@@ -13,7 +13,8 @@ sample is the next state whatever the others do, and the reward is that sample's
 the environment is stochastic but is not judged optimistically. Every step also reports how
 many of the ``k`` samples met the goal (``goal_hits``), so that one can tell how often the
 spread of the samples straddles the goal (:func:`partial_hits`), which is the only case in
-which relaxation changes anything.
+which relaxation changes anything, and how often it does so among the steps that reach the goal
+(:func:`near_miss_share`).
 """
 
 from __future__ import annotations
@@ -287,3 +288,26 @@ def partial_hits(goal_hits: Tensor, k: int) -> Tensor:
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
     return (goal_hits > 0) & (goal_hits < k)
+
+
+def near_miss_share(goal_hits: Tensor, k: int, mask: Tensor | None = None) -> float | None:
+    r"""The near-miss share: among the steps at which at least one of the ``k`` samples met the
+    goal (:math:`h > 0`), the fraction at which not all did (:math:`h < k`),
+
+    .. math:: \frac{\#\{0 < h < k\}}{\#\{h > 0\}},
+
+    counted over the steps where ``mask`` is True (None: all). None when no step met the goal.
+    Under relaxation an episode ends at its first goal-reaching step, so the partial-hit share
+    over all steps is at most one over the mean episode length; this share is not capped.
+
+    **Shapes**: goal_hits any, mask the same (bool) -> a number.
+    """
+    hit = goal_hits > 0
+    if mask is not None:
+        if mask.shape != goal_hits.shape:
+            raise ValueError(f"mask must have goal_hits' shape {tuple(goal_hits.shape)}, got {tuple(mask.shape)}")
+        hit = hit & mask
+    reached = int(hit.sum())
+    if reached == 0:
+        return None
+    return int((partial_hits(goal_hits, k) & hit).sum()) / reached

@@ -11,7 +11,10 @@ which
     0 < h_t < k, \\qquad h_t = \\sum_{j=1}^k \\mathbb 1\\big[\\mathrm{goal}(s^{(j)}_{t+1})\\big],
 
 counted over every step of every episode (an episode ends at the goal or at the step limit).
-PPO logs it per update over the batch it collected (``partial_hit_share`` in ``log.csv``);
+The *near-miss share* counts the same steps among the goal-reaching ones (:math:`h_t > 0`),
+:func:`~hrn_pyg.rl.env.near_miss_share`: under relaxation the share over all steps is capped
+near one over the episode length, this one is not. PPO logs both per update over the batch it
+collected (``partial_hit_share`` and ``near_miss_share`` in ``log.csv``);
 :func:`partial_hit_share` measures it for a uniformly random policy, which is the policy at
 update 0, and :func:`partial_hit_table` for a grid of rates and goal tolerances, so that a rate
 and tolerance with a useful share (say 10-30 % of steps) can be chosen before any training run.
@@ -65,7 +68,9 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
     (:mod:`hrn_pyg.rl.planners`) called on each observation, e.g. the task's scripted planner,
     with Gaussian action noise of ``action_noise_std`` times the force bound added by the
     environment (the ``action_noise`` mode's exploration, closer to what PPO tries than a
-    random policy).
+    random policy), or a policy with a ``manual_seed`` method that draws its own actions
+    (:class:`~hrn_pyg.rl.clone.ActorPolicy` sampling a cloned actor, PPO's update 0 when it
+    starts from the clone): it is reseeded with ``seed + 2`` first.
 
     Runs rounds of ``num_envs`` environments (:class:`~hrn_pyg.rl.env.HRNEnv`, seeded with
     ``seed``; the actions from a second generator seeded with ``seed + 1``) until ``episodes``
@@ -74,7 +79,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
 
     Returns ``steps`` (counted), ``partial_steps``, ``partial_hit_share``
     (``partial_steps / steps``), ``any_hit_steps`` (steps with at least one sample in the
-    goal), ``partial_of_hit_steps`` (``partial_steps / any_hit_steps``, None without a hit),
+    goal), ``near_miss_share`` (``partial_steps / any_hit_steps``, None without a hit; also
+    under its older name ``partial_of_hit_steps``),
     ``success_rate`` and ``mean_length`` of the episodes (relaxed or not, as ``relax``), and the
     settings: ``rate``, ``tolerance`` (the task's goal radius), ``k``, ``episodes``,
     ``action_noise_std``.
@@ -83,7 +89,7 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
     episode has at most one such step and
     :math:`\text{share} \le \text{any\_hit\_steps} / \text{steps} \le 1 / \bar T` for a
     mean episode length :math:`\bar T`: a policy that needs 10 steps cannot exceed 10 %
-    whatever the spread. ``partial_of_hit_steps`` says how the spread compares with the goal
+    whatever the spread. ``near_miss_share`` says how the spread compares with the goal
     where it matters (1: every goal-reaching step is straddled).
     """
     task = get_task(task)
@@ -94,6 +100,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
                  relax=relax, seed=seed, action_noise_std=action_noise_std)
     k = env.num_samples
     actions = torch.Generator(device=env.rng.device).manual_seed(seed + 1)
+    if hasattr(policy, "manual_seed"):
+        policy.manual_seed(seed + 2)
     steps = partial = any_hit = successes = length_sum = 0
     for start in range(0, episodes, B):  # a loop over rounds of B episodes
         counted = torch.arange(B, device=env.device) < min(B, episodes - start)
@@ -118,7 +126,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
             "steps": steps, "partial_steps": partial, "partial_hit_share": partial / steps,
             "any_hit_steps": any_hit, "success_rate": successes / episodes,
             "mean_length": length_sum / episodes, "action_noise_std": float(action_noise_std),
-            "partial_of_hit_steps": partial / any_hit if any_hit else None}
+            "partial_of_hit_steps": partial / any_hit if any_hit else None,
+            "near_miss_share": partial / any_hit if any_hit else None}
 
 
 def partial_hit_table(task: str | TaskConfig, dynamics: StochasticDynamics, rates: Sequence[float],

@@ -16,9 +16,16 @@ single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
   next state is one of the ``k`` samples drawn at random and only its own goal test rewards
   (the ablation that separates a stochastic model from an optimistic reward).
 
-Every update logs the partial-hit share of its batch: the fraction of steps at which some but
-not all of the ``k`` samples met the goal (:func:`~hrn_pyg.rl.env.partial_hits`), the only
-steps at which relaxation changes a reward.
+Every update logs the partial-hit share of its batch two ways: over all its steps
+(``partial_hit_share``, the fraction at which some but not all of the ``k`` samples met the goal,
+:func:`~hrn_pyg.rl.env.partial_hits`, the only steps at which relaxation changes a reward) and
+over its goal-reaching steps, those with at least one sample in the goal (``near_miss_share``,
+:func:`~hrn_pyg.rl.env.near_miss_share`; empty when no step reached the goal).
+
+``--init-policy PATH`` starts every mode's actor from a policy checkpoint, e.g. the task's
+planner cloned by ``hrn-pyg rl clone`` (:mod:`hrn_pyg.rl.clone`); the critic starts fresh. The
+file's SHA-256 is part of the run's identity (``init_policy_sha256``), so a run resumes only
+from the same initial policy.
 
 The rate of the stochastic modes is ``--dropout-rate`` when given, else the model's calibrated
 rate (``hrn-pyg calibrate``; :attr:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.calibrated_rate`), else
@@ -66,6 +73,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -87,7 +95,7 @@ from hrn_pyg.rl.curves import (
     write_summary,
 )
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
-from hrn_pyg.rl.env import HRNEnv, partial_hits
+from hrn_pyg.rl.env import HRNEnv, near_miss_share, partial_hits
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
 from hrn_pyg.rl.stats import json_safe, write_comparison
 from hrn_pyg.rl.success_curve import (
@@ -108,7 +116,7 @@ from hrn_pyg.utils.checkpoint import (
     set_rng_state,
 )
 from hrn_pyg.utils.device import resolve_device
-from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.utils.files import atomic_write_json, file_sha256
 from hrn_pyg.utils.metrics import CSVLog
 from hrn_pyg.utils.schedules import LinearSchedule
 from hrn_pyg.utils.stop import StopRequest
@@ -116,7 +124,7 @@ from hrn_pyg.viz import plot_curves
 
 LOG_FIELDS = ["step", "update", "frames", "dropout_rate", "action_noise_std", "episodes",
               "mean_episode_length", "success_rate", "reward_mean", "loss_objective",
-              "loss_critic", "loss_entropy", "partial_hit_share", "seconds"]
+              "loss_critic", "loss_entropy", "partial_hit_share", "near_miss_share", "seconds"]
 
 
 @dataclass(frozen=True)
@@ -265,7 +273,8 @@ def load_dynamics(task: TaskConfig, model: str | None,
 def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
           dynamics: StochasticDynamics | None = None, anneal_updates: int | None = None,
           progress: bool = True, device: str | torch.device | None = None,
-          dropout_rate: float | None = None, restart: bool = False) -> dict:
+          dropout_rate: float | None = None, restart: bool = False,
+          init_policy: str | Path | None = None) -> dict:
     """One PPO run; writes ``log.csv``, ``policy.pt`` and ``curve.png`` under ``out_dir``.
 
     The environment, policy, critic and collector run on ``device`` (None: the dynamics'
@@ -278,6 +287,9 @@ def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Pa
     written every ``checkpoint_every`` updates), also to extend a finished run to more
     ``updates``; a checkpoint of another run raises :class:`RunMismatch` and is kept;
     ``restart=True`` starts afresh.
+
+    ``init_policy``: a policy checkpoint (:func:`load_init_policy`) whose actor
+    the run starts from, the critic fresh; its SHA-256 is part of the run's identity.
     """
     if dynamics is None:
         dynamics = load_dynamics(task, None, "cpu" if device is None else device)
@@ -287,18 +299,23 @@ def train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Pa
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
     try:
-        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress, device, restart)
+        return _train(task, mode, seed, config, out_dir, dynamics, schedule, noise, progress, device, restart,
+                      init_policy)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: Path,
            dynamics: StochasticDynamics, schedule: LinearSchedule, noise: float,
-           progress: bool, device: str | torch.device | None, restart: bool = False) -> dict:
+           progress: bool, device: str | torch.device | None, restart: bool = False,
+           init_policy: str | Path | None = None) -> dict:
     torch.manual_seed(seed)
     env = HRNEnv(task, dynamics, batch_size=config.num_envs, dropout_rate=schedule(0),
                  action_noise_std=noise, relax=mode_relaxes(mode), seed=seed, device=device)
     actor, critic = build_actor_critic(env, config.hidden)
+    init_sha = None
+    if init_policy is not None:
+        init_sha = load_init_policy(init_policy, actor, task)
     gae = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=critic, average_gae=True)
     loss_module = ClipPPOLoss(actor, critic, clip_epsilon=config.clip_epsilon,
                               entropy_bonus=config.entropy_coef > 0,
@@ -306,8 +323,9 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
                               loss_critic_type="smooth_l1")
     optim = torch.optim.Adam(loss_module.parameters(), lr=config.lr)
     out_dir.mkdir(parents=True, exist_ok=True)
-    identity = run_identity(task, mode, seed, config, schedule, noise, dynamics)
-    meta = json.dumps({**identity, "ppo": asdict(config)}, sort_keys=True)
+    identity = run_identity(task, mode, seed, config, schedule, noise, dynamics, init_sha)
+    meta = json.dumps({**identity, "ppo": asdict(config),
+                       "init_policy": None if init_policy is None else str(init_policy)}, sort_keys=True)
     start_update = 0 if restart else resume_run(out_dir / "policy.pt", identity, actor, critic, optim, env)
     if start_update == 0:
         (out_dir / "log.csv").unlink(missing_ok=True)
@@ -379,7 +397,7 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
     env.dropout_rate, env.action_noise_std = 0.0, 0.0
     success, length = evaluate_policy(actor, env, config.eval_episodes)
     result = {"task": task.name, "mode": mode, "seed": seed, "updates": config.updates,
-              "resumed_at": start_update,
+              "resumed_at": start_update, "init_policy_sha256": init_sha,
               "success_rate": success, "mean_episode_length": length,
               **curve_metrics(read_curve(out_dir / "log.csv"))}
     if eval_log is not None:
@@ -391,14 +409,47 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
 
 
 def run_identity(task: TaskConfig, mode: str, seed: int, config: PPOConfig, schedule: LinearSchedule,
-                 noise: float, dynamics: StochasticDynamics) -> dict:
+                 noise: float, dynamics: StochasticDynamics, init_policy_sha256: str | None = None) -> dict:
     """What a run is, for resuming: everything but the number of updates (so a finished run can
-    be extended) and the evaluation sizes (they do not change training)."""
+    be extended) and the evaluation sizes (they do not change training). ``init_policy_sha256``
+    is the SHA-256 of the policy the actor started from, None for a fresh actor (a checkpoint
+    written before the key existed reads as None, so its run still resumes)."""
     ppo = {k: v for k, v in asdict(config).items()
            if k not in ("updates", "eval_episodes", "ground_truth_episodes", "checkpoint_every",
                         "eval_every", "eval_scenes")}
     return {"task": task.to_dict(), "mode": mode, "seed": seed, "ppo_training": ppo,
-            "schedule": asdict(schedule), "action_noise_std": noise, "dynamics": repr(dynamics)}
+            "schedule": asdict(schedule), "action_noise_std": noise, "dynamics": repr(dynamics),
+            "init_policy_sha256": init_policy_sha256}
+
+
+def load_init_policy(path: str | os.PathLike, actor: ProbabilisticActor,
+                     task: str | TaskConfig) -> str:
+    """Load the actor weights of a policy checkpoint (a clone, or a PPO run's ``policy.pt``)
+    into ``actor`` and return the file's SHA-256.
+
+    Raises ``FileNotFoundError`` or ``ValueError`` with a one-line message: a file that is not
+    an hrn_pyg checkpoint, one without an actor, one made for another task, or whose actor
+    does not fit (another hidden width or action size).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--init-policy not found: {path}")
+    task = get_task(task)
+    digest = file_sha256(path)
+    ckpt = load_checkpoint(path)
+    weights = ckpt["model"].get("actor")
+    if not isinstance(weights, dict):
+        raise ValueError(f"{path} holds no actor (model.actor)")
+    made_for = json.loads(ckpt["config"]).get("task")
+    made_for = made_for.get("name") if isinstance(made_for, dict) else None
+    if made_for is not None and made_for != task.name:
+        raise ValueError(f"{path} is a policy for task {made_for!r}, not {task.name!r}")
+    try:
+        actor.load_state_dict(weights)
+    except RuntimeError as exc:
+        first = next((ln.strip() for ln in str(exc).splitlines()[1:] if ln.strip()), str(exc))
+        raise ValueError(f"{path} does not fit this actor ({first})") from None
+    return digest
 
 
 class RunMismatch(ValueError):
@@ -469,13 +520,18 @@ def _ppo_update(batch: TensorDictBase, gae: GAE, loss_module: ClipPPOLoss,
 def _episode_stats(batch: TensorDictBase, k: int) -> dict[str, float | int | str]:
     """Episodes that ended in this batch ``(B, T)``: count, mean length and success rate; and
     the batch's partial-hit share, the fraction of its ``B * T`` steps at which some but not
-    all of the ``k`` samples met the goal."""
+    all of the ``k`` samples met the goal, and its near-miss share, the same fraction of its
+    steps with at least one sample in the goal (absent when there is none)."""
     done = batch["next", "done"].squeeze(-1)
     n = int(done.sum())
-    share = partial_hits(batch["next", "goal_hits"], k).double().mean()
+    hits = batch["next", "goal_hits"]
+    share = partial_hits(hits, k).double().mean()
     out: dict[str, float | int | str] = {"episodes": n,
                                          "reward_mean": float(batch["next", "reward"].mean()),
                                          "partial_hit_share": float(share)}
+    near = near_miss_share(hits, k)
+    if near is not None:
+        out["near_miss_share"] = near
     if n:
         out["mean_episode_length"] = float(batch["next", "t"].squeeze(-1)[done].float().mean())
         out["success_rate"] = float(batch["next", "terminated"].squeeze(-1)[done].float().mean())
@@ -532,6 +588,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "shows at rest sleep until pushed or touched)")
     parser.add_argument("--restart", action="store_true",
                         help="start every run afresh (default: continue each run from its policy.pt)")
+    parser.add_argument("--init-policy", default=None,
+                        help="policy checkpoint every mode's actor starts from (e.g. `hrn-pyg rl clone`); "
+                             "the critic starts fresh")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -542,6 +601,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--anneal-updates must be >= 0, got {args.anneal_updates}")
     if args.dropout_rate is not None and not 0.0 <= args.dropout_rate < 1.0:
         raise ValueError(f"--dropout-rate must be in [0, 1), got {args.dropout_rate}")
+    if args.init_policy is not None and not Path(args.init_policy).is_file():
+        raise FileNotFoundError(f"--init-policy not found: {args.init_policy}")
     config = replace(PPOConfig(), updates=args.updates, frames_per_batch=args.frames_per_batch,
                      num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
                      lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
@@ -557,7 +618,8 @@ def run(args: argparse.Namespace) -> int:
         for seed in range(args.seed_start, args.seed_start + args.seeds):
             res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
                         args.anneal_updates, progress=not args.no_progress, device=device,
-                        dropout_rate=args.dropout_rate, restart=args.restart)
+                        dropout_rate=args.dropout_rate, restart=args.restart,
+                        init_policy=args.init_policy)
             results.append(res)
             truth = (f", pybullet success {res['pybullet_success_rate']:.2f} length "
                      f"{res['pybullet_mean_length']:.2f}" if "pybullet_success_rate" in res else "")

@@ -3,8 +3,10 @@
 Reads every run under a sweep folder (``<mode>/seed<k>/log.csv`` and, with ``--eval-every``,
 ``eval.csv``; what :mod:`hrn_pyg.rl.ppo` writes) and puts together:
 
-- per run (:func:`run_record`): the partial-hit share at update 0 (the random policy), its mean
-  over training and its mean in each tenth of the updates; frames to 50 % and 80 % success and
+- per run (:func:`run_record`): the partial-hit share at update 0 (the initial policy), its mean
+  over training and its mean in each tenth of the updates; the same for the near-miss share (the
+  partial hits among the goal-reaching steps, :func:`~hrn_pyg.rl.env.near_miss_share`) where
+  ``log.csv`` has it; frames to 50 % and 80 % success and
   the area under the success curve, in pybullet and in the learned model
   (:mod:`hrn_pyg.rl.success_curve`); the final and the mean in-model training episode length;
 - per mode and metric (:data:`METRICS`): the IQM over seeds with a stratified-bootstrap 95 %
@@ -98,6 +100,13 @@ def run_record(run_dir: str | Path) -> dict:
               "partial_hit_share_by_tenth": share_by_part(shares) if shares else [],
               "final_length": curve_metrics(lengths)["final_length"],
               "mean_length": _mean(lengths)}
+    with open(log, newline="") as fh:
+        logged_near = "near_miss_share" in (csv.DictReader(fh).fieldnames or [])
+    if logged_near:  # logs written before the column existed have none
+        near = _log_column(log, "near_miss_share")
+        record.update(near_miss_share_update0=near[0] if near else math.nan,
+                      near_miss_share_mean=_mean(near),
+                      near_miss_share_by_tenth=share_by_part(near) if near else [])
     if record["final_length"] is None:
         record["final_length"] = math.nan
     if (run_dir / "eval.csv").is_file():
@@ -153,6 +162,10 @@ def task_summary(out_root: str | Path, task: str | TaskConfig, resamples: int = 
             "partial_hit_share_update0": stratified_bootstrap(shares0, **boot) if shares0 else None,
             "partial_hit_share_mean": (stratified_bootstrap(s, **boot)
                                        if (s := _scores(records, "partial_hit_share_mean")) else None),
+            "near_miss_share_update0": (stratified_bootstrap(s, **boot)
+                                        if (s := _scores(records, "near_miss_share_update0")) else None),
+            "near_miss_share_mean": (stratified_bootstrap(s, **boot)
+                                     if (s := _scores(records, "near_miss_share_mean")) else None),
             "runs": [{"seed": s, **{k: v for k, v in r.items() if k != "eval_curve"}}
                      for s, r in by_seed.items()]}
         stats = {}
@@ -201,14 +214,17 @@ def task_summary(out_root: str | Path, task: str | TaskConfig, resamples: int = 
 
 def summary_checks(summary: dict) -> dict:
     """Whether the summary can decide: seeds per mode against :data:`MIN_SEEDS`, and the IQM
-    partial-hit share at update 0 of each stochastic mode against :data:`MIN_PARTIAL_SHARE`."""
+    partial-hit share at update 0 of each stochastic mode against :data:`MIN_PARTIAL_SHARE`
+    (its near-miss share beside it, not checked)."""
     modes = summary["modes"]
     seeds = {m: s["n"] for m, s in modes.items()}
     share = {m: (s["partial_hit_share_update0"] or {}).get("value") for m, s in modes.items()
              if m in STOCHASTIC_MODES}
+    near = {m: (s.get("near_miss_share_update0") or {}).get("value") for m, s in modes.items()
+            if m in STOCHASTIC_MODES}
     return {"seeds_per_mode": seeds, "enough_seeds": all(n >= MIN_SEEDS for n in seeds.values()),
             "all_modes_present": all(m in modes for m in MODES),
-            "partial_hit_share_update0": share,
+            "partial_hit_share_update0": share, "near_miss_share_update0": near,
             "partial_hit_share_enough": all(v is not None and v >= MIN_PARTIAL_SHARE for v in share.values())
             if share else False}
 

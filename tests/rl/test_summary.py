@@ -108,3 +108,26 @@ def test_written_summary_is_strict_json_and_deterministic(tmp_path):
 def test_no_runs_is_an_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no runs"):
         task_summary(tmp_path, "tower")
+
+
+def test_run_record_reads_the_near_miss_share_where_logged(tmp_path):
+    run = tmp_path / "stochastic" / "seed0"
+    run.mkdir(parents=True)
+    with open(run / "log.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["step", "update", "frames", "mean_episode_length", "partial_hit_share", "near_miss_share"])
+        for u, (share, near) in enumerate([(0.05, 0.5), (0.0, ""), (0.1, 0.7)]):  # update 1: no hit
+            w.writerow([u, u, 10 * (u + 1), 8.0, share, near])
+    rec = run_record(run)
+    assert rec["near_miss_share_update0"] == 0.5
+    assert rec["near_miss_share_mean"] == pytest.approx(0.6)
+    assert "near_miss_share_update0" not in run_record(_old_log(tmp_path))  # logs without the column
+
+
+def _old_log(root):
+    run = root / "deterministic" / "seed0"
+    run.mkdir(parents=True)
+    with open(run / "log.csv", "w", newline="") as fh:
+        csv.writer(fh).writerows([["step", "update", "frames", "mean_episode_length", "partial_hit_share"],
+                                  [0, 0, 10, 8.0, 0.0]])
+    return run
