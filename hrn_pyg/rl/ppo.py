@@ -614,8 +614,9 @@ def run(args: argparse.Namespace) -> int:
     dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep)
     out = Path(args.out) if args.out else Path("runs/rl") / task.name
     results = []
-    for mode in modes:
-        for seed in range(args.seed_start, args.seed_start + args.seeds):
+    # seed by seed, every mode of a seed together: a sweep cut short has all modes on its first seeds
+    for seed in range(args.seed_start, args.seed_start + args.seeds):
+        for mode in modes:
             res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
                         args.anneal_updates, progress=not args.no_progress, device=device,
                         dropout_rate=args.dropout_rate, restart=args.restart,
