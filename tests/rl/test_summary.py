@@ -85,6 +85,7 @@ def test_summary_statistics_by_hand(tmp_path):
     assert checks["seeds_per_mode"] == {"deterministic": 3, "stochastic": 3}
     assert not checks["enough_seeds"] and not checks["all_modes_present"]
     assert checks["partial_hit_share_enough"]  # stochastic: IQM of 0.2, 0.3, 0.1 = 0.2 >= 0.1
+    assert not checks["near_miss_share_enough"]  # these logs have no near-miss column: not shown
     curve = s["iqm_curves"]["stochastic"]["success"]
     assert curve["judge"] == "pybullet" and curve["frames"] == [0, 100, 200]
     assert curve["iqm"] == pytest.approx([0.5 / 3, 2.5 / 3, 2.5 / 3])
