@@ -13,9 +13,12 @@ faces: the leaves span the body exactly.
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from hrn_pyg.utils.files import atomic_write_text
 
@@ -124,6 +127,36 @@ def lattice_indices(points: np.ndarray, pitch: float) -> np.ndarray:
     return idx.astype(np.int64)
 
 
+class LatticeWarning(UserWarning):
+    """A lattice was changed to be simulated (cells apart from its largest piece dropped)."""
+
+
+def largest_piece(cell_index: np.ndarray) -> np.ndarray:
+    """Which cells belong to the largest piece (most cells) of a lattice, two cells being in one
+    piece when a chain of cells, each sharing a whole face with the next, joins them.
+
+    **Shapes:** ``cell_index`` ``[C, 3]`` the distinct integer lattice indices of the cells
+    (their lowest corners); returns ``[C]`` bool.
+    """
+    count = len(cell_index)
+    shifted = cell_index - cell_index.min(axis=0) + 1  # room for a neighbour at -1
+    dims = shifted.max(axis=0) + 2
+    lookup = np.full(int(np.prod(dims)), -1, dtype=np.int64)
+    lookup[np.ravel_multi_index(shifted.T, dims)] = np.arange(count)
+    rows, cols = [], []
+    for axis in range(3):  # the face neighbour one cell up each axis
+        step = np.zeros(3, dtype=np.int64)
+        step[axis] = 1
+        neighbour = lookup[np.ravel_multi_index((shifted + step).T, dims)]
+        has = neighbour >= 0
+        rows.append(np.flatnonzero(has))
+        cols.append(neighbour[has])
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(count, count))
+    _, label = connected_components(graph, directed=False)
+    return label == np.bincount(label).argmax()
+
+
 def lattice_tetrahedra(points: np.ndarray, pitch: float) -> tuple[np.ndarray, np.ndarray]:
     """Tetrahedral mesh whose nodes are voxel centres.
 
@@ -153,6 +186,12 @@ def lattice_tetrahedra(points: np.ndarray, pitch: float) -> tuple[np.ndarray, np
     if not np.any(full):
         raise ValueError("points: no complete lattice cell (need at least 2x2x2 voxels)")
     cells = corners[full]  # [C, 8]
+    keep = largest_piece(idx[full])
+    if not keep.all():
+        warnings.warn(f"lattice: {int((~keep).sum())} of {len(cells)} cells are joined to its largest piece "
+                      f"by no chain of shared faces and were dropped (one body is one piece)",
+                      LatticeWarning, stacklevel=2)
+        cells = cells[keep]
     tets = cells[:, KUHN_TETS].reshape(-1, 4)  # [6C, 4]
     used = np.unique(tets)
     remap = np.full(len(points), -1, dtype=np.int64)

@@ -5,8 +5,10 @@ import pytest
 import trimesh
 
 from hrn_pyg.data.voxelise import (
+    LatticeWarning,
     box_mesh,
     grid_sheet,
+    largest_piece,
     lattice_tetrahedra,
     sphere_mesh,
     voxelise,
@@ -85,6 +87,26 @@ def test_lattice_tetrahedra_box():
     assert np.all(volume > 0)
     # the tets tile the box spanned by the centres exactly
     assert volume.sum() == pytest.approx(0.2**3)
+
+
+def _block(corner, n: int, pitch: float = 0.05) -> np.ndarray:
+    """``n^3`` voxel centres from ``corner`` (lattice units) up."""
+    grid = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    return (grid + np.asarray(corner)) * pitch
+
+
+def test_cells_apart_from_the_largest_face_joined_piece_are_dropped():
+    """A 3^3 block (8 cells), a 2^3 block touching it only along an edge and another only at a
+    corner: one piece by shared nodes, three by shared faces; the two small blocks go."""
+    big = _block((0, 0, 0), 3)
+    edge = _block((2, 2, 0), 2)  # shares big's edge from (2, 2, 0) to (2, 2, 1)
+    corner = _block((-1, -1, -1), 2)  # shares big's corner (0, 0, 0)
+    points = np.concatenate([big, edge, corner])
+    points = np.unique(np.round(points, 6), axis=0)
+    with pytest.warns(LatticeWarning, match="2 of 10 cells"):
+        nodes, tets = lattice_tetrahedra(points, 0.05)
+    assert len(nodes) == 27 and len(tets) == 6 * 8
+    assert largest_piece(np.array([[0, 0, 0], [1, 0, 0], [5, 5, 5]])).tolist() == [True, True, False]
 
 
 def test_lattice_tetrahedra_needs_a_cell():
