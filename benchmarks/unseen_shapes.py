@@ -109,7 +109,7 @@ def object_errors(model, windows: list, horizons: tuple[int, ...], batch: int) -
         group = windows[first:first + batch]
         graph = Batch.from_data_list(group)
         store = graph[NODE]
-        pred, diverged_at = guarded_rollout(model, group, max(horizons))
+        pred, diverged_at = guarded_rollout(model, group, max(horizons), graph=graph)
         truth = store.pos_seq.transpose(0, 1)  # x_{t-2} .. x_{t+H}
         span = int(store.object.max()) + 1
         per_h = {h: per_object_errors(pred[h - 1], truth[h + 2], graph) for h in horizons}

@@ -97,8 +97,8 @@ def _diverged(err: ValueError) -> bool:
 
 
 @torch.no_grad()
-def guarded_rollout(model, windows: list, steps: int, device: torch.device | str = "cpu"
-                    ) -> tuple[Tensor, np.ndarray]:
+def guarded_rollout(model, windows: list, steps: int, device: torch.device | str = "cpu",
+                    graph: Batch | None = None) -> tuple[Tensor, np.ndarray]:
     """Roll ``windows`` out ``steps`` steps with their recorded forces, surviving divergence.
 
     All windows run as one batched graph. When a step's positions are not finite, the batch is
@@ -106,9 +106,10 @@ def guarded_rollout(model, windows: list, steps: int, device: torch.device | str
     to its failing step. Returns the positions ``[steps, N, 3]`` of the whole batch (the nodes of
     window ``0``, then ``1``, ...: :meth:`Batch.from_data_list`'s order), NaN for a diverged
     window from its failing step on, and for each window the step (1-based) at which it diverged,
-    ``0`` for none (``[E]`` int).
+    ``0`` for none (``[E]`` int). ``graph``: the windows already batched on ``device``, when the
+    caller has them.
     """
-    graph = Batch.from_data_list(windows).to(device)
+    graph = Batch.from_data_list(windows).to(device) if graph is None else graph
     forces = graph[NODE].force_seq[:, :steps].transpose(0, 1)
     try:
         return rollout(model, graph, steps, forces, sleep=None), np.zeros(len(windows), dtype=np.int64)
@@ -172,7 +173,7 @@ def evaluate_model(model, windows: list, horizons: tuple[int, ...],
     graph = Batch.from_data_list(windows).to(device)
     store = graph[NODE]
     steps = max(horizons)
-    pred, _ = guarded_rollout(model, windows, steps, device)  # [steps, N, 3]: x_{t+1..t+steps}; the network alone
+    pred, _ = guarded_rollout(model, windows, steps, device, graph)  # [steps, N, 3]: x_{t+1..t+steps}; the network alone
     truth = store.pos_seq.transpose(0, 1)  # [steps+3, N, 3]: x_{t-2..t+steps}
     result: dict[str, dict[int, np.ndarray]] = {m: {} for m in METRICS}
     for h in horizons:
@@ -270,7 +271,7 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
         group = [windows[i] for i in members]
         graph = Batch.from_data_list(group).to(device)
         store = graph[NODE]
-        steps, diverged_at[members] = guarded_rollout(model, group, length, device)
+        steps, diverged_at[members] = guarded_rollout(model, group, length, device, graph)
         pred = torch.cat([store.pos[None], steps])  # [T+1, N, 3]: x_2..x_S
         truth = store.pos_seq[:, HISTORY:].transpose(0, 1)  # [T+1, N, 3]: x_2..x_S
         for h in horizons:
