@@ -25,9 +25,12 @@ import time
 
 import torch
 
-from hrn_pyg.data.graph import HISTORY, object_centres
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
+from hrn_pyg.rl.evaluate import (
+    closed_loop_in_pybullet,
+    evaluate_policy,
+    ground_truth_success,
+)
 from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, HRNDynamics
 from hrn_pyg.rl.planners import (
     PLANNERS,
@@ -36,42 +39,9 @@ from hrn_pyg.rl.planners import (
     length_thresholds,
     planner_policy,
 )
-from hrn_pyg.rl.tasks import TaskConfig, action_to_forces, get_task, goal_reached
+from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.files import atomic_write_json
-
-
-def closed_loop_in_pybullet(task: TaskConfig, planner: Planner, seed: int, goal: torch.Tensor,
-                            history_steps: int = HISTORY) -> tuple[bool, int]:
-    """The planner run closed loop in the pybullet scene ``seed`` (it sees pybullet's own roots
-    every step, after ``history_steps`` zero-force steps, as the learned episodes start):
-    ``(success, steps)``, the same goal test as :func:`hrn_pyg.rl.evaluate.replay_in_pybullet`."""
-    from hrn_pyg.data.scene_file import make_scene
-
-    scene = make_scene(task.scene_name, seed)
-    try:
-        first = scene.reset()  # the objects exist from here on
-        obj = torch.as_tensor(scene.leaf_object)
-        mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
-
-        def centres(x) -> torch.Tensor:
-            return object_centres(torch.as_tensor(x, dtype=torch.float32), obj, task.num_objects, mass)
-
-        now = centres(first)
-        prev = now
-        for _ in range(history_steps):  # a loop over time steps
-            prev, now = now, centres(scene.step(scene.zero_action()))
-        goal = torch.as_tensor(goal, dtype=torch.float32)
-        for t in range(task.max_steps):  # a loop over time steps
-            roots = torch.cat([now, now - prev], -1)
-            action = planner(task, torch.cat([roots.flatten(), goal])[None])
-            forces = action_to_forces(task, action)[0]
-            prev, now = now, centres(scene.step(forces.double().numpy()))
-            if bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)):
-                return True, t + 1
-    finally:
-        scene.close()
-    return False, task.max_steps
 
 
 def closed_loop_rates(task: TaskConfig, planner: Planner, env: HRNEnv, episodes: int) -> dict:
@@ -80,9 +50,9 @@ def closed_loop_rates(task: TaskConfig, planner: Planner, env: HRNEnv, episodes:
     from hrn_pyg.rl.evaluate import record_episodes
 
     records = record_episodes(planner_policy(task, planner), env, episodes)
-    runs = [closed_loop_in_pybullet(task, planner, r["seed"], r["goal"]) for r in records]
-    return {"pybullet_closed_loop_success_rate": sum(ok for ok, _ in runs) / len(runs),
-            "pybullet_closed_loop_mean_length": sum(n for _, n in runs) / len(runs)}
+    runs = [closed_loop_in_pybullet(lambda obs: planner(task, obs), task, r["seed"], r["goal"]) for r in records]
+    return {"pybullet_closed_loop_success_rate": sum(r["success"] for r in runs) / len(runs),
+            "pybullet_closed_loop_mean_length": sum(r["steps"] for r in runs) / len(runs)}
 
 
 def main(argv: list[str] | None = None) -> dict:

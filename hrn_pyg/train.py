@@ -105,6 +105,9 @@ class TrainConfig:
         w_local, w_global, w_shape: loss weights.
         train_dropout: dropout rate on ``model.dropout_modules`` while training (0: none).
         checkpoint_every, eval_every: steps between checkpoints / validation scores.
+        snapshot_every: keep the model (weights, config and normaliser, like ``model.pt``) every
+            that many steps in ``snapshots/step_<step>.pt``, so a model can be selected on
+            validation afterwards; 0: none.
         seed: seeds the model initialisation, the window draws and the dropout masks.
         threads: torch intra-op threads (0: leave torch's default).
         input_noise: standard deviation (m) of a random walk added to the input positions
@@ -153,6 +156,7 @@ class TrainConfig:
     train_dropout: float = 0.0
     checkpoint_every: int = 200
     eval_every: int = 200
+    snapshot_every: int = 0
     seed: int = 0
     threads: int = 0
     input_noise: float = 0.0
@@ -190,6 +194,8 @@ class TrainConfig:
             raise ValueError(f"time_limit must be a finite number of minutes >= 0, got {self.time_limit}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
+        if self.snapshot_every < 0:
+            raise ValueError(f"snapshot_every must be >= 0 (0: none), got {self.snapshot_every}")
         if self.seq_start > self.seq_end:
             raise ValueError(f"seq_start ({self.seq_start}) must be <= seq_end ({self.seq_end})")
         if self.sample_copies < 0 or self.sample_copies == 1:
@@ -600,6 +606,11 @@ def _on_device(batch: HeteroData, device: torch.device, turns: torch.Generator |
     return batch
 
 
+def snapshot_path(out: str | Path, step: int) -> Path:
+    """Where a run in ``out`` keeps its model after ``step`` steps (``--snapshot-every``)."""
+    return Path(out) / "snapshots" / f"step_{step:05d}.pt"
+
+
 class _Run:
     """The steps of one training call: the model with its optimiser and schedules, the metrics
     log, and the checkpoint ``last.pt`` that keeps them."""
@@ -635,6 +646,8 @@ class _Run:
                 self.summary = row
                 if (step_index + 1) % config.checkpoint_every == 0:
                     self.save(step_index + 1)
+                if config.snapshot_every and (step_index + 1) % config.snapshot_every == 0:
+                    self.snapshot(step_index + 1)
                 if self.past_time_limit():
                     step_index += 1  # stop here, as if interrupted
                     break
@@ -683,6 +696,11 @@ class _Run:
         payload = model_payload(self.model, self.config, step_done)
         payload.update(optimizer=self.optimizer.state_dict(), scheduler=self.scheduler.state_dict(), rng=rng_state())
         save_checkpoint(self.out / "last.pt", payload)
+
+    def snapshot(self, step_done: int) -> None:
+        """Keep the model after ``step_done`` steps in ``snapshots/step_<step>.pt`` on rank 0."""
+        if self.place.rank == 0:
+            save_checkpoint(snapshot_path(self.out, step_done), model_payload(self.model, self.config, step_done))
 
     def close(self, step_done: int) -> None:
         """Keep the finished steps in ``last.pt``, draw ``loss.png`` from ``metrics.csv`` and leave

@@ -409,3 +409,17 @@ def test_with_applied_options_keeps_the_weights_and_refuses_other_settings(tiny_
         assert torch.equal(a, b), name
     with pytest.raises(ValueError, match=r"not \['hidden'\]"):
         with_applied_options(model, hidden=32)
+
+
+def test_snapshots_keep_the_model_every_n_steps(tiny_episodes, tmp_path):
+    out = tmp_path / "snap"
+    train(_config(tiny_episodes, out, seq_end=2, snapshot_every=3), SMALL, progress=False)
+    kept = sorted(p.name for p in (out / "snapshots").iterdir())
+    assert kept == ["step_00003.pt", "step_00006.pt"]
+    last = load_model(out / "snapshots" / "step_00006.pt")
+    final = load_model(out / "model.pt")
+    for a, b in zip(last.state_dict().values(), final.state_dict().values()):
+        assert torch.equal(a, b)
+    assert torch.load(out / "snapshots" / "step_00003.pt", weights_only=True)["step"] == 3
+    with pytest.raises(ValueError, match="snapshot_every"):
+        TrainConfig.for_preset("ours", snapshot_every=-1)

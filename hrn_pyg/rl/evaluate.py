@@ -8,7 +8,10 @@ same actions replayed in pybullet.
   environment as configured.
 - :func:`replay_in_pybullet` applies one episode's actions open loop in the pybullet scene it
   started from and judges the task's goal there.
-- :func:`ground_truth_success` puts the two side by side (the check ``hrn-pyg rl --model`` runs
+- :func:`closed_loop_in_pybullet` runs the policy itself in that pybullet scene: every step it
+  sees pybullet's own object roots, so it is judged by what it does in physics, apart from the
+  drift between the learned model and pybullet that an open-loop replay accumulates.
+- :func:`ground_truth_success` puts them side by side (the check ``hrn-pyg rl --model`` runs
   after training).
 
 Training lives in :mod:`hrn_pyg.rl.ppo`, learning curves and summaries in
@@ -17,7 +20,10 @@ Training lives in :mod:`hrn_pyg.rl.ppo`, learning curves and summaries in
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
@@ -103,6 +109,67 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
             "leaves": torch.stack(frames)}
 
 
+#: a policy as a function of observations ``(B, O*6 + 2)`` -> actions ``(B, A)``
+ActionFn = Callable[[Tensor], Tensor]
+
+
+def deterministic_actions(policy: TensorDictModule) -> ActionFn:
+    """The policy's deterministic action as a plain function of observations; the observations
+    go to the policy's device, the actions come back to the CPU."""
+    device = next(iter(policy.parameters()), torch.empty(0)).device
+
+    @torch.no_grad()
+    def act(observation: Tensor) -> Tensor:
+        td = TensorDict({"observation": observation.to(device)}, batch_size=observation.shape[:1])
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return policy(td)["action"].cpu()
+
+    return act
+
+
+@torch.no_grad()
+def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, goal: Tensor,
+                            history_steps: int = HISTORY) -> dict:
+    """Run a policy closed loop in the pybullet scene ``seed`` against ``goal`` ``(2,)``.
+
+    After the scene's reset and ``history_steps`` zero-force steps (as the learned episodes
+    start), every step the policy ``act`` sees the observation built from pybullet's own roots
+    (mass-weighted leaf means and their per-step displacement, then the goal: the layout of
+    :class:`~hrn_pyg.rl.env.HRNEnv`), its action ``(1, A)`` is clipped to the force bound and
+    applied, and the goal is judged as in :func:`replay_in_pybullet`, for up to
+    ``task.max_steps`` steps. Returns ``{"success": bool, "steps": int}`` (``max_steps`` when
+    the goal was never reached).
+    """
+    task = get_task(task)
+    if history_steps < 0:
+        raise ValueError(f"history_steps must be >= 0, got {history_steps}")
+    from hrn_pyg.data.scene_file import make_scene
+
+    goal = torch.as_tensor(goal, dtype=torch.float32).cpu().reshape(2)
+    scene = make_scene(task.scene_name, seed)
+    try:
+        first = torch.as_tensor(scene.reset(), dtype=torch.float32)  # the objects exist from here on
+        obj = torch.as_tensor(scene.leaf_object)
+        mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
+
+        def centres(x) -> Tensor:  # (L, 3) -> (O, 3)
+            return object_centres(torch.as_tensor(x, dtype=torch.float32), obj, task.num_objects, mass)
+
+        prev = now = centres(first)
+        for _ in range(history_steps):  # a loop over time steps
+            prev, now = now, centres(scene.step(scene.zero_action()))
+        for t in range(task.max_steps):  # a loop over time steps
+            roots = torch.cat([now, now - prev], -1)
+            action = act(torch.cat([roots.flatten(), goal])[None]).clamp(-task.max_force, task.max_force)
+            forces = action_to_forces(task, action.cpu())[0]
+            prev, now = now, centres(scene.step(forces.double().numpy()))
+            if bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)):
+                return {"success": True, "steps": t + 1}
+    finally:
+        scene.close()
+    return {"success": False, "steps": task.max_steps}
+
+
 @torch.no_grad()
 def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> list[dict]:
     """Run the policy's deterministic actions in ``env`` and keep everything a replay needs.
@@ -149,7 +216,8 @@ def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> lis
     return out[:episodes]
 
 
-def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -> dict[str, float]:
+def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int,
+                         closed_loop: bool = False) -> dict[str, float]:
     """The ground-truth check: the policy's learned-model episodes replayed in pybullet.
 
     Runs ``episodes`` deterministic episodes in the learned environment with dropout 0 and no
@@ -161,7 +229,9 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
 
     Returns ``model_success_rate``, ``model_mean_length``, ``pybullet_success_rate``,
     ``pybullet_mean_length`` and ``agreement`` (fraction of episodes where both judge the same),
-    plus ``ground_truth_episodes``.
+    plus ``ground_truth_episodes``; with ``closed_loop`` also ``closed_loop_success_rate`` and
+    ``closed_loop_mean_length``: the policy run in each episode's pybullet scene against its
+    goal, seeing pybullet's states (:func:`closed_loop_in_pybullet`).
     """
 
     saved = env.dropout_rate, env.action_noise_std
@@ -180,7 +250,7 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
         real_ok.append(replay["success"])
         real_len.append(replay["steps"] if replay["success"] else max_steps)
     n = len(records)
-    return {
+    out = {
         "ground_truth_episodes": n,
         "model_success_rate": sum(model_ok) / n,
         "model_mean_length": sum(model_len) / n,
@@ -188,3 +258,9 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int) -
         "pybullet_mean_length": sum(real_len) / n,
         "agreement": sum(a == b for a, b in zip(model_ok, real_ok)) / n,
     }
+    if closed_loop:
+        act = deterministic_actions(policy)
+        runs = [closed_loop_in_pybullet(act, env.task, rec["seed"], rec["goal"]) for rec in records]
+        out["closed_loop_success_rate"] = sum(r["success"] for r in runs) / n
+        out["closed_loop_mean_length"] = sum(r["steps"] for r in runs) / n
+    return out

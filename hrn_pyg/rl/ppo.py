@@ -403,7 +403,7 @@ def _train(task: TaskConfig, mode: str, seed: int, config: PPOConfig, out_dir: P
     if eval_log is not None:
         result.update(json_safe(curve_summary(read_eval(out_dir / "eval.csv"))))  # None: never
     if hasattr(dynamics, "scene_seeds") and config.ground_truth_episodes > 0:
-        result.update(ground_truth_success(actor, env, config.ground_truth_episodes))
+        result.update(ground_truth_success(actor, env, config.ground_truth_episodes, closed_loop=True))
     result["seconds"] = time.perf_counter() - start
     return result
 
@@ -622,8 +622,9 @@ def run(args: argparse.Namespace) -> int:
                         dropout_rate=args.dropout_rate, restart=args.restart,
                         init_policy=args.init_policy)
             results.append(res)
-            truth = (f", pybullet success {res['pybullet_success_rate']:.2f} length "
-                     f"{res['pybullet_mean_length']:.2f}" if "pybullet_success_rate" in res else "")
+            truth = (f", pybullet replay success {res['pybullet_success_rate']:.2f} length "
+                     f"{res['pybullet_mean_length']:.2f}, closed loop {res['closed_loop_success_rate']:.2f}"
+                     if "closed_loop_success_rate" in res else "")
             print(f"{task.name} {mode} seed {seed}: success {res['success_rate']:.2f}, "
                   f"mean length {res['mean_episode_length']:.2f}{truth} ({res['seconds']:.0f} s)",
                   flush=True)

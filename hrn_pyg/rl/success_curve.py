@@ -4,8 +4,12 @@ Training curves mix exploration (sampled actions, action noise, dropout, relaxed
 what the policy has learned. Every ``every`` updates a run is therefore also judged the same
 way whatever its mode: the policy's deterministic action, in the learned model at dropout rate
 0 without action noise, on the same ``episodes`` start scenes and goals every time (an
-environment whose generator is reset to ``seed`` before each evaluation), and each episode's
-actions replayed open loop in pybullet (:func:`~hrn_pyg.rl.evaluate.ground_truth_success`).
+environment whose generator is reset to ``seed`` before each evaluation), each episode's
+actions replayed open loop in pybullet, and the policy run closed loop in each episode's pybullet
+scene against its goal (:func:`~hrn_pyg.rl.evaluate.ground_truth_success`). The replay asks
+whether the model's episode happens in physics; the closed loop whether the policy succeeds in
+physics (where the model's drift over a long episode makes even a planner's replay fail, the
+closed loop is the judge of learning in pybullet).
 Dynamics without pybullet scenes (the point-mass stand-in) give the learned-model half only.
 
 One row per evaluation goes to ``eval.csv`` (:data:`EVAL_FIELDS`), keyed by the number of
@@ -48,7 +52,11 @@ EVAL_SEED = 900_001
 LEVELS = (0.5, 0.8)
 #: columns of ``eval.csv``
 EVAL_FIELDS = ["step", "update", "frames", "model_success_rate", "model_mean_length",
-               "pybullet_success_rate", "pybullet_mean_length", "agreement"]
+               "pybullet_success_rate", "pybullet_mean_length", "agreement",
+               "closed_loop_success_rate", "closed_loop_mean_length"]
+#: the judges of a curve: in the learned model, the open-loop replay in pybullet, the policy
+#: closed loop in pybullet (columns ``<judge>_success_rate``)
+JUDGES = ("model", "pybullet", "closed_loop")
 
 
 @dataclass(frozen=True)
@@ -61,12 +69,14 @@ class EvalConfig:
         episodes: fixed evaluation scenes, one environment each, stepped together.
         seed: generator seed that draws the scenes and goals (:data:`EVAL_SEED`).
         pybullet: replay every episode in pybullet when the dynamics has scenes to replay.
+        closed_loop: with ``pybullet``, also run the policy closed loop in each episode's scene.
     """
 
     every: int = 0
     episodes: int = 32
     seed: int = EVAL_SEED
     pybullet: bool = True
+    closed_loop: bool = True
 
     def __post_init__(self) -> None:
         if self.every < 0 or self.episodes < 1:
@@ -90,11 +100,12 @@ def evaluate_point(policy: TensorDictModule, env: HRNEnv, config: EvalConfig) ->
     first, so every call sees the same scenes and goals.
 
     Returns ``model_success_rate``, ``model_mean_length`` and, with pybullet scenes,
-    ``pybullet_success_rate``, ``pybullet_mean_length`` and ``agreement``.
+    ``pybullet_success_rate``, ``pybullet_mean_length``, ``agreement`` and (``closed_loop``)
+    ``closed_loop_success_rate``, ``closed_loop_mean_length``.
     """
     env.rng.manual_seed(config.seed)
     if config.pybullet and hasattr(env.dynamics, "scene_seeds"):
-        out = ground_truth_success(policy, env, config.episodes)
+        out = ground_truth_success(policy, env, config.episodes, closed_loop=config.closed_loop)
         out.pop("ground_truth_episodes", None)
         return out
     saved = env.dropout_rate, env.action_noise_std
@@ -145,12 +156,12 @@ def success_auc(frames: Sequence[float], success: Sequence[float]) -> float:
 
 
 def curve_summary(curve: dict[str, list[float]], levels: Sequence[float] = LEVELS) -> dict[str, float]:
-    """Per judge (``model``, ``pybullet`` when present): frames to each level, AUC and the last
+    """Per judge (``model``; ``pybullet`` and ``closed_loop`` when present, :data:`JUDGES`): frames to each level, AUC and the last
     evaluation's success, keyed ``<judge>_frames_to_<level%>``, ``<judge>_success_auc``,
     ``<judge>_final_success``; plus ``eval_points``, ``eval_frames`` (the last)."""
     frames = curve["frames"]
     out: dict[str, float] = {"eval_points": len(frames), "eval_frames": frames[-1] if frames else math.nan}
-    for judge in ("model", "pybullet"):
+    for judge in JUDGES:
         success = curve.get(f"{judge}_success_rate", [])
         if not success or any(math.isnan(s) for s in success):
             continue

@@ -7,14 +7,15 @@ Reads every run under a sweep folder (``<mode>/seed<k>/log.csv`` and, with ``--e
   over training and its mean in each tenth of the updates; the same for the near-miss share (the
   partial hits among the goal-reaching steps, :func:`~hrn_pyg.rl.env.near_miss_share`) where
   ``log.csv`` has it; frames to 50 % and 80 % success and
-  the area under the success curve, in pybullet and in the learned model
-  (:mod:`hrn_pyg.rl.success_curve`); the final and the mean in-model training episode length;
+  the area under the success curve, in the learned model, replayed in pybullet and closed loop in
+  pybullet (:mod:`hrn_pyg.rl.success_curve`); the final and the mean in-model training episode length;
 - per mode and metric (:data:`METRICS`): the IQM over seeds with a stratified-bootstrap 95 %
   interval, and, for every other mode, the probability of improvement over ``deterministic``
   with its interval (:mod:`hrn_pyg.rl.stats`);
-- performance profiles of the pybullet success AUC, the final pybullet success and the final
-  episode length, and IQM curves of pybullet success against frames and of the in-model
-  episode length against updates;
+- performance profiles of the success AUC and final success in pybullet (replayed and closed
+  loop) and of the final episode length, and IQM curves of success against frames (replayed,
+  or in the model when nothing was replayed; closed loop) and of the in-model episode length
+  against updates;
 - ``checks``: whether every mode has :data:`MIN_SEEDS` seeds and whether the stochastic modes
   start with a partial-hit share of at least :data:`MIN_PARTIAL_SHARE` (over all steps, and over
   the goal-reaching steps: ``near_miss_share_enough``).
@@ -56,6 +57,10 @@ METRICS = {
     "pybullet_final_success": True,
     "pybullet_frames_to_50": False,
     "pybullet_frames_to_80": False,
+    "closed_loop_success_auc": True,
+    "closed_loop_final_success": True,
+    "closed_loop_frames_to_50": False,
+    "closed_loop_frames_to_80": False,
     "model_success_auc": True,
     "model_frames_to_50": False,
     "model_frames_to_80": False,
@@ -113,7 +118,8 @@ def run_record(run_dir: str | Path) -> dict:
     if (run_dir / "eval.csv").is_file():
         curve = read_eval(run_dir / "eval.csv")
         record.update(curve_summary(curve))
-        record["eval_curve"] = {k: curve[k] for k in ("frames", "model_success_rate", "pybullet_success_rate")}
+        record["eval_curve"] = {k: curve[k] for k in ("frames", "model_success_rate", "pybullet_success_rate",
+                                                      "closed_loop_success_rate")}
     return record
 
 
@@ -135,7 +141,8 @@ def _scores(records: list[dict], metric: str) -> list[float]:
 
 
 def _curves(records: list[dict], key: str) -> list[list[float]] | None:
-    """Per-run pybullet success at the evaluations every run has (cut to the shortest)."""
+    """Per-run success (column ``key`` of ``eval.csv``) at the evaluations every run has (cut
+    to the shortest); None when a run lacks it."""
     rows = [r["eval_curve"][key] for r in records if "eval_curve" in r]
     if not rows or len(rows) < len(records) or any(math.isnan(v) for row in rows for v in row):
         return None
@@ -181,6 +188,9 @@ def task_summary(out_root: str | Path, task: str | TaskConfig, resamples: int = 
             frames = records[0]["eval_curve"]["frames"][:len(success[0])]
             judge = "pybullet" if _curves(records, "pybullet_success_rate") else "model"
             curves["success"] = {"judge": judge, "frames": frames, **iqm_curve(success, **boot)}
+        if closed := _curves(records, "closed_loop_success_rate"):
+            frames = records[0]["eval_curve"]["frames"][:len(closed[0])]
+            curves["closed_loop_success"] = {"judge": "closed_loop", "frames": frames, **iqm_curve(closed, **boot)}
         lengths = [smooth(read_curve(Path(out_root) / mode / f"seed{s}" / "log.csv"), SMOOTH_UPDATES)
                    for s in by_seed]
         n = min(len(c) for c in lengths)
@@ -203,6 +213,8 @@ def task_summary(out_root: str | Path, task: str | TaskConfig, resamples: int = 
             out["versus_" + BASELINE][mode] = versus
     profiles = {"pybullet_success_auc": ([i / 20 for i in range(21)], True),
                 "pybullet_final_success": ([i / 20 for i in range(21)], True),
+                "closed_loop_success_auc": ([i / 20 for i in range(21)], True),
+                "closed_loop_final_success": ([i / 20 for i in range(21)], True),
                 "final_length": ([float(t) for t in range(1, task.max_steps + 1)], False)}
     for metric, (taus, higher) in profiles.items():
         per_mode = {mode: performance_profile(v, taus, higher, **boot) for mode, by_seed in runs.items()

@@ -17,6 +17,8 @@ from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.rl.dynamics import StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import (
+    closed_loop_in_pybullet,
+    deterministic_actions,
     ground_truth_success,
     record_episodes,
     replay_in_pybullet,
@@ -253,6 +255,36 @@ def test_record_episodes_and_ground_truth_check(dynamics):
     # pybullet the northern ones (3 of these 6), so the two agree on the other half
     assert 0.0 < expected["pybullet_success_rate"] < 1.0 and 0.0 < expected["agreement"] < 1.0
     assert sum(real_ok) == sum(bool(rec["goal"][1] > 0) for rec in records)
+
+
+def test_closed_loop_sees_pybullet_states_from_the_learned_start(dynamics):
+    task = get_task("cube_push")
+    env = HRNEnv(task, dynamics, batch_size=4, seed=2, dropout_rate=0.0)
+    td = env.reset()
+    seeds = dynamics.scene_seeds(td["state"])
+    seen = []
+
+    def still(obs):  # records what it sees, pushes nothing
+        seen.append(obs.clone())
+        return torch.zeros(obs.shape[0], task.action_dim)
+
+    out = closed_loop_in_pybullet(still, task, int(seeds[0]), td["goal"][0])
+    # its first observation is the learned environment's start (same roots, same goal)
+    torch.testing.assert_close(seen[0][0], td["observation"][0], rtol=0, atol=1e-5)
+    assert out == {"success": False, "steps": task.max_steps} and len(seen) == task.max_steps
+    with pytest.raises(ValueError, match="history_steps"):
+        closed_loop_in_pybullet(still, task, int(seeds[0]), td["goal"][0], history_steps=-1)
+
+    # a policy that pushes toward northern goals succeeds there, in every one of them
+    policy = TensorDictModule(SeekNorthGoals(), in_keys=["observation"], out_keys=["action"])
+    result = ground_truth_success(policy, HRNEnv(task, dynamics, batch_size=3, seed=1), 6, closed_loop=True)
+    records = record_episodes(policy, HRNEnv(task, dynamics, batch_size=3, seed=1, dropout_rate=0.0), 6)
+    act = deterministic_actions(policy)
+    runs = [closed_loop_in_pybullet(act, task, r["seed"], r["goal"]) for r in records]
+    assert result["closed_loop_success_rate"] == sum(r["success"] for r in runs) / 6
+    assert result["closed_loop_mean_length"] == sum(r["steps"] for r in runs) / 6
+    assert [r["success"] for r in runs] == [bool(r["goal"][1] > 0) for r in records]
+    assert all(r["steps"] < task.max_steps for r in runs if r["success"])
 
 
 def test_replay_starts_where_the_learned_episode_starts(dynamics):

@@ -82,7 +82,8 @@ class WithScenes(PointMassDynamics):
 def test_every_evaluation_sees_the_same_scenes_and_replays_them(monkeypatch):
     seen = []
 
-    def fake_ground_truth(policy, env, episodes):
+    def fake_ground_truth(policy, env, episodes, closed_loop=False):
+        assert closed_loop  # the default evaluation also runs the policy closed loop
         seen.append(env.reset()["state"].clone())
         assert env.dropout_rate == 0.0 and env.action_noise_std == 0.0
         return {"ground_truth_episodes": episodes, "model_success_rate": 0.5, "model_mean_length": 3.0,
