@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch
 
-from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import MATERIALS, NODE
@@ -336,6 +336,8 @@ def main() -> int:
     parser.add_argument("--no-time", action="store_true")
     parser.add_argument("--quick", action="store_true", help="stride 30, no rest or time sections")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--mirror-average", choices=("x", "xy"), default=None,
+                        help="apply the model averaged over these mirrors (HRNConfig.mirror_planes) everywhere")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
     args = parser.parse_args()
@@ -350,12 +352,14 @@ def main() -> int:
             parser.error(f"--specialist expects DATA=PATH, got {spec!r}")
         specialists[data] = path
     model = load_model(args.model)
+    if args.mirror_average:
+        model = with_applied_options(model, mirror_average=True, mirror_planes=args.mirror_average)
     unseen = [Path(f) for f in args.unseen]
     own = [Path(f) for f in args.own]
     started = time.perf_counter()
     result: dict = {"model": args.model, "unseen_folders": args.unseen, "own_folders": args.own,
                     "own_split": args.own_split, "horizons": list(args.horizons), "stride": args.stride,
-                    "limit": args.limit,
+                    "limit": args.limit, "mirror_average": args.mirror_average,
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
     print("errors on unseen meshes and the own test split", flush=True)
     result["unseen"] = unseen_section(model, unseen, own, args)

@@ -30,7 +30,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 #: jobs under a sub-command, ``hrn-pyg <command> <job> ...``: command -> job -> (module, one-line help)
 JOBS: dict[str, dict[str, tuple[str, str]]] = {
     "rl": {"clone": ("hrn_pyg.rl.clone", "clone a task's scripted planner into a PPO actor "
-                     "(the initial policy of --init-policy)")},
+                     "(the initial policy of --init-policy)"),
+           "summary": ("hrn_pyg.rl.summary", "the statistics of a sweep's runs so far "
+                       "(rl_<task>_summary.json and a table)")},
 }
 
 

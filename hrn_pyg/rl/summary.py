@@ -22,11 +22,18 @@ Reads every run under a sweep folder (``<mode>/seed<k>/log.csv`` and, with ``--e
 
 A run that never reaches a success level counts as :math:`+\\infty` frames in the statistics
 and is written as ``null`` (strict JSON has no infinity).
+
+``hrn-pyg rl summary --task T --runs DIR [--out PATH]`` writes the summary of the finished runs
+a sweep folder holds so far (of a sweep cut short too; a run under way is left out) and prints
+its main table
+(:func:`summary_markdown`).
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
+import json
 import math
 from pathlib import Path
 
@@ -41,6 +48,7 @@ from hrn_pyg.rl.stats import (
 )
 from hrn_pyg.rl.success_curve import curve_summary, read_eval
 from hrn_pyg.rl.tasks import MODES, TaskConfig, get_task
+from hrn_pyg.utils.checkpoint import load_checkpoint
 from hrn_pyg.utils.files import atomic_write_json
 
 #: seeds per mode a summary should hold to decide anything
@@ -123,13 +131,26 @@ def run_record(run_dir: str | Path) -> dict:
     return record
 
 
-def find_runs(out_root: str | Path) -> dict[str, dict[int, dict]]:
+def run_finished(run_dir: str | Path) -> bool:
+    """Whether a run folder holds a finished run: its ``policy.pt`` was saved after the number
+    of updates its settings ask for (a run under way or cut short is not)."""
+    path = Path(run_dir) / "policy.pt"
+    if not path.is_file():
+        return False
+    ckpt = load_checkpoint(path)
+    return int(ckpt["update"]) >= int(json.loads(ckpt["config"])["ppo"]["updates"])
+
+
+def find_runs(out_root: str | Path, finished_only: bool = False) -> dict[str, dict[int, dict]]:
     """``{mode: {seed: run_record}}`` of every run under ``out_root`` (modes in
-    :data:`~hrn_pyg.rl.tasks.MODES` order)."""
+    :data:`~hrn_pyg.rl.tasks.MODES` order); with ``finished_only`` the finished runs only
+    (:func:`run_finished`)."""
     out_root = Path(out_root)
     runs: dict[str, dict[int, dict]] = {}
     for mode in MODES:
         for log in sorted((out_root / mode).glob("seed*/log.csv")):
+            if finished_only and not run_finished(log.parent):
+                continue
             seed = int(log.parent.name.removeprefix("seed"))
             runs.setdefault(mode, {})[seed] = run_record(log.parent)
     return runs
@@ -151,11 +172,11 @@ def _curves(records: list[dict], key: str) -> list[list[float]] | None:
 
 
 def task_summary(out_root: str | Path, task: str | TaskConfig, resamples: int = RESAMPLES,
-                 seed: int = 0, curve_points: int = 100) -> dict:
-    """The summary of every run under ``out_root`` (module docstring); non-finite values kept
-    (:func:`write_task_summary` writes them as null)."""
+                 seed: int = 0, curve_points: int = 100, finished_only: bool = False) -> dict:
+    """The summary of every run under ``out_root`` (module docstring), or of its finished runs
+    only; non-finite values kept (:func:`write_task_summary` writes them as null)."""
     task = get_task(task)
-    runs = find_runs(out_root)
+    runs = find_runs(out_root, finished_only)
     if not runs:
         raise FileNotFoundError(f"no runs (<mode>/seed<k>/log.csv) under {out_root}")
     boot = {"resamples": resamples, "seed": seed}
@@ -255,3 +276,63 @@ def write_task_summary(out_root: str | Path, task: str | TaskConfig, path: str |
     path = Path(path) if path is not None else Path(out_root) / f"rl_{task.name}_summary.json"
     atomic_write_json(path, json_safe(summary))
     return summary
+
+
+#: the metrics of :func:`summary_markdown`: (key, column title, digits)
+TABLE_METRICS = (("closed_loop_success_auc", "closed-loop success AUC", 2),
+                 ("closed_loop_final_success", "closed-loop final success", 2),
+                 ("model_success_auc", "in-model success AUC", 2),
+                 ("final_length", "final in-model length", 1))
+
+
+def _interval(stat: dict | None, digits: int) -> str:
+    """``value [low, high]``; ``-`` when there is none, ``never`` for an infinite value."""
+    if not stat:
+        return "-"
+
+    def one(v: float | None) -> str:
+        return "never" if v is None or math.isinf(v) else f"{v:.{digits}f}"
+
+    return f"{one(stat['value'])} [{one(stat['low'])}, {one(stat['high'])}]"
+
+
+def summary_markdown(summary: dict) -> str:
+    """Two markdown tables of a :func:`task_summary`: per mode the IQM of :data:`TABLE_METRICS`
+    with its 95 % interval and the near-miss share at update 0; per stochastic or noisy mode the
+    probability of improvement over the baseline."""
+    titles = " | ".join(t for _, t, _ in TABLE_METRICS)
+    lines = [f"{summary['task']}: IQM over seeds [95 % stratified-bootstrap interval]", "",
+             f"| mode | seeds | {titles} | near-miss share, update 0 |",
+             "|---|---:|" + "---|" * (len(TABLE_METRICS) + 1)]
+    for mode, info in summary["modes"].items():
+        stats = summary["statistics"].get(mode, {})
+        cells = " | ".join(_interval(stats.get(k), d) for k, _, d in TABLE_METRICS)
+        lines.append(f"| {mode} | {info['n']} | {cells} | {_interval(info.get('near_miss_share_update0'), 2)} |")
+    versus = summary.get("versus_" + summary["baseline"], {})
+    if versus:
+        lines += ["", f"probability of improvement over {summary['baseline']} [95 % interval]", "",
+                  f"| mode | {titles} |", "|---|" + "---|" * len(TABLE_METRICS)]
+        for mode, poi in versus.items():
+            lines.append(f"| {mode} | " + " | ".join(_interval(poi.get(k), 2) for k, _, _ in TABLE_METRICS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from hrn_pyg.rl.tasks import TASKS
+
+    parser.add_argument("--task", choices=sorted(TASKS), required=True)
+    parser.add_argument("--runs", required=True, help="a sweep folder (<mode>/seed<k>/log.csv)")
+    parser.add_argument("--out", default=None, help="default RUNS/rl_<task>_summary.json")
+    parser.add_argument("--resamples", type=int, default=RESAMPLES, help="bootstrap resamples")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.resamples < 1:
+        raise ValueError(f"--resamples must be >= 1, got {args.resamples}")
+    out = Path(args.out) if args.out else Path(args.runs) / f"rl_{args.task}_summary.json"
+    summary = write_task_summary(args.runs, args.task, out, resamples=args.resamples, finished_only=True)
+    print(summary_markdown(summary), end="")
+    checks = summary["checks"]
+    print(f"seeds per mode {checks['seeds_per_mode']} (enough: {checks['enough_seeds']}); "
+          f"near-miss share at update 0 enough: {checks['near_miss_share_enough']}; wrote {out}")
+    return 0

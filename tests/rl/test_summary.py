@@ -4,13 +4,16 @@ import math
 
 import pytest
 
+from hrn_pyg.cli import main
 from hrn_pyg.rl.success_curve import EVAL_FIELDS
 from hrn_pyg.rl.summary import (
+    run_finished,
     run_record,
     share_by_part,
     task_summary,
     write_task_summary,
 )
+from hrn_pyg.utils.checkpoint import save_checkpoint
 
 #: per mode and seed: pybullet success at frames 0, 100, 200, and the partial-hit share per update
 RUNS = {
@@ -38,7 +41,8 @@ def _write_runs(root):
                 for i, s in enumerate(success):
                     w.writerow({"step": 2 * i, "update": 2 * i, "frames": 100 * i, "model_success_rate": 1.0,
                                 "model_mean_length": 5.0, "pybullet_success_rate": s,
-                                "pybullet_mean_length": 6.0, "agreement": s})
+                                "pybullet_mean_length": 6.0, "agreement": s,
+                                "closed_loop_success_rate": s / 2, "closed_loop_mean_length": 7.0})
 
 
 def test_run_record_by_hand(tmp_path):
@@ -50,6 +54,8 @@ def test_run_record_by_hand(tmp_path):
     assert rec["pybullet_frames_to_50"] == 0 and rec["pybullet_frames_to_80"] == 100
     assert rec["pybullet_success_auc"] == pytest.approx((100 * 0.75 + 100 * 1.0) / 200)
     assert rec["mean_length"] == pytest.approx(9.5) and rec["updates"] == 4
+    assert rec["closed_loop_frames_to_50"] == 100 and rec["closed_loop_frames_to_80"] == math.inf
+    assert rec["closed_loop_success_auc"] == pytest.approx((100 * 0.375 + 100 * 0.5) / 200)
     never = run_record(tmp_path / "deterministic" / "seed2")
     assert never["pybullet_frames_to_50"] == math.inf
 
@@ -132,3 +138,27 @@ def _old_log(root):
         csv.writer(fh).writerows([["step", "update", "frames", "mean_episode_length", "partial_hit_share"],
                                   [0, 0, 10, 8.0, 0.0]])
     return run
+
+
+def _save_policy(run, update, updates):
+    save_checkpoint(run / "policy.pt", {"model": {}, "update": update,
+                                         "config": json.dumps({"ppo": {"updates": updates}})})
+
+
+def test_summary_command_leaves_out_runs_under_way(tmp_path, capsys):
+    _write_runs(tmp_path)
+    for mode, seeds in RUNS.items():
+        for seed in seeds:
+            _save_policy(tmp_path / mode / f"seed{seed}", 4, 4)
+    _save_policy(tmp_path / "stochastic" / "seed2", 2, 4)  # under way
+    (tmp_path / "deterministic" / "seed1" / "policy.pt").unlink()  # never saved
+    assert run_finished(tmp_path / "stochastic" / "seed0") and not run_finished(tmp_path / "stochastic" / "seed2")
+    out = tmp_path / "summary.json"
+    assert main(["rl", "summary", "--task", "tower", "--runs", str(tmp_path), "--out", str(out),
+                 "--resamples", "50"]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["modes"]["stochastic"]["seeds"] == [0, 1]
+    assert summary["modes"]["deterministic"]["seeds"] == [0, 2]
+    printed = capsys.readouterr().out
+    assert "| stochastic | 2 |" in printed and "probability of improvement over deterministic" in printed
+    assert main(["rl", "summary", "--task", "tower", "--runs", str(tmp_path / "none")]) == 2
