@@ -161,7 +161,7 @@ def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, go
         for t in range(task.max_steps):  # a loop over time steps
             roots = torch.cat([now, now - prev], -1)
             action = act(torch.cat([roots.flatten(), goal])[None]).clamp(-task.max_force, task.max_force)
-            forces = action_to_forces(task, action.cpu())[0]
+            forces = action_to_forces(task, action)[0]
             prev, now = now, centres(scene.step(forces.double().numpy()))
             if bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)):
                 return {"success": True, "steps": t + 1}

@@ -156,7 +156,8 @@ def success_auc(frames: Sequence[float], success: Sequence[float]) -> float:
 
 
 def curve_summary(curve: dict[str, list[float]], levels: Sequence[float] = LEVELS) -> dict[str, float]:
-    """Per judge (``model``; ``pybullet`` and ``closed_loop`` when present, :data:`JUDGES`): frames to each level, AUC and the last
+    """Per judge (``model``; ``pybullet`` and ``closed_loop`` when present, :data:`JUDGES`):
+    frames to each level, AUC and the last
     evaluation's success, keyed ``<judge>_frames_to_<level%>``, ``<judge>_success_auc``,
     ``<judge>_final_success``; plus ``eval_points``, ``eval_frames`` (the last)."""
     frames = curve["frames"]

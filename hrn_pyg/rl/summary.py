@@ -25,8 +25,7 @@ and is written as ``null`` (strict JSON has no infinity).
 
 ``hrn-pyg rl summary --task T --runs DIR [--out PATH]`` writes the summary of the finished runs
 a sweep folder holds so far (of a sweep cut short too; a run under way is left out) and prints
-its main table
-(:func:`summary_markdown`).
+its main table (:func:`summary_markdown`).
 """
 
 from __future__ import annotations
