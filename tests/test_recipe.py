@@ -415,21 +415,20 @@ def test_a_dataset_from_a_scene_file_generates_with_it_and_changes_with_its_text
 def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart():
     from hrn_pyg.data.scene_file import builtin_scene, read_scene_file
 
-    recipe = load_recipe(REPO / "data" / "shapes" / "recipe.toml")
+    recipe = load_recipe(REPO / "data" / "recipes.toml")
+    model = next(m for m in recipe.models if m.name == "shapes")
+    datasets = [recipe.dataset(n) for n in (model.dataset, *model.extra_datasets())]
     spans = []
-    for dataset in recipe.datasets:
+    for dataset in datasets:
         spec = read_scene_file(REPO / dataset.scene) if dataset.from_file else builtin_scene(dataset.scene)
         assert dataset.steps == spec.config.steps
         spans.append((dataset.seed_offset, dataset.seed_offset + dataset.episodes))
     spans.sort()
     assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))  # they train together
-    model = recipe.models[0]
-    assert set(model.extra_datasets()) | {model.dataset} == {d.name for d in recipe.datasets}
-    shared = load_recipe(REPO / "data" / "recipes.toml").dataset("cube_collision")
-    assert recipe.dataset("cube_collision") == shared  # one dataset, the same in both recipes
+    assert {d.name for d in datasets} >= {"shapes_drop", "shapes_soft", "cube_collision"}
     # calibrated on the validation episodes of all its datasets, the folders naming the scenes
     args = model.calibrate_args(recipe.dataset(model.dataset).scene, Path("runs"),
-                                [Path("data") / n for n in (model.dataset, *model.extra_datasets())])
+                                [Path("data") / d.name for d in datasets])
     assert args[:9] == ["calibrate", "--data", "data/shapes_drop", "--data", "data/shapes_push", "--data",
                         "data/soft_bounce_shapes", "--data", "data/cube_collision"]
     assert "--scene" not in args and args[args.index("--starts") + 1] == "2"
