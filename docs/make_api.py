@@ -74,6 +74,7 @@ MODULES = (
     "hrn_pyg.rl.curves",
     "hrn_pyg.rl.stats",
     "hrn_pyg.rl.summary",
+    "hrn_pyg.rl.summary_figure",
     "hrn_pyg.recipe",
 )
 

@@ -23,9 +23,10 @@ Reads every run under a sweep folder (``<mode>/seed<k>/log.csv`` and, with ``--e
 A run that never reaches a success level counts as :math:`+\\infty` frames in the statistics
 and is written as ``null`` (strict JSON has no infinity).
 
-``hrn-pyg rl summary --task T --runs DIR [--out PATH]`` writes the summary of the finished runs
-a sweep folder holds so far (of a sweep cut short too; a run under way is left out) and prints
-its main table (:func:`summary_markdown`).
+``hrn-pyg rl summary --task T --runs DIR [--out PATH] [--figure PNG]`` writes the summary of the
+finished runs a sweep folder holds so far (of a sweep cut short too; a run under way is left out),
+prints its main table (:func:`summary_markdown`) and draws its picture
+(:func:`hrn_pyg.rl.summary_figure.plot_summary`).
 """
 
 from __future__ import annotations
@@ -323,6 +324,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", required=True, help="a sweep folder (<mode>/seed<k>/log.csv)")
     parser.add_argument("--out", default=None, help="default RUNS/rl_<task>_summary.json")
     parser.add_argument("--resamples", type=int, default=RESAMPLES, help="bootstrap resamples")
+    parser.add_argument("--figure", default=None,
+                        help="also draw the summary's four panels to this picture (hrn_pyg.rl.summary_figure)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -331,6 +334,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.runs) / f"rl_{args.task}_summary.json"
     summary = write_task_summary(args.runs, args.task, out, resamples=args.resamples, finished_only=True)
     print(summary_markdown(summary), end="")
+    if args.figure:
+        from hrn_pyg.rl.summary_figure import plot_summary
+
+        plot_summary(json.loads(out.read_text()), args.figure)
+        print(f"drew {args.figure}")
     checks = summary["checks"]
     print(f"seeds per mode {checks['seeds_per_mode']} (enough: {checks['enough_seeds']}); "
           f"near-miss share at update 0 enough: {checks['near_miss_share_enough']}; wrote {out}")
