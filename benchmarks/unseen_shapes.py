@@ -336,7 +336,7 @@ def main() -> int:
     parser.add_argument("--no-time", action="store_true")
     parser.add_argument("--quick", action="store_true", help="stride 30, no rest or time sections")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--mirror-average", choices=("x", "xy"), default=None,
+    parser.add_argument("--mirror-average", choices=("x", "xy", "d4"), default=None,
                         help="apply the model averaged over these mirrors (HRNConfig.mirror_planes) everywhere")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")

@@ -37,11 +37,18 @@ STATE_DIM = sum(d for _, d in STATE_LAYOUT)
 #: the extra state column of ``HRNConfig.ground_contact``: height clipped at the collision radius
 GROUND_CONTACT_DIM = 1
 
-#: the reflection groups of ``HRNConfig.mirror_planes``: each element as the axes it negates
-MIRROR_GROUPS: dict[str, tuple[tuple[int, ...], ...]] = {
+#: marks a group element that exchanges x and y before it negates its axes
+SWAP_XY = "swap_xy"
+#: the groups of ``HRNConfig.mirror_planes``: each element as the axes it negates, after
+#: exchanging x and y where it holds :data:`SWAP_XY` (``d4``: the eight signed permutations of x
+#: and y, the symmetries of the square voxel lattice in the ground plane)
+MIRROR_GROUPS: dict[str, tuple[tuple[int | str, ...], ...]] = {
     "x": ((), (0,)),
     "xy": ((), (0,), (1,), (0, 1)),
+    "d4": ((), (0,), (1,), (0, 1), (SWAP_XY,), (SWAP_XY, 0), (SWAP_XY, 1), (SWAP_XY, 0, 1)),
 }
+#: the axis order of an element with :data:`SWAP_XY` (a swap is its own inverse)
+SWAPPED_AXES = (1, 0, 2)
 
 #: direction of gravity, z up
 GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
@@ -77,6 +84,8 @@ class HRNConfig:
             half-turn about z; four passes). With ``"xy"`` a body that a half-turn about its
             vertical axis maps onto itself (a resting cube, a centred stack of cubes) gets no
             horizontal velocity of its own making: a learnt bias cannot make it creep.
+            ``"d4"`` adds the exchange of x and y (eight passes: the four of ``"xy"`` and the
+            quarter-turns about z with their mirrors), the symmetries of the voxel lattice.
     """
 
     hidden: int = 64
@@ -112,9 +121,10 @@ class HRNConfig:
                              f"got {self.mirror_planes!r}")
 
     @property
-    def mirror_group(self) -> tuple[tuple[int, ...], ...]:
-        """The reflections the network is averaged over, each as the axes it negates (``()`` is
-        the identity); just the identity without ``mirror_average``."""
+    def mirror_group(self) -> tuple[tuple[int | str, ...], ...]:
+        """The transforms the network is averaged over, each as the axes it negates (``()`` is
+        the identity; :data:`SWAP_XY` in it: x and y exchanged first); just the identity without
+        ``mirror_average``."""
         return MIRROR_GROUPS[self.mirror_planes] if self.mirror_average else ((),)
 
     @property
@@ -301,7 +311,9 @@ class HRN(nn.Module):
         flips = self.mirror_signs.to(inputs.pos.dtype)  # [G, 3]
         total = None
         for axes, flip, pass_masks in zip(group, flips, split_mirror_masks(masks, len(group))):
-            if axes:  # the scene reflected, the answer reflected back (a reflection is its own inverse)
+            if SWAP_XY in axes:  # the scene turned, the answer turned back
+                out = unswap_normalised(self._pass(swapped_inputs(inputs, norm, flip), pass_masks), mean, std, flip)
+            elif axes:  # the scene reflected, the answer reflected back (a reflection is its own inverse)
                 out = reflect_normalised(self._pass(mirror_inputs(inputs, norm, flip), pass_masks), mean, std, flip)
             else:
                 out = self._pass(inputs, pass_masks)
@@ -336,7 +348,7 @@ class HRN(nn.Module):
         )
 
 
-def reflection_signs(group: tuple[tuple[int, ...], ...]) -> Tensor:
+def reflection_signs(group: tuple[tuple[int | str, ...], ...]) -> Tensor:
     """``[G, 3]`` float: for each reflection of ``group`` (the axes it negates), -1 on those
     axes and +1 on the others (the buffer ``HRN.mirror_signs``)."""
     return torch.tensor([[-1.0 if a in axes else 1.0 for a in range(3)] for axes in group])
@@ -375,6 +387,47 @@ def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor | None
         pos=inputs.pos * flip,
         force=inputs.force * flip,
         rest_pos=None if inputs.rest_pos is None else inputs.rest_pos * flip,
+    )
+
+
+def swap_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor) -> Tensor:
+    r"""The first three columns of ``x = (v - mean) / std`` for the turned vector
+    :math:`v \mapsto f \odot P v` (:math:`P` exchanges x and y; ``flip`` :math:`f`, entries
+    :math:`\pm 1`): the vector is denormalised, turned and normalised again, since x and y have
+    statistics of their own; the other columns as they are.
+
+    **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
+    ``[N, 3]``); ``flip`` ``[3]``.
+    """
+    v = x[:, :3] * std + mean
+    turned = v[:, SWAPPED_AXES] * flip
+    return torch.cat([(turned - mean) / std, x[:, 3:]], dim=-1)
+
+
+def unswap_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor) -> Tensor:
+    r"""The inverse of :func:`swap_normalised`: :math:`v' \mapsto P (f \odot v')` on the first
+    three columns of ``x = (v' - mean) / std``. **Shapes:** as :func:`swap_normalised`."""
+    v = x[:, :3] * std + mean
+    back = (v * flip)[:, SWAPPED_AXES]
+    return torch.cat([(back - mean) / std, x[:, 3:]], dim=-1)
+
+
+def swapped_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor) -> HRNInputs:
+    r"""The network inputs of the scene under :math:`v \mapsto f \odot P v` (x and y exchanged,
+    then the axes where ``flip`` is -1 negated): a quarter-turn about z or a diagonal mirror.
+
+    Velocities keep their normalisation (:func:`swap_normalised`); forces are scaled per axis, so
+    they are turned in newtons; positions and rest positions share one length scale. Edges,
+    masses, materials, heights and the gravity column do not change.
+    """
+    v_mean, v_std = normalizer.velocity_mean, normalizer.velocity_std
+    zero = torch.zeros_like(normalizer.force_std)
+    return inputs._replace(
+        state=swap_normalised(inputs.state, v_mean, v_std, flip),
+        prev_state=swap_normalised(inputs.prev_state, v_mean, v_std, flip),
+        pos=inputs.pos[:, SWAPPED_AXES] * flip,
+        force=swap_normalised(inputs.force, zero, normalizer.force_std, flip),
+        rest_pos=None if inputs.rest_pos is None else inputs.rest_pos[:, SWAPPED_AXES] * flip,
     )
 
 

@@ -1,12 +1,19 @@
-"""The mirror average of HRNConfig.mirror_average: exact equivariance under x -> -x, and with
-``mirror_planes="xy"`` under y -> -y and the half-turn about z too."""
+"""The mirror average of HRNConfig.mirror_average: exact equivariance under x -> -x, with
+``mirror_planes="xy"`` under y -> -y and the half-turn about z too, and with ``"d4"`` under the
+quarter-turns about z and the diagonal mirrors as well."""
 
 import pytest
 import torch
 from toy_scene import structure, toy_window, trajectory
 
 from hrn_pyg.data.graph import set_state
-from hrn_pyg.nn.hrn import HRN, HRNConfig, reflect_normalised
+from hrn_pyg.nn.hrn import (
+    HRN,
+    HRNConfig,
+    reflect_normalised,
+    swap_normalised,
+    unswap_normalised,
+)
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sim.step import build_inputs, step
 
@@ -134,7 +141,7 @@ def test_a_half_turn_symmetric_body_at_rest_gets_no_horizontal_velocity_of_its_o
 
 
 def test_bad_mirror_planes_say_which_are_allowed():
-    with pytest.raises(ValueError, match=r"mirror_planes must be one of \['x', 'xy'\], got 'z'"):
+    with pytest.raises(ValueError, match=r"mirror_planes must be one of \['d4', 'x', 'xy'\], got 'z'"):
         HRNConfig(mirror_planes="z")
     assert HRNConfig(mirror_average=True, mirror_planes="xy").mirror_group == ((), (0,), (1,), (0, 1))
     assert HRNConfig(mirror_planes="xy").mirror_group == ((),)  # the planes act only with the average
@@ -165,3 +172,53 @@ def test_the_reflection_signs_are_a_buffer_of_the_module_not_of_the_checkpoint()
                     store[key] = value.double()
         doubled = step(model, g).pos
     torch.testing.assert_close(doubled.float(), single, atol=1e-5, rtol=0)
+
+
+def _turned(v: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
+    """``f * P v``: x and y exchanged, then the axes where ``flip`` is -1 negated."""
+    return v[..., [1, 0, 2]] * flip
+
+
+@pytest.mark.parametrize("flip", [torch.tensor(f) for f in ([-1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, -1.0, 1.0])],
+                         ids=["quarter-turn", "diagonal", "three-quarter-turn"])
+@pytest.mark.parametrize("kw", [{"rigid_fit": True, "ground_contact": True}, {"rest_offsets": True}])
+def test_the_d4_average_is_equivariant_under_the_quarter_turns_and_diagonal_mirrors(flip, kw):
+    """mirror_planes="d4": f(g s) = g f(s) for g = f * P (P exchanges x and y), though the
+    normaliser's x and y statistics differ; the xy average is not equivariant under them."""
+    model = _model(mirror_average=True, mirror_planes="d4", **kw)
+    assert not torch.allclose(model.normalizer.velocity_std[0], model.normalizer.velocity_std[1])
+    leaves = trajectory(2, 0)
+    force = torch.zeros(14, 3)
+    force[0] = torch.tensor([0.5, 0.2, 2.0])
+
+    def scene(turn: bool):
+        ls, fs = (_turned(leaves, flip), _turned(force, flip)) if turn else (leaves, force)
+        return set_state(structure(), ls[0], ls[1], ls[2], radius=0.08, force=fs)
+
+    with torch.no_grad():
+        pos = step(model, scene(False)).pos
+        pos_g = step(model, scene(True)).pos
+        torch.testing.assert_close(pos_g, _turned(pos, flip), atol=1e-6, rtol=0)
+        xy = _model(mirror_average=True, mirror_planes="xy", **kw)
+        gap = (step(xy, scene(True)).pos - _turned(step(xy, scene(False)).pos, flip)).abs().max()
+    assert gap > 1e-5  # against a tolerance of 1e-6 above
+
+
+def test_swap_normalised_turns_the_value_and_unswap_undoes_it():
+    mean, std = torch.tensor([0.3, -0.1, 2.0]), torch.tensor([2.0, 1.0, 0.5])
+    flip = torch.tensor([1.0, -1.0, 1.0])
+    v = torch.randn(5, 4)
+    x = torch.cat([(v[:, :3] - mean) / std, v[:, 3:]], dim=-1)
+    turned = swap_normalised(x, mean, std, flip)
+    torch.testing.assert_close(turned[:, :3], (_turned(v[:, :3], flip) - mean) / std)
+    torch.testing.assert_close(turned[:, 3:], x[:, 3:])  # other columns untouched
+    torch.testing.assert_close(unswap_normalised(turned, mean, std, flip), x)
+
+
+def test_d4_draws_eight_mask_blocks():
+    model = _model(mirror_average=True, mirror_planes="d4")
+    assert len(model.config.mirror_group) == 8 and model.sample_masks(2, rate=0.1)["force"].shape == (16, 16)
+    masks = model.sample_masks(1, rate=0.3, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        inputs = build_inputs(model, _scene(False))
+        assert (model(inputs, masks) - model(inputs)).abs().max() > 1e-3
