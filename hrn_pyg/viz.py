@@ -46,7 +46,8 @@ VIEW = (18, -72)
 ZOOM = 1.1
 
 
-def _plt():
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (files only, no display), imported on first use."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,7 +162,7 @@ def _static_mask(colors, n_leaves: int, static: np.ndarray | None) -> np.ndarray
 
 def save_figure(fig, path: str | os.PathLike, dpi: float | None = None) -> None:
     """Write a matplotlib figure atomically (format from the suffix, PNG by default), then close it."""
-    plt = _plt()
+    plt = pyplot()
     suffix = os.path.splitext(str(path))[1]
     with atomic_path(path, suffix=suffix) as tmp:
         fig.savefig(tmp, format=suffix[1:] or "png", dpi=dpi)
@@ -177,7 +178,7 @@ def rollout_grid(rows: dict[str, np.ndarray], times: Sequence[int], colors, path
 
     Shapes: each ``rows[name]`` is ``[T, L, 3]``; ``colors`` is ``[L]``.
     """
-    plt = _plt()
+    plt = pyplot()
     reference = next(iter(rows.values()))
     limits = scene_limits(reference[list(times)])
     fig = plt.figure(figsize=(1.9 * len(times), 1.9 * len(rows)), dpi=100)
@@ -225,7 +226,7 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
     Shapes: ``truth`` ``[T, L, 3]``, ``samples`` ``[K, T, L, 3]``, ``colors`` ``[L]``,
     ``static`` ``[L]`` bool.
     """
-    plt = _plt()
+    plt = pyplot()
     static = _static_mask(colors, truth.shape[1], static)
     limits = scene_limits(truth[list(times)], _bulk(samples[:, list(times)][:, :, ~static]), pad=SAMPLES_PAD)
     extent = limits[:, 1] - limits[:, 0]
@@ -253,7 +254,7 @@ def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fp
     """
     import imageio.v2 as imageio
 
-    plt = _plt()
+    plt = pyplot()
     arrays = list(frames.values())
     static = _static_mask(colors, arrays[0].shape[1], static)
     if samples is None:

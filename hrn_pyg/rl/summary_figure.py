@@ -22,7 +22,7 @@ import os
 from typing import Any
 
 from hrn_pyg.rl.tasks import MODES
-from hrn_pyg.viz import _plt, save_figure
+from hrn_pyg.viz import pyplot, save_figure
 
 #: one colour per mode, the same in every panel (matplotlib's tab10 order)
 MODE_COLORS = {mode: f"C{i}" for i, mode in enumerate(MODES)}
@@ -58,7 +58,7 @@ def plot_summary(summary: dict[str, Any], path: str | os.PathLike, title: str | 
     for key in ("task", "modes", "iqm_curves", "performance_profiles", "baseline"):
         if key not in summary:
             raise ValueError(f"not a sweep summary: no {key!r} key")
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(19, 4.2))
     modes = [m for m in MODES if m in summary["modes"]]
     seeds = {m: summary["modes"][m]["n"] for m in modes}
