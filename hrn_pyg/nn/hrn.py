@@ -390,7 +390,7 @@ def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor | None
     )
 
 
-def swap_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor) -> Tensor:
+def swap_normalised(x: Tensor, mean: Tensor | float, std: Tensor, flip: Tensor) -> Tensor:
     r"""The first three columns of ``x = (v - mean) / std`` for the turned vector
     :math:`v \mapsto f \odot P v` (:math:`P` exchanges x and y; ``flip`` :math:`f`, entries
     :math:`\pm 1`): the vector is denormalised, turned and normalised again, since x and y have
@@ -406,10 +406,9 @@ def swap_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor) -> Tenso
 
 def unswap_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor) -> Tensor:
     r"""The inverse of :func:`swap_normalised`: :math:`v' \mapsto P (f \odot v')` on the first
-    three columns of ``x = (v' - mean) / std``. **Shapes:** as :func:`swap_normalised`."""
-    v = x[:, :3] * std + mean
-    back = (v * flip)[:, SWAPPED_AXES]
-    return torch.cat([(back - mean) / std, x[:, 3:]], dim=-1)
+    three columns of ``x = (v' - mean) / std``, which is :func:`swap_normalised` with the signs
+    exchanged too (:math:`P (f \odot v') = (P f) \odot P v'`). **Shapes:** as :func:`swap_normalised`."""
+    return swap_normalised(x, mean, std, flip[list(SWAPPED_AXES)])
 
 
 def swapped_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor) -> HRNInputs:
@@ -421,12 +420,11 @@ def swapped_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor) -> H
     masses, materials, heights and the gravity column do not change.
     """
     v_mean, v_std = normalizer.velocity_mean, normalizer.velocity_std
-    zero = torch.zeros_like(normalizer.force_std)
     return inputs._replace(
         state=swap_normalised(inputs.state, v_mean, v_std, flip),
         prev_state=swap_normalised(inputs.prev_state, v_mean, v_std, flip),
         pos=inputs.pos[:, SWAPPED_AXES] * flip,
-        force=swap_normalised(inputs.force, zero, normalizer.force_std, flip),
+        force=swap_normalised(inputs.force, 0.0, normalizer.force_std, flip),  # scale-only
         rest_pos=None if inputs.rest_pos is None else inputs.rest_pos[:, SWAPPED_AXES] * flip,
     )
 
