@@ -133,7 +133,7 @@ def guarded_rollout(model, windows: list, steps: int, device: torch.device | str
 
 
 def per_object_errors(pred: Tensor, truth: Tensor, graph: Batch) -> dict[str, Tensor]:
-    """Position and shape error of each object of each trajectory copy at one time.
+    r"""Position and shape error of each object of each trajectory copy at one time.
 
     The position error is the mean over the object's moving leaves of
     :math:`\frac{1}{3}\lVert \hat x_l - x_l \rVert^2`, the shape error the fully-connected
