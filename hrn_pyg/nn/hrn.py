@@ -349,8 +349,9 @@ class HRN(nn.Module):
 
 
 def reflection_signs(group: tuple[tuple[int | str, ...], ...]) -> Tensor:
-    """``[G, 3]`` float: for each reflection of ``group`` (the axes it negates), -1 on those
-    axes and +1 on the others (the buffer ``HRN.mirror_signs``)."""
+    """``[G, 3]`` float: for each element of ``group`` (the axes it negates, after exchanging x
+    and y where it holds :data:`SWAP_XY`), -1 on those axes and +1 on the others (the buffer
+    ``HRN.mirror_signs``)."""
     return torch.tensor([[-1.0 if a in axes else 1.0 for a in range(3)] for axes in group])
 
 
