@@ -6,7 +6,8 @@ rewarded 1 and the episode terminates (the first such sample becomes the next st
 one sample, drawn uniformly with the environment's generator, becomes the next state, and the
 reward is the task's ``step_penalty`` (0 by default, so returns are 1 on success and 0 otherwise
 and the discount alone favours short episodes). The episode is truncated after
-``task.max_steps`` steps.
+``task.max_steps`` steps. A task with ``hold_steps`` :math:`H > 1` ends (and rewards 1) only
+after :math:`H` goal-reaching steps in a row; each of them is judged over the samples as above.
 
 Without relaxation (``relax=False``, the ``stochastic_unrelaxed`` training mode) the drawn
 sample is the next state whatever the others do, and the reward is that sample's own goal test:
@@ -52,7 +53,10 @@ class HRNEnv(EnvBase):
     with dropout rate :math:`p` = :attr:`dropout_rate`, an attribute a schedule may change
     between PPO updates (:meth:`set_dropout_rate` does the same through ``ParallelEnv``).
     With ``relax=False`` the next state is always the drawn sample
-    :math:`s^{(u)}_{t+1}` and :math:`r_t = \mathbb 1[\mathrm{goal}(s^{(u)}_{t+1})]`.
+    :math:`s^{(u)}_{t+1}` and :math:`r_t = \mathbb 1[\mathrm{goal}(s^{(u)}_{t+1})]`. With
+    ``task.hold_steps`` :math:`H > 1` the goal event :math:`h_t` (the indicator above) feeds a
+    count :math:`c_{t+1} = (c_t + 1)\, h_t`, and the episode terminates with reward 1 when
+    :math:`c_{t+1} \ge H` (``step_penalty`` otherwise).
 
     Specs (``B`` = ``batch_size``, ``O`` objects, ``S`` = ``dynamics.state_dim``,
     ``A`` = ``task.action_dim``; ``env.specs`` prints them in full)::
@@ -62,8 +66,9 @@ class HRNEnv(EnvBase):
             state:       Unbounded((B, S), float32)        # what the dynamics continues from
             goal:        Unbounded((B, 2), float32)
             t:           Unbounded((B, 1), int64)          # steps taken in this episode
+            held:        Unbounded((B, 1), int64)          # goal-reaching steps in a row, up to now
             goal_hits:   Unbounded((B, 1), int64)          # samples of the last step in the goal (0 at reset)
-        state_spec:      Composite(state, goal, t)          # read back by _step
+        state_spec:      Composite(state, goal, t, held)    # read back by _step
         action_spec:     Bounded((B, A), float32, low=-max_force, high=max_force)   # Newton
         reward_spec:     Unbounded((B, 1), float32)
         done_spec:       Composite(done, terminated, truncated: Categorical((B, 1), bool))
@@ -150,6 +155,7 @@ class HRNEnv(EnvBase):
             state=Unbounded(shape=(*B, dyn.state_dim), dtype=torch.float32),
             goal=Unbounded(shape=(*B, GOAL_DIM), dtype=torch.float32),
             t=Unbounded(shape=(*B, 1), dtype=torch.int64),
+            held=Unbounded(shape=(*B, 1), dtype=torch.int64),
             shape=B,
         )
         self.observation_spec = Composite(
@@ -191,6 +197,7 @@ class HRNEnv(EnvBase):
                 "state": state,
                 "goal": goal,
                 "t": torch.zeros(B, 1, dtype=torch.int64, device=self.device),
+                "held": torch.zeros(B, 1, dtype=torch.int64, device=self.device),
                 "goal_hits": torch.zeros(B, 1, dtype=torch.int64, device=self.device),
                 "done": false,
                 "terminated": false.clone(),
@@ -214,7 +221,8 @@ class HRNEnv(EnvBase):
         in_goal = goal_reached(self.task, self.dynamics.roots(samples), goal.unsqueeze(1))  # (B, k)
         next_state, hit = choose_next(in_goal, samples, self.rng, self.relax)
         t_next = t + 1
-        terminated = hit.unsqueeze(-1)
+        held = (tensordict["held"] + 1) * hit.unsqueeze(-1)
+        terminated = held >= self.task.hold_steps
         truncated = (t_next >= self.task.max_steps) & ~terminated
         reward = torch.where(terminated, 1.0, self.task.step_penalty).to(torch.float32)
         return TensorDict(
@@ -223,6 +231,7 @@ class HRNEnv(EnvBase):
                 "state": next_state,
                 "goal": goal,
                 "t": t_next,
+                "held": held,
                 "goal_hits": in_goal.sum(-1, keepdim=True),
                 "reward": reward,
                 "done": terminated | truncated,
@@ -297,8 +306,9 @@ def near_miss_share(goal_hits: Tensor, k: int, mask: Tensor | None = None) -> fl
     .. math:: \frac{\#\{0 < h < k\}}{\#\{h > 0\}},
 
     counted over the steps where ``mask`` is True (None: all). None when no step met the goal.
-    Under relaxation an episode ends at its first goal-reaching step, so the partial-hit share
-    over all steps is at most one over the mean episode length; this share is not capped.
+    Under relaxation an episode ends at its first goal-reaching step (``hold_steps`` 1), so the
+    partial-hit share over all steps is at most one over the mean episode length; this share
+    is not capped.
 
     **Shapes**: goal_hits any, mask the same (bool) -> a number.
     """

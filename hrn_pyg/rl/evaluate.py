@@ -55,7 +55,8 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
     The ground-truth check of a policy: builds ``hrn_pyg.data.scene_file.make_scene(task, seed)``,
     applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
     judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
-    displacement) after every step, stopping at the first success. ``goal`` ``(2,)`` is the
+    displacement) after every step, stopping at the first success (the ``hold_steps``-th
+    goal-reaching step in a row). ``goal`` ``(2,)`` is the
     episode's goal point; ``None`` is allowed only for ``tower``, whose goal point is the
     middle cube's initial position. For the comparison to mean anything the learned
     environment's episode must start from this scene's initial state (the learned dynamics'
@@ -94,13 +95,14 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
                 raise ValueError(f"goal: task {task.name!r} needs the episode's goal point")
             goal = prev[task.goal_objects[0], :2]
         goal = torch.as_tensor(goal, dtype=torch.float32).cpu()
-        success = False
+        success, held = False, 0
         for f in forces:
             frames.append(torch.as_tensor(scene.step(f.double().numpy()), dtype=torch.float32))
             now = centres(frames[-1])
             roots.append(torch.cat([now, now - prev], -1))
             prev = now
-            if bool(goal_reached(task, roots[-1], goal)):
+            held = held + 1 if bool(goal_reached(task, roots[-1], goal)) else 0
+            if held >= task.hold_steps:
                 success = True
                 break
     finally:
@@ -158,12 +160,14 @@ def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, go
         prev = now = centres(first)
         for _ in range(history_steps):  # a loop over time steps
             prev, now = now, centres(scene.step(scene.zero_action()))
+        held = 0  # goal-reaching steps in a row
         for t in range(task.max_steps):  # a loop over time steps
             roots = torch.cat([now, now - prev], -1)
             action = act(torch.cat([roots.flatten(), goal])[None]).clamp(-task.max_force, task.max_force)
             forces = action_to_forces(task, action)[0]
             prev, now = now, centres(scene.step(forces.double().numpy()))
-            if bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)):
+            held = held + 1 if bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)) else 0
+            if held >= task.hold_steps:
                 return {"success": True, "steps": t + 1}
     finally:
         scene.close()

@@ -10,7 +10,7 @@ action box.
 - :func:`greedy_push`: push every controlled object at full force straight at its target (the
   goal disc for ``region`` goals, the first goal object otherwise). The baseline a task with
   room to learn must beat.
-- :func:`stop_push` (``cube_push_stop``): a saturated PD law on the cube nearest the goal,
+- :func:`stop_push` (``cube_push_stop``, ``cube_push_hold``): a saturated PD law on the cube nearest the goal,
 
   .. math:: F = \\operatorname{sat}_{F_{\\max}}\\big(k_p (g - x) - k_d v\\big),
 
@@ -162,7 +162,8 @@ def aside_push(task: str | TaskConfig, observation: Tensor, gains: PDGains = ASI
 
 
 #: the best known policy of each task with room to learn
-PLANNERS: dict[str, Planner] = {"cube_push_stop": stop_push, "tower_aside": aside_push}
+PLANNERS: dict[str, Planner] = {"cube_push_stop": stop_push, "cube_push_hold": stop_push,
+                                "tower_aside": aside_push}
 
 
 #: the thresholds are these multiples of the planner's mean in-model length ``L``: a run has
@@ -172,7 +173,8 @@ THRESHOLD_FACTORS = {"learned": 1.5, "near_planner": 1.1}
 #: the planner's mean episode length in the learned model at rate 0 (64 episodes from the RL
 #: pool, failures counted as ``max_steps``), measured by ``benchmarks/planners.py`` and kept in
 #: ``benchmarks/results/planners_<task>.json``
-PLANNER_LENGTHS: dict[str, float] = {"cube_push_stop": 9.921875, "tower_aside": 19.921875}
+PLANNER_LENGTHS: dict[str, float] = {"cube_push_stop": 9.921875, "cube_push_hold": 12.125,
+                                     "tower_aside": 19.921875}
 
 
 def length_thresholds(planner_length: float,

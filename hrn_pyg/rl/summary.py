@@ -250,8 +250,8 @@ def summary_checks(summary: dict) -> dict:
     """Whether the summary can decide: seeds per mode against :data:`MIN_SEEDS`, and the IQM
     partial-hit share at update 0 of each stochastic mode against :data:`MIN_PARTIAL_SHARE`, over
     all steps and over the goal-reaching (near-miss) steps. Under relaxation an episode ends at
-    its first goal-reaching step, so the share over all steps is capped near one over the episode
-    length; the near-miss share is the one a task can be sized by."""
+    its ``hold_steps``-th goal-reaching step in a row, so the share over all steps is capped near
+    ``hold_steps`` over the episode length; the near-miss share is not capped."""
     modes = summary["modes"]
     seeds = {m: s["n"] for m, s in modes.items()}
     share = {m: (s["partial_hit_share_update0"] or {}).get("value") for m, s in modes.items()

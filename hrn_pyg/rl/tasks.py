@@ -1,4 +1,4 @@
-"""The manipulation tasks: the seed paper's two (section 4.3) and two with room to learn;
+"""The manipulation tasks: the seed paper's two (section 4.3) and three with room to learn;
 configs and goal tests.
 
 ``cube_push``: two rigid cubes that pass through each other; the agent pushes the cubes (one
@@ -14,6 +14,11 @@ collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
 step) inside a 3 cm disc drawn 0.15-0.3 m from the origin and at least 0.15 m from both cubes,
 within 20 steps. A full-force push at the goal overshoots; a push that brakes in time
 (:func:`hrn_pyg.rl.planners.stop_push`) succeeds. Dropout 0.3 on the force module.
+
+``cube_push_hold`` (the cube_push scene and model): as ``cube_push_stop``, but the cube must
+stay stopped (slower than 3 mm per step) inside the 3 cm disc for 3 steps in a row. A pass that
+stops for one step does not count; the samples straddle the slower speed bound on most of the
+steps spent holding, so reward relaxation acts on many steps of an episode, not only its last.
 
 ``tower_aside`` (the tower scene and model): the middle cube must reach a 4.5 cm disc 12-15 cm
 beside the tower, on a side at least 45 degrees off the line from the ball to the tower, within
@@ -99,6 +104,9 @@ class TaskConfig:
             when it is also slower than this, metres per step (the root velocity is the
             per-step displacement): the object must *stop* in the disc, not pass through it.
             0: no speed condition.
+        hold_steps: consecutive steps the goal test must hold for the episode to succeed and
+            end; 1: the first goal-reaching step ends it (the seed paper's tasks). With more,
+            the agent must keep the goal object in the goal, not touch it once.
 
     ``aside`` goals (:func:`sample_goal`): a disc of ``goal_radius`` for the goal objects whose
     centre lies ``goal_distance[0]`` to ``goal_distance[1]`` from the first goal object's start,
@@ -106,8 +114,8 @@ class TaskConfig:
     the first controlled object to the first goal object: pushing the controlled object
     straight at the goal object moves it along that line, away from the disc.
 
-    ``scene`` and ``goal_speed`` are left out of :meth:`to_dict` at their defaults, so that the
-    records of runs made before they existed still match.
+    ``scene``, ``goal_speed`` and ``hold_steps`` are left out of :meth:`to_dict` at their
+    defaults, so that the records of runs made before they existed still match.
     """
 
     name: str
@@ -128,10 +136,14 @@ class TaskConfig:
     step_penalty: float = 0.0
     scene: str = ""
     goal_speed: float = 0.0
+    hold_steps: int = 1
 
     def __post_init__(self) -> None:
         if self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if not 1 <= self.hold_steps <= self.max_steps:
+            raise ValueError(f"hold_steps must lie in [1, max_steps={self.max_steps}], "
+                             f"got {self.hold_steps}")
         objs = set(self.controlled_objects) | set(self.goal_objects)
         if not self.controlled_objects or not self.goal_objects:
             raise ValueError("controlled_objects and goal_objects must not be empty")
@@ -176,9 +188,9 @@ class TaskConfig:
         return self.scene or self.name
 
     def to_dict(self) -> dict:
-        """The fields, without ``scene`` and ``goal_speed`` when they hold their defaults."""
+        """The fields, without ``scene``, ``goal_speed`` and ``hold_steps`` at their defaults."""
         out = asdict(self)
-        for key, default in (("scene", ""), ("goal_speed", 0.0)):
+        for key, default in (("scene", ""), ("goal_speed", 0.0), ("hold_steps", 1)):
             if out[key] == default:
                 del out[key]
         return out
@@ -200,13 +212,21 @@ CUBE_PUSH_STOP = TaskConfig(
     goal_objects=(0, 1), goal_radius=0.03, goal_speed=0.005, goal_distance=(0.15, 0.3),
     goal_margin=0.12, dropout_modules=("force",), dropout_rate=0.3, anneal_updates=1200,
 )
+CUBE_PUSH_HOLD = TaskConfig(
+    name="cube_push_hold", scene="cube_push", max_steps=20, num_objects=2,
+    controlled_objects=(0, 1), force_axes=(0, 1), max_force=15.0, goal_kind="region",
+    goal_objects=(0, 1), goal_radius=0.03, goal_speed=0.003, hold_steps=3,
+    goal_distance=(0.15, 0.3), goal_margin=0.12, dropout_modules=("force",), dropout_rate=0.5,
+    anneal_updates=1200,
+)
 TOWER_ASIDE = TaskConfig(
     name="tower_aside", scene="tower", max_steps=40, num_objects=4, controlled_objects=(3,),
     force_axes=(0, 1, 2), max_force=8.0, goal_kind="aside", goal_objects=(1,), goal_radius=0.045,
     goal_distance=(0.12, 0.15), dropout_modules=("force", "collision"), dropout_rate=0.3,
     anneal_updates=1200,
 )
-TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER, CUBE_PUSH_STOP, TOWER_ASIDE)}
+TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER, CUBE_PUSH_STOP, CUBE_PUSH_HOLD,
+                                                     TOWER_ASIDE)}
 
 
 def get_task(task: str | TaskConfig) -> TaskConfig:

@@ -1,6 +1,8 @@
+import dataclasses
+
 import pytest
 import torch
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import check_env_specs, step_mdp
 
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics, dropout_spread
 from hrn_pyg.rl.env import HRNEnv, choose_next, partial_hits, relax_reward
@@ -141,6 +143,41 @@ def test_goal_hits_counts_the_samples_in_the_goal():
     td["goal"] = torch.zeros(3, 2)
     td["action"] = torch.zeros(3, CUBE_PUSH.action_dim)
     assert (env.step(td)["next", "goal_hits"] == 2).all()
+
+
+class ScheduledDynamics(ScriptedDynamics):
+    """Every sample of call n moves object 0 to x = xs[n]: a goal test scheduled step by step."""
+
+    def __init__(self, xs):
+        super().__init__([5.0])
+        self.xs, self.calls = list(xs), 0
+
+    def sample_next(self, states, forces, k, rate, generator):
+        out = super().sample_next(states, forces, 1, rate, generator).repeat_interleave(k, 1)
+        out = out.reshape(out.shape[0], k, 2, 6)
+        out[:, :, 0, 0] = self.xs[self.calls]
+        self.calls += 1
+        return out.reshape(out.shape[0], k, 12)
+
+
+def test_hold_steps_end_the_episode_only_after_that_many_goal_steps_in_a_row():
+    # in the goal (x = 0) at steps 1, 2, 4, 5, 6: the miss at step 3 restarts the count
+    task = dataclasses.replace(CUBE_PUSH, hold_steps=3)
+    dyn = ScheduledDynamics([0.0, 0.0, 5.0, 0.0, 0.0, 0.0, 5.0])
+    env = HRNEnv(task, dyn, batch_size=2, seed=0)
+    td = env.reset()
+    td["goal"] = torch.zeros(2, 2)
+    held, rewards, terminated = [], [], []
+    for _ in range(6):
+        td["action"] = torch.zeros(2, task.action_dim)
+        td = env.step(td)
+        held.append(int(td["next", "held"][0]))
+        rewards.append(float(td["next", "reward"][0]))
+        terminated.append(bool(td["next", "terminated"][0]))
+        td = step_mdp(td)
+    assert held == [1, 2, 0, 1, 2, 3]
+    assert rewards == [0.0] * 5 + [1.0] and terminated == [False] * 5 + [True]
+    check_env_specs(HRNEnv(task, batch_size=2, seed=0))
 
 
 def test_truncated_at_max_steps():

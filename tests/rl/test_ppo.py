@@ -264,6 +264,21 @@ def test_replay_in_pybullet_judges_the_goal_on_ground_truth():
         replay_in_pybullet(still, "cube_push", 5)
 
 
+def test_pybullet_judges_a_held_goal_only_after_hold_steps_in_a_row():
+    from hrn_pyg.rl.evaluate import closed_loop_in_pybullet, replay_in_pybullet
+
+    task = dataclasses.replace(CUBE_PUSH, hold_steps=3)
+    still = torch.zeros(4, task.action_dim)
+    start = replay_in_pybullet(still[:1], task, 5, goal=torch.tensor([9.0, 9.0]))["roots"][0, 0, :2]
+    # the resting cube is in the disc at every step: success at the third, not before
+    assert not replay_in_pybullet(still[:2], task, 5, goal=start)["success"]
+    held = replay_in_pybullet(still, task, 5, goal=start)
+    assert held["success"] and held["steps"] == 3
+    closed = closed_loop_in_pybullet(lambda obs: torch.zeros(1, task.action_dim), task, 5, start,
+                                     history_steps=0)
+    assert closed == {"success": True, "steps": 3}
+
+
 def test_curve_metrics_by_hand():
     from hrn_pyg.rl.curves import smooth, updates_to_reach
 

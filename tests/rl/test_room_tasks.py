@@ -1,4 +1,4 @@
-"""Tasks with room to learn (``cube_push_stop``, ``tower_aside``): configs, goals, planners and
+"""Tasks with room to learn (``cube_push_stop``, ``cube_push_hold``, ``tower_aside``): configs, goals, planners and
 the thresholds the planners set."""
 
 import dataclasses
@@ -27,6 +27,7 @@ from hrn_pyg.rl.planners import (
 )
 from hrn_pyg.rl.tasks import (
     CUBE_PUSH,
+    CUBE_PUSH_HOLD,
     CUBE_PUSH_STOP,
     TASKS,
     TOWER,
@@ -38,11 +39,13 @@ from hrn_pyg.rl.tasks import (
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-NEW_TASKS = (CUBE_PUSH_STOP, TOWER_ASIDE)
+NEW_TASKS = (CUBE_PUSH_STOP, CUBE_PUSH_HOLD, TOWER_ASIDE)
 
 
 def test_old_tasks_are_unchanged_and_new_ones_are_registered():
     # the run records of the old sweeps hold task.to_dict(): no new keys at the defaults
+    for task in (CUBE_PUSH, TOWER, CUBE_PUSH_STOP, TOWER_ASIDE):
+        assert "hold_steps" not in task.to_dict() and task.hold_steps == 1
     for task in (CUBE_PUSH, TOWER):
         assert "scene" not in task.to_dict() and "goal_speed" not in task.to_dict()
         assert task.scene_name == task.name
@@ -60,6 +63,8 @@ def test_old_tasks_are_unchanged_and_new_ones_are_registered():
     {"goal_speed": -0.1},
     {"goal_distance": (0.3, 0.1)},
     {"goal_distance": (0.05, 0.15)},   # an aside disc starting over the goal object
+    {"hold_steps": 0},
+    {"hold_steps": 41},                 # longer than the episode
 ])
 def test_bad_task_configs_raise(change):
     with pytest.raises(ValueError):
