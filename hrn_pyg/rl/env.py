@@ -32,7 +32,9 @@ from hrn_pyg.rl.tasks import (
     TaskConfig,
     action_to_forces,
     get_task,
+    goal_held,
     goal_reached,
+    goal_streak,
     sample_goal,
 )
 
@@ -221,8 +223,8 @@ class HRNEnv(EnvBase):
         in_goal = goal_reached(self.task, self.dynamics.roots(samples), goal.unsqueeze(1))  # (B, k)
         next_state, hit = choose_next(in_goal, samples, self.rng, self.relax)
         t_next = t + 1
-        held = (tensordict["held"] + 1) * hit.unsqueeze(-1)
-        terminated = held >= self.task.hold_steps
+        held = goal_streak(tensordict["held"], hit.unsqueeze(-1))
+        terminated = goal_held(self.task, held)
         truncated = (t_next >= self.task.max_steps) & ~terminated
         reward = torch.where(terminated, 1.0, self.task.step_penalty).to(torch.float32)
         return TensorDict(

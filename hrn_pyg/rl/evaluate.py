@@ -30,7 +30,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from hrn_pyg.data.graph import HISTORY, object_centres
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.tasks import TaskConfig, action_to_forces, get_task, goal_reached
+from hrn_pyg.rl.tasks import (
+    TaskConfig,
+    action_to_forces,
+    get_task,
+    goal_held,
+    goal_reached,
+    goal_streak,
+)
 
 
 @torch.no_grad()
@@ -101,8 +108,8 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
             now = centres(frames[-1])
             roots.append(torch.cat([now, now - prev], -1))
             prev = now
-            held = held + 1 if bool(goal_reached(task, roots[-1], goal)) else 0
-            if held >= task.hold_steps:
+            held = goal_streak(held, bool(goal_reached(task, roots[-1], goal)))
+            if goal_held(task, held):
                 success = True
                 break
     finally:
@@ -166,8 +173,8 @@ def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, go
             action = act(torch.cat([roots.flatten(), goal])[None]).clamp(-task.max_force, task.max_force)
             forces = action_to_forces(task, action)[0]
             prev, now = now, centres(scene.step(forces.double().numpy()))
-            held = held + 1 if bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)) else 0
-            if held >= task.hold_steps:
+            held = goal_streak(held, bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)))
+            if goal_held(task, held):
                 return {"success": True, "steps": t + 1}
     finally:
         scene.close()

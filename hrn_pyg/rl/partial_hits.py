@@ -14,8 +14,8 @@ counted over every step of every episode (an episode ends at the goal or at the 
 The *near-miss share* counts the same steps among the goal-reaching ones (:math:`h_t > 0`),
 :func:`~hrn_pyg.rl.env.near_miss_share`: under relaxation the share over all steps is capped
 near ``hold_steps`` over the episode length, this one is not (a task that must hold its goal
-for several steps, ``cube_push_hold``, lifts that cap). PPO logs both per update over the batch it
-collected (``partial_hit_share`` and ``near_miss_share`` in ``log.csv``);
+for several steps, ``cube_push_hold``, lifts that cap). PPO logs both per update over the
+batch it collected (``partial_hit_share`` and ``near_miss_share`` in ``log.csv``);
 :func:`partial_hit_share` measures it for a uniformly random policy, which is the policy at
 update 0, and :func:`partial_hit_table` for a grid of rates and goal tolerances, so that a rate
 and tolerance with a useful share (say 10-30 % of steps) can be chosen before any training run.
@@ -91,8 +91,8 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
     :math:`H` of them and
     :math:`\text{share} \le \text{any\_hit\_steps} / \text{steps} \lesssim H / \bar T` for
     a mean episode length :math:`\bar T`: with :math:`H = 1` a policy that needs 10 steps
-    cannot exceed 10 % whatever the spread. ``near_miss_share`` says how the spread compares with the goal
-    where it matters (1: every goal-reaching step is straddled).
+    cannot exceed 10 % whatever the spread. ``near_miss_share`` says how the spread compares
+    with the goal where it matters (1: every goal-reaching step is straddled).
     """
     task = get_task(task)
     if episodes < 1 or num_envs < 1:

@@ -10,7 +10,8 @@ action box.
 - :func:`greedy_push`: push every controlled object at full force straight at its target (the
   goal disc for ``region`` goals, the first goal object otherwise). The baseline a task with
   room to learn must beat.
-- :func:`stop_push` (``cube_push_stop``, ``cube_push_hold``): a saturated PD law on the cube nearest the goal,
+- :func:`stop_push` (``cube_push_stop``, ``cube_push_hold``): a saturated PD law on the cube
+  nearest the goal,
 
   .. math:: F = \\operatorname{sat}_{F_{\\max}}\\big(k_p (g - x) - k_d v\\big),
 

@@ -362,3 +362,21 @@ def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     if task.goal_speed > 0:
         inside &= roots[..., list(task.goal_objects), 3:6].norm(dim=-1) <= task.goal_speed
     return inside.any(-1)
+
+
+def goal_streak(held: int | Tensor, reached: bool | Tensor) -> int | Tensor:
+    r"""Goal-reaching steps in a row after one more step: :math:`c_{t+1} = (c_t + 1)\, h_t`.
+
+    ``held`` the count so far and ``reached`` whether this step met the goal, as numbers or as
+    tensors of one shape (int and bool); the episode of a task succeeds when the count reaches
+    ``task.hold_steps`` (:func:`goal_held`). The one rule the environment and the pybullet
+    judges (:mod:`hrn_pyg.rl.evaluate`) share.
+    """
+    return (held + 1) * reached
+
+
+def goal_held(task: TaskConfig, held: int | Tensor) -> bool | Tensor:
+    """Whether a count of goal-reaching steps in a row (:func:`goal_streak`) ends the episode
+    with success: ``held >= task.hold_steps``; a number or a tensor, like ``held``."""
+    return held >= task.hold_steps
+

@@ -6,7 +6,15 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics, dropout_spread
 from hrn_pyg.rl.env import HRNEnv, choose_next, partial_hits, relax_reward
-from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER, action_to_forces, get_task, goal_reached
+from hrn_pyg.rl.tasks import (
+    CUBE_PUSH,
+    TOWER,
+    action_to_forces,
+    get_task,
+    goal_held,
+    goal_reached,
+    goal_streak,
+)
 
 
 class ScriptedDynamics:
@@ -178,6 +186,18 @@ def test_hold_steps_end_the_episode_only_after_that_many_goal_steps_in_a_row():
     assert held == [1, 2, 0, 1, 2, 3]
     assert rewards == [0.0] * 5 + [1.0] and terminated == [False] * 5 + [True]
     check_env_specs(HRNEnv(task, batch_size=2, seed=0))
+
+
+def test_goal_streak_counts_the_same_for_numbers_and_tensors():
+    task = dataclasses.replace(CUBE_PUSH, hold_steps=2)
+    counts, count = [], 0
+    for reached in (True, False, True, True):
+        count = goal_streak(count, reached)
+        counts.append(count)
+    assert counts == [1, 0, 1, 2] and goal_held(task, 2) and not goal_held(task, 1)
+    held = goal_streak(torch.tensor([[0], [1], [4]]), torch.tensor([[True], [True], [False]]))
+    assert held.flatten().tolist() == [1, 2, 0]
+    assert goal_held(task, held).flatten().tolist() == [False, True, False]
 
 
 def test_truncated_at_max_steps():

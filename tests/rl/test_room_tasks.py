@@ -1,5 +1,5 @@
-"""Tasks with room to learn (``cube_push_stop``, ``cube_push_hold``, ``tower_aside``): configs, goals, planners and
-the thresholds the planners set."""
+"""Tasks with room to learn (``cube_push_stop``, ``cube_push_hold``, ``tower_aside``): configs,
+goals, planners and the thresholds the planners set."""
 
 import dataclasses
 import json
