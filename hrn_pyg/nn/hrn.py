@@ -311,10 +311,10 @@ class HRN(nn.Module):
         flips = self.mirror_signs.to(inputs.pos.dtype)  # [G, 3]
         total = None
         for axes, flip, pass_masks in zip(group, flips, split_mirror_masks(masks, len(group))):
-            if SWAP_XY in axes:  # the scene turned, the answer turned back
-                out = unswap_normalised(self._pass(swapped_inputs(inputs, norm, flip), pass_masks), mean, std, flip)
-            elif axes:  # the scene reflected, the answer reflected back (a reflection is its own inverse)
-                out = reflect_normalised(self._pass(mirror_inputs(inputs, norm, flip), pass_masks), mean, std, flip)
+            if axes:  # the scene mapped, the answer mapped back
+                swap = SWAP_XY in axes
+                moved = self._pass(transformed_inputs(inputs, norm, flip, swap), pass_masks)
+                out = untransform_normalised(moved, mean, std, flip, swap)
             else:
                 out = self._pass(inputs, pass_masks)
             total = out if total is None else total + out
@@ -355,78 +355,48 @@ def reflection_signs(group: tuple[tuple[int | str, ...], ...]) -> Tensor:
     return torch.tensor([[-1.0 if a in axes else 1.0 for a in range(3)] for axes in group])
 
 
-def reflect_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor | None = None) -> Tensor:
-    r"""The first three columns of ``x = (v - mean) / std`` for the reflected vector
-    :math:`v \mapsto f \odot v` (``flip`` :math:`f`, entries :math:`\pm 1`; default: the
-    mirror x -> -x): :math:`f \odot x + (f - 1)\,\mathrm{mean} / \mathrm{std}`, i.e.
-    :math:`-x_a - 2\,\mathrm{mean}_a / \mathrm{std}_a` on a negated axis; the other columns as
-    they are.
-
-    **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
-    ``[N, 3]``); ``flip`` ``[3]``.
-    """
-    if flip is None:
-        flip = torch.tensor([-1.0, 1.0, 1.0], dtype=x.dtype, device=x.device)
-    vector = x[:, :3] * flip + (flip - 1.0) * (mean / std)
-    return torch.cat([vector, x[:, 3:]], dim=-1)
-
-
-def mirror_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor | None = None) -> HRNInputs:
-    r"""The network inputs of the scene under the reflection :math:`v \mapsto f \odot v`
-    (``flip`` :math:`f` ``[3]``, entries :math:`\pm 1`; default: the mirror x -> -x).
-
-    Velocities (the first state columns) keep their normalisation; positions, rest positions
-    and forces are scale-only, so their negated columns change sign. Edges, masses, materials,
-    heights and the gravity column do not change.
-    """
-    if flip is None:
-        flip = torch.tensor([-1.0, 1.0, 1.0], dtype=inputs.pos.dtype, device=inputs.pos.device)
-    mean, std = normalizer.velocity_mean, normalizer.velocity_std
-    return inputs._replace(
-        state=reflect_normalised(inputs.state, mean, std, flip),
-        prev_state=reflect_normalised(inputs.prev_state, mean, std, flip),
-        pos=inputs.pos * flip,
-        force=inputs.force * flip,
-        rest_pos=None if inputs.rest_pos is None else inputs.rest_pos * flip,
-    )
-
-
-def swap_normalised(x: Tensor, mean: Tensor | float, std: Tensor, flip: Tensor) -> Tensor:
-    r"""The first three columns of ``x = (v - mean) / std`` for the turned vector
-    :math:`v \mapsto f \odot P v` (:math:`P` exchanges x and y; ``flip`` :math:`f`, entries
-    :math:`\pm 1`): the vector is denormalised, turned and normalised again, since x and y have
-    statistics of their own; the other columns as they are.
+def transform_normalised(x: Tensor, mean: Tensor | float, std: Tensor, flip: Tensor, swap: bool = False) -> Tensor:
+    r"""The first three columns of ``x = (v - mean) / std`` for the vector under the orthogonal
+    map :math:`v \mapsto f \odot P v` (``flip`` :math:`f`, entries :math:`\pm 1`; :math:`P`
+    exchanges x and y when ``swap``, else the identity): the vector is denormalised, mapped and
+    normalised again, since each axis has statistics of its own; the other columns as they are.
+    With ``mean = 0`` this maps a scale-only quantity such as a force.
 
     **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
     ``[N, 3]``); ``flip`` ``[3]``.
     """
     v = x[:, :3] * std + mean
-    turned = v[:, SWAPPED_AXES] * flip
-    return torch.cat([(turned - mean) / std, x[:, 3:]], dim=-1)
+    if swap:
+        v = v[:, SWAPPED_AXES]
+    return torch.cat([(v * flip - mean) / std, x[:, 3:]], dim=-1)
 
 
-def unswap_normalised(x: Tensor, mean: Tensor, std: Tensor, flip: Tensor) -> Tensor:
-    r"""The inverse of :func:`swap_normalised`: :math:`v' \mapsto P (f \odot v')` on the first
-    three columns of ``x = (v' - mean) / std``, which is :func:`swap_normalised` with the signs
-    exchanged too (:math:`P (f \odot v') = (P f) \odot P v'`). **Shapes:** as :func:`swap_normalised`."""
-    return swap_normalised(x, mean, std, flip[list(SWAPPED_AXES)])
+def untransform_normalised(x: Tensor, mean: Tensor | float, std: Tensor, flip: Tensor, swap: bool = False) -> Tensor:
+    r"""The inverse of :func:`transform_normalised`: :math:`v' \mapsto P (f \odot v') = (P f)
+    \odot P v'`, so the same map with the signs exchanged too when ``swap`` (a pure reflection is
+    its own inverse). **Shapes:** as :func:`transform_normalised`."""
+    return transform_normalised(x, mean, std, flip[list(SWAPPED_AXES)] if swap else flip, swap)
 
 
-def swapped_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor) -> HRNInputs:
-    r"""The network inputs of the scene under :math:`v \mapsto f \odot P v` (x and y exchanged,
-    then the axes where ``flip`` is -1 negated): a quarter-turn about z or a diagonal mirror.
+def transformed_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor, swap: bool = False) -> HRNInputs:
+    r"""The network inputs of the scene under :math:`v \mapsto f \odot P v` (x and y exchanged
+    when ``swap``, then the axes where ``flip`` is -1 negated): a mirror, a half- or
+    quarter-turn about z, or a diagonal mirror.
 
-    Velocities keep their normalisation (:func:`swap_normalised`); forces are scaled per axis, so
-    they are turned in newtons; positions and rest positions share one length scale. Edges,
+    Velocities keep their normalisation and forces their per-axis scale
+    (:func:`transform_normalised`); positions and rest positions share one length scale. Edges,
     masses, materials, heights and the gravity column do not change.
     """
+    def move(p: Tensor) -> Tensor:
+        return (p[:, SWAPPED_AXES] if swap else p) * flip
+
     v_mean, v_std = normalizer.velocity_mean, normalizer.velocity_std
     return inputs._replace(
-        state=swap_normalised(inputs.state, v_mean, v_std, flip),
-        prev_state=swap_normalised(inputs.prev_state, v_mean, v_std, flip),
-        pos=inputs.pos[:, SWAPPED_AXES] * flip,
-        force=swap_normalised(inputs.force, 0.0, normalizer.force_std, flip),  # scale-only
-        rest_pos=None if inputs.rest_pos is None else inputs.rest_pos[:, SWAPPED_AXES] * flip,
+        state=transform_normalised(inputs.state, v_mean, v_std, flip, swap),
+        prev_state=transform_normalised(inputs.prev_state, v_mean, v_std, flip, swap),
+        pos=move(inputs.pos),
+        force=transform_normalised(inputs.force, 0.0, normalizer.force_std, flip, swap),
+        rest_pos=None if inputs.rest_pos is None else move(inputs.rest_pos),
     )
 
 

@@ -10,9 +10,8 @@ from hrn_pyg.data.graph import set_state
 from hrn_pyg.nn.hrn import (
     HRN,
     HRNConfig,
-    reflect_normalised,
-    swap_normalised,
-    unswap_normalised,
+    transform_normalised,
+    untransform_normalised,
 )
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sim.step import build_inputs, step
@@ -80,16 +79,18 @@ def test_the_average_of_both_passes_by_hand():
         a = plain(build_inputs(plain, g))
         b = plain(build_inputs(plain, g_m))
         mean, std = plain.normalizer.target_stats(g["particle"].is_root)
-        torch.testing.assert_close(mirror(build_inputs(mirror, g)), 0.5 * (a + reflect_normalised(b, mean, std)))
+        torch.testing.assert_close(mirror(build_inputs(mirror, g)), 0.5 * (a + transform_normalised(b, mean, std, FLIP)))
     assert "mirror_average=True" in repr(mirror) and "mirror_average" not in repr(plain)
 
 
-def test_reflect_normalised_is_an_involution_and_reflects_the_value():
+def test_a_normalised_reflection_is_an_involution_and_reflects_the_value():
     mean, std = torch.tensor([0.3, -0.1, 2.0]), torch.tensor([2.0, 1.0, 0.5])
     v = torch.randn(5, 3)
     x = (v - mean) / std
-    torch.testing.assert_close(reflect_normalised(x, mean, std), (v * FLIP - mean) / std)
-    torch.testing.assert_close(reflect_normalised(reflect_normalised(x, mean, std), mean, std), x)
+    reflected = transform_normalised(x, mean, std, FLIP)
+    torch.testing.assert_close(reflected, (v * FLIP - mean) / std)
+    torch.testing.assert_close(transform_normalised(reflected, mean, std, FLIP), x)
+    torch.testing.assert_close(untransform_normalised(reflected, mean, std, FLIP), x)
 
 
 def test_masks_with_an_odd_number_of_rows_say_why():
@@ -204,15 +205,15 @@ def test_the_d4_average_is_equivariant_under_the_quarter_turns_and_diagonal_mirr
     assert gap > 1e-5  # against a tolerance of 1e-6 above
 
 
-def test_swap_normalised_turns_the_value_and_unswap_undoes_it():
+def test_a_normalised_swap_turns_the_value_and_its_inverse_undoes_it():
     mean, std = torch.tensor([0.3, -0.1, 2.0]), torch.tensor([2.0, 1.0, 0.5])
     flip = torch.tensor([1.0, -1.0, 1.0])
     v = torch.randn(5, 4)
     x = torch.cat([(v[:, :3] - mean) / std, v[:, 3:]], dim=-1)
-    turned = swap_normalised(x, mean, std, flip)
+    turned = transform_normalised(x, mean, std, flip, swap=True)
     torch.testing.assert_close(turned[:, :3], (_turned(v[:, :3], flip) - mean) / std)
     torch.testing.assert_close(turned[:, 3:], x[:, 3:])  # other columns untouched
-    torch.testing.assert_close(unswap_normalised(turned, mean, std, flip), x)
+    torch.testing.assert_close(untransform_normalised(turned, mean, std, flip, swap=True), x)
 
 
 def test_d4_draws_eight_mask_blocks():
