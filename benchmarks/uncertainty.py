@@ -26,7 +26,9 @@ Leaves of static objects are left out of every score.
 Run: ``python benchmarks/uncertainty.py [--scenes wedge,soft_bounce,cube_collision]
 [--k 16] [--rates 0.05,0.1,0.3] [--members 16] [--steps 20] [--seeds 9,19,29]
 [--out benchmarks/results/uncertainty.json]`` with ``--model-dir`` (default
-``hrn_pyg/checkpoints``, one ``<scene>.pt`` each). ``--random-init``: untrained models, a
+``hrn_pyg/checkpoints``, one ``<scene>.pt`` each); ``--model SCENE=PATH`` (repeatable) scores
+another checkpoint for that scene, e.g. ``cube_collision=hrn_pyg/checkpoints/cube_collision_dropout.pt``.
+``--random-init``: untrained models, a
 pipeline check whose numbers mean nothing. Prints a markdown table, writes JSON atomically.
 
 ``--calibrated``: each model is scored at its own calibrated setting (the rate and modules
@@ -187,10 +189,30 @@ def calibrated_rate(model: HRN, scene: str, path: str | None) -> float:
     return rate
 
 
+def chosen_models(specs: list[str], scenes: list[str]) -> dict[str, str]:
+    """``--model SCENE=PATH`` options as ``{scene: path}``; a scene not in ``scenes``, a repeated
+    scene or a missing file is a ``ValueError``."""
+    chosen: dict[str, str] = {}
+    for spec in specs:
+        scene, sep, path = spec.partition("=")
+        if not sep or not path:
+            raise ValueError(f"--model wants SCENE=PATH, got {spec!r}")
+        if scene not in scenes:
+            raise ValueError(f"--model {spec!r}: {scene!r} is not one of --scenes {','.join(scenes)}")
+        if scene in chosen:
+            raise ValueError(f"--model names {scene!r} twice")
+        if not Path(path).is_file():
+            raise ValueError(f"--model {spec!r}: no such file")
+        chosen[scene] = path
+    return chosen
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default="wedge,soft_bounce,cube_collision")
     parser.add_argument("--model-dir", default=str(CHECKPOINT_DIR))
+    parser.add_argument("--model", action="append", default=[], metavar="SCENE=PATH",
+                        help="this checkpoint for SCENE instead of <model-dir>/<scene>.pt (repeatable)")
     parser.add_argument("--k", type=int, default=16)
     parser.add_argument("--rates", default="0.05,0.1,0.3")
     parser.add_argument("--members", type=int, default=16)
@@ -221,15 +243,18 @@ def main(argv: list[str] | None = None) -> dict:
     seeds = [int(s) for s in args.seeds.split(",") if s]
     if not seeds:
         raise ValueError("--seeds must name at least one episode seed")
+    scenes = [s for s in args.scenes.split(",") if s]
+    model_paths = {scene: str(Path(args.model_dir) / f"{scene}.pt") for scene in scenes}
+    model_paths.update(chosen_models(args.model, scenes))
     rows = []
     calibrated: dict[str, dict] = {}
-    for scene in [s for s in args.scenes.split(",") if s]:
+    for scene in scenes:
         model = None
         scene_rates = rates
         for seed in seeds:  # a few test episodes; each is one batched rollout per rate
             episode = simulate_episode(scene, seed, steps=HISTORY + args.steps)
             if model is None:
-                model_path = None if args.random_init else str(Path(args.model_dir) / f"{scene}.pt")
+                model_path = None if args.random_init else model_paths[scene]
                 model = model_for(scene, model_path, args.random_init, episode_state(episode, HISTORY, args.steps))
                 if args.calibrated:  # before the ensemble: an uncalibrated model fails fast
                     scene_rates = (calibrated_rate(model, scene, model_path),)
@@ -249,7 +274,7 @@ def main(argv: list[str] | None = None) -> dict:
         "rates": None if args.calibrated else list(rates),
         "calibrated": calibrated if args.calibrated else None, "quick": args.quick,
         "sample_seed": args.sample_seed, "random_init": args.random_init,
-        "model_dir": None if args.random_init else args.model_dir,
+        "models": None if args.random_init else model_paths,
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch_threads": args.threads},
         "rows": rows, "markdown": table, "mean_over_seeds": means, "markdown_mean": mean_table,
     }
