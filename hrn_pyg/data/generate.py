@@ -148,19 +148,24 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), unit="ep",
                desc=f"generate {name}", disable=args.no_progress)
     written = 0
+    # pybullet keeps part of its soft-body state per process, and a reset does not clear it: an
+    # episode with soft bodies or cloth then depends on the episodes run before it in the same
+    # process. Each such episode gets an interpreter of its own, so a seed gives the same episode
+    # whatever the workers, shards or resume point.
+    isolate = spec.uses_deformables
     try:
-        if args.workers == 1 or len(tasks) <= 1:
-            results = map(_generate_one, tasks)
-            for _, did in results:
-                written += did
-                bar.update(1)
-        else:
+        if tasks and (isolate or (args.workers > 1 and len(tasks) > 1)):
             # spawn: a fresh interpreter per worker, each with its own pybullet client
             ctx = mp.get_context("spawn")
-            with ctx.Pool(processes=min(args.workers, len(tasks))) as pool:
+            with ctx.Pool(processes=min(args.workers, len(tasks)),
+                          maxtasksperchild=1 if isolate else None) as pool:
                 for _, did in pool.imap_unordered(_generate_one, tasks):
                     written += did
                     bar.update(1)
+        else:
+            for _, did in map(_generate_one, tasks):
+                written += did
+                bar.update(1)
     finally:
         bar.close()
     meta.update(written=written, complete=True,
