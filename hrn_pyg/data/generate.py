@@ -7,7 +7,8 @@ the episodes whose index is ``i`` modulo ``N``, so N machines can split one data
 ``<out>/meta.json`` (atomic) records the scene, its settings and the counts. ``--scene-file
 FILE`` simulates a scene read from a TOML file (:mod:`hrn_pyg.data.scene_file`) instead of a
 built-in one; its meta.json keeps the file's text. ``--set NAME=VALUE`` changes a setting of
-either.
+either. An episode of a scene with soft bodies or cloth runs in a process of its own, so its
+bytes depend on its seed and settings only, not on the episodes generated before it.
 """
 
 from __future__ import annotations
