@@ -156,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     isolate = spec.uses_deformables
     try:
         if tasks and (isolate or (args.workers > 1 and len(tasks) > 1)):
-            # spawn: a fresh interpreter per worker, each with its own pybullet client
+            # spawn: a fresh interpreter per worker (per episode when isolating), each with its
+            # own pybullet client
             ctx = mp.get_context("spawn")
             with ctx.Pool(processes=min(args.workers, len(tasks)),
                           maxtasksperchild=1 if isolate else None) as pool:
