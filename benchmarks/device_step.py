@@ -48,7 +48,7 @@ from scaling import cubes_scene  # noqa: E402  (a sibling benchmark's scene buil
 from hrn_pyg.data.candidates import build_candidates  # noqa: E402
 from hrn_pyg.data.episodes import simulate_episode  # noqa: E402
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_state  # noqa: E402
-from hrn_pyg.nn.hrn import HRN, HRNConfig  # noqa: E402
+from hrn_pyg.nn.hrn import HRN, HRNConfig, StepOptions  # noqa: E402
 from hrn_pyg.nn.normalizer import fit_normalizer  # noqa: E402
 from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402
 from hrn_pyg.sim.fixed_shape import (  # noqa: E402
@@ -107,7 +107,7 @@ def step_parts(model: HRN, graph, device: torch.device, steps: int, repeats: int
         candidates = build_candidates(graph, graph[NODE].pos, radius, skin)
         search = timed(lambda: build_candidates(graph, graph[NODE].pos, radius, skin), device, repeats)
         store = graph[NODE]
-        fn = make_step(model, graph, False, radius, skin, None, ())
+        fn = make_step(model, graph, StepOptions(force_active=False), radius, skin, ())
         start = (store.pos, store.prev_pos, store.prev_prev_pos, torch.zeros_like(store.pos), (),
                  candidates.edge_index, candidates.valid, candidates.reference)
 

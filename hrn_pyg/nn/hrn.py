@@ -146,6 +146,52 @@ class HRNConfig:
         return cls(**dict(d))
 
 
+@dataclass(frozen=True)
+class StepOptions:
+    r"""How one model step is run: what its caller knows ahead, so that the step need not find out.
+
+    Each option saves work (a host read, a collision search, a data-dependent tensor size) and,
+    used as documented, leaves the prediction as it is (``fixed_shape`` up to the rounding of a
+    matrix product over more rows). The caller that knows says so here (a rollout from its
+    :class:`~hrn_pyg.data.effects.EffectPlan`, the fixed-shape step of
+    :mod:`hrn_pyg.sim.fixed_shape`, the RL environment), and the one object travels from
+    :func:`hrn_pyg.sim.step.step` through :func:`~hrn_pyg.sim.step.predict` and
+    :func:`~hrn_pyg.sim.step.build_inputs` into :class:`HRNInputs`, where the network pass reads
+    it. The defaults ask nothing of the caller and check everything. A variant is
+    ``dataclasses.replace(options, name=value)``; a new option of the step is a new field here.
+
+    Attributes:
+        force_active: whether the external force :math:`f_i(t)` is nonzero on some particle, so
+            that the force module :math:`e_F = \phi_F(s_i, f_i)` runs; False skips it (with
+            ``HRNConfig.skip_idle_modules``: a zero force adds nothing, and a nonzero one is then
+            ignored, so False is the caller's promise). None: the pass asks the force tensor
+            (``force.ne(0).any()``, a host read, which stalls a GPU's launch queue).
+        check: check the graph's three positions and the force for NaN / inf before the step
+            (one host read each); False: the caller has checked them (a rollout checks its start
+            and its forces once).
+        objects: ``([N] long, R)``, every node's object and the number of objects
+            (:func:`hrn_pyg.sim.step.object_of` of the graph the step runs on) for the rigid fit
+            of :func:`~hrn_pyg.sim.step.decode`; None: found there when the model fits rigid
+            motions (a host read per step).
+        collision_weight: ``[E_C]``, 1 for the collision edges that act in this step and 0 for
+            candidates that do not (a padded candidate list, :mod:`hrn_pyg.sim.fixed_shape`);
+            each collision message is multiplied by it. None: every edge of the graph acts.
+        fixed_shape: no tensor of the pass has a size that depends on the data: the force module
+            runs :math:`\phi_F` on every row and zeroes the rows without force (``dense``),
+            instead of selecting the pushed rows (no host read; the MLP runs on every row).
+        collisions: whether the next graph gets a collision search at :math:`x_{t+1}`
+            (:func:`hrn_pyg.sim.step.step`; a rollout's ``EffectPlan.collisions``); False: nothing
+            in the scene can touch, so the next graph has no collision edges and no search is made.
+    """
+
+    force_active: bool | None = None
+    check: bool = True
+    objects: tuple[Tensor, int] | None = None
+    collision_weight: Tensor | None = None
+    fixed_shape: bool = False
+    collisions: bool = True
+
+
 class HRNInputs(NamedTuple):
     """Everything one network pass reads, already normalised (built by
     :func:`hrn_pyg.sim.step.build_inputs`).
@@ -154,12 +200,9 @@ class HRNInputs(NamedTuple):
     positions divided by the length scale (only differences are used); ``force`` ``[N, 3]``
     normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
     the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided by the
-    length scale, or None (models without ``rest_offsets``). ``force_active``: whether the
-    force module runs, decided by the caller (:mod:`hrn_pyg.data.effects`: one host read per
-    rollout); None asks the force tensor in this pass (a host sync on a GPU).
-    ``collision_weight`` ``[E_C]`` (optional): 1 for the collision edges that act in this step,
-    0 for candidates that do not (:mod:`hrn_pyg.sim.fixed_shape`). ``fixed_shape``: no tensor of
-    the pass may have a size that depends on the data (the force module runs on every row).
+    length scale, or None (models without ``rest_offsets``). ``options``: the step's
+    :class:`StepOptions`; the pass reads ``force_active``, ``collision_weight`` (``[E_C]``, one
+    per edge of ``collision``) and ``fixed_shape``.
     """
 
     state: Tensor
@@ -174,9 +217,7 @@ class HRNInputs(NamedTuple):
     within_siblings: Tensor
     ancestor_to_descendant: Tensor
     rest_pos: Tensor | None = None
-    force_active: bool | None = None
-    collision_weight: Tensor | None = None
-    fixed_shape: bool = False
+    options: StepOptions = StepOptions()
 
 
 def state_features(
@@ -325,14 +366,15 @@ class HRN(nn.Module):
         x, s, b, rest = inputs.pos, inputs.state, inputs.batch, inputs.rest_pos
         skip = self.config.skip_idle_modules
         effect = self.history(s, inputs.prev_state, masks.get("history"), b)
-        force_active = inputs.force_active
+        options = inputs.options
+        force_active = options.force_active
         if force_active is None:
             force_active = bool(inputs.force.ne(0).any())
         if not (skip and not force_active):
-            effect = effect + self.force(s, inputs.force, masks.get("force"), b, dense=inputs.fixed_shape)
+            effect = effect + self.force(s, inputs.force, masks.get("force"), b, dense=options.fixed_shape)
         if not (skip and inputs.collision.size(1) == 0):
             effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b,
-                                             edge_weight=inputs.collision_weight)
+                                             edge_weight=options.collision_weight)
         effect = effect + self.l2a(s, effect, x, inputs.leaf_to_ancestor, masks.get("l2a"), b, rest)
         effect = effect + self.ws(s, effect, x, inputs.within_siblings, masks.get("ws"), b, rest)
         effect = effect + self.a2d(s, effect, x, inputs.ancestor_to_descendant, masks.get("a2d"), b, rest)

@@ -40,7 +40,7 @@ from torch_geometric.data import Batch, HeteroData
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.graph import HISTORY, NODE, build_structure, object_centres, set_state
 from hrn_pyg.data.hierarchy import build_hierarchy
-from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.sampling.sample import draw_masks, model_device
@@ -224,8 +224,8 @@ class HRNDynamics:
         if held is not None and not holds_movable(held, graph):
             held = None
         # every environment is pushed by its action: the force module runs (a zero row adds nothing)
-        next_pos = predict_held(self.model, graph, graph[NODE].force, masks, held, force_active=True,
-                                objects=(objs.of_node, objs.count)).pos
+        options = StepOptions(force_active=True, objects=(objs.of_node, objs.count))
+        next_pos = predict_held(self.model, graph, graph[NODE].force, masks, held, options).pos
         leaves = graph[NODE].is_leaf
         nxt = next_pos[leaves].reshape(n, 1, self.num_leaves, 3)
         new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -50,7 +50,7 @@ from hrn_pyg.data.candidates import (
 )
 from hrn_pyg.data.effects import SceneEffects, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
-from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.sim.rollout import check_forces
 from hrn_pyg.sim.step import NEXT_POS, MasksFn, object_of, predict, require_state
 from hrn_pyg.utils.checks import non_finite_error
@@ -102,15 +102,18 @@ StepFn = Callable[..., tuple[Tensor, Tensor]]
 SPEED_MARGIN = 1.25
 
 
-def make_step(model: HRN, graph: HeteroData, force_active: bool, radius: float, skin: float,
-              objects: tuple[Tensor, int] | None, mask_names: tuple[str, ...]) -> StepFn:
+def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float, skin: float,
+              mask_names: tuple[str, ...]) -> StepFn:
     """The step of :func:`fixed_shape_rollout` as a function of tensors only (no host read).
 
     ``graph`` holds the static attributes (tree, masses, materials, batch); the positions, the
     force, the masks (in the order of ``mask_names``) and the candidate list come in as tensors,
-    so the same function can be recorded once and replayed with new values.
+    so the same function can be recorded once and replayed with new values. ``options`` are what
+    the rollout knows (``force_active`` of the kind of step, ``objects`` of ``graph``); every
+    step runs them with ``check=False``, ``fixed_shape=True`` and its candidates' weights.
     """
     collisions = radius > 0
+    options = replace(options, check=False, fixed_shape=True)
 
     def fixed_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
                    edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
@@ -122,8 +125,8 @@ def make_step(model: HRN, graph: HeteroData, force_active: bool, radius: float, 
         if collisions:
             candidates = CollisionCandidates(edge_index, valid, reference, radius, skin, -1)
             weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
-        next_pos = predict(model, current, force, dict(zip(mask_names, masks)) or None, force_active=force_active,
-                           objects=objects, check=False, collision_weight=weight, fixed_shape=True).pos
+        next_pos = predict(model, current, force, dict(zip(mask_names, masks)) or None,
+                           replace(options, collision_weight=weight)).pos
         step = next_pos - pos
         speed = (step * step).sum(dim=-1).amax().sqrt()
         bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
@@ -192,7 +195,8 @@ class FixedShapeSimulator:
     def _step_fn(self, force_active: bool, names: tuple[str, ...], radius: float, size: int, example: tuple) -> StepFn:
         key = (force_active, names, radius, size)
         if key not in self._steps:
-            fn = make_step(self.model, self.graph, force_active, radius, self.config.skin * radius, self.objects, names)
+            options = StepOptions(force_active=force_active, objects=self.objects)
+            fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 

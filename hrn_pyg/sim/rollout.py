@@ -12,6 +12,7 @@ zero) and finds the scene's objects once; objects at rest sleep unless told not 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 
 import torch
 from torch import Tensor
@@ -19,7 +20,7 @@ from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.effects import EffectPlan, SceneEffects, plan_effects
 from hrn_pyg.data.graph import NODE, set_state
-from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.sim import sleeping
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 from hrn_pyg.sim.step import MasksFn, Step, object_of, require_state, step
@@ -75,23 +76,24 @@ def iterate(
         objects = sleeper.objects.of_node, sleeper.objects.count
     else:
         objects = object_of(graph) if model.config.rigid_fit else None
-    return _steps(model, graph, steps, forces, masks_fn, plan, sleeper, objects)
+    # what every step is told rather than finds out: inputs checked here, the objects, the plan
+    options = StepOptions(check=False, objects=objects, collisions=plan.collisions)
+    return _steps(model, graph, steps, forces, masks_fn, plan, sleeper, options)
 
 
 def _steps(model: HRN, graph: HeteroData, steps: int, forces: Tensor | None, masks_fn: MasksFn | None,
-           plan: EffectPlan, sleeper: sleeping.Sleeper | None, objects: tuple[Tensor, int] | None
-           ) -> Iterator[Step]:
-    """The loop of :func:`iterate`, from its prepared start."""
+           plan: EffectPlan, sleeper: sleeping.Sleeper | None, options: StepOptions) -> Iterator[Step]:
+    """The loop of :func:`iterate`, from its prepared start; ``options`` are every step's, less
+    the plan's ``force_active`` of the step."""
     no_force = torch.zeros_like(graph[NODE].pos) if forces is None else None
     for t in range(steps):  # time steps; each step is vectorised over particles
         force = forces[t] if forces is not None else no_force
         masks = masks_fn(t, graph) if masks_fn is not None else None
-        active = plan.force_active[t]
+        step_options = replace(options, force_active=plan.force_active[t])
         if sleeper is not None:
-            result = sleeper.step(model, graph, force, masks, force_active=active, collisions=plan.collisions)
+            result = sleeper.step(model, graph, force, masks, step_options)
         else:
-            result = step(model, graph, force, masks, force_active=active, collisions=plan.collisions,
-                          objects=objects, check=False)
+            result = step(model, graph, force, masks, step_options)
         yield result
         graph = result.graph
 

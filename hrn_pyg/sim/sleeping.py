@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, NamedTuple
 
 import torch
@@ -88,7 +88,7 @@ from hrn_pyg.data.graph import (
     object_span,
 )
 from hrn_pyg.data.radius import cell_keys, collision_edges
-from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.sim.step import Prediction, Step, check_next_pos, object_of, predict, step
 from hrn_pyg.sim.step import advance as advance_graph
 
@@ -304,10 +304,7 @@ def sleeping_step(
     state: SleepState,
     objs: Objects,
     config: SleepConfig,
-    *,
-    force_active: bool | None = None,
-    collisions: bool = True,
-    check: bool = True,
+    options: StepOptions = StepOptions(),
 ) -> tuple[Step, SleepState]:
     """One model step in which objects at rest sleep; returns the step and the new sleep state.
 
@@ -316,20 +313,19 @@ def sleeping_step(
     :class:`~hrn_pyg.sim.step.Step` has zero velocities on asleep nodes, ``asleep`` ``[N]`` the
     nodes held still in this step, and the next graph (:func:`advance`): asleep nodes with
     ``pos``, ``prev_pos`` and ``prev_prev_pos`` all equal to the held position, the collision
-    edges of all leaves at ``x_{t+1}``. ``force_active`` and ``collisions`` are the step's part
-    of the rollout's :class:`~hrn_pyg.data.effects.EffectPlan` (as for
-    :func:`hrn_pyg.sim.step.step`); ``check=False``: the caller has checked the positions and
-    the force for NaN / inf.
+    edges of all leaves at ``x_{t+1}``. ``options`` are those of :func:`hrn_pyg.sim.step.step`
+    (a rollout's: its :class:`~hrn_pyg.data.effects.EffectPlan` for the step, inputs checked);
+    the objects of the plain step are ``objs`` unless ``options.objects`` has them.
     """
     state = update(config, state, graph, force, objs)
     asleep_node = state.asleep[objs.of_node]
     if not holds_movable(asleep_node, graph):  # nothing movable sleeps: the plain step
-        result = step(model, graph, force, masks, force_active=force_active, collisions=collisions,
-                      objects=(objs.of_node, objs.count), check=check)
+        if options.objects is None:
+            options = replace(options, objects=(objs.of_node, objs.count))
+        result = step(model, graph, force, masks, options)
         return result._replace(asleep=graph[NODE].is_static), state
-    pos, local, velocity = predict_held(model, graph, force, masks, asleep_node, force_active=force_active,
-                                        check=check)
-    nxt = advance(graph, asleep_node, pos, model.config.collision_radius if collisions else None)
+    pos, local, velocity = predict_held(model, graph, force, masks, asleep_node, options)
+    nxt = advance(graph, asleep_node, pos, model.config.collision_radius if options.collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 
 
@@ -339,21 +335,22 @@ def predict_held(
     force: Tensor,
     masks: Mapping[str, Tensor] | None,
     held: Tensor | None,
-    *,
-    force_active: bool | None = None,
-    objects: tuple[Tensor, int] | None = None,
-    check: bool = True,
+    options: StepOptions = StepOptions(),
 ) -> Prediction:
     """:func:`hrn_pyg.sim.step.predict` of a step in which the ``held`` ``[N]`` rows are held still.
 
     The network runs on the :func:`subgraph` of the objects not held (with frozen held collision
     sources); held rows keep ``pos`` bit for bit with zero velocity, and when every row is held
-    the network is not run. ``held=None`` holds nothing: the plain prediction on the whole graph
-    (``objects``, :func:`~hrn_pyg.sim.step.object_of` of ``graph``, is used only then).
-    ``check=False``: the caller has checked positions and force for NaN / inf.
+    the network is not run. ``held=None`` holds nothing: the plain prediction on the whole graph.
+    ``options`` are those of :func:`~hrn_pyg.sim.step.predict`; the sub-graph's pass gets them
+    without ``objects`` (those of ``graph``: the sub-graph finds its own). A
+    ``collision_weight`` weighs the edges of the whole graph, so it cannot come with ``held``.
     """
     if held is None:
-        return predict(model, graph, force, masks, force_active=force_active, objects=objects, check=check)
+        return predict(model, graph, force, masks, options)
+    if options.collision_weight is not None:
+        raise ValueError("predict_held: options.collision_weight weighs the whole graph's collision edges; "
+                         "a step with held rows runs a sub-graph")
     store = graph[NODE]
     zero = torch.zeros_like(store.pos)
     if bool(held.all()):  # nothing to run: the scene holds still
@@ -361,7 +358,7 @@ def predict_held(
     prev_pos, prev_prev_pos = freeze(graph, held)
     sub, index, awake_rows = subgraph(graph, held, prev_pos, prev_prev_pos)
     sub_pos, sub_local, sub_velocity = predict(model, sub, force.index_select(0, index), masks,
-                                               force_active=force_active, check=check)
+                                               replace(options, objects=None))
     keep = awake_rows.unsqueeze(-1)
     pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
     local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))
@@ -395,11 +392,12 @@ class Sleeper:
         state = state_from_history(config, graph, objs) if config.start_from_history else initial_state(objs)
         return cls(config, objs, state)
 
-    def step(self, model: HRN, graph: HeteroData, force: Tensor, masks: Mapping[str, Tensor] | None, *,
-             force_active: bool | None = None, collisions: bool = True) -> Step:
-        """One :func:`sleeping_step` (positions and force already checked by the caller)."""
+    def step(self, model: HRN, graph: HeteroData, force: Tensor, masks: Mapping[str, Tensor] | None,
+             options: StepOptions = StepOptions()) -> Step:
+        """One :func:`sleeping_step` with ``options`` (a rollout's: the step's plan, inputs
+        checked once at the start)."""
         result, self.state = sleeping_step(model, graph, force, masks, self.state, self.objects, self.config,
-                                           force_active=force_active, collisions=collisions, check=False)
+                                           options)
         return result
 
 

@@ -15,15 +15,19 @@ adds :func:`advance`, the next graph (positions shifted, collision edges recompu
 positions). The callers add only what is their own: the rollout loop
 (:mod:`hrn_pyg.sim.rollout`), objects at rest held still (:mod:`hrn_pyg.sim.sleeping`), steps
 with no host read (:mod:`hrn_pyg.sim.fixed_shape`) and the RL environment's batched step
-(:mod:`hrn_pyg.rl.hrn_dynamics`). Everything is differentiable in the positions (the edge sets
-are not), and vectorised over particles.
+(:mod:`hrn_pyg.rl.hrn_dynamics`). What a caller knows ahead of a step (is there a force, are
+the inputs checked, the scene's objects, ...) travels as one
+:class:`~hrn_pyg.nn.hrn.StepOptions` from :func:`step` down to the network pass. Everything is
+differentiable in the positions (the edge sets are not), and vectorised over particles.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
+import warnings
 from collections.abc import Callable, Mapping
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -40,7 +44,7 @@ from hrn_pyg.data.graph import (
     leaf_collision_edges,
     leaf_to_ancestor_mean,
 )
-from hrn_pyg.nn.hrn import HRN, HRNInputs, state_features
+from hrn_pyg.nn.hrn import HRN, HRNInputs, StepOptions, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
 from hrn_pyg.utils.checks import check_finite
@@ -110,14 +114,34 @@ def node_force(graph: HeteroData, force: Tensor | None, check: bool = True) -> T
     return torch.where(store.is_leaf.unsqueeze(-1), force, torch.zeros_like(force))
 
 
+def _with_legacy(options: StepOptions, legacy: Mapping[str, Any], where: str) -> StepOptions:
+    """``options``, with the options an older caller passed one keyword each folded in.
+
+    ``legacy`` holds those keywords (``force_active=``, ``check=``, ``objects=``,
+    ``collision_weight=``, ``fixed_shape=``, ``collisions=``, each a field of
+    :class:`~hrn_pyg.nn.hrn.StepOptions`); they still work, with a DeprecationWarning, and
+    will be removed. Raises TypeError for a keyword that is no option, or ``options`` that are
+    not a :class:`~hrn_pyg.nn.hrn.StepOptions`.
+    """
+    if not isinstance(options, StepOptions):
+        raise TypeError(f"{where}: options must be a StepOptions, got {type(options).__name__}")
+    if not legacy:
+        return options
+    unknown = sorted(set(legacy) - {f.name for f in dataclasses.fields(StepOptions)})
+    if unknown:
+        raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}")
+    names = ", ".join(f"{k}=" for k in legacy)
+    warnings.warn(f"{where}({names}) is deprecated: pass options=StepOptions({names}...) "
+                  "(hrn_pyg.nn.hrn.StepOptions)", DeprecationWarning, stacklevel=3)
+    return dataclasses.replace(options, **legacy)
+
+
 def build_inputs(
     model: HRN,
     graph: HeteroData,
     force: Tensor | None = None,
-    force_active: bool | None = None,
-    check: bool = True,
-    collision_weight: Tensor | None = None,
-    fixed_shape: bool = False,
+    options: StepOptions = StepOptions(),
+    **legacy: Any,
 ) -> HRNInputs:
     r"""Stage 1: normalised network inputs of the graph's current state.
 
@@ -125,13 +149,13 @@ def build_inputs(
     :math:`v_{t-1} = x_{t-1} - x_{t-2}` and :math:`z_{t-1}`, plus the static attributes;
     positions divided by the length scale (edges only see differences); force divided by its
     scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
-    collision edges are read from the graph as they are. ``force_active`` (optional) says
-    whether the force is nonzero, so the network need not ask (:mod:`hrn_pyg.data.effects`).
-    ``check=False`` skips the finite checks of the positions and the force (each a host read
-    on a GPU): for a caller that has checked them already, as a rollout does.
-    ``collision_weight`` ``[E_C]`` and ``fixed_shape``: the options of a step with no host read
-    (:class:`~hrn_pyg.nn.hrn.HRNInputs`, :mod:`hrn_pyg.sim.fixed_shape`).
+    collision edges are read from the graph as they are. ``options``
+    (:class:`~hrn_pyg.nn.hrn.StepOptions`) go into the inputs for the network pass;
+    ``options.check=False`` skips the finite checks of the positions and the force (each a host
+    read on a GPU): for a caller that has checked them already, as a rollout does.
     """
+    options = _with_legacy(options, legacy, "build_inputs")
+    check = options.check
     require_state(graph, check)
     store = graph[NODE]
     norm, config = model.normalizer, model.config
@@ -160,9 +184,7 @@ def build_inputs(
         within_siblings=graph[WITHIN_SIBLINGS].edge_index,
         ancestor_to_descendant=graph[ANCESTOR_TO_DESCENDANT].edge_index,
         rest_pos=rest_pos,
-        force_active=force_active,
-        collision_weight=collision_weight,
-        fixed_shape=fixed_shape,
+        options=options,
     )
 
 
@@ -262,12 +284,8 @@ def predict(
     graph: HeteroData,
     force: Tensor | None = None,
     masks: Mapping[str, Tensor] | None = None,
-    *,
-    force_active: bool | None = None,
-    objects: tuple[Tensor, int] | None = None,
-    check: bool = True,
-    collision_weight: Tensor | None = None,
-    fixed_shape: bool = False,
+    options: StepOptions = StepOptions(),
+    **legacy: Any,
 ) -> Prediction:
     """The three stages of a step: :func:`build_inputs`, :func:`run_network`, :func:`decode`.
 
@@ -277,15 +295,15 @@ def predict(
         force: ``[N, 3]`` external force during ``t -> t+1``; None uses ``graph['particle'].force``
             (zero if absent).
         masks: dropout masks ``{module: [B, H]}``; None is the deterministic model.
-        force_active: whether the force is nonzero (None: the network checks, a host read).
-        objects: :func:`object_of` of ``graph`` if the caller has it (None: computed here when
-            the model fits rigid motions, a host read).
-        check: check the graph's positions and the force for NaN / inf first (``False``: the
-            caller has).
-        collision_weight, fixed_shape: see :func:`build_inputs`.
+        options: what the caller knows ahead (:class:`~hrn_pyg.nn.hrn.StepOptions`: whether a
+            force acts, whether the inputs are checked, :func:`object_of` of ``graph``, ...); the
+            defaults find out and check everything.
+        legacy: the options one keyword each (``force_active=``, ``objects=``, ...), deprecated
+            (a DeprecationWarning).
     """
-    inputs = build_inputs(model, graph, force, force_active, check, collision_weight, fixed_shape)
-    return Prediction(*decode(model, graph, run_network(model, inputs, masks), objects))
+    options = _with_legacy(options, legacy, "predict")
+    inputs = build_inputs(model, graph, force, options)
+    return Prediction(*decode(model, graph, run_network(model, inputs, masks), options.objects))
 
 
 def step(
@@ -293,21 +311,18 @@ def step(
     graph: HeteroData,
     force: Tensor | None = None,
     masks: Mapping[str, Tensor] | None = None,
-    *,
-    force_active: bool | None = None,
-    collisions: bool = True,
-    objects: tuple[Tensor, int] | None = None,
-    check: bool = True,
+    options: StepOptions = StepOptions(),
+    **legacy: Any,
 ) -> Step:
     """One model step: :func:`predict`, then :func:`advance` the graph to ``t+1``.
 
-    The arguments are those of :func:`predict`; ``collisions`` (the step's part of an
+    The arguments are those of :func:`predict`; ``options.collisions`` (the step's part of an
     :class:`~hrn_pyg.data.effects.EffectPlan`) says whether the next graph gets a collision
     search (False: no collision edges). The new positions are always checked for NaN / inf.
     """
-    pos, local, velocity = predict(model, graph, force, masks, force_active=force_active, objects=objects,
-                                   check=check)
-    nxt = advance(graph, pos, model.config.collision_radius if collisions else None)
+    options = _with_legacy(options, legacy, "step")
+    pos, local, velocity = predict(model, graph, force, masks, options)
+    nxt = advance(graph, pos, model.config.collision_radius if options.collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
 
 

@@ -13,7 +13,7 @@ from toy_scene import toy_scene
 from hrn_pyg.data.effects import SceneEffects, can_collide, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, replicate, set_state
 from hrn_pyg.data.scene_file import SCENES, scene_effects
-from hrn_pyg.nn.hrn import HRN
+from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.sim.rollout import rollout, unroll
 from hrn_pyg.sim.step import build_inputs, run_network, step
 
@@ -87,20 +87,20 @@ def test_a_skipped_module_changes_nothing():
     g = toy_scene(separate=True)  # no collision edge
     assert g[COLLISION].edge_index.size(1) == 0
     with torch.no_grad():
-        runs = run_network(model, build_inputs(model, g, torch.zeros(N, 3), force_active=True))
-        skips = run_network(model, build_inputs(model, g, torch.zeros(N, 3), force_active=False))
+        runs = run_network(model, build_inputs(model, g, torch.zeros(N, 3), StepOptions(force_active=True)))
+        skips = run_network(model, build_inputs(model, g, torch.zeros(N, 3), StepOptions(force_active=False)))
         everything = run_network(eager.eval(), build_inputs(eager, g, torch.zeros(N, 3)))
     torch.testing.assert_close(runs, skips, rtol=0, atol=1e-6)
     torch.testing.assert_close(everything, skips, rtol=0, atol=1e-6)
 
 
 def test_the_plan_is_obeyed_not_second_guessed():
-    """``force_active=False`` means the network does not look at the force (no host read)."""
+    """``StepOptions(force_active=False)`` means the network does not look at the force (no host read)."""
     model = fitted_model()
     g = toy_scene()
     push = pushes((0,))[0]
     with torch.no_grad():
-        told_off = run_network(model, build_inputs(model, g, push, force_active=False))
+        told_off = run_network(model, build_inputs(model, g, push, StepOptions(force_active=False)))
         no_force = run_network(model, build_inputs(model, g, torch.zeros(N, 3)))
         checked = run_network(model, build_inputs(model, g, push))
     assert torch.equal(told_off, no_force)

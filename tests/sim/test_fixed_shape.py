@@ -9,6 +9,7 @@ from toy_scene import toy_scene
 
 from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.graph import NODE, replicate
+from hrn_pyg.nn.hrn import StepOptions
 from hrn_pyg.sampling.sample import make_masks_fn
 from hrn_pyg.sim import fixed_shape
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig, fixed_shape_rollout
@@ -146,7 +147,8 @@ def _fixed_step_args(model, graph, masks: bool, device: str):
     graph, model = graph.to(device), model.to(device)
     if objects is not None:
         objects = (objects[0].to(device), objects[1])
-    step_fn = fixed_shape.make_step(model, graph, True, radius, 0.5 * radius, objects, names)
+    options = StepOptions(force_active=True, objects=objects)
+    step_fn = fixed_shape.make_step(model, graph, options, radius, 0.5 * radius, names)
     return step_fn, tuple(to(a) for a in args)
 
 
