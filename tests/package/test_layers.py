@@ -1,7 +1,10 @@
 """The package's imports point down a fixed order of layers and form no cycle.
 
 Read from the source with ``ast`` (imports inside functions included, so a lazy import cannot
-hide a cycle). The order, bottom first; a module may import from its own layer or below:
+hide a cycle; ``importlib.import_module("hrn_pyg....")`` counts as an import, and a module that
+imports a computed name imports every package module it names in a string). The order, bottom
+first; a module may import from its own layer or below (the package root is a layer entry for
+itself only, not for its submodules):
 
     utils -> data, viz -> nn -> checkpoints -> sim -> train, losses, evaluate, metrics_rest,
     sampling -> rl -> recipe, demo, cli, the package root
@@ -12,6 +15,8 @@ from __future__ import annotations
 import ast
 from collections import defaultdict
 from pathlib import Path
+
+import pytest
 
 import hrn_pyg
 
@@ -39,11 +44,34 @@ def module_files() -> dict[str, Path]:
     return out
 
 
-def imports_of(name: str, path: Path, modules: set[str]) -> list[tuple[str, str, int]]:
-    """``(target module, imported name, line)`` of every package import in one module."""
+def _dynamic_import(node: ast.AST) -> ast.expr | None:
+    """The argument of ``importlib.import_module(x)``, ``import_module(x)`` or ``__import__(x)``."""
+    if not isinstance(node, ast.Call) or not node.args:
+        return None
+    callee = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+    return node.args[0] if callee in ("import_module", "__import__") else None
+
+
+def imports_of(name: str, path: Path, modules: set[str], tables: bool = True) -> list[tuple[str, str, int]]:
+    """``(target module, imported name, line)`` of every package import in one module.
+
+    Besides ``import`` statements: ``import_module("hrn_pyg.x")`` with a literal name imports
+    ``hrn_pyg.x``; where a module imports a computed name (``import_module(name)``), every string
+    in it that names a package module is taken as imported (``cli.py``'s command table), unless
+    ``tables`` is false.
+    """
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    tree = ast.parse(path.read_text(), str(path))
     found = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    arguments = [a for a in map(_dynamic_import, ast.walk(tree)) if a is not None]
+    computed = any(not (isinstance(a, ast.Constant) and isinstance(a.value, str)) for a in arguments)
+    for node in ast.walk(tree):
+        argument = _dynamic_import(node)
+        if isinstance(argument, ast.Constant) and isinstance(argument.value, str):
+            if argument.value.split(".")[0] == "hrn_pyg":
+                found.append((argument.value, "", node.lineno))
+        elif tables and computed and isinstance(node, ast.Constant) and node.value in modules:
+            found.append((node.value, "", node.lineno))
         if isinstance(node, ast.Import):
             found += [(a.name, "", node.lineno) for a in node.names if a.name.split(".")[0] == "hrn_pyg"]
         elif isinstance(node, ast.ImportFrom):
@@ -61,10 +89,13 @@ def imports_of(name: str, path: Path, modules: set[str]) -> list[tuple[str, str,
 
 
 def layer_of(module: str) -> int:
+    """The layer of a module: that of the longest entry of :data:`LAYERS` it is or sits under
+    (the package root holds only itself, so a module in no subpackage's layer has none)."""
     best, level = -1, None
     for i, layer in enumerate(LAYERS):
         for prefix in layer:
-            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best:
+            inside = module.startswith(prefix + ".") and prefix != "hrn_pyg"
+            if (module == prefix or inside) and len(prefix) > best:
                 best, level = len(prefix), i
     assert level is not None, f"{module} is in no layer: add it to LAYERS"
     return level
@@ -75,9 +106,9 @@ def unit_of(module: str) -> str:
     return ".".join(module.split(".")[:2])
 
 
-def graph() -> dict[str, list[tuple[str, str, int]]]:
+def graph(tables: bool = True) -> dict[str, list[tuple[str, str, int]]]:
     files = module_files()
-    return {name: imports_of(name, path, set(files)) for name, path in files.items()}
+    return {name: imports_of(name, path, set(files), tables) for name, path in files.items()}
 
 
 def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
@@ -131,13 +162,15 @@ def test_no_module_imports_the_package_root():
 
 
 def test_no_cycle_between_modules():
-    edges = {name: {t for t, _, _ in found if t != name} for name, found in graph().items()}
+    """Without the command table: ``cli`` dispatches to ``demo`` by name and ``demo`` runs other
+    commands through ``cli.main``, a cycle at run time only (the layer order still sees both)."""
+    edges = {name: {t for t, _, _ in found if t != name} for name, found in graph(tables=False).items()}
     assert cycles(edges) == []
 
 
 def test_no_cycle_between_subpackages():
     edges: dict[str, set[str]] = defaultdict(set)
-    for name, found in graph().items():
+    for name, found in graph(tables=False).items():
         for target, _, _ in found:
             if unit_of(target) != unit_of(name):
                 edges[unit_of(name)].add(unit_of(target))
@@ -154,6 +187,40 @@ def test_the_checker_finds_a_cycle_and_an_upward_import():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert layer_of("hrn_pyg.sim.step") > layer_of("hrn_pyg.nn.hrn") > layer_of("hrn_pyg.data.graph")
     assert layer_of("hrn_pyg.rl.ppo") > layer_of("hrn_pyg.sampling.sample")
+    assert layer_of("hrn_pyg") == layer_of("hrn_pyg.cli") == len(LAYERS) - 1
+
+
+def test_a_module_in_no_layer_is_reported():
+    for name in ("hrn_pyg.newmodule", "hrn_pyg.newpackage.part", "hrn_pyg.simulator"):
+        with pytest.raises(AssertionError, match="in no layer"):
+            layer_of(name)
+
+
+def test_imports_by_name_are_seen(tmp_path):
+    modules = {"hrn_pyg.cli", "hrn_pyg.rl.ppo", "hrn_pyg.data.io"}
+    literal = tmp_path / "literal.py"
+    literal.write_text("import importlib\n"
+                       "from importlib import import_module\n"
+                       "def f():\n"
+                       "    importlib.import_module('hrn_pyg.cli')\n"
+                       "    import_module('hrn_pyg.rl.ppo')\n"
+                       "    __import__('hrn_pyg.data.io')\n"
+                       "    importlib.import_module('numpy')\n"
+                       "    return 'hrn_pyg.rl.ppo'\n")
+    assert sorted(imports_of("hrn_pyg.data.probe", literal, modules)) == [
+        ("hrn_pyg.cli", "", 4), ("hrn_pyg.data.io", "", 6), ("hrn_pyg.rl.ppo", "", 5)]
+    computed = tmp_path / "computed.py"
+    computed.write_text("import importlib\n"
+                        "TABLE = {'a': 'hrn_pyg.cli', 'b': 'hrn_pyg.rl.ppo', 'c': 'not.a.module'}\n"
+                        "def f(key):\n"
+                        "    return importlib.import_module(TABLE[key])\n")
+    assert sorted(imports_of("hrn_pyg.data.probe", computed, modules)) == [
+        ("hrn_pyg.cli", "", 2), ("hrn_pyg.rl.ppo", "", 2)]
+
+
+def test_the_command_table_of_cli_counts_as_its_imports():
+    found = {target for target, _, _ in graph()["hrn_pyg.cli"]}
+    assert {"hrn_pyg.rl.ppo", "hrn_pyg.rl.clone", "hrn_pyg.rl.summary", "hrn_pyg.demo"} <= found
 
 
 def test_the_three_stages_of_a_step_are_chained_in_one_place():
