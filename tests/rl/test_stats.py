@@ -4,8 +4,10 @@ and the per-mode comparison read from run logs."""
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
+from scipy import stats
 
 from hrn_pyg.rl.stats import (
     bootstrap_median,
@@ -49,14 +51,67 @@ def test_bootstrap_median_is_seeded_and_brackets_the_median():
 
 def test_bootstrap_interval_covers_the_true_median_about_as_often_as_it_says():
     # percentile bootstrap of the median from 15 normal draws: nominal 95 %, and for small
-    # samples a little under; 200 repetitions with 2000 resamples each
+    # samples a little under (0.93 here; a 90 % interval covers 0.885 of these samples);
+    # 200 repetitions with 2000 resamples each
     g = torch.Generator().manual_seed(0)
     covered = 0
     for rep in range(200):
         x = torch.randn(15, generator=g).tolist()
         s = bootstrap_median(x, resamples=2000, seed=rep)
         covered += s["low"] <= 0.0 <= s["high"]
-    assert 0.85 <= covered / 200 <= 0.995
+    assert 0.90 <= covered / 200 <= 0.98
+
+
+def test_bootstrap_median_interval_is_the_exact_bootstrap_quantile():
+    # nine distinct values: a resample's median is the k-th smallest or less when at least five
+    # of nine draws are among the k smallest, P = P(Binomial(9, k/9) >= 5):
+    # k = 1: 0.0014, 2: 0.0304, 3: 0.1448, ..., 7: 0.9696, 8: 0.9986. The 2.5 % and 97.5 %
+    # quantiles are the 2nd and 8th values (a 90 % interval: the 3rd and 7th); 10000 resamples
+    # estimate P within 0.0016, well inside the 0.0054 margin to 0.025.
+    values = [float(v) for v in (8, 1, 6, 3, 9, 2, 7, 5, 4)]
+    cdf = [stats.binom.sf(4, 9, k / 9) for k in range(1, 10)]
+    assert cdf[1] > 0.025 + 0.005 and cdf[0] < 0.025 and cdf[1] < 0.05 < cdf[2]
+    for seed in (0, 1):
+        got = bootstrap_median(values, resamples=10_000, seed=seed)
+        assert (got["low"], got["median"], got["high"]) == (2.0, 5.0, 8.0)
+    assert bootstrap_median(values, level=0.9)["low"] == 3.0
+    assert bootstrap_median(values, level=0.9)["high"] == 7.0
+
+
+def _draws(seed: int, *shapes: tuple[int, ...], n: int | tuple[int, ...]) -> list[np.ndarray]:
+    """The run indices the stats module draws for ``seed``: one ``torch.randint`` per shape, in
+    order, from a generator seeded with ``seed`` (``n``: the number of runs of each draw)."""
+    g = torch.Generator().manual_seed(seed)
+    ns = n if isinstance(n, tuple) else (n,) * len(shapes)
+    return [torch.randint(k, shape, generator=g).numpy() for k, shape in zip(ns, shapes)]
+
+
+def _np_interval(values: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """The percentile interval along axis 0 in numpy: the lower bound rounds its rank down, the
+    upper one up."""
+    tail = 100 * (1 - level) / 2
+    return (np.percentile(values, tail, axis=0, method="lower"),
+            np.percentile(values, 100 - tail, axis=0, method="higher"))
+
+
+def test_bootstrap_intervals_match_an_independent_computation():
+    a = np.array([12.0, 40.0, 7.0, 30.0, 22.0, 15.0, 9.0, 27.0])
+    b = np.array([3.0, 8.0, 1.0, 20.0, 5.0, 11.0])
+    r = 3000
+    (ia,) = _draws(5, (r, a.size), n=a.size)
+    lo, hi = _np_interval(np.median(a[ia], axis=1))
+    got = bootstrap_median(a.tolist(), resamples=r, seed=5)
+    assert (got["low"], got["high"]) == (lo, hi)
+    narrow = _np_interval(np.median(a[ia], axis=1), level=0.9)
+    assert (lo, hi) != narrow  # the check tells 95 % from 90 %
+
+    ia, ib = _draws(7, (r, a.size), (r, b.size), n=(a.size, b.size))
+    diff = np.median(a[ia], axis=1) - np.median(b[ib], axis=1)
+    lo, hi = _np_interval(diff)
+    got = bootstrap_median_difference(a.tolist(), b.tolist(), resamples=r, seed=7)
+    assert got["difference"] == np.median(a) - np.median(b)
+    assert (got["low"], got["high"]) == pytest.approx((lo, hi), abs=1e-12)
+    assert (lo, hi) != _np_interval(diff, level=0.9)
 
 
 def test_censored_runs_give_an_open_interval():
@@ -143,6 +198,33 @@ def test_iqm_trims_a_quarter_at_each_end():
     assert iqm(torch.tensor([[1.0, 2, 3, 4], [5, 6, 7, 8]])).tolist() == [2.5, 6.5]
 
 
+def test_stratified_bootstrap_draws_runs_within_each_task_on_its_own():
+    # four runs of two tasks that differ, run i scoring i on task 0 and 10 + i on task 1
+    scores = torch.tensor([[float(i), 10.0 + i] for i in range(4)])
+    # a run of task 0 never lands in task 1: task 1's smallest minus task 0's largest >= 7
+    gap = stratified_bootstrap(scores, lambda s: s[..., 1].amin(-1) - s[..., 0].amax(-1), resamples=400)
+    assert gap["low"] >= 7.0 and gap["value"] == 7.0
+    # the two tasks draw their runs independently: the difference of their sums varies around
+    # 40 (one run index shared by every task would make it 40 in every resample)
+    spread = stratified_bootstrap(scores, lambda s: s[..., 1].sum(-1) - s[..., 0].sum(-1), resamples=400)
+    assert spread["value"] == 40.0 and spread["low"] < 40.0 < spread["high"]
+
+
+def test_stratified_bootstrap_iqm_matches_an_independent_computation():
+    # three tasks of five runs on different scales; the default statistic is the IQM of the
+    # 15 scores (3 trimmed at each end), here scipy's 25 % trimmed mean
+    x = np.array([[0.1, 3.0, 40.0], [0.5, 1.0, 70.0], [0.2, 6.0, 10.0], [0.9, 2.0, 90.0], [0.3, 5.0, 20.0]])
+    r = 2000
+    (index,) = _draws(11, (r, 5, 3), n=5)
+    boot = x[index, np.arange(3)].reshape(r, -1)                  # (r, 15): task t keeps task t's runs
+    iqms = stats.trim_mean(boot, 0.25, axis=1)
+    lo, hi = _np_interval(iqms)
+    got = stratified_bootstrap(torch.tensor(x), resamples=r, seed=11)
+    assert got["value"] == pytest.approx(stats.trim_mean(x.reshape(-1), 0.25), abs=1e-12)
+    assert (got["low"], got["high"]) == pytest.approx((lo, hi), abs=1e-12)
+    assert (lo, hi) != _np_interval(iqms, level=0.9)
+
+
 def test_stratified_bootstrap_resamples_within_tasks_and_repeats():
     # two tasks: every resample keeps task 0 at 0 and task 1 at 10, so the IQM over
     # 8 values (2 trimmed at each end) is always 5: a zero-width interval
@@ -191,7 +273,17 @@ def test_performance_profile_by_hand():
 
 def test_iqm_curve_by_hand():
     got = iqm_curve([[0.0, 1.0], [0.0, 0.5], [1.0, 1.0]], resamples=200)
-    assert got["iqm"] == pytest.approx([1 / 3, 2.5 / 3])
+    assert got["iqm"] == pytest.approx([1 / 3, 2.5 / 3])                # three runs: nothing trimmed
     assert all(lo <= v <= hi for lo, v, hi in zip(got["low"], got["iqm"], got["high"]))
+    # eight runs: two trimmed at each end, the middle four averaged (the means would be 11/8, 16)
+    runs = [[0.0, 1.0], [0.0, 100.0], [10.0, 3.0], [0.0, 5.0], [1.0, 2.0], [0.0, 7.0], [0.0, 6.0],
+            [0.0, 4.0]]
+    got = iqm_curve(runs, resamples=500, seed=2)
+    assert got["iqm"] == [0.0, (3 + 4 + 5 + 6) / 4]
+    x = np.array(runs)
+    (index,) = _draws(2, (500, 8), n=8)
+    lo, hi = _np_interval(stats.trim_mean(x[index], 0.25, axis=1))   # (500, 2): per point
+    assert got["low"] == pytest.approx(lo.tolist(), abs=1e-12)
+    assert got["high"] == pytest.approx(hi.tolist(), abs=1e-12)
     with pytest.raises(ValueError, match="NaN"):
         iqm_curve([[math.nan]])
