@@ -25,16 +25,19 @@ RUNS = {
 LENGTHS = [10.0, 9.0, 8.0, 7.0]
 
 
-def _write_runs(root):
-    for mode, seeds in RUNS.items():
+def _write_runs(root, runs=RUNS, offsets=None):
+    """``log.csv`` and ``eval.csv`` of every run of ``runs``; a run's lengths are
+    :data:`LENGTHS` plus ``offsets[seed]`` (default: plus its seed)."""
+    for mode, seeds in runs.items():
         for seed, (success, shares) in seeds.items():
             run = root / mode / f"seed{seed}"
             run.mkdir(parents=True)
+            offset = seed if offsets is None else offsets[seed]
             with open(run / "log.csv", "w", newline="") as fh:
                 w = csv.writer(fh)
                 w.writerow(["step", "update", "frames", "mean_episode_length", "partial_hit_share"])
                 for u, (length, share) in enumerate(zip(LENGTHS, shares)):
-                    w.writerow([u, u, 50 * (u + 1), length + seed, share])
+                    w.writerow([u, u, 50 * (u + 1), length + offset, share])
             with open(run / "eval.csv", "w", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=EVAL_FIELDS)
                 w.writeheader()
@@ -99,6 +102,26 @@ def test_summary_statistics_by_hand(tmp_path):
     assert profile["fraction"][profile["tau"].index(0.4)] == pytest.approx(2 / 3)  # 1.0 and 0.5 > 0.4
     assert s["iqm_curves"]["deterministic"]["episode_length"]["iqm"][-1] == pytest.approx(
         sum((10 + 9 + 8 + 7) / 4 + seed for seed in range(3)) / 3)
+
+
+def test_summary_iqm_trims_a_quarter_of_the_seeds_by_hand(tmp_path):
+    # eight seeds: two trimmed at each end, so the IQM and the mean differ in every number below
+    finals = [0.0, 1.0, 0.0, 0.25, 0.0, 1.0, 0.5, 0.0]        # sorted: 0 0 [0 0 .25 .5] 1 1
+    shares = [0.9, 0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.0]         # sorted: 0 0 [.1 .2 .3 .4] .5 .9
+    offsets = [0.0, 0.0, 20.0, 0.0, 1.0, 0.0, 2.0, 0.0]       # sorted: 0 0 [0 0 0 1] 2 20
+    runs = {"stochastic": {seed: ([0.0, f / 2, f], [share, 0.0, 0.0, 0.0])
+                           for seed, (f, share) in enumerate(zip(finals, shares))}}
+    _write_runs(tmp_path, runs, offsets)
+    s = task_summary(tmp_path, "tower", resamples=200)
+    stats = s["statistics"]["stochastic"]
+    assert stats["pybullet_final_success"]["value"] == pytest.approx(0.75 / 4)          # mean: 2.75 / 8
+    assert stats["pybullet_success_auc"]["value"] == pytest.approx(0.75 / 8)            # AUC = final / 2
+    assert stats["mean_length"]["value"] == pytest.approx(8.5 + 1 / 4)                  # mean: 8.5 + 23 / 8
+    assert s["modes"]["stochastic"]["partial_hit_share_update0"]["value"] == pytest.approx(0.25)  # mean: 0.3
+    assert s["iqm_curves"]["stochastic"]["success"]["iqm"] == pytest.approx([0.0, 0.75 / 8, 0.75 / 4])
+    assert s["iqm_curves"]["stochastic"]["episode_length"]["iqm"][-1] == pytest.approx(8.5 + 1 / 4)
+    for stat in (stats["pybullet_final_success"], stats["mean_length"]):
+        assert stat["low"] <= stat["value"] <= stat["high"] and stat["n"] == 8
 
 
 def test_written_summary_is_strict_json_and_deterministic(tmp_path):
