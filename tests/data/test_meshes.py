@@ -194,6 +194,48 @@ def test_a_concave_cup_holds_a_ball_in_its_cavity_as_its_convex_parts(tmp_path, 
     assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == [parts.name]  # nothing left over
 
 
+def _channel(width: float, height: float) -> trimesh.Trimesh:
+    """A U-shaped channel ``width`` wide and ``height`` tall, 4 cm deep, walls 1 cm thick
+    (concave, and quick to decompose)."""
+    floor = trimesh.creation.box([width, 0.04, 0.01])
+    floor.apply_translation([0.0, 0.0, -(height - 0.01) / 2])
+    walls = [trimesh.creation.box([0.01, 0.04, height]) for _ in range(2)]
+    walls[0].apply_translation([-(width - 0.01) / 2, 0.0, 0.0])
+    walls[1].apply_translation([(width - 0.01) / 2, 0.0, 0.0])
+    return trimesh.util.concatenate([floor, *walls])
+
+
+def test_the_decomposition_cache_keeps_one_entry_per_mesh(tmp_path, monkeypatch):
+    wide, tall = _channel(0.12, 0.06), _channel(0.06, 0.12)
+    cache = tmp_path / "cache"
+    parts = {name: convex_parts(mesh, cache, resolution=20_000) for name, mesh in (("wide", wide), ("tall", tall))}
+    assert parts["wide"] != parts["tall"]
+    assert sorted(p.name for p in cache.iterdir()) == sorted(p.name for p in parts.values())
+    for name, mesh in (("wide", wide), ("tall", tall)):
+        got = trimesh.load(parts[name], force="mesh")
+        assert np.abs(got.bounds - mesh.bounds).max() < 0.003, name  # each entry is its own mesh's parts
+
+    def no_second_decomposition(*args, **kwargs):
+        raise AssertionError("the cached decomposition was made again")
+
+    monkeypatch.setattr(pybullet, "vhacd", no_second_decomposition)
+    assert convex_parts(tall.copy(), cache, resolution=20_000) == parts["tall"]
+    assert convex_parts(wide.copy(), cache, resolution=20_000) == parts["wide"]
+
+
+def test_the_mesh_digest_follows_vertices_and_faces():
+    wide = _channel(0.12, 0.06)
+    digests = {meshes.mesh_digest(wide), meshes.mesh_digest(_channel(0.06, 0.12))}
+    moved = wide.copy()
+    moved.vertices[3, 2] += 1e-9
+    digests.add(meshes.mesh_digest(moved))
+    flipped = wide.copy()
+    flipped.faces = flipped.faces[:, ::-1]
+    digests.add(meshes.mesh_digest(flipped))
+    assert len(digests) == 4
+    assert meshes.mesh_digest(wide) == meshes.mesh_digest(wide.copy())
+
+
 def test_a_mesh_with_seams_warns_of_nothing_and_loads_as_one_mesh():
     with warnings.catch_warnings():
         warnings.simplefilter("error", MeshWarning)
