@@ -47,6 +47,7 @@ from hrn_pyg.data.graph import (
 from hrn_pyg.nn.hrn import HRN, HRNInputs, StepOptions, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
+from hrn_pyg.sim.copy_groups import copy_groups, group_inputs
 from hrn_pyg.utils.checks import check_finite
 
 #: ``masks_fn(step_index, graph) -> {module: [B, H] mask} | None``, called once per step
@@ -189,7 +190,17 @@ def build_inputs(
 
 
 def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:
-    """Stage 2: the HRN's normalised output ``[N, 3]`` (change of local velocity)."""
+    """Stage 2: the HRN's normalised output ``[N, 3]`` (change of local velocity).
+
+    Many copies of a scene on the CPU (sampled futures, a planner's candidates) run as groups of
+    copies that fit in the cache, one pass each (:mod:`hrn_pyg.sim.copy_groups`); the answer is
+    that of one pass over all of them.
+    """
+    groups = copy_groups(inputs) if isinstance(model, HRN) else None
+    if groups is not None:
+        parts = group_inputs(inputs, dict(masks or {}), groups, passes=model.mask_rows(1))
+        if parts is not None:
+            return torch.cat([model(part, part_masks) for part, part_masks in parts], dim=0)
     return model(inputs, masks)
 
 

@@ -358,6 +358,7 @@ def test_a_mesh_is_drawn_per_seed_from_a_list_and_primitives_take_extents(tmp_pa
     # the leaves fill the drawn box (voxels that meet the surface count: up to a pitch beyond it)
     reach = np.ptp(x, axis=0)
     assert np.all(reach <= np.array(extents) + 0.05 + 1e-6), (name, reach, extents)
+    assert np.all(reach >= np.array(extents) - 0.05 - 1e-6), (name, reach, extents)
     with pytest.raises(ValueError, match="extents are for primitives"):
         read_scene_file(write(tmp_path, text.replace('"wedge"]', '"pybullet_data:duck.obj"]'), "duck.toml"))
 
@@ -375,6 +376,37 @@ def test_a_mesh_pattern_draws_among_the_files_it_matches(tmp_path, capsys):
     assert main(["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no mesh file matches" in err and len(err.splitlines()) == 1 and not out.exists()
+
+
+def _extents_by_hand(mesh: str, extents: list[float]) -> np.ndarray:
+    """What a primitive's drawn ``[x, y, z]`` makes (round ones: diameter ``x``; a capsule never
+    shorter than wide)."""
+    x, y, z = extents
+    return np.array({"sphere": [x, x, x], "cylinder": [x, x, z], "cone": [x, x, z],
+                     "capsule": [x, x, max(x, z)]}.get(mesh, [x, y, z]))
+
+
+def test_every_primitive_collides_and_is_filled_at_its_drawn_extents():
+    import pybullet
+
+    drawn = '"[uniform(0.1, 0.3), uniform(0.1, 0.3), uniform(0.1, 0.3)]"'
+    names = ["box", "sphere", "cylinder", "capsule", "cone", "wedge"]
+    text = "steps = 2\npitch = 0.02\n" + "".join(
+        f'[[objects]]\nmesh = "{m}"\nmaterial = "rigid"\nextents = {drawn}\nposition = [{0.5 * i}, 0.0, 0.5]\n'
+        for i, m in enumerate(names))
+    text += '[[objects]]\nmesh = "capsule"\nmaterial = "rigid"\nextents = [0.2, 0.1, 0.1]\nposition = [3.0, 0.0, 0.5]\n'
+    spec = read_scene_file_text(text)
+    for seed in (0, 1):
+        with FileScene(spec, seed) as scene:
+            scene.reset()
+            for obj, params, name in zip(scene._objects, scene.params["objects"], names + ["capsule"]):
+                want = _extents_by_hand(name, params["extents"])
+                low, high = pybullet.getAABB(obj.body, physicsClientId=scene._client)
+                # the collision shape (a mesh's margin adds up to 4 mm) ...
+                np.testing.assert_allclose(np.subtract(high, low), want, atol=0.005, err_msg=name)
+                # ... and the leaves, voxel centres that lie within a pitch of the surface
+                reach = np.ptp(obj.local_leaves, axis=0)
+                assert np.all(np.abs(reach - want) <= 0.02 + 1e-9), (name, reach, want)
 
 
 def test_round_primitives_read_their_diameter_from_x():
