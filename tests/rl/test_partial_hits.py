@@ -11,6 +11,7 @@ from hrn_pyg.rl.partial_hits import (
     random_actions,
     with_tolerance,
 )
+from hrn_pyg.rl.planners import greedy_push
 from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER
 
 #: cube_push with its goal disc at the origin
@@ -36,6 +37,24 @@ class Offsets:
         out[..., 0] = self.offsets[:k]
         out[..., 1] = 0.0
         return out
+
+
+class Steered(Offsets):
+    """Cube 0 starts 0.3 m from the goal and moves 1 cm per newton of x force, the same in every
+    sample: only the actions decide when it arrives."""
+
+    def __init__(self):
+        pass
+
+    def reset_states(self, batch, generator):
+        states = torch.full((batch, 12), 5.0)
+        states[:, :2] = torch.tensor([0.3, 0.0])
+        return states
+
+    def sample_next(self, states, forces, k, rate, generator):
+        out = states.clone()
+        out[:, 0] += 0.01 * forces[:, 0, 0]
+        return out[:, None].repeat(1, k, 1)
 
 
 def test_one_sample_of_five_in_the_goal_is_a_partial_hit_at_every_step():
@@ -68,6 +87,22 @@ def test_share_is_deterministic_given_the_seed():
     a = partial_hit_share(loose, dyn, 0.5, episodes=6, num_envs=3, seed=4)
     b = partial_hit_share(loose, dyn, 0.5, episodes=6, num_envs=3, seed=4)
     assert a == b and a["steps"] > 0
+
+
+def test_share_differs_between_seeds():
+    # the scripted push reaches the goal in about five steps, so the share is neither 0 nor 1;
+    # with a planner only the environment's seed draws (its starts and its samples)
+    dyn = PointMassDynamics.for_task("cube_push")
+    planned = [partial_hit_share(CUBE_PUSH, dyn, 0.5, episodes=8, num_envs=4, seed=seed, policy=greedy_push)
+               for seed in (4, 5, 6, 7)]
+    assert all(0 < r["partial_hit_share"] < 1 for r in planned)
+    assert len({r["partial_hit_share"] for r in planned}) >= 3
+    again = partial_hit_share(CUBE_PUSH, dyn, 0.5, episodes=8, num_envs=4, seed=6, policy=greedy_push)
+    assert again == planned[2]
+    # a random policy where only the actions move anything: the actions' stream follows the seed
+    steered = [partial_hit_share(AT_ORIGIN, Steered(), 0.1, episodes=8, num_envs=4, seed=seed)
+               for seed in (4, 5, 6)]
+    assert len({(r["steps"], r["any_hit_steps"]) for r in steered}) == 3
 
 
 def test_table_covers_the_grid_and_band_filters():
