@@ -44,7 +44,7 @@ from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 from torch_geometric.utils import scatter
 
-from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
@@ -403,6 +403,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="episode folder; its test split is used")
     parser.add_argument("--model", action="append", required=True, metavar="NAME=PATH",
                         help="a checkpoint to score, e.g. --model hrn=runs/hrn/model.pt (repeatable)")
+    parser.add_argument("--rigid-fit", action="append", default=[], metavar="NAME",
+                        help="score model NAME with the rigid fit applied to its rigid objects after the "
+                             "network, e.g. a GNS trained without it: --model gns_rigid=runs/gns/model.pt "
+                             "--rigid-fit gns_rigid (repeatable)")
     parser.add_argument("--out", required=True, help="folder for table.md, results.json and the figure")
     parser.add_argument("--horizons", default="5,15", help="comma-separated steps ahead (default 5,15)")
     parser.add_argument("--long-horizons", default=",".join(map(str, DEFAULT_LONG_HORIZONS)),
@@ -446,6 +450,10 @@ def run(args: argparse.Namespace) -> int:
     if args.stride < 1:
         raise ValueError(f"--stride must be >= 1, got {args.stride}")
     models = {name: load_model(path).to(device) for name, path in _parse_models(args.model).items()}
+    for name in getattr(args, "rigid_fit", None) or []:
+        if name not in models:
+            raise ValueError(f"--rigid-fit {name}: no --model of that name (models: {', '.join(models)})")
+        models[name] = with_applied_options(models[name], rigid_fit=True)
     dataset = EpisodeWindows(args.data, args.split, horizon=max(horizons))
     windows = select_windows(dataset, args.stride, args.limit)
     summaries = {name: summarise(evaluate_model(m, windows, horizons, device)) for name, m in models.items()}

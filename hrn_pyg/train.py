@@ -1,4 +1,5 @@
-"""``hrn-pyg train``: fit an HRN on an episode folder, as the baseline HRN or as *ours*.
+"""``hrn-pyg train``: fit an HRN on an episode folder, as the baseline HRN or as *ours*, or the
+GNS baseline.
 
 Two presets (seed paper, section 3.1):
 
@@ -7,6 +8,10 @@ Two presets (seed paper, section 3.1):
   steps (parent states and collision edges recomputed every step, no hidden state), the loss is
   summed over the steps with gradients through the whole unroll, ``T`` grows from 1 to 6 over
   training; local + global + **fully-connected** shape loss.
+* ``gns``: the flat GNS baseline (:mod:`hrn_pyg.nn.gns`): one step ahead, the mean squared error
+  of the leaves' normalised accelerations, per-leaf random-walk input noise at
+  :data:`~hrn_pyg.nn.gns.NOISE_TO_VELOCITY_STD` of the fitted velocity scale, learning rate 1e-4
+  (the paper's); ``--model-*`` options are those of :class:`~hrn_pyg.nn.gns.GNSConfig`.
 
 One training step draws a mini-batch of windows, unrolls, and takes one optimiser step with
 gradient clipping under a warm-up + cosine learning-rate schedule. Checkpoints are written
@@ -58,7 +63,9 @@ from hrn_pyg.losses import (
     rest_velocity_loss,
     shape_groups,
 )
+from hrn_pyg.nn.gns import NOISE_TO_VELOCITY_STD, GNS, GNSConfig, fit_acceleration
 from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.nn.networks import Network, NetworkConfig, build_network, network_from_dict
 from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 from hrn_pyg.nn.state import to_local_velocity
 from hrn_pyg.sim.rollout import iterate
@@ -75,15 +82,17 @@ from hrn_pyg.utils.metrics import CSVLog
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
 from hrn_pyg.viz import plot_curves
 
-PRESETS = ("hrn", "ours")
+PRESETS = ("hrn", "ours", "gns")
 SHAPE_LOSSES = ("group", "full")
 #: windows used to fit the normaliser (the statistics converge long before this)
 NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
 #: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2,
-#: ``rest`` unless ``w_rest`` > 0)
-LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds"]
+#: ``rest`` unless ``w_rest`` > 0; ``acceleration`` is the ``gns`` preset's loss, the HRN terms
+#: are empty there)
+LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds",
+              "acceleration"]
 
 
 @dataclass(frozen=True)
@@ -113,7 +122,12 @@ class TrainConfig:
         input_noise: standard deviation (m) of a random walk added to the input positions
             ``x_{t-2}, x_{t-1}, x_t`` of each window (GNS's remedy for error accumulation); the
             first step's velocity target is measured from the noisy ``x_t``. Rigid objects get one
-            shift per object, so their inputs stay rigid.
+            shift per object, so their inputs stay rigid (``gns``: every leaf its own walk, and
+            the target corrects the velocity noise only, as the GNS paper's).
+        input_noise_ratio: with ``input_noise`` 0, the noise is this fraction of the mean
+            per-axis velocity scale of the fitted normaliser (the ``gns`` preset's
+            :data:`~hrn_pyg.nn.gns.NOISE_TO_VELOCITY_STD`); the resolved ``input_noise`` is what
+            ``config.json`` records. 0: off.
         device: where the model and batches live ("" : CUDA when available, else CPU).
         workers: background processes assembling batches (0: in the training process).
         time_limit: minutes after which this call stops as if interrupted (checkpoint written,
@@ -160,6 +174,7 @@ class TrainConfig:
     seed: int = 0
     threads: int = 0
     input_noise: float = 0.0
+    input_noise_ratio: float = 0.0
     device: str = ""
     workers: int = 0
     time_limit: float = 0.0
@@ -190,6 +205,11 @@ class TrainConfig:
             raise ValueError(f"train_dropout must be in [0, 1), got {self.train_dropout}")
         if not 0.0 <= self.input_noise < math.inf:
             raise ValueError(f"input_noise must be a finite number >= 0, got {self.input_noise}")
+        if not 0.0 <= self.input_noise_ratio < math.inf:
+            raise ValueError(f"input_noise_ratio must be a finite number >= 0, got {self.input_noise_ratio}")
+        if self.preset == "gns" and (self.sample_copies or self.w_rest or self.seq_end != 1):
+            raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest "
+                             "and seq_end > 1 are options of the HRN presets")
         if not 0.0 <= self.time_limit < math.inf:
             raise ValueError(f"time_limit must be a finite number of minutes >= 0, got {self.time_limit}")
         if self.workers < 0:
@@ -219,6 +239,8 @@ class TrainConfig:
             base.update(seq_start=1, seq_end=1, shape_loss="group")
         elif preset == "ours":
             base.update(seq_start=1, seq_end=6, shape_loss="full")
+        elif preset == "gns":
+            base.update(seq_start=1, seq_end=1, lr=1e-4, input_noise_ratio=NOISE_TO_VELOCITY_STD)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**base)
 
@@ -260,7 +282,11 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     :math:`\mathcal{L}_{ES}^{(k)}` is the mean over the moving leaves of all windows of
     :func:`~hrn_pyg.losses.fair_energy_score` of the leaf's K predicted positions against its true
     one, divided by the velocity scale. The parts returned then include ``energy``.
+
+    A :class:`~hrn_pyg.nn.gns.GNS` is scored by :func:`acceleration_loss` instead.
     """
+    if isinstance(model, GNS):
+        return acceleration_loss(model, window, config, generator, noise_generator)
     store = window[NODE]
     if "pos_seq" not in store or store.pos_seq.size(1) < seq_len + 3:
         have = store.pos_seq.size(1) - 3 if "pos_seq" in store else 0
@@ -329,6 +355,45 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     return total, dict(zip(parts, values))
 
 
+def acceleration_loss(model: GNS, window: HeteroData, config: TrainConfig,
+                      generator: torch.Generator | None = None,
+                      noise_generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+    r"""The GNS's one-step loss on a (batched) window: the mean squared error of the normalised
+    acceleration over the moving leaves and the three axes.
+
+    .. math::
+        \mathcal{L} = \Bigl\langle \bigl((\hat x_{t+1} - \tilde x_t) - (x_{t+1} - x_t)\bigr)^2
+            / \sigma_a^2 \Bigr\rangle
+
+    :math:`\tilde x = x + n` are the inputs with per-leaf random-walk noise (``input_noise``,
+    none on static leaves), :math:`\hat x_{t+1}` the step's prediction from them. With
+    :math:`\tilde v_t = \tilde x_t - \tilde x_{t-1}` this is the error of the normalised
+    acceleration against the GNS paper's target :math:`(x_{t+1} + n_t) - \tilde x_t - \tilde v_t`:
+    the model learns to undo the velocity noise, not the position noise. The prediction runs
+    through the package's step (:func:`~hrn_pyg.sim.rollout.iterate`, no sleeping).
+    """
+    store = window[NODE]
+    if "pos_seq" not in store or store.pos_seq.size(1) < 4:
+        raise ValueError("acceleration_loss: the window holds no future step")
+    seq = store.pos_seq
+    inputs = seq[:, :3]
+    if config.input_noise > 0:
+        inputs = inputs + input_noise(window, config.input_noise, noise_generator, rigid_shift=False)
+    graph = set_state(window, inputs[:, 0], inputs[:, 1], inputs[:, 2], radius=None)  # iterate searches
+    masks_fn = None
+    if config.train_dropout > 0:
+        copies = _batch_size_of(window)
+
+        def masks_fn(t: int, g: HeteroData) -> dict[str, Tensor]:
+            return model.sample_masks(copies, config.train_dropout, generator)
+    forces = store.force_seq[:, :1].transpose(0, 1)
+    result = next(iterate(model, graph, 1, forces, masks_fn, sleep=None))
+    moving = store.is_leaf & ~store.is_static
+    error = (result.pos - graph[NODE].pos) - (seq[:, 3] - seq[:, 2])
+    loss = (error[moving] / model.acceleration_std).square().mean()
+    return loss, {"acceleration": float(loss.detach())}
+
+
 def replicate_windows(window: HeteroData, k: int) -> Batch:
     """``k`` copies of a (batched) window as one batched graph, copy-major: with ``B`` windows of
     ``N`` nodes in all, copy ``c`` of window ``b`` is graph ``c B + b`` and holds rows
@@ -348,7 +413,8 @@ def replicate_windows(window: HeteroData, k: int) -> Batch:
     return Batch.from_data_list(windows * int(k))
 
 
-def input_noise(window: HeteroData, std: float, generator: torch.Generator | None = None) -> Tensor:
+def input_noise(window: HeteroData, std: float, generator: torch.Generator | None = None,
+                rigid_shift: bool = True) -> Tensor:
     r"""Random-walk noise for the three input positions of a window, ``[N, 3, 3]``.
 
     .. math::
@@ -356,16 +422,18 @@ def input_noise(window: HeteroData, std: float, generator: torch.Generator | Non
         n_t = \epsilon_0 + \epsilon_1 + \epsilon_2, \qquad \epsilon_k \sim \mathcal{N}(0, \sigma^2 / 3)
 
     so the noise of ``x_t`` has standard deviation :math:`\sigma` and the input velocities are
-    perturbed consistently. Every leaf of a rigid object takes its root's draw (a rigid shift), a
-    static particle none; ancestor rows are re-derived by ``set_state`` anyway.
+    perturbed consistently. Every leaf of a rigid object takes its root's draw (a rigid shift;
+    ``rigid_shift=False``: its own, as for the GNS), a static particle none; ancestor rows are
+    re-derived by ``set_state`` anyway.
     """
     store = window[NODE]
     n = store.num_nodes
     device = store.pos_seq.device
     steps = torch.randn(n, 3, 3, generator=generator, device="cpu" if generator is not None else device)
     walk = steps.to(device).cumsum(dim=1) * (std / math.sqrt(3.0))
-    rigid = store.material[:, RIGID].bool()
-    walk = torch.where(rigid[:, None, None], walk[root_of(window)], walk)
+    if rigid_shift:
+        rigid = store.material[:, RIGID].bool()
+        walk = torch.where(rigid[:, None, None], walk[root_of(window)], walk)
     return torch.where(store.is_static[:, None, None], torch.zeros_like(walk), walk)
 
 
@@ -484,17 +552,17 @@ def _checkpoint_to_resume(last: Path, resume: bool) -> dict[str, Any] | None:
     return load_checkpoint(last)
 
 
-def _initial_model(config: TrainConfig, model_config: HRNConfig, train_set: EpisodeWindows,
-                   ckpt: dict[str, Any] | None) -> HRN:
+def _initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: EpisodeWindows,
+                   ckpt: dict[str, Any] | None) -> Network:
     """The network the steps start from: the checkpoint's when resuming, else the model of
     ``init_from`` or a fresh one with its normaliser fitted; under ``augment_symmetry`` a new
     run's normaliser is made isotropic."""
     torch.manual_seed(config.seed)
     # built in every case: its initialisation advances the global random stream, which the
     # dropout masks of a run from init_from then continue
-    model = HRN(model_config)
+    model = build_network(model_config)
     if ckpt is not None:
-        model = HRN(HRNConfig.from_dict(json.loads(ckpt["config"])["model"]))
+        model = network_from_dict(json.loads(ckpt["config"])["model"])
         model.load_state_dict(ckpt["model"])
         return model
     if config.init_from:
@@ -506,7 +574,7 @@ def _initial_model(config: TrainConfig, model_config: HRNConfig, train_set: Epis
     return model
 
 
-def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
+def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
     """The model of checkpoint ``path``, in training mode, for ``init_from``.
 
     Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
@@ -515,7 +583,10 @@ def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
     (``mirror_average``, ``mirror_planes``): set, they hold from this fine-tuning on.
     """
     model = load_model(path)
-    saved, given, default = model.config.to_dict(), model_config.to_dict(), HRNConfig().to_dict()
+    if type(model.config) is not type(model_config):
+        raise ValueError(f"init_from={path!r} is a {type(model).__name__}, this preset trains a "
+                         f"{type(model_config).__name__.removesuffix('Config')}")
+    saved, given, default = model.config.to_dict(), model_config.to_dict(), type(model_config)().to_dict()
     changed = {k: given[k] for k in given if given[k] != default.get(k) and given[k] != saved.get(k)}
     clashes = sorted(k for k in changed if k not in APPLIED_OPTIONS)
     if clashes:
@@ -526,10 +597,23 @@ def _fine_tuned_start(path: str, model_config: HRNConfig) -> HRN:
     return model.train()
 
 
-def _fit_to_training_windows(model: HRN, train_set: EpisodeWindows, seed: int) -> None:
-    """Fit the model's normaliser on :data:`NORMALIZER_WINDOWS` training windows drawn by ``seed``."""
+def _fit_to_training_windows(model: Network, train_set: EpisodeWindows, seed: int) -> None:
+    """Fit the model's normaliser (and a GNS's acceleration statistics) on
+    :data:`NORMALIZER_WINDOWS` training windows drawn by ``seed``."""
     picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(seed))
-    fit_normalizer((train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]), model.normalizer)
+    windows = [train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]]
+    fit_normalizer(windows, model.normalizer)
+    if isinstance(model, GNS):
+        fit_acceleration(windows, model)
+
+
+def resolved_noise(config: TrainConfig, model: Network) -> TrainConfig:
+    """``config`` with ``input_noise`` set from ``input_noise_ratio`` (times the mean per-axis
+    velocity scale of ``model``'s fitted normaliser) when it is 0 and the ratio is not."""
+    if config.input_noise > 0 or config.input_noise_ratio == 0:
+        return config
+    scale = float(model.normalizer.velocity_std.mean())
+    return replace(config, input_noise=config.input_noise_ratio * scale)
 
 
 def _optimiser(model: HRN, config: TrainConfig) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
@@ -708,25 +792,30 @@ class _Run:
         self.save(step_done)
         if self.place.rank == 0 and (self.out / "metrics.csv").exists():
             plot_curves(self.out / "metrics.csv", self.out / "loss.png", "step",
-                        ["loss", "local", "global", "shape", "energy", "rest", "val_loss"],
+                        ["loss", "local", "global", "shape", "energy", "rest", "acceleration", "val_loss"],
                         title=f"{self.config.preset} on {Path(self.config.data).name}")
         if self.place.joined_group:
             dist.destroy_process_group()
 
 
-def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bool = False,
+def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume: bool = False,
           progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
     """Run (or continue) one training job; returns the last logged row.
+
+    ``model_config``: an :class:`~hrn_pyg.nn.hrn.HRNConfig` for the ``hrn`` and ``ours``
+    presets, a :class:`~hrn_pyg.nn.gns.GNSConfig` for ``gns`` (None: the preset's default).
 
     ``stop_after`` ends this call after that many more steps (with a checkpoint), as if it had
     been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
     normaliser, no optimiser) is written when the last step is done.
     """
+    model_config = preset_model_config(config.preset, model_config)
     place = _place_process(config)
     out = Path(config.out)
     train_set, val_set = _load_splits(config)
     ckpt = _checkpoint_to_resume(out / "last.pt", resume)
     model = _initial_model(config, model_config, train_set, ckpt)
+    config = resolved_noise(config, model)
     model.to(place.device)
     optimizer, scheduler = _optimiser(model, config)
     start = 0 if ckpt is None else _restore_training_state(ckpt, optimizer, scheduler)
@@ -738,6 +827,17 @@ def train(config: TrainConfig, model_config: HRNConfig = HRNConfig(), resume: bo
     if place.rank == 0 and done == config.steps:
         save_checkpoint(out / "model.pt", model_payload(model, config, config.steps))
     return run.summary
+
+
+def preset_model_config(preset: str, model_config: NetworkConfig | None) -> NetworkConfig:
+    """The network config a preset trains: ``model_config``, or the preset's default (GNS for
+    ``gns``, HRN otherwise); a config of the other network is an error."""
+    wanted = GNSConfig if preset == "gns" else HRNConfig
+    if model_config is None:
+        return wanted()
+    if not isinstance(model_config, wanted):
+        raise ValueError(f"preset {preset!r} trains from a {wanted.__name__}, got a {type(model_config).__name__}")
+    return model_config
 
 
 @torch.no_grad()
@@ -758,7 +858,8 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=PRESETS, required=True, help="hrn (baseline) or ours")
+    parser.add_argument("--preset", choices=PRESETS, required=True,
+                        help="hrn (baseline), ours, or gns (the flat GNS baseline)")
     parser.add_argument("--data", required=True, help="episode folder from `hrn-pyg generate`")
     parser.add_argument("--out", required=True, help="run folder")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
@@ -767,13 +868,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         if f.name in ("preset", "data", "out"):
             continue
         parser.add_argument(f"--{f.name.replace('_', '-')}", type=_option_type(f.default), default=None)
-    for f in fields(HRNConfig):
-        if f.name in ("dropout_modules", "skip_idle_modules"):
-            continue
+    for f in _model_fields():
         parser.add_argument(f"--model-{f.name.replace('_', '-')}", type=_option_type(f.default), default=None,
                             dest=f"model_{f.name}")
     parser.add_argument("--dropout-modules", default=None,
-                        help="comma-separated modules that take dropout masks (default force,collision)")
+                        help="comma-separated modules that take dropout masks (default force,collision; "
+                             "gns: processor)")
+
+
+def _model_fields() -> list:
+    """The config fields that are ``--model-*`` options: the HRN's, then those only the GNS has."""
+    hrn = [f for f in fields(HRNConfig) if f.name not in ("dropout_modules", "skip_idle_modules")]
+    names = {f.name for f in hrn}
+    return hrn + [f for f in fields(GNSConfig) if f.name not in names and f.name not in ("dropout_modules", "network")]
 
 
 def _parse_bool(text: str) -> bool:
@@ -790,15 +897,20 @@ def _option_type(default: Any) -> Any:
     return _parse_bool if isinstance(default, bool) else type(default)
 
 
-def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, HRNConfig]:
+def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, NetworkConfig]:
     overrides = {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)
                  if f.name not in ("preset", "data", "out")}
     config = TrainConfig.for_preset(args.preset, data=args.data, out=args.out, **overrides)
-    model_kwargs = {f.name: getattr(args, f"model_{f.name}") for f in fields(HRNConfig)
+    model_class = GNSConfig if args.preset == "gns" else HRNConfig
+    model_kwargs = {f.name: getattr(args, f"model_{f.name}") for f in _model_fields()
                     if getattr(args, f"model_{f.name}", None) is not None}
+    foreign = sorted(set(model_kwargs) - {f.name for f in fields(model_class)})
+    if foreign:
+        raise ValueError(f"--model-{foreign[0].replace('_', '-')} is not an option of the "
+                         f"{model_class.__name__.removesuffix('Config')} that preset {args.preset!r} trains")
     if args.dropout_modules:
         model_kwargs["dropout_modules"] = tuple(m for m in args.dropout_modules.split(",") if m)
-    return config, HRNConfig(**model_kwargs)
+    return config, model_class(**model_kwargs)
 
 
 def run(args: argparse.Namespace) -> int:

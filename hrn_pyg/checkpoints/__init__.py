@@ -18,6 +18,7 @@ from typing import Any
 import torch
 
 from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.nn.networks import applied_options, network_from_dict
 from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
 from hrn_pyg.utils.device import resolve_device
 
@@ -60,7 +61,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
     ckpt = load_checkpoint(path)
     try:
         config = json.loads(ckpt["config"])
-        model = HRN(HRNConfig.from_dict(config["model"]))
+        model = network_from_dict(config["model"])  # an HRN, or a GNS (its config says so)
         model.load_state_dict(ckpt["model"])
     except (KeyError, TypeError, RuntimeError) as exc:
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
@@ -75,9 +76,10 @@ def with_applied_options(model: HRN, **options: Any) -> HRN:
     :data:`APPLIED_OPTIONS` only (they change how the weights are applied, e.g. the mirror
     average); the other settings fix which weights there are. Keeps ``model``'s train/eval mode.
     """
-    unknown = sorted(set(options) - set(APPLIED_OPTIONS))
+    allowed = applied_options(model, APPLIED_OPTIONS)  # a GNS: its rigid fit
+    unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise ValueError(f"only {list(APPLIED_OPTIONS)} can be applied to trained weights, not {unknown}")
-    changed = HRN(HRNConfig.from_dict({**model.config.to_dict(), **options}))
+        raise ValueError(f"only {list(allowed)} can be applied to trained weights, not {unknown}")
+    changed = network_from_dict({**model.config.to_dict(), **options})
     changed.load_state_dict(model.state_dict())
     return changed.to(model.normalizer.velocity_std.device).train(model.training)

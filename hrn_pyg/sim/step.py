@@ -44,6 +44,7 @@ from hrn_pyg.data.graph import (
     leaf_collision_edges,
     leaf_to_ancestor_mean,
 )
+from hrn_pyg.nn.gns import GNS
 from hrn_pyg.nn.hrn import HRN, HRNInputs, StepOptions, state_features
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
@@ -215,25 +216,49 @@ def decode(
         x_l(t+1) &= x_l(t) + v_l(t+1) \ \text{(leaves)}, \qquad
         x_a(t+1) = \textstyle\sum_{l} m_l x_l(t+1) / m_a \ \text{(ancestors)}
 
-    Static particles get zero velocity, so their positions are returned unchanged. With
-    ``model.config.rigid_fit`` the leaves of every rigid object then move by the one rigid
-    transform that fits their predicted motion best (:func:`rigid_leaf_positions`), and that
+    Static particles get zero velocity, so their positions are returned unchanged. A
+    :class:`~hrn_pyg.nn.gns.GNS` predicts each leaf's acceleration instead
+    (:func:`integrate_acceleration`). With ``model.config.rigid_fit`` the leaves of every rigid
+    object then move by the one rigid transform that fits their predicted motion best
+    (:func:`rigid_leaf_positions`), and that
     object's velocities are the fitted ones; ``objects`` is :func:`object_of` of ``graph`` when
     the caller has it (a rollout computes it once), else it is computed here (one host read).
     """
     store = graph[NODE]
     c2p = graph[CHILD_TO_PARENT].edge_index
-    local_now = to_local_velocity(store.pos - store.prev_pos, c2p)
-    local = local_now + model.normalizer.denormalize_target(out, store.is_root)
-    local = torch.where(store.is_static.unsqueeze(-1), torch.zeros_like(local), local)
-    velocity = to_global_velocity(local, graph[LEAF_TO_ANCESTOR].edge_index)
-    pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
+    if isinstance(model, GNS):
+        pos, local, velocity = integrate_acceleration(model, graph, out)
+    else:
+        local_now = to_local_velocity(store.pos - store.prev_pos, c2p)
+        local = local_now + model.normalizer.denormalize_target(out, store.is_root)
+        local = torch.where(store.is_static.unsqueeze(-1), torch.zeros_like(local), local)
+        velocity = to_global_velocity(local, graph[LEAF_TO_ANCESTOR].edge_index)
+        pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
     if model.config.rigid_fit:
         pos = leaf_to_ancestor_mean(rigid_leaf_positions(graph, pos, objects), graph)
         rigid = store.material[:, RIGID].bool().unsqueeze(-1)
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     return pos, local, velocity
+
+
+def integrate_acceleration(model: GNS, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    r"""Stage 3 of a :class:`~hrn_pyg.nn.gns.GNS`: semi-implicit Euler of the leaves'
+    accelerations, ``(pos_{t+1}, local_velocity, velocity)``, each ``[N, 3]``.
+
+    .. math::
+        v_l(t+1) = x_l(t) - x_l(t-1) + \mu_a + \sigma_a \odot \hat a_l, \qquad
+        x_l(t+1) = x_l(t) + v_l(t+1)
+
+    (zero velocity on static leaves); an ancestor's position and velocity are the mass-weighted
+    means of its leaves', and the local velocities follow from the global ones.
+    """
+    store = graph[NODE]
+    leaf_velocity = store.pos - store.prev_pos + model.denormalize_acceleration(out)
+    moving_leaf = (store.is_leaf & ~store.is_static).unsqueeze(-1)
+    velocity = leaf_to_ancestor_mean(torch.where(moving_leaf, leaf_velocity, torch.zeros_like(leaf_velocity)), graph)
+    pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
+    return pos, to_local_velocity(velocity, graph[CHILD_TO_PARENT].edge_index), velocity
 
 
 def rigid_leaf_positions(
@@ -279,12 +304,16 @@ def root_of(graph: HeteroData) -> Tensor:
 
 
 def target_output(model: HRN, graph: HeteroData, next_pos: Tensor) -> Tensor:
-    """Inverse of :func:`decode`: the normalised network output that would produce ``next_pos``.
+    """Inverse of :func:`decode`: the normalised network output that would produce ``next_pos``
+    (for a :class:`~hrn_pyg.nn.gns.GNS`, the leaves' normalised accelerations).
 
     ``next_pos`` ``[N, 3]`` must have ancestors derived from its leaves. Useful as a regression
     target and to test the decoder; ``[N, 3]``.
     """
     store = graph[NODE]
+    if isinstance(model, GNS):  # the leaves' normalised accelerations, zero on ancestor rows
+        acceleration = model.normalize_acceleration(next_pos - 2.0 * store.pos + store.prev_pos)
+        return torch.where(store.is_leaf.unsqueeze(-1), acceleration, torch.zeros_like(acceleration))
     c2p = graph[CHILD_TO_PARENT].edge_index
     delta = to_local_velocity(next_pos - store.pos, c2p) - to_local_velocity(store.pos - store.prev_pos, c2p)
     return model.normalizer.normalize_target(delta, store.is_root)
