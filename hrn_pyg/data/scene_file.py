@@ -60,6 +60,11 @@ overlapping); ``overlap = "allow"`` keeps every draw as it comes.
 :func:`read_scene_file` reads and validates a file into a :class:`SceneSpec` (every mistake is
 one line naming the key); :meth:`SceneSpec.make_scene` gives the pybullet scene of a seed. The
 package's own scenes are such files (:data:`SCENES`, :func:`builtin_scene`).
+
+A file is bounded: its length (:data:`MAX_FILE_CHARS`), its counts of objects, pushes, draws,
+settings and mesh choices, its steps and substeps, the leaves of a cloth sheet, and every
+expression (:mod:`hrn_pyg.data.expressions`' limits); past one, a
+:class:`~hrn_pyg.data.expressions.LimitError` names it.
 """
 
 from __future__ import annotations
@@ -77,7 +82,15 @@ import numpy as np
 import trimesh
 
 from hrn_pyg.data.effects import SceneEffects
-from hrn_pyg.data.expressions import CONSTANTS, evaluate, names_in
+from hrn_pyg.data.expressions import (
+    CONSTANTS,
+    LimitError,
+    check_elements,
+    checked,
+    count_text,
+    evaluate,
+    names_in,
+)
 from hrn_pyg.data.graph import CLOTH, MATERIALS, RIGID, SOFT, STATIC
 from hrn_pyg.data.meshes import (
     PRIMITIVE_PROPORTIONS,
@@ -126,6 +139,26 @@ OVERLAP_TRIES = 100
 TOUCHING = 1e-9
 #: the most leaves one object may have (the model's cost grows with them)
 MAX_LEAVES = 20_000
+#: the longest scene file (characters; the package's longest has under 3,000): reading and
+#: parsing it take milliseconds
+MAX_FILE_CHARS = 256 * 1024
+#: the most objects of a scene (the package's largest has 4): each one's meshes are loaded and
+#: voxelised (up to :data:`MAX_LEAVES` leaves each) and the model's cost grows with them
+MAX_OBJECTS = 64
+#: the most pushes of a scene (each is drawn per seed and applied every step)
+MAX_PUSHES = 64
+#: the most values of ``[draw]`` (evaluated per seed and redrawn up to :data:`OVERLAP_TRIES`
+#: times) and of ``[settings]``; with the expressions' own limits they bound a seed's draw
+MAX_DRAWS = 256
+MAX_SETTINGS = 256
+#: the most meshes one object draws from (every one is loaded and checked when the file is
+#: read; ``data/shapes/meshes`` holds 49)
+MAX_MESH_CHOICES = 256
+#: the most model steps of an episode and physics steps of a model step: an episode's arrays
+#: are allocated for all its steps at once and its time grows with both (the package's scenes
+#: have 150 and 8)
+MAX_STEPS = 10_000
+MAX_SUBSTEPS = 1_000
 #: where convex decompositions are cached (``HRN_PYG_CACHE`` overrides it)
 CACHE_DIR = Path(os.environ.get("HRN_PYG_CACHE", Path.home() / ".cache" / "hrn_pyg")) / "convex_parts"
 #: the package's own scenes, one file each
@@ -182,11 +215,35 @@ def _read_values(raw: dict, lengths: dict[str, int | None], known: set[str], whe
     return values
 
 
+def _at(exc: ValueError, where: str) -> ValueError:
+    """``exc`` with ``where`` (the key) before its message, a LimitError kept one."""
+    return (LimitError if isinstance(exc, LimitError) else ValueError)(f"{where}: {exc}")
+
+
+def _check_count(count: int, limit: int, what: str, where: str) -> None:
+    """LimitError when a file has more than ``limit`` of ``what``."""
+    if count > limit:
+        raise LimitError(f"{where}: {count} {what}, more than {limit}")
+
+
+def _check_steps(config: SceneConfig, where: str) -> None:
+    """LimitError for more than :data:`MAX_STEPS` steps or :data:`MAX_SUBSTEPS` substeps."""
+    for key, limit in (("steps", MAX_STEPS), ("substeps", MAX_SUBSTEPS)):
+        if getattr(config, key) > limit:
+            raise LimitError(f"{where}: {key} = {getattr(config, key)}, more than {limit}")
+
+
+def _check_name(key: str, where: str) -> None:
+    """A ``[settings]`` or ``[draw]`` key must be a name an expression can read."""
+    if not key.isidentifier():
+        raise ValueError(f"{where}: {key[:40]!r} is not a name (letters, digits and _, not starting with a digit)")
+
+
 def _check_names(text: str, known: set[str], where: str) -> None:
     try:
         unknown = sorted(names_in(text) - known - set(CONSTANTS))
     except ValueError as exc:
-        raise ValueError(f"{where}: {exc}") from None
+        raise _at(exc, where) from None
     if unknown:
         raise ValueError(f"{where}: unknown name {unknown[0]!r} in {text!r}; the names known here are "
                          f"{', '.join(sorted(known)) or 'none'}")
@@ -197,9 +254,11 @@ def _draw(rng: np.random.Generator, value: Value, names: dict, where: str, lengt
     if isinstance(value, str):
         try:
             drawn = evaluate(value, names, rng)
+            array = np.asarray(drawn, dtype=np.float64)
         except ValueError as exc:
-            raise ValueError(f"{where}: {exc}") from None
-        array = np.asarray(drawn, dtype=np.float64)
+            raise _at(exc, where) from None
+        except (TypeError, OverflowError) as exc:
+            raise ValueError(f"{where}: {value!r} is not a number or a list of numbers ({exc})") from None
         if (length is None and array.ndim != 0) or (length is not None and array.shape != (length,)):
             expected = "a number" if length is None else f"{length} numbers"
             raise ValueError(f"{where}: {value!r} gives {array.tolist()}, expected {expected}")
@@ -316,6 +375,7 @@ class SceneSpec:
             config = dataclasses.replace(self.config, **top)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self.name}: {exc}") from None
+        _check_steps(config, self.name)
         settings = dict(self.settings)
         for key, value in overrides.items():
             if key not in TOP_SETTINGS:
@@ -351,7 +411,7 @@ class SceneSpec:
             try:
                 names[name] = evaluate(text, names, rng)
             except ValueError as exc:
-                raise ValueError(f"{self.name}: draw.{name}: {exc}") from None
+                raise _at(exc, f"{self.name}: draw.{name}") from None
             drawn_names[name] = _json(names[name])
         objects = [self._draw_object(i, o, rng, names) for i, o in enumerate(self.objects)]
         pushes = [self._draw_push(i, q, rng, names) for i, q in enumerate(self.pushes)]
@@ -387,9 +447,10 @@ class SceneSpec:
         drawn = self.draw(np.random.default_rng(seed))["objects"]
         for index, (obj, values) in enumerate(zip(self.objects, drawn)):
             mesh = posed_mesh(obj, values)
-            if mesh is None:
-                continue
             where = f"{self.name}: objects[{index}]"
+            if mesh is None:
+                check_sheet(float(values["size"]), self.config.pitch, where)
+                continue
             if obj.material == "cloth":
                 surface_leaves(mesh, where)
             elif obj.material == "soft":
@@ -452,25 +513,37 @@ def _setting(raw: Any, where: str) -> Any:
             array = np.asarray(raw, dtype=np.float64)
         except (TypeError, ValueError):
             raise ValueError(f"{where}: a number or a list of numbers, got {raw!r}") from None
+        check_elements(array.size, f"{where}: a list")
         if array.dtype == object or not np.all(np.isfinite(array)) or any(isinstance(x, bool) for x in np.ravel(raw)):
             raise ValueError(f"{where}: finite numbers, got {raw!r}")
         return array
+    if isinstance(raw, int) and not isinstance(raw, bool):
+        try:
+            checked(raw)
+        except LimitError as exc:
+            raise _at(exc, where) from None
     if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not math.isfinite(raw):
         raise ValueError(f"{where}: a finite number or a list of numbers, got {raw!r}")
     return raw
 
 
 def read_scene_file(path: str | os.PathLike) -> SceneSpec:
-    """The :class:`SceneSpec` of a scene file; ValueError naming the key for every mistake,
-    FileNotFoundError for a missing scene or mesh file."""
+    """The :class:`SceneSpec` of a scene file; ValueError naming the key for every mistake (a
+    LimitError for a file or an expression past a limit), FileNotFoundError for a missing scene
+    or mesh file. No more than :data:`MAX_FILE_CHARS` characters are read."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene file not found: {path}")
-    text = path.read_text()
+    with path.open() as f:
+        text = f.read(MAX_FILE_CHARS + 1)  # never more than the limit in memory
+    if len(text) > MAX_FILE_CHARS:
+        raise LimitError(f"{path}: a scene file of more than {MAX_FILE_CHARS} characters")
     try:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: not TOML ({exc})") from None
+    except RecursionError:
+        raise LimitError(f"{path}: lists or tables nested too deeply") from None
     return parse_scene(table, name=path.stem, base=path.parent, source=str(path), text=text)
 
 
@@ -487,14 +560,21 @@ def parse_scene(table: dict, name: str = "scene", base: Path = Path("."), source
         config = SceneConfig(**top)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: {exc}") from None
+    _check_steps(config, name)
     settings = _table(table, "settings", name)
+    _check_count(len(settings), MAX_SETTINGS, "settings", name)
+    for key in settings:
+        _check_name(key, f"{name}: settings")
     settings = {key: _setting(value, f"{name}: settings.{key}") for key, value in settings.items()}
     clash = sorted(set(settings) & (set(TOP_SETTINGS) | set(CONSTANTS) | {"dt", "soft_margin"}))
     if clash:
         raise ValueError(f"{name}: settings.{clash[0]}: the name is taken (a scene setting or a constant)")
     known = set(settings) | set(TOP_SETTINGS) | {"dt", "soft_margin"}
     draws = []
-    for key, expression in _table(table, "draw", name).items():
+    draw_table = _table(table, "draw", name)
+    _check_count(len(draw_table), MAX_DRAWS, "draws", name)
+    for key, expression in draw_table.items():
+        _check_name(key, f"{name}: draw")
         if not isinstance(expression, str):
             raise ValueError(f"{name}: draw.{key}: an expression (a string) such as \"uniform(0, 1)\", got {expression!r}")
         if key in known or key in ("objects", "pushes"):
@@ -505,10 +585,12 @@ def parse_scene(table: dict, name: str = "scene", base: Path = Path("."), source
     objects = table.get("objects")
     if not isinstance(objects, list) or not objects:
         raise ValueError(f"{name}: needs at least one [[objects]] table")
+    _check_count(len(objects), MAX_OBJECTS, "objects", name)
     specs = tuple(_object(o, f"{name}: objects[{i}]", base, known) for i, o in enumerate(objects))
     pushes = table.get("pushes", [])
     if not isinstance(pushes, list):
         raise ValueError(f"{name}: pushes must be a list of [[pushes]] tables")
+    _check_count(len(pushes), MAX_PUSHES, "pushes", name)
     push_specs = tuple(_push(q, f"{name}: pushes[{i}]", specs, config.steps, known) for i, q in enumerate(pushes))
     return SceneSpec(name=name, config=config, objects=specs, pushes=push_specs, settings=settings,
                      draws=tuple(draws), pass_through=_pairs(table.get("pass_through", []), len(specs), name),
@@ -556,7 +638,9 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
         raise ValueError(f"{where}: unknown material {material!r}; choose from {', '.join(MATERIALS)}")
     raw_meshes = raw.get("mesh")
     raw_meshes = raw_meshes if isinstance(raw_meshes, list) and raw_meshes else [raw_meshes]
+    _check_count(len(raw_meshes), MAX_MESH_CHOICES, "meshes", f"{where}.mesh")
     meshes = tuple(path for mesh in raw_meshes for path in _matching(mesh, base, where))
+    _check_count(len(meshes), MAX_MESH_CHOICES, "meshes", f"{where}.mesh")
     meshes = tuple(_mesh(mesh, material, base, where) for mesh in meshes)
     if len(meshes) > 1 and SHEET in meshes:
         raise ValueError(f"{where}: a sheet is not drawn among other meshes")
@@ -933,6 +1017,7 @@ class FileScene(Scene):
         vertices are the leaves."""
         mesh = posed_mesh(obj, drawn)
         if mesh is None:
+            check_sheet(float(drawn["size"]), self.config.pitch, f"{self.spec.name}: {where}")
             vertices, faces = grid_sheet(float(drawn["size"]), self.config.pitch)
         else:
             vertices, faces = surface_leaves(mesh, f"{self.spec.name}: {where}"), np.asarray(mesh.faces)
@@ -956,6 +1041,19 @@ def stiffness_exponent(drawn: dict, log10_range: tuple[float, float]) -> float:
     """The drawn ``stiffness`` in [0, 1] as the exponent of pybullet's modulus over ``log10_range``."""
     low, high = log10_range
     return low + float(drawn["stiffness"]) * (high - low)
+
+
+def check_sheet(size: float, pitch: float, name: str) -> None:
+    """LimitError when a sheet of side ``size`` has more than :data:`MAX_LEAVES` leaves at
+    ``pitch`` (``round(size / pitch) + 1`` a side, as :func:`~hrn_pyg.data.voxelise.grid_sheet`
+    lays them), before any is made."""
+    if not (math.isfinite(size) and math.isfinite(pitch) and pitch > 0):
+        return  # grid_sheet names the bad value
+    ratio = size / pitch
+    side = round(ratio) + 1 if math.isfinite(ratio) else MAX_LEAVES
+    if side * side > MAX_LEAVES:
+        raise LimitError(f"{name}: a sheet of {count_text(side * side)} leaves at pitch {pitch} m, more than "
+                         f"{MAX_LEAVES}; a pitch of {size / (math.isqrt(MAX_LEAVES) - 1):.3g} m fits")
 
 
 def surface_leaves(mesh: trimesh.Trimesh, name: str) -> np.ndarray:
