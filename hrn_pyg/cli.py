@@ -17,7 +17,7 @@ from collections.abc import Sequence
 #: sub-command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("hrn_pyg.data.generate", "simulate a scene in pybullet and write episodes"),
-    "train": ("hrn_pyg.train", "train an HRN (presets: hrn, ours)"),
+    "train": ("hrn_pyg.train", "train an HRN (presets: hrn, ours) or the GNS baseline (preset gns)"),
     "evaluate": ("hrn_pyg.evaluate", "Table 1: rollout errors of HRN vs ours on the test split"),
     "sample": ("hrn_pyg.sampling.cli", "sample K futures with Monte Carlo dropout"),
     "calibrate": ("hrn_pyg.sampling.calibrate",

@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# The GNS baseline on a lent GPU machine (run from the repository root, $OUT set by the device
+# tool): unpack the carried cube_collision and soft_bounce episode packs (data/device/pack.py),
+# calibrate each job's step rate on the machine (both jobs at once, as they will run), train both
+# for a fixed wall budget with checkpoints, and bring everything back as $OUT/gns_runs.tar.gz
+# (in 15 MiB parts, see the end).
+# The paper's network: M = 10 processor steps, latent and hidden 128 (GNSConfig's defaults).
+# Batch: 64 windows a step, about 3.5k (cube_collision) and 8k (soft_bounce) leaves, the
+# paper's order of particles per step (2 scenes of 1-2k); BATCH overrides it.
+set -u
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
+BUDGET_S=${BUDGET_S:-420}   # wall seconds of the real training runs
+CALIB_S=${CALIB_S:-30}      # wall seconds of the rate calibration
+BATCH=${BATCH:-64}
+WORKERS=${WORKERS:-3}       # batch-assembling processes per job (16 cores: 2 jobs x (1 + 3))
+DEVICE=${DEVICE:-cuda}
+EXTRA=${EXTRA:-}            # more train options for both jobs, e.g. EXTRA="--lr 3e-4"
+OUT=${OUT:-out}
+mkdir -p "$OUT"
+python3 -c "import torch, torch_geometric; print('torch', torch.__version__, 'pyg', torch_geometric.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no cuda')"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null
+for scene in cube_collision soft_bounce; do
+  pack="data/device/packs/$scene.pack.npz"
+  if [ -f "$pack" ]; then
+    python3 data/device/pack.py unpack "$pack" "data/$scene" || exit 1
+  fi
+  [ -d "data/$scene" ] || { echo "no data/$scene and no $pack"; exit 1; }
+  echo "$scene: $(ls data/$scene | grep -c '^episode_') episodes"
+done
+
+# name | dataset
+JOBS=(
+  "gns_cube_collision|cube_collision"
+  "gns_soft_bounce|soft_bounce"
+)
+MODEL="--model-message-passing-steps 10 --model-latent 128 --model-hidden 128"
+COMMON="--preset gns --batch-size $BATCH --workers $WORKERS --threads 1 --device $DEVICE --no-progress $MODEL $EXTRA"
+
+mkdir -p runs calib
+echo "== calibration $(date +%T)"
+for job in "${JOBS[@]}"; do
+  IFS='|' read -r name data <<< "$job"
+  rm -rf "calib/$name"
+  python3 -m hrn_pyg.cli train --data "data/$data" --out "calib/$name" --steps 100000 --warmup 1 \
+    --checkpoint-every 100000 --eval-every 100000 --time-limit "$(python3 -c "print($CALIB_S/60)")" $COMMON \
+    > "calib/$name.log" 2>&1 &
+done
+wait
+echo "== training $(date +%T)"
+for job in "${JOBS[@]}"; do
+  IFS='|' read -r name data <<< "$job"
+  # steps from the calibration: rows after the first 5 (start-up), 85 % of the budget
+  steps=$(python3 - "$name" "$BUDGET_S" <<'PY'
+import csv, sys
+rows = list(csv.DictReader(open(f"calib/{sys.argv[1]}/metrics.csv")))
+t = [float(r["seconds"]) for r in rows]
+rate = (len(t) - 6) / (t[-1] - t[5]) if len(t) > 8 else 1.0
+print(max(250, int(0.85 * float(sys.argv[2]) * rate) // 250 * 250))
+PY
+)
+  echo "$name: $steps steps"
+  rm -rf "runs/$name"
+  python3 -m hrn_pyg.cli train --data "data/$data" --out "runs/$name" --steps "$steps" \
+    --checkpoint-every 250 --eval-every 250 --time-limit "$(python3 -c "print(($BUDGET_S+30)/60)")" $COMMON \
+    > "runs/$name.log" 2>&1 &
+done
+wait
+echo "== done $(date +%T)"
+# steps done, windows seen and wall time of each run (also in runs/gns_summary.json)
+python3 - "${JOBS[@]}" <<'PY' | tee runs/gns_summary.txt
+import csv, json, sys
+summary = {}
+for job in sys.argv[1:]:
+    name = job.split("|")[0]
+    try:
+        rows = list(csv.DictReader(open(f"runs/{name}/metrics.csv")))
+        train = json.load(open(f"runs/{name}/config.json"))["train"]
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"{name}: no run ({exc})")
+        continue
+    done = int(rows[-1]["step"]) + 1 if rows else 0
+    seconds = float(rows[-1]["seconds"]) if rows else 0.0
+    val = [float(r["val_loss"]) for r in rows if r["val_loss"]]
+    summary[name] = {"steps_planned": train["steps"], "steps_done": done, "batch_size": train["batch_size"],
+                     "windows": done * train["batch_size"], "seconds": seconds,
+                     "steps_per_second": done / seconds if seconds else None, "input_noise": train["input_noise"],
+                     "last_loss": float(rows[-1]["loss"]) if rows else None, "last_val_loss": val[-1] if val else None}
+    print(name, json.dumps(summary[name]))
+json.dump(summary, open("runs/gns_summary.json", "w"), indent=1)
+PY
+for job in "${JOBS[@]}"; do IFS='|' read -r name _ <<< "$job"; tail -n 2 "runs/$name.log"; done
+# files come back from $OUT at 16 MiB each at most (64 MiB together, 8 files): the archive (about
+# 50 MB at the defaults: each run's last.pt with its Adam state is 19 MB, model.pt 6.4 MB) comes
+# back in 15 MiB parts; rejoin them with `cat gns_runs.tar.gz.part* > gns_runs.tar.gz`
+tar czf runs/gns_runs.tar.gz runs/gns_*/model.pt runs/gns_*/last.pt runs/gns_*/metrics.csv runs/gns_*/config.json \
+  runs/gns_*.log runs/gns_summary.txt runs/gns_summary.json calib/gns_*/metrics.csv calib/gns_*.log 2>/dev/null
+split -b 15M -d -a 1 runs/gns_runs.tar.gz "$OUT/gns_runs.tar.gz.part"
+cp runs/gns_summary.txt "$OUT/"
+ls -la "$OUT"
