@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,8 @@ from hrn_pyg.data.procedural import (
     convex_pieces,
     main,
     make_shape,
+    obj_text,
+    shape_record,
     union_volume,
     write_shapes,
 )
@@ -200,3 +203,23 @@ def test_the_roof_is_a_closed_gable_with_its_ridge_on_the_y_axis():
     assert len(top) == 2 and np.allclose(top[:, 0], 0.0)  # the ridge: x = 0, along y
     with pytest.raises(ValueError, match="eaves < ridge"):
         gable_roof(eaves=0.3, ridge=0.2)
+
+
+SHIPPED = Path(__file__).resolve().parents[2] / "data" / "shapes" / "meshes"
+
+
+def test_the_shipped_meshes_are_what_the_generator_makes_byte_for_byte():
+    """``data/shapes/meshes`` holds exactly the shapes its ``index.json`` lists, each file the
+    text :func:`make_shape` gives for its kind and seed (shape ``i`` of a kind: seed ``seed + i``),
+    and the index's records are what :func:`shape_record` reads back (one shape per kind)."""
+    index = json.loads((SHIPPED / "index.json").read_text())
+    records = index["shapes"]
+    assert sorted(p.name for p in SHIPPED.iterdir()) == sorted([r["file"] for r in records] + ["index.json"])
+    assert len(records) == len(KINDS) * index["per_kind"]
+    for record in records:
+        kind, i = record["file"].removesuffix(".obj").rsplit("_", 1)
+        assert (record["kind"], record["seed"]) == (kind, index["seed"] + int(i))
+        assert (SHIPPED / record["file"]).read_bytes() == obj_text(make_shape(kind, record["seed"])).encode()
+    for kind in KINDS:
+        record = next(r for r in records if r["kind"] == kind and r["seed"] == index["seed"] + index["per_kind"] - 1)
+        assert shape_record(SHIPPED / record["file"], kind, record["seed"]) == record
