@@ -28,12 +28,12 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/generate.py
 
-# Remake every shipped checkpoint from data/recipes.toml (data/README.md). A rerun continues
-# where a killed one stopped. Options pass through, e.g.
+# Remake every shipped checkpoint from data/recipes.toml into hrn_pyg/checkpoints (data/README.md).
+# A rerun continues where a killed one stopped. Options pass through, e.g.
 # make checkpoints CHECKPOINTS_ARGS="--only wedge --jobs 4 --device cuda"
 CHECKPOINTS_ARGS ?=
 checkpoints: $(STAMP)
-	$(BIN)/hrn-pyg checkpoints $(CHECKPOINTS_ARGS)
+	$(BIN)/hrn-pyg checkpoints --checkpoints-dir hrn_pyg/checkpoints $(CHECKPOINTS_ARGS)
 
 clean-venv:
 	rm -rf $(VENV)

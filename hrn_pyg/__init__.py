@@ -12,7 +12,7 @@ from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.sim.sleeping import SleepConfig
+from hrn_pyg.version import __version__
 
-__version__ = "0.1.0"
 
 __all__ = ["HRN", "HRNConfig", "SleepConfig", "load_model", "rollout", "sample", "__version__"]

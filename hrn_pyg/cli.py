@@ -14,6 +14,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from hrn_pyg.version import __version__
+
 #: sub-command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("hrn_pyg.data.generate", "simulate a scene in pybullet and write episodes"),
@@ -25,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "rl": ("hrn_pyg.rl.ppo", "train a PPO agent in the learned environment"),
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
     "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),
+    "models": ("hrn_pyg.checkpoints.cli", "list the shipped models and what each was trained on"),
 }
 
 #: jobs under a sub-command, ``hrn-pyg <command> <job> ...``: command -> job -> (module, one-line help)
@@ -39,6 +42,7 @@ JOBS: dict[str, dict[str, tuple[str, str]]] = {
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported (the others load torchrl, pybullet, ...)."""
     parser = argparse.ArgumentParser(prog="hrn-pyg", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"hrn-pyg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
         jobs = JOBS.get(name, {})

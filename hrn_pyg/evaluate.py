@@ -45,6 +45,7 @@ from torch_geometric.data import Batch, HeteroData
 from torch_geometric.utils import scatter
 
 from hrn_pyg.checkpoints import load_model, with_applied_options
+from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
 from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
@@ -402,7 +403,11 @@ def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 1
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="episode folder; its test split is used")
     parser.add_argument("--model", action="append", required=True, metavar="NAME=PATH",
-                        help="a checkpoint to score, e.g. --model hrn=runs/hrn/model.pt (repeatable)")
+                        help="a checkpoint to score, e.g. --model hrn=runs/hrn/model.pt, or a shipped "
+                             "model by name: --model shapes or --model ours=shapes (repeatable)")
+    parser.add_argument("--strict", action="store_true",
+                        help="data outside what a model was trained on is an error (exit 2), not a "
+                             "one-line warning")
     parser.add_argument("--rigid-fit", action="append", default=[], metavar="NAME",
                         help="score model NAME with the rigid fit applied to its rigid objects after the "
                              "network, e.g. a GNS trained without it: --model gns_rigid=runs/gns/model.pt "
@@ -427,8 +432,10 @@ def _parse_models(specs: list[str]) -> dict[str, str]:
     models = {}
     for spec in specs:
         name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            raise ValueError(f"--model expects NAME=PATH, got {spec!r}")
+        if not sep and name:  # a shipped model by its name: labelled with it
+            name, path = Path(name).stem, name
+        if not name or not path:
+            raise ValueError(f"--model expects NAME=PATH or a shipped model's name, got {spec!r}")
         models[name] = path
     return models
 
@@ -455,6 +462,9 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--rigid-fit {name}: no --model of that name (models: {', '.join(models)})")
         models[name] = with_applied_options(models[name], rigid_fit=True)
     dataset = EpisodeWindows(args.data, args.split, horizon=max(horizons))
+    data_domain = dataset_domain(args.data)
+    for model in models.values():
+        report_outside(model, data_domain, strict=getattr(args, "strict", False), prefix="hrn-pyg evaluate: warning: ")
     windows = select_windows(dataset, args.stride, args.limit)
     summaries = {name: summarise(evaluate_model(m, windows, horizons, device)) for name, m in models.items()}
     starts = episode_start_windows(args.data, args.split, args.limit)

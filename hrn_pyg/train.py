@@ -50,6 +50,7 @@ from torch_geometric.data import Batch, HeteroData
 from tqdm import tqdm
 
 from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, with_applied_options
+from hrn_pyg.checkpoints.domain import training_domain
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, RIGID, WITHIN_SIBLINGS, set_state
 from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries
@@ -498,12 +499,17 @@ def _collate(windows: list[HeteroData]) -> HeteroData:
 
 def model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]:
     """The checkpoint of a model: its weights (normaliser included), its settings and the run's as
-    JSON, and the steps done; what :func:`~hrn_pyg.checkpoints.load_model` reads."""
-    return {
+    JSON, the steps done and, when its datasets have episodes, the domain they span
+    (:mod:`hrn_pyg.checkpoints.domain`, as JSON); what :func:`~hrn_pyg.checkpoints.load_model` reads."""
+    payload = {
         "model": model.state_dict(),
         "config": json.dumps({"model": model.config.to_dict(), "train": asdict(config)}),
         "step": step,
     }
+    domain = training_domain(tuple(config.data_folders), config.init_from or "")
+    if domain is not None:
+        payload["domain"] = json.dumps(domain.to_dict())
+    return payload
 
 
 @dataclass(frozen=True)

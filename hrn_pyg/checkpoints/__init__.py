@@ -1,33 +1,68 @@
-"""The shipped checkpoints and how to load any model checkpoint.
+"""The shipped checkpoints, by name, and how to load any model checkpoint.
 
 This folder holds the trained models the package ships (``<name>.pt``, remade by
-``make checkpoints`` from ``data/recipes.toml``; ``manifest.json`` says how each was made).
-:func:`load_model` reads a model checkpoint written by ``hrn-pyg train`` (weights-only
-unpickling, so loading cannot run code); :func:`checkpoint_path` finds a shipped one by name and :func:`resolve_model` the one a
-command should use.
-Evaluation, sampling and RL load models through here, without the training stack.
+``make checkpoints`` from ``data/recipes.toml``; ``manifest.json`` says how each was made and
+what it was trained on). :func:`load_model` reads a model checkpoint written by ``hrn-pyg
+train``, given its path or a shipped model's name (``load_model("shapes")``; weights-only
+unpickling, so loading cannot run code); :func:`model_path` turns a name or path into the file,
+:func:`checkpoint_path` names a shipped file and :func:`resolve_model` picks the one a command
+should use. :func:`shipped_models` lists the shipped models with their manifest records
+(:class:`ShippedModel`) and :func:`checkpoint_domain` the domain a checkpoint was trained on
+(:mod:`hrn_pyg.checkpoints.domain`). Evaluation, sampling and RL load models through here,
+without the training stack.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shlex
+from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from hrn_pyg.checkpoints.domain import Domain
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.networks import applied_options, network_from_dict
 from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
 from hrn_pyg.utils.device import resolve_device
+from hrn_pyg.utils.files import file_sha256
 
 #: the folder of the shipped checkpoints (this package's own folder)
 CHECKPOINT_DIR = Path(__file__).resolve().parent
+#: how each shipped checkpoint was made, and its domain (``hrn-pyg checkpoints`` writes it)
+MANIFEST_PATH = CHECKPOINT_DIR / "manifest.json"
+#: shipped files that are policies (``hrn-pyg rl``), not models; :func:`hrn_pyg.rl.policy.load_policy` reads them
+POLICY_NAMES = ("cube_push_policy",)
 
 #: model options that change how trained weights are applied, not which weights there are: a
 #: fine-tuning or a benchmark may set them on a trained model (:func:`with_applied_options`)
 APPLIED_OPTIONS = ("mirror_average", "mirror_planes")
+
+
+@dataclass(frozen=True)
+class ShippedModel:
+    """One shipped model as its manifest records it.
+
+    ``datasets`` are the recipe datasets it was trained on (the first is its own, the others
+    joined in a stage); ``scene`` the scene (a built-in name or a scene file) of the first;
+    ``rate`` and ``modules`` its calibrated sampling rate (None: never calibrated); ``test`` its
+    test errors where the manifest has them (metric -> value).
+    """
+
+    name: str
+    path: Path
+    aliases: tuple[str, ...] = ()
+    scene: str | None = None
+    datasets: tuple[str, ...] = ()
+    domain: Domain | None = None
+    rate: float | None = None
+    modules: tuple[str, ...] = ()
+    test: tuple[tuple[str, float], ...] = ()
+    sha256: str | None = None
 
 
 def checkpoint_path(name: str) -> Path:
@@ -35,29 +70,67 @@ def checkpoint_path(name: str) -> Path:
     return CHECKPOINT_DIR / f"{name}.pt"
 
 
+def shipped_names() -> tuple[str, ...]:
+    """The names of the shipped models (aliases included, policies not), sorted."""
+    return tuple(sorted(p.stem for p in CHECKPOINT_DIR.glob("*.pt") if p.stem not in POLICY_NAMES))
+
+
+def model_path(model: str | os.PathLike) -> Path:
+    """The checkpoint file ``model`` names: a path to a file, or a shipped model's name
+    (``"shapes"`` or ``"shapes.pt"``). Raises FileNotFoundError listing the shipped names."""
+    path = Path(model)
+    if path.is_file():
+        return path
+    text = str(model)
+    name = text[:-3] if text.endswith(".pt") else text
+    if name and os.sep not in text and "/" not in text and name not in POLICY_NAMES and checkpoint_path(name).is_file():
+        return checkpoint_path(name)
+    raise FileNotFoundError(f"checkpoint not found: {text} is neither a file nor a shipped model "
+                            f"({', '.join(shipped_names())}; `hrn-pyg models` lists them)")
+
+
 def resolve_model(scene: str, path: str | os.PathLike | None = None) -> Path:
-    """The checkpoint to use for ``scene``: ``path``, or the shipped ``<scene>.pt`` when None.
+    """The checkpoint to use for ``scene``: ``path`` (a file or a shipped model's name), or the
+    shipped ``<scene>.pt`` when None.
 
     Raises FileNotFoundError naming the missing file and the commands that make one.
     """
-    model_path = Path(path) if path else checkpoint_path(scene)
-    if not model_path.is_file():
+    if path:
+        return model_path(path)
+    model = checkpoint_path(scene)
+    if not model.is_file():
         raise FileNotFoundError(
-            f"no model checkpoint at {model_path}; train one with "
+            f"no model checkpoint at {model}; train one with "
             f"`hrn-pyg generate --scene {scene} --out data/{scene}` then "
             f"`hrn-pyg train --preset ours --data data/{scene} --out runs/{scene} --train-dropout 0.1` "
             f"and pass --model runs/{scene}/model.pt"
         )
-    return model_path
+    return model
+
+
+def display_name(path: str | os.PathLike) -> str:
+    """How messages name a checkpoint: a shipped one by its file name (``shapes.pt``), another
+    by its path."""
+    path = Path(path)
+    try:
+        shipped = path.resolve().parent == CHECKPOINT_DIR
+    except OSError:
+        shipped = False
+    return path.name if shipped else str(path)
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device | None = None) -> HRN:
     """An :class:`~hrn_pyg.nn.hrn.HRN` with its normaliser from a checkpoint written by
-    ``hrn-pyg train``, in eval mode, on ``device`` (None: the CPU).
+    ``hrn-pyg train`` (a path, or a shipped model's name: ``load_model("shapes")``), in eval
+    mode, on ``device`` (None: the CPU).
 
-    Raises :class:`~hrn_pyg.utils.checkpoint.CheckpointError` (a ValueError) naming the file
-    when it is not a model checkpoint.
+    The model carries ``domain``, the :class:`~hrn_pyg.checkpoints.domain.Domain` it was
+    trained on (None when the checkpoint records none), and ``checkpoint_name``, how messages
+    name it. Raises FileNotFoundError for a name that is neither a file nor a shipped model, and
+    :class:`~hrn_pyg.utils.checkpoint.CheckpointError` (a ValueError) naming the file when it
+    is not a model checkpoint.
     """
+    path = model_path(path)
     ckpt = load_checkpoint(path)
     try:
         config = json.loads(ckpt["config"])
@@ -67,14 +140,80 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         raise CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
                               f"({type(exc).__name__}: {first_line})") from None
+    model.domain = checkpoint_domain(path, ckpt)
+    model.checkpoint_name = display_name(path)
     model.eval()
     return model.to(resolve_device(device)) if device is not None else model
+
+
+def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = None) -> Domain | None:
+    """The domain a checkpoint was trained on: its own record (``domain``, written by ``hrn-pyg
+    train``), else the manifest's for a shipped file with the same bytes; None when neither
+    has one. ``ckpt`` is the loaded checkpoint when the caller has it."""
+    ckpt = load_checkpoint(model_path(path)) if ckpt is None else ckpt
+    if isinstance(ckpt.get("domain"), str):
+        try:
+            return Domain.from_dict(json.loads(ckpt["domain"]))
+        except ValueError as exc:
+            raise CheckpointError(f"{path}: {exc}") from None
+    entry = _manifest_by_sha256().get(file_sha256(model_path(path)))
+    return None if entry is None or entry.get("domain") is None else Domain.from_dict(entry["domain"])
+
+
+def read_manifest(path: str | os.PathLike = MANIFEST_PATH) -> dict[str, dict[str, Any]]:
+    """The manifest's entries, model name -> record (empty when there is no manifest)."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    return dict(json.loads(path.read_text()).get("checkpoints", {}))
+
+
+@lru_cache(maxsize=1)
+def _manifest_by_sha256() -> dict[str, dict[str, Any]]:
+    return {entry["sha256"]: entry for entry in read_manifest().values() if entry.get("sha256")}
+
+
+def entry_datasets(entry: dict[str, Any]) -> tuple[str, ...]:
+    """The datasets a manifest entry trained on: its own, then those its stages add
+    (``--extra-data`` folders, by name), each once."""
+    names = [entry.get("dataset", {}).get("name")]
+    for command in [*entry.get("stage_commands", []), entry.get("train_command", "")]:
+        words = shlex.split(command or "")
+        for i, word in enumerate(words[:-1]):
+            if word == "--extra-data":
+                names += [Path(folder).name for folder in words[i + 1].split(",") if folder]
+    return tuple(dict.fromkeys(n for n in names if n))
+
+
+def shipped_model(name: str, entry: dict[str, Any]) -> ShippedModel:
+    """A manifest ``entry`` as a :class:`ShippedModel`."""
+    calibrated = entry.get("calibrated") or {}
+    test = entry.get("test") or {}
+    return ShippedModel(
+        name=name, path=checkpoint_path(name), aliases=tuple(entry.get("aliases", ())),
+        scene=entry.get("dataset", {}).get("scene"), datasets=entry_datasets(entry),
+        domain=None if entry.get("domain") is None else Domain.from_dict(entry["domain"]),
+        rate=calibrated.get("rate"), modules=tuple(calibrated.get("modules") or ()),
+        test=tuple((str(k), float(v)) for k, v in test.items() if k != "about"), sha256=entry.get("sha256"),
+    )
+
+
+def shipped_models() -> list[ShippedModel]:
+    """Every shipped model, sorted by name: those the manifest records (with their aliases), then
+    any other model file here (with no record)."""
+    manifest = read_manifest()
+    models = [shipped_model(name, entry) for name, entry in sorted(manifest.items())
+              if checkpoint_path(name).is_file()]
+    known = {n for m in models for n in (m.name, *m.aliases)}
+    models += [ShippedModel(name=n, path=checkpoint_path(n)) for n in shipped_names() if n not in known]
+    return models
 
 
 def with_applied_options(model: HRN, **options: Any) -> HRN:
     """The same weights and normaliser under a config with ``options`` changed, for options of
     :data:`APPLIED_OPTIONS` only (they change how the weights are applied, e.g. the mirror
-    average); the other settings fix which weights there are. Keeps ``model``'s train/eval mode.
+    average); the other settings fix which weights there are. Keeps ``model``'s train/eval mode
+    and its ``domain`` and ``checkpoint_name``.
     """
     allowed = applied_options(model, APPLIED_OPTIONS)  # a GNS: its rigid fit
     unknown = sorted(set(options) - set(allowed))
@@ -82,4 +221,7 @@ def with_applied_options(model: HRN, **options: Any) -> HRN:
         raise ValueError(f"only {list(allowed)} can be applied to trained weights, not {unknown}")
     changed = network_from_dict({**model.config.to_dict(), **options})
     changed.load_state_dict(model.state_dict())
+    for attribute in ("domain", "checkpoint_name"):
+        if hasattr(model, attribute):
+            setattr(changed, attribute, getattr(model, attribute))
     return changed.to(model.normalizer.velocity_std.device).train(model.training)

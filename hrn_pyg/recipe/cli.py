@@ -11,8 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hrn_pyg.checkpoints import CHECKPOINT_DIR
-from hrn_pyg.recipe.runner import RunConfig, Runner
+from hrn_pyg.recipe.runner import DEFAULT_CHECKPOINTS_DIR, RunConfig, Runner
 from hrn_pyg.recipe.schema import RECIPE_PATH, load_recipe
 
 
@@ -21,8 +20,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", default="", help="NAME[,NAME]: only these models (default all)")
     parser.add_argument("--data-dir", default="data", help="datasets go to DATA_DIR/<dataset> (default data)")
     parser.add_argument("--runs-dir", default="runs/recipe", help="run folders (default runs/recipe)")
-    parser.add_argument("--checkpoints-dir", default=str(CHECKPOINT_DIR),
-                        help="where <model>.pt and manifest.json go (default: the package's checkpoints)")
+    parser.add_argument("--checkpoints-dir", default=str(DEFAULT_CHECKPOINTS_DIR),
+                        help="where <model>.pt and manifest.json go, relative to the working directory "
+                             f"(default {DEFAULT_CHECKPOINTS_DIR}; `make checkpoints` names hrn_pyg/checkpoints, "
+                             "the shipped ones)")
     parser.add_argument("--device", default=None, help="passed to train (default: CUDA when available)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="trainings at once, each its own process; also generate's --workers (default 1)")
@@ -42,6 +43,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
+    if not config.recipe.is_file():
+        raise FileNotFoundError(f"recipe: {config.recipe} does not exist; run in a checkout of the repository "
+                                "(its data/ folder holds the recipe and its scene files) or pass --recipe")
     runner = Runner(load_recipe(config.recipe), config, say=lambda line: print(line, flush=True))
     failed = runner.run()
     if failed:

@@ -101,12 +101,15 @@ def calibration_entry(model: ModelRecipe, run: Path, calibrate_command: Callable
 
 def update_manifest(path: Path, name: str, entry: dict[str, Any]) -> None:
     """Set model ``name``'s entry in the manifest at ``path``, stamped with the time it changed;
-    the file is rewritten (atomically) only when the entry differs. Callers writing from several
-    threads hold one lock around it."""
+    the file is rewritten (atomically) only when the entry differs. An entry without a
+    ``domain`` keeps the old entry's when the checkpoint (its ``sha256``) is the same. Callers
+    writing from several threads hold one lock around it."""
     manifest = read_json(path) or {}
     entries = manifest.get("checkpoints", {})
     old = dict(entries.get(name, {}))
     old.pop("updated", None)
+    if "domain" not in entry and "domain" in old and old.get("sha256") == entry.get("sha256"):
+        entry = {**entry, "domain": old["domain"]}
     if old == entry:
         return
     entries[name] = {**entry, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")}

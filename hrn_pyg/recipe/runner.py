@@ -17,7 +17,9 @@ One run does, for the selected models (``--only``, default all):
    options change, ``calibration.json``);
 4. copies ``model.pt`` (the calibrated copy when there is one) to
    ``<checkpoints-dir>/<model>.pt`` (and each alias) atomically and refreshes the model's entry
-   in ``<checkpoints-dir>/manifest.json`` (:mod:`hrn_pyg.recipe.manifest`).
+   in ``<checkpoints-dir>/manifest.json`` (:mod:`hrn_pyg.recipe.manifest`), with the domain the
+   checkpoint records (:mod:`hrn_pyg.checkpoints.domain`). ``<checkpoints-dir>`` is
+   ``./checkpoints`` unless named; ``make checkpoints`` names the package's own folder.
 
 Every step is idempotent, so after a kill at any point the same command continues where it
 stopped. With :attr:`RunConfig.dry_run` it prints what would run and writes nothing.
@@ -36,7 +38,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hrn_pyg.checkpoints import CHECKPOINT_DIR
 from hrn_pyg.recipe.manifest import (
     MANIFEST_NAME,
     RUN_RECORD,
@@ -60,6 +61,9 @@ from hrn_pyg.utils.files import atomic_write_json
 STOP_GRACE_S = 30.0
 #: the record of what a run's calibrated copy was calibrated from
 CALIBRATION_RECORD = "calibration.json"
+#: where the checkpoints and their manifest go unless named, relative to the working directory
+#: (never the installed package's folder)
+DEFAULT_CHECKPOINTS_DIR = Path("checkpoints")
 
 
 @dataclass(frozen=True)
@@ -69,7 +73,7 @@ class RunConfig:
     recipe: Path = Path(RECIPE_PATH)
     data_dir: Path = Path("data")
     runs_dir: Path = Path("runs/recipe")
-    checkpoints_dir: Path = CHECKPOINT_DIR
+    checkpoints_dir: Path = DEFAULT_CHECKPOINTS_DIR
     device: str | None = None
     jobs: int = 1
     skip_generate: bool = False
@@ -324,7 +328,12 @@ class Runner:
                            lambda: self.calibrate_command(model))
 
     def _update_manifest(self, model: ModelRecipe, run: Path, digest: str) -> None:
+        from hrn_pyg.checkpoints import checkpoint_domain  # imports torch
+
         entry = self.manifest_entry(model, run, digest)
+        domain = checkpoint_domain(self.config.checkpoints_dir / f"{model.name}.pt")
+        if domain is not None:
+            entry["domain"] = domain.to_dict()
         path = self.config.checkpoints_dir / MANIFEST_NAME
         with self._lock:
             update_manifest(path, model.name, entry)

@@ -40,7 +40,7 @@ the scale state-dependent again as it trains.
 **Checkpoint** (:func:`save_clone`; :func:`hrn_pyg.rl.ppo.load_init_policy` reads it): the ``hrn_pyg.checkpoint.v1``
 layout of a PPO run's ``policy.pt`` (``model.actor``; ``config`` JSON holding ``ppo.hidden``,
 the task, the settings and the fit), written atomically and read weights-only, so
-:func:`hrn_pyg.rl.showcase.load_actor` reads it too. ``hrn-pyg rl --init-policy PATH`` starts
+:func:`hrn_pyg.rl.policy.load_actor` reads it too. ``hrn-pyg rl --init-policy PATH`` starts
 every mode's actor from it (critic fresh) and records its SHA-256 in the run's identity.
 
 Command::

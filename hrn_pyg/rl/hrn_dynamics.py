@@ -38,6 +38,7 @@ from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 
 from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints.domain import frames_domain, merge_all, report_outside
 from hrn_pyg.data.graph import HISTORY, NODE, build_structure, object_centres, set_state
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.nn.hrn import HRN, StepOptions
@@ -80,6 +81,9 @@ class HRNDynamics:
             take dropout on every module of ``task.dropout_modules``.
         task: the task (its ``name`` is the pybullet scene).
         pool_seeds: pybullet seeds of the initial states :meth:`reset_states` draws from.
+        strict: a task scene outside the domain the model was trained on
+            (:mod:`hrn_pyg.checkpoints.domain`) raises :class:`~hrn_pyg.checkpoints.domain.DomainError`;
+            otherwise that is one line on stderr.
 
     The pool, the structures and every state live on the model's device (:attr:`device`);
     the pybullet pool is built on the CPU and moved there once.
@@ -91,9 +95,9 @@ class HRNDynamics:
     object_dim = ROOT_DIM
 
     def __init__(self, model: HRN, task: str | TaskConfig, pool_seeds: Sequence[int] = POOL_SEEDS,
-                 sleep: SleepConfig | None = DEFAULT_SLEEP) -> None:
+                 sleep: SleepConfig | None = DEFAULT_SLEEP, strict: bool = False) -> None:
         # pybullet only where a pool is built
-        from hrn_pyg.data.scene_file import make_scene
+        from hrn_pyg.data.scene_file import make_scene, scene_spec
 
         self.task = get_task(task)
         #: objects at rest sleep (:func:`hrn_pyg.sim.sleeping.state_from_history`); None: all awake
@@ -127,6 +131,9 @@ class HRNDynamics:
                     stiffness = np.asarray(scene.object_stiffness, dtype=np.float32)
             finally:
                 scene.close()
+        pitch = scene_spec(self.task.scene_name).config.pitch
+        report_outside(model, merge_all(frames_domain(h, leaf_object, material, pitch) for h in histories),
+                       strict=strict)
         self.device = device = model_device(model)
         pool = np.stack(histories).astype(np.float32)  # [P, 3, L, 3]
         leaf_mass = torch.from_numpy(np.stack(masses))  # [P, L]
@@ -156,9 +163,10 @@ class HRNDynamics:
     def from_checkpoint(cls, path: str | os.PathLike, task: str | TaskConfig,
                         device: str | torch.device | None = None,
                         pool_seeds: Sequence[int] = POOL_SEEDS,
-                        sleep: SleepConfig | None = DEFAULT_SLEEP) -> HRNDynamics:
-        """The dynamics of a checkpoint's model on ``device`` (None: the CPU)."""
-        return cls(load_model(path, device), task, pool_seeds, sleep)
+                        sleep: SleepConfig | None = DEFAULT_SLEEP, strict: bool = False) -> HRNDynamics:
+        """The dynamics of a checkpoint's model (a path or a shipped model's name) on ``device``
+        (None: the CPU)."""
+        return cls(load_model(path, device), task, pool_seeds, sleep, strict)
 
     def __repr__(self) -> str:
         """Names the model by its weights (a digest), so a run's record says which model it used

@@ -253,19 +253,20 @@ def build_actor_critic(env: EnvBase, hidden: int) -> tuple[ProbabilisticActor, V
 
 
 def load_dynamics(task: TaskConfig, model: str | None,
-                  device: str | torch.device = "cpu", sleep: bool = True) -> StochasticDynamics:
-    """``None``: the point-mass development dynamics; a path: the learned HRN, on ``device``,
-    with objects at rest asleep unless ``sleep=False`` (:class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`)."""
+                  device: str | torch.device = "cpu", sleep: bool = True, strict: bool = False) -> StochasticDynamics:
+    """``None``: the point-mass development dynamics; a path or a shipped model's name: the
+    learned HRN, on ``device``, with objects at rest asleep unless ``sleep=False``
+    (:class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`; ``strict``: a task scene outside the model's
+    domain is an error)."""
     if model is None:
         return PointMassDynamics.for_task(task.scene_name, task.dropout_modules, device)
-    path = Path(model)
-    if not path.is_file():
-        raise FileNotFoundError(f"--model checkpoint not found: {path}")
+    from hrn_pyg.checkpoints import model_path
     from hrn_pyg.rl.hrn_dynamics import (
         HRNDynamics,  # pybullet and the model only when asked for
     )
 
-    return HRNDynamics.from_checkpoint(path, task, device, sleep=DEFAULT_SLEEP if sleep else None)
+    return HRNDynamics.from_checkpoint(model_path(model), task, device, sleep=DEFAULT_SLEEP if sleep else None,
+                                       strict=strict)
 
 
 
@@ -578,7 +579,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-scenes", type=int, default=d.eval_scenes,
                         help="fixed evaluation scenes of --eval-every")
     parser.add_argument("--model", default=None,
-                        help="learned HRN checkpoint; absent: point-mass development dynamics")
+                        help="learned HRN checkpoint, a path or a shipped model's name (e.g. cube_push); "
+                             "absent: point-mass development dynamics")
+    parser.add_argument("--strict", action="store_true",
+                        help="with --model: a task scene outside what the model was trained on is an "
+                             "error (exit 2), not a one-line warning")
     parser.add_argument("--out", default=None, help="output folder (default runs/rl/<task>)")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
@@ -611,7 +616,7 @@ def run(args: argparse.Namespace) -> int:
                      eval_every=args.eval_every, eval_scenes=args.eval_scenes)
     device = resolve_device(args.device)
     modes = list(dict.fromkeys(args.mode))
-    dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep)
+    dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep, strict=args.strict)
     out = Path(args.out) if args.out else Path("runs/rl") / task.name
     results = []
     # seed by seed, every mode of a seed together: a sweep cut short has all modes on its first seeds

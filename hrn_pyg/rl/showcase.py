@@ -3,7 +3,6 @@ replayed in pybullet, and a picture of both (used by ``hrn-pyg demo``)."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -14,22 +13,11 @@ from hrn_pyg.data.graph import HISTORY
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import record_episodes, replay_in_pybullet
 from hrn_pyg.rl.hrn_dynamics import HRNDynamics
-from hrn_pyg.rl.ppo import build_actor_critic
-from hrn_pyg.utils.checkpoint import load_checkpoint
+from hrn_pyg.rl.policy import load_actor
 from hrn_pyg.utils.files import atomic_write_json
 
 #: environment seed of the shown episode (fixes its start scene and goal)
 SHOWCASE_SEED = 7
-
-
-def load_actor(path: str | os.PathLike, env: HRNEnv):
-    """The trained actor of a ``policy.pt`` written by ``hrn-pyg rl`` (weights-only load), on the
-    environment's device."""
-    ckpt = load_checkpoint(path)
-    hidden = json.loads(ckpt["config"])["ppo"]["hidden"]
-    actor, _ = build_actor_critic(env, hidden)
-    actor.load_state_dict(ckpt["model"]["actor"])
-    return actor.eval()
 
 
 def showcase_policy(model: str | os.PathLike, policy: str | os.PathLike, out: str | os.PathLike,

@@ -23,6 +23,8 @@ import torch
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.checkpoints import checkpoint_path, load_model, resolve_model
+from hrn_pyg.checkpoints.domain import Domain, episode_domain, report_outside
+from hrn_pyg.data.io import load_episode
 from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.scene_file import scene_effects
 from hrn_pyg.nn.hrn import HRN
@@ -71,7 +73,8 @@ def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroDat
 
 def initial_state(args: argparse.Namespace, steps: int | None,
                   source: str | SceneSpec | None = None) -> tuple[HeteroData, dict]:
-    """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin;
+    """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin,
+    with the :class:`~hrn_pyg.checkpoints.domain.Domain` of its episode (``domain``);
     ``source`` is :func:`scene_source` of ``args`` when the caller has it."""
     if args.data:
         from hrn_pyg.data.dataset import EpisodeWindows
@@ -81,15 +84,18 @@ def initial_state(args: argparse.Namespace, steps: int | None,
         if not 0 <= index < len(dataset):
             raise ValueError(f"--window must be in [0, {len(dataset) - 1}], got {index}")
         window = dataset[index]
+        episode = load_episode(Path(args.data) / f"episode_{int(window.episode_seed):06d}.npz")
         return window, {"data": str(args.data), "window": index,
-                        "episode_seed": int(window.episode_seed), "start_step": int(window.start_step)}
+                        "episode_seed": int(window.episode_seed), "start_step": int(window.start_step),
+                        "domain": episode_domain(episode).to_dict()}
     from hrn_pyg.data.episodes import simulate_episode
 
     total = args.start + (steps or 30)
     episode = simulate_episode(scene_source(args) if source is None else source, int(args.seed), steps=total)
     graph = episode_state(episode, start=args.start, steps=total - args.start)
     where = {"scene_file": str(args.scene_file)} if args.scene_file else {"scene": args.scene}
-    return graph, {**where, "seed": int(args.seed), "start_step": int(args.start)}
+    return graph, {**where, "seed": int(args.seed), "start_step": int(args.start),
+                   "domain": episode_domain(episode).to_dict()}
 
 
 def scene_source(args: argparse.Namespace) -> str | SceneSpec:
@@ -112,7 +118,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"or {UNCALIBRATED_RATE} for an uncalibrated model)")
     parser.add_argument("--modules", default=None,
                         help="comma-separated modules to mask (default: the model's dropout_modules)")
-    parser.add_argument("--model", default=None, help="checkpoint (default hrn_pyg/checkpoints/<scene>.pt)")
+    parser.add_argument("--model", default=None,
+                        help="checkpoint: a path or a shipped model's name, e.g. shapes (`hrn-pyg models`; "
+                             "default: the shipped model of --scene)")
+    parser.add_argument("--strict", action="store_true",
+                        help="a scene outside what the model was trained on is an error (exit 2), "
+                             "not a one-line warning")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--data", default=None, help="episode folder: use a window of its test split")
     source.add_argument("--seed", type=int, default=9, help="simulate a fresh episode with this seed (default)")
@@ -164,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         rate, rate_source = float(args.rate), "--rate"
     graph, origin = initial_state(args, args.steps, source)
+    report_outside(model, Domain.from_dict(origin["domain"]), strict=args.strict, prefix="hrn-pyg sample: warning: ")
     store = graph[NODE]
     steps = int(store.force_seq.shape[1]) if args.steps is None else int(args.steps)
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
