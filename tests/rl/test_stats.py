@@ -16,9 +16,12 @@ from hrn_pyg.rl.stats import (
     comparison_markdown,
     iqm,
     iqm_curve,
+    json_safe,
     median,
     performance_profile,
     probability_of_improvement,
+    probability_of_improvement_point,
+    performance_profile_point,
     reference_levels,
     run_table,
     stratified_bootstrap,
@@ -287,3 +290,228 @@ def test_iqm_curve_by_hand():
     assert got["high"] == pytest.approx(hi.tolist(), abs=1e-12)
     with pytest.raises(ValueError, match="NaN"):
         iqm_curve([[math.nan]])
+
+
+# ---------------------------------------------------------------------------- sharper checks
+def _poi_np(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """P(X > Y) averaged over tasks, ``(..., n, T)`` and ``(..., m, T)`` -> ``(...)``."""
+    a, b = x[..., :, None, :], y[..., None, :, :]
+    return ((a > b) + 0.5 * (a == b)).mean(axis=(-3, -2)).mean(-1)
+
+
+@pytest.mark.parametrize("r", [39, 40, 41])
+def test_intervals_of_a_few_resamples_are_the_percentile_ranks_of_the_seeded_draws(r):
+    # with a few resamples of continuous scores the bounds name the exact draws (the seeded
+    # generator's) and the exact ranks floor(0.025 (r - 1)) and ceil(0.975 (r - 1)): 0 and 38 for
+    # 39, 0 and 39 for 40, 1 and 39 for 41
+    rng = np.random.default_rng(r)
+    a, b = rng.normal(size=12), rng.normal(size=9)
+    x, y = rng.normal(size=(6, 3)), rng.normal(size=(5, 3))
+
+    def bounds(values):
+        ordered = np.sort(values, axis=0)
+        return ordered[int(np.floor(0.025 * (r - 1)))], ordered[int(np.ceil(0.975 * (r - 1)))]
+
+    (i,) = _draws(3, (r, 12), n=12)
+    got = bootstrap_median(a.tolist(), resamples=r, seed=3)
+    assert (got["low"], got["high"]) == bounds(np.median(a[i], axis=1))
+    i, j = _draws(3, (r, 12), (r, 9), n=(12, 9))
+    got = bootstrap_median_difference(a.tolist(), b.tolist(), resamples=r, seed=3)
+    assert (got["low"], got["high"]) == pytest.approx(bounds(np.median(a[i], axis=1) - np.median(b[j], axis=1)), abs=1e-15)
+    (i,) = _draws(3, (r, 6, 3), n=6)
+    got = stratified_bootstrap(torch.tensor(x), lambda s: s.mean(dim=(-2, -1)), resamples=r, seed=3)
+    assert (got["low"], got["high"]) == pytest.approx(bounds(x[i, np.arange(3)].mean(axis=(1, 2))), abs=1e-15)
+    (i,) = _draws(3, (r, 6), n=6)
+    got = iqm_curve(x.tolist(), resamples=r, seed=3)
+    lo, hi = bounds(stats.trim_mean(x[i], 0.25, axis=1))
+    assert got["low"] == pytest.approx(lo.tolist(), abs=1e-15) and got["high"] == pytest.approx(hi.tolist(), abs=1e-15)
+    i, j = _draws(3, (r, 6, 3), (r, 5, 3), n=(6, 5))
+    got = probability_of_improvement(torch.tensor(x), torch.tensor(y), resamples=r, seed=3)
+    boot = _poi_np(x[i, np.arange(3)], y[j, np.arange(3)])
+    ordered = np.sort(boot)
+    assert (got["low"], got["high"]) == pytest.approx(
+        (ordered[int(np.floor(0.025 * (r - 1)))], ordered[int(np.ceil(0.975 * (r - 1)))]), abs=1e-15)
+    assert (got["n_x"], got["n_y"]) == (6, 5)
+    (i,) = _draws(3, (r, 6, 3), n=6)
+    taus = np.array([-0.5, 0.0, 0.5])
+    got = performance_profile(torch.tensor(x), taus.tolist(), resamples=r, seed=3)
+    boot = (x[i, np.arange(3)].reshape(r, -1, 1) > taus).mean(axis=1)
+    ordered = np.sort(boot, axis=0)
+    assert got["low"] == ordered[int(np.floor(0.025 * (r - 1)))].tolist()
+    assert got["high"] == ordered[int(np.ceil(0.975 * (r - 1)))].tolist()
+
+
+def test_the_default_seed_is_zero_and_the_global_generator_is_left_alone():
+    values, x, y = [1.0, 5.0, 2.0, 8.0, 3.0, 9.0], torch.arange(12.0).reshape(6, 2), torch.arange(10.0).reshape(5, 2)
+    calls = [lambda **k: bootstrap_median(values, resamples=40, **k),
+             lambda **k: bootstrap_median_difference(values, values[:4], resamples=40, **k),
+             lambda **k: stratified_bootstrap(x, resamples=40, **k),
+             lambda **k: probability_of_improvement(x, y + 0.5, resamples=40, **k),
+             lambda **k: performance_profile(x, [2.0, 5.0], resamples=40, **k),
+             lambda **k: iqm_curve(x, resamples=40, **k)]
+    for call in calls:
+        torch.manual_seed(1)
+        default = call()
+        torch.manual_seed(2)                                      # another global state: no effect
+        assert call(seed=0) == default
+        assert any(call(seed=s) != default for s in (1, 2, 3))    # the seed draws the resamples
+
+
+def test_scores_are_kept_in_double_precision():
+    # 1e8 + 1 and 1e8 + 2 are one number in single precision
+    big = [1e8 + 1, 1e8 + 2]
+    assert bootstrap_median(big, resamples=20)["median"] == 1e8 + 1.5
+    assert bootstrap_median_difference(big, [1e8], resamples=20)["difference"] == 1.5
+    assert bootstrap_median_difference([1e8], big, resamples=20)["difference"] == -1.5
+    assert stratified_bootstrap(big, resamples=20)["value"] == 1e8 + 1.5
+    assert performance_profile(big, [1e8 + 1.5], resamples=20)["fraction"] == [0.5]
+    assert iqm_curve([[1e8 + 1], [1e8 + 2]], resamples=20)["iqm"] == [1e8 + 1.5]
+
+
+def test_probability_of_improvement_compares_within_each_task_only():
+    # task 0: X always beats Y; task 1: 0 > -1 as well. Pooled across tasks, X's 0s would lose to Y's 1
+    x, y = torch.tensor([[2.0, 0.0], [3.0, 0.0]]), torch.tensor([[1.0, -1.0]])
+    assert probability_of_improvement(x, y, resamples=20)["value"] == 1.0
+
+
+def test_small_inputs_at_the_edges_of_the_checks():
+    assert bootstrap_median([3.0, 4.0], resamples=1)["low"] == bootstrap_median([3.0, 4.0], resamples=1)["high"]
+    assert stratified_bootstrap([2.0], resamples=1) == {"value": 2.0, "low": 2.0, "high": 2.0, "n": 1}
+    assert performance_profile([1.0, 2.0], [1.5], resamples=1)["fraction"] == [0.5]
+    assert float(iqm(torch.tensor([7.0]))) == 7.0
+    for level in (0.0, 1.0):
+        with pytest.raises(ValueError, match="level"):
+            bootstrap_median([1.0, 2.0], level=level)
+        with pytest.raises(ValueError, match="level"):
+            stratified_bootstrap([1.0, 2.0], level=level)
+    with pytest.raises(ValueError, match="at least one value"):
+        iqm(torch.tensor([]))
+    with pytest.raises(ValueError, match=r"curves must be \(runs, points\), got shape \(1, 0\)"):
+        iqm_curve([[]])
+    with pytest.raises(ValueError, match=r"curves must be \(runs, points\), got shape \(3,\)"):
+        iqm_curve([1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="NaN"):
+        bootstrap_median_difference([1.0], [math.nan])
+    with pytest.raises(ValueError, match="NaN"):
+        bootstrap_median_difference([math.nan], [1.0])
+
+
+def test_comparison_markdown_by_hand():
+    inf, nan = math.inf, math.nan
+    comparison = {"levels": [7.5, 5.0], "modes": {
+        "deterministic": {"n": 3, "updates": 50, "updates_to_7.5": {"median": 36.0, "low": 30.0, "high": inf},
+                          "updates_to_5": {"median": inf, "low": inf, "high": inf},
+                          "final_length": {"median": 6.0, "low": 5.5, "high": 6.25},
+                          "pybullet_success_rate": {"median": 0.5, "low": 0.25, "high": 0.75}},
+        "stochastic": {"n": 4, "updates": 48, "updates_to_7.5": {"median": 14.0, "low": 12.0, "high": 16.5},
+                       "updates_to_5": {"median": 18.0, "low": 17.0, "high": 20.0},
+                       "final_length": {"median": 4.0, "low": 3.875, "high": 4.125},
+                       "pybullet_success_rate": {"median": 1.0, "low": 0.75, "high": 1.0},
+                       "model_success_rate": {"median": 0.75, "low": 0.5, "high": 1.0}}},
+        "versus_deterministic": {"stochastic": {
+            "updates_to_7.5": {"difference": -22.0, "low": -inf, "high": -14.0},
+            "updates_to_5": {"difference": -inf, "low": -inf, "high": nan},
+            "final_length": {"difference": -2.0, "low": -2.25, "high": 0.0},
+            "pybullet_success_rate": {"difference": nan, "low": nan, "high": nan}}}}
+    assert comparison_markdown(comparison, "toy") == """\
+# toy: modes compared (median over seeds [bootstrap 95% interval])
+
+| mode | seeds | updates run | updates to length 7.5 | updates to length 5 | final length | success (pybullet) | success (model) |
+|---|---|---|---|---|---|---|---|
+| deterministic | 3 | 50 | 36 [30, never] | never [never, never] | 6.00 [5.50, 6.25] | 0.50 [0.25, 0.75] | - |
+| stochastic | 4 | 48 | 14 [12, 16] | 18 [17, 20] | 4.00 [3.88, 4.12] | 1.00 [0.75, 1.00] | 0.75 [0.50, 1.00] |
+
+Difference from `deterministic` (median of mode minus median of deterministic; an interval that excludes 0 is a difference at that level):
+
+| mode | updates to 7.5 | updates to 5 | final length | success (pybullet) |
+|---|---|---|---|---|
+| stochastic | -22 [-inf, -14] | -inf [-inf, ?] | -2.00 [-2.25, +0.00] | both never |
+"""
+    one = comparison_markdown({"levels": [7.5], "modes": {"deterministic": {"n": 1, "updates": 2}}}, "one")
+    assert one.endswith("|---|---|---|---|---|---|---|\n| deterministic | 1 | 2 | - | - | - | - |\n")
+    assert "Difference" not in one
+
+
+def test_compare_modes_by_hand_skips_missing_values():
+    inf, nan = math.inf, math.nan
+
+    def row(mode, seed, reach, final, pybullet, model):
+        return {"mode": mode, "seed": seed, "updates": 10 + seed, "updates_to_7.5": reach, "updates_to_5": inf,
+                "final_length": final, "pybullet_success_rate": pybullet, "model_success_rate": model}
+
+    rows = [row("deterministic", 0, 9.0, nan, None, 0.5), row("deterministic", 1, 7.0, 6.0, None, 0.25),
+            row("stochastic", 0, 3.0, 4.0, 1.0, 0.75), row("stochastic", 1, 5.0, nan, 0.5, 1.0)]
+    got = compare_modes(rows, max_steps=10, seed=4)
+    det, sto = got["modes"]["deterministic"], got["modes"]["stochastic"]
+    assert (det["n"], det["updates"]) == (2, 10)
+    assert det["final_length"] == bootstrap_median([6.0], seed=4)                       # NaN skipped
+    assert "pybullet_success_rate" not in det                                           # None skipped
+    assert sto["pybullet_success_rate"] == bootstrap_median([1.0, 0.5], seed=4)
+    assert sto["model_success_rate"] == bootstrap_median([0.75, 1.0], seed=4)
+    assert sto["updates_to_7.5"] == bootstrap_median([3.0, 5.0], seed=4)
+    versus = got["versus_deterministic"]["stochastic"]
+    assert "pybullet_success_rate" not in versus                                        # one side only
+    assert versus["updates_to_7.5"] == bootstrap_median_difference([3.0, 5.0], [9.0, 7.0], seed=4)
+    assert versus["final_length"] == bootstrap_median_difference([4.0], [6.0], seed=4)
+    assert json_safe(compare_modes(rows, max_steps=10)) == json_safe(compare_modes(rows, max_steps=10, seed=0))
+
+
+def test_run_table_reads_each_results_row_and_skips_runs_without_a_log(tmp_path):
+    _write_log(tmp_path / "stochastic" / "seed1", [10.0] * 12)
+    results = [{"mode": "stochastic", "seed": 0, "pybullet_success_rate": 0.1},     # no log: skipped
+               {"mode": "stochastic", "seed": 1, "pybullet_success_rate": 0.25, "success_rate": 0.5}]
+    rows = run_table(tmp_path, results, max_steps=10)
+    assert rows == [{"mode": "stochastic", "seed": 1, "updates": 12, "final_length": 10.0,
+                     "pybullet_success_rate": 0.25, "model_success_rate": 0.5,
+                     "updates_to_7.5": math.inf, "updates_to_5": math.inf}]
+    results[1]["model_success_rate"] = 0.75                       # preferred to the older name
+    assert run_table(tmp_path, results, max_steps=10)[0]["model_success_rate"] == 0.75
+    written = write_comparison(tmp_path, results, "toy", max_steps=10)
+    loaded = json.loads((tmp_path / "comparison.json").read_text())
+    assert written["task"] == loaded["task"] == "toy"
+    assert loaded["runs"][0]["seed"] == 1 and loaded["runs"][0]["updates_to_5"] is None
+
+
+def test_json_safe_and_median_edge_cases():
+    assert json_safe({"a": [1.0, math.inf, [-math.inf, 2]], "b": math.nan}) == {"a": [1.0, None, [None, 2]], "b": None}
+    assert math.isnan(float(median(torch.tensor([-math.inf, math.inf]))))   # the mean of -inf and inf
+    assert float(median(torch.tensor([-math.inf, -math.inf]))) == -math.inf
+
+
+def test_directions_of_improvement_reach_the_bootstrap():
+    assert probability_of_improvement_point(torch.tensor([[2.0]]), torch.tensor([[1.0]])) == 1.0   # higher by default
+    assert performance_profile_point(torch.tensor([[2.0]]), torch.tensor([1.0])).tolist() == [1.0]
+    worse = probability_of_improvement([5.0, 6, 7], [1.0, 2, 3], higher_is_better=False, resamples=50)
+    assert worse["value"] == worse["low"] == worse["high"] == 0.0
+    within = performance_profile([1.0, 2.0], [5.0], higher_is_better=False, resamples=50)
+    assert within["fraction"] == within["low"] == within["high"] == [1.0]
+
+
+def test_every_refusal_says_exactly_why():
+    cases = [
+        (lambda: bootstrap_median([]), "bootstrap_median needs at least one value"),
+        (lambda: bootstrap_median([math.nan]),
+         "bootstrap_median got NaN; pass math.inf for a run that never reached the level"),
+        (lambda: bootstrap_median_difference([1.0], []), "bootstrap_median_difference needs values in both groups"),
+        (lambda: bootstrap_median_difference([1.0], [math.nan]),
+         "bootstrap_median_difference got NaN; pass math.inf for a censored run"),
+        (lambda: iqm(torch.tensor([])), "iqm needs at least one value"),
+        (lambda: stratified_bootstrap(torch.ones(2, 2, 2)),
+         "scores must be (runs,) or (runs, tasks) with at least one run, got shape (2, 2, 2)"),
+        (lambda: stratified_bootstrap([1.0, math.nan]),
+         "scores holds NaN; pass math.inf for a run that never reached a level"),
+        (lambda: probability_of_improvement(torch.ones(1, 1, 1), [1.0]),
+         "x must be (runs,) or (runs, tasks) with at least one run, got shape (1, 1, 1)"),
+        (lambda: probability_of_improvement([1.0], torch.ones(1, 1, 1)),
+         "y must be (runs,) or (runs, tasks) with at least one run, got shape (1, 1, 1)"),
+        (lambda: performance_profile([1.0], []), "performance_profile needs at least one threshold"),
+        (lambda: performance_profile(torch.ones(1, 1, 1), [1.0]),
+         "scores must be (runs,) or (runs, tasks) with at least one run, got shape (1, 1, 1)"),
+        (lambda: iqm_curve(torch.zeros(0, 3)), "curves must be (runs, points), got shape (0, 3)"),
+        (lambda: iqm_curve([[math.nan]]), "curves hold NaN"),
+        (lambda: stratified_bootstrap([1.0], resamples=0), "need 0 < level < 1 and resamples >= 1, got 0.95, 0"),
+    ]
+    for call, message in cases:
+        with pytest.raises(ValueError) as info:
+            call()
+        assert str(info.value) == message

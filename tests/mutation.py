@@ -1,0 +1,90 @@
+"""Mutation testing with mutmut (``make mutation``; the optional ``mutation`` extra, not part of
+``make test`` or CI): each module below in turn, mutated in a copy of the package and the tests
+under ``out/mutation/<name>/`` (the checkout is never touched), one process, against its own
+test files only. Prints the survivors and writes them to ``out/mutation/<name>/survivors.txt``;
+exits 1 when a survivor is not listed in :data:`EQUIVALENT` (a mutant no test can tell apart).
+
+    python tests/mutation.py [stats stability scene_file expressions]
+
+``cd out/mutation/<name> && ../../../.venv/bin/mutmut show <mutant>`` shows one mutant.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MUTMUT = Path(sys.executable).parent / "mutmut"
+
+#: name -> (the file mutated, its test files, the mutants run: an fnmatch pattern of mutmut's names)
+MODULES: dict[str, tuple[str, tuple[str, ...], str]] = {
+    "stats": ("hrn_pyg/rl/stats.py", ("tests/rl/test_stats.py",), "hrn_pyg.rl.stats.*"),
+    "stability": ("hrn_pyg/sim/stability.py", ("tests/sim/test_stability.py",), "hrn_pyg.sim.stability.*"),
+    # the scene file's draws: every function or method with "draw" in its name
+    "scene_file": ("hrn_pyg/data/scene_file.py",
+                   ("tests/data/test_scene_file.py", "tests/data/test_scene_file_bounds.py"),
+                   "hrn_pyg.data.scene_file.*draw*"),
+    "expressions": ("hrn_pyg/data/expressions.py", ("tests/data/test_expressions.py",), "hrn_pyg.data.expressions.*"),
+}
+
+#: surviving mutants that behave as the original does, each with the reason
+EQUIVALENT: dict[str, str] = {}
+
+CONFIG = """[mutmut]
+source_paths = hrn_pyg
+only_mutate = {source}
+pytest_add_cli_args_test_selection =
+{tests}
+pytest_add_cli_args =
+    -p
+    no:cacheprovider
+    -p
+    no:xdist
+    -W
+    ignore::DeprecationWarning
+
+[tool:pytest]
+pythonpath = tests
+addopts = -q
+"""
+
+
+def run(name: str) -> list[str]:
+    """Mutate one module of :data:`MODULES`; its survivors."""
+    source, tests, pattern = MODULES[name]
+    work = ROOT / "out" / "mutation" / name
+    shutil.rmtree(work, ignore_errors=True)
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    shutil.copytree(ROOT / "hrn_pyg", work / "hrn_pyg", ignore=ignore)
+    shutil.copytree(ROOT / "tests", work / "tests", ignore=ignore)
+    (work / "setup.cfg").write_text(CONFIG.format(source=source, tests="\n".join(f"    {t}" for t in tests)))
+    print(f"== {name}: {source} against {', '.join(tests)}", flush=True)
+    subprocess.run([str(MUTMUT), "run", "--max-children", "1", pattern], cwd=work, check=True,
+                   stdout=subprocess.DEVNULL)
+    results = subprocess.run([str(MUTMUT), "results"], cwd=work, check=True, capture_output=True, text=True).stdout
+    survivors = sorted(line.split(":")[0].strip() for line in results.splitlines() if line.strip().endswith("survived"))
+    (work / "survivors.txt").write_text("".join(f"{s}\n" for s in survivors))
+    return survivors
+
+
+def main(names: list[str]) -> int:
+    unknown = [n for n in names if n not in MODULES]
+    if unknown:
+        print(f"unknown module(s) {unknown}; known: {', '.join(MODULES)}", file=sys.stderr)
+        return 2
+    failed = False
+    for name in names or list(MODULES):
+        survivors = run(name)
+        unexplained = [s for s in survivors if s not in EQUIVALENT]
+        print(f"{name}: {len(survivors)} survived, {len(unexplained)} not known to be equivalent", flush=True)
+        for s in unexplained:
+            print(f"  {s}")
+        failed |= bool(unexplained)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
