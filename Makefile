@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 OUT     ?= out/demo
 JOBS    ?= 2
 
-.PHONY: demo test test-slow bench checkpoints clean-venv
+.PHONY: demo test test-slow bench checkpoints mutation clean-venv
 
 $(STAMP): setup.cfg constraints.txt
 	@command -v $(PY) >/dev/null 2>&1 || { echo "need $(PY) on PATH (or set PY=python3)"; exit 2; }
@@ -34,6 +34,14 @@ bench: $(STAMP)
 CHECKPOINTS_ARGS ?=
 checkpoints: $(STAMP)
 	$(BIN)/hrn-pyg checkpoints --checkpoints-dir hrn_pyg/checkpoints $(CHECKPOINTS_ARGS)
+
+# Mutation testing (mutmut, the optional `mutation` extra; not part of `make test` or CI): stats,
+# stability, the scene file's draws and expressions in turn, one process each, against their own
+# test files, in a copy under out/mutation/ (tests/mutation.py). MUTATE="stats stability" runs some.
+MUTATE ?=
+mutation: $(STAMP)
+	$(BIN)/python -c "import mutmut" 2>/dev/null || $(BIN)/python -m pip install -q -c constraints.txt -e '.[mutation]'
+	$(BIN)/python tests/mutation.py $(MUTATE)
 
 clean-venv:
 	rm -rf $(VENV)
