@@ -30,8 +30,25 @@ MODULES: dict[str, tuple[str, tuple[str, ...], str]] = {
     "expressions": ("hrn_pyg/data/expressions.py", ("tests/data/test_expressions.py",), "hrn_pyg.data.expressions.*"),
 }
 
-#: surviving mutants that behave as the original does, each with the reason
-EQUIVALENT: dict[str, str] = {}
+#: surviving mutants that behave as the original does, each with the reason (mutmut numbers the
+#: mutants of a function in order: an edit of the function renumbers them, and a rerun lists them)
+EQUIVALENT: dict[str, str] = {
+    "hrn_pyg.rl.stats.x__as_runs__mutmut_10": "unsqueeze(+1) of a 1-D tensor is unsqueeze(-1): (n, 1)",
+    "hrn_pyg.rl.stats.x__resampled_medians__mutmut_12": "median's default dim -1 is dim 1 of the [R, n] draws",
+    "hrn_pyg.rl.stats.x_probability_of_improvement_point__mutmut_23":
+        "mean over (-3, +2) then -1 averages the same equally weighted wins over (n, m, T) "
+        "(and is (-3, -2) itself for a batch)",
+    "hrn_pyg.rl.stats.x_reference_levels__mutmut_6": "0.75 and 0.5 of an integer step limit have at most 2 decimals",
+    "hrn_pyg.rl.stats.x__number__mutmut_11": "only +-inf reach the test: v >= 0 is v > 0 for them",
+    "hrn_pyg.rl.stats.x__number__mutmut_12": "only +-inf reach the test: v > 1 is v > 0 for them",
+    "hrn_pyg.rl.stats.x_comparison_markdown__mutmut_63": "a missing versus table read as None or {}: both false",
+    "hrn_pyg.rl.stats.x_comparison_markdown__mutmut_65": "a missing versus table read as None or {}: both false",
+    "hrn_pyg.sim.stability.x_mean_pairwise_distance__mutmut_22":
+        "with fewer than two points every distance sum is 0, divided by 1 or 2",
+    "hrn_pyg.sim.stability.x_stability_report__mutmut_57":
+        "every leaf of an object has its material, and a body has at least two leaves (MIN_LEAVES)",
+    "hrn_pyg.sim.stability.x_stability_report__mutmut_76": "norm over dim +1 of [S, 3] centres is dim -1",
+}
 
 CONFIG = """[mutmut]
 source_paths = hrn_pyg

@@ -515,3 +515,41 @@ def test_every_refusal_says_exactly_why():
         with pytest.raises(ValueError) as info:
             call()
         assert str(info.value) == message
+
+
+def test_compare_modes_passes_its_seed_to_every_interval():
+    # fifteen distinct values: the 2.5 % point of their bootstrap medians lies so near the 4th
+    # value (P = 0.0255) that the seed decides between the 4th and the 5th; seed 2 moves the
+    # difference's interval as well
+    v = [float(x) for x in (3, 14, 7, 1, 12, 9, 15, 5, 11, 2, 13, 8, 6, 10, 4)]
+    w = [12.7, 5.4, 0.8, 0.3, 16.3]
+    rows = ([{"mode": "deterministic", "seed": i, "updates": 20, "updates_to_7.5": x} for i, x in enumerate(v)]
+            + [{"mode": "stochastic", "seed": i, "updates": 20, "updates_to_7.5": x} for i, x in enumerate(w)])
+    assert bootstrap_median(v, seed=2) != bootstrap_median(v, seed=0)
+    assert bootstrap_median_difference(w, v, seed=2) != bootstrap_median_difference(w, v, seed=0)
+    for seed, got in ((2, compare_modes(rows, max_steps=10, seed=2)), (0, compare_modes(rows, max_steps=10))):
+        assert got["modes"]["deterministic"]["updates_to_7.5"] == bootstrap_median(v, seed=seed)
+        assert got["versus_deterministic"]["stochastic"]["updates_to_7.5"] == bootstrap_median_difference(w, v, seed=seed)
+
+
+def test_the_markdown_signs_positive_differences_and_dashes_missing_ones():
+    comparison = {"levels": [7.5], "modes": {}, "versus_deterministic": {
+        "stochastic": {"updates_to_7.5": {"difference": 3.0, "low": 1.0, "high": math.inf},
+                       "final_length": {"difference": 0.5, "low": 0.25, "high": 0.75},
+                       "pybullet_success_rate": {"difference": 0.25, "low": 0.125, "high": 0.5}},
+        "action_noise": {}}}
+    lines = comparison_markdown(comparison, "toy").splitlines()
+    assert lines[-2:] == ["| stochastic | +3 [+1, +inf] | +0.50 [+0.25, +0.75] | +0.25 [+0.12, +0.50] |",
+                          "| action_noise | - | - | - |"]
+
+
+def test_a_run_whose_log_has_no_length_has_no_final_length(tmp_path):
+    _write_log(tmp_path / "stochastic" / "seed0", [math.nan] * 3)
+    (row,) = run_table(tmp_path, [{"mode": "stochastic", "seed": 0}], max_steps=10)
+    assert math.isnan(row["final_length"]) and row["updates_to_5"] == math.inf
+
+
+def test_censored_groups_keep_their_keys_and_profiles_their_thresholds():
+    both_never = bootstrap_median_difference([math.inf] * 3, [math.inf] * 3)
+    assert set(both_never) == {"difference", "low", "high"} and math.isnan(both_never["difference"])
+    assert performance_profile([1.0, 2.0], [0.5, 1.5], resamples=10)["tau"] == [0.5, 1.5]
