@@ -48,6 +48,7 @@ EQUIVALENT: dict[str, str] = {
     "hrn_pyg.sim.stability.x_stability_report__mutmut_57":
         "every leaf of an object has its material, and a body has at least two leaves (MIN_LEAVES)",
     "hrn_pyg.sim.stability.x_stability_report__mutmut_76": "norm over dim +1 of [S, 3] centres is dim -1",
+    "hrn_pyg.sim.stability.x_stability_report__mutmut_45": 'float("NAN") is float("nan")',
 }
 
 CONFIG = """[mutmut]
