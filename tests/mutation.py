@@ -49,6 +49,11 @@ EQUIVALENT: dict[str, str] = {
         "every leaf of an object has its material, and a body has at least two leaves (MIN_LEAVES)",
     "hrn_pyg.sim.stability.x_stability_report__mutmut_76": "norm over dim +1 of [S, 3] centres is dim -1",
     "hrn_pyg.sim.stability.x_stability_report__mutmut_45": 'float("NAN") is float("nan")',
+    "hrn_pyg.data.expressions.x_checked__mutmut_4":
+        "every value is checked where it first appears, and no literal is complex: a complex value "
+        "is a Python complex (a fractional power of a negative number) before it can reach an array",
+    "hrn_pyg.data.expressions.x_checked__mutmut_5": "as x_checked__mutmut_4: no complex array can be formed",
+    "hrn_pyg.data.expressions.x_tree_size__mutmut_3": "the root sits at depth 1, so the deepest is at least 1 either way",
 }
 
 CONFIG = """[mutmut]

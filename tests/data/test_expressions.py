@@ -269,3 +269,48 @@ def test_hostile_expressions_end_quickly_in_one_line_or_a_finite_value(text: str
     else:
         assert np.size(value) <= MAX_ELEMENTS and np.all(np.isfinite(np.asarray(value, dtype=np.float64)))
     assert time.perf_counter() - start < SECONDS
+
+
+@pytest.mark.parametrize("text, message", [
+    ("integer(0, 3, [2])", "integer: draws one number (no shape)"),
+    ("integer(0.5, 3)", "integer: whole-number bounds, got 0.5 and 3"),
+    ("integer(1)", "integer(low, high[, shape]) or integer(pair[, shape]), got 1 argument(s)"),
+    ("uniform(0, 1, [0])", "shape: positive integers, got [0.0]"),
+    ("uniform(0, 1, [1.5])", "shape: positive integers, got [1.5]"),
+    ("uniform(0, 1, [[2]])", "shape: positive integers, got [[2.0]]"),
+    ("uniform(1, [0, 2])", "uniform: low 1 > high [0.0, 2.0]"),
+    ("[1e308] * 10", "overflow encountered in multiply"),
+    ("[0.0] / 0", "invalid value encountered in divide"),
+    ("(-8) ** 0.5", "not a real number (a fractional power of a negative number?)"),
+    ("1e308 * 10", "not finite (an infinity or a NaN: an overflow, or inf - inf?)"),
+    ("foo(1)", "unknown function 'foo'; the functions are uniform, integer, sin, cos, tan, atan2, sqrt, "
+               "radians, degrees, abs, min, max, zeros, yaw_quaternion"),
+    ("q", "unknown name 'q'; the names known here are pi"),
+    ("[[1, 2], [3]]", "a list of numbers, or of lists of one length"),
+    ("[1, 2][5]", "index 5 out of range"),
+    ("[1, 2][0.5]", "an index must be a whole number, got 0.5"),
+])
+def test_a_refused_expression_says_exactly_why(text, message):
+    with pytest.raises(ValueError) as info:
+        evaluate(text, {}, np.random.default_rng(0))
+    assert type(info.value) is ValueError                       # a limit is a LimitError; these are not
+    assert str(info.value) == f"{shown(text)}: {message}"
+
+
+def test_draws_keep_their_kind_and_take_shapes_of_one():
+    rng = np.random.default_rng(0)
+    assert type(evaluate("uniform(0, 1)", {}, rng)) is float
+    assert evaluate("uniform(0, 1, [1])", {}, rng).shape == (1,)
+    assert evaluate("uniform([0, 1], 2)", {}, rng).shape == (2,)
+    assert evaluate("uniform(0, [1, 2])", {}, rng).shape == (2,)
+    assert evaluate("zeros()", {}, rng).shape == ()
+    assert power_log2(4, 1) == 2.0 and power_log2(4, 0) is None
+
+
+def test_brief_shows_numbers_as_written_and_cuts_long_text():
+    from hrn_pyg.data.expressions import brief
+
+    assert brief([1, 2.5]) == "[1, 2.5]"
+    assert brief(np.array([1.0, 2.0])) == "[1.0, 2.0]"
+    assert brief("y" * SHOWN_CHARS) == "y" * SHOWN_CHARS
+    assert brief("x" * (SHOWN_CHARS + 1)) == "x" * (SHOWN_CHARS - 3) + "..."
