@@ -49,8 +49,7 @@ from torch.utils.data import DataLoader
 from torch_geometric.data import Batch, HeteroData
 from tqdm import tqdm
 
-from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, with_applied_options
-from hrn_pyg.checkpoints.domain import training_domain
+from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, training_domain, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, RIGID, WITHIN_SIBLINGS, set_state
 from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries

@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from hrn_pyg.checkpoints.domain import Domain
+from hrn_pyg.checkpoints.domain import Domain, dataset_domain
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.networks import applied_options, network_from_dict
 from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
@@ -158,6 +158,25 @@ def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = Non
             raise CheckpointError(f"{path}: {exc}") from None
     entry = _manifest_by_sha256().get(file_sha256(model_path(path)))
     return None if entry is None or entry.get("domain") is None else Domain.from_dict(entry["domain"])
+
+
+@lru_cache(maxsize=8)
+def training_domain(folders: tuple[str, ...], init_from: str = "") -> Domain | None:
+    """The domain a training on the dataset ``folders`` gives its model, with that of the
+    ``init_from`` checkpoint it starts from (when that records one); None when a folder has no
+    episodes. Read once per arguments (a run writes many checkpoints)."""
+    try:
+        domain = dataset_domain(list(folders))
+    except FileNotFoundError:
+        return None
+    if init_from:
+        try:
+            prior = checkpoint_domain(init_from)
+        except (FileNotFoundError, ValueError):
+            prior = None
+        if prior is not None:
+            domain = prior.merge(domain)
+    return domain
 
 
 def read_manifest(path: str | os.PathLike = MANIFEST_PATH) -> dict[str, dict[str, Any]]:

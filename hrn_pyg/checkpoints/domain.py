@@ -25,7 +25,6 @@ import math
 import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -298,27 +297,6 @@ def _m(values: Sequence[float]) -> str:
 def _and(words: Sequence[str]) -> str:
     words = list(words)
     return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} and {words[-1]}"
-
-
-@lru_cache(maxsize=8)
-def training_domain(folders: tuple[str, ...], init_from: str = "") -> Domain | None:
-    """The domain a training on the dataset ``folders`` gives its model, with that of the
-    ``init_from`` checkpoint it starts from (when that records one); None when a folder has no
-    episodes. Read once per arguments (a run writes many checkpoints)."""
-    try:
-        domain = dataset_domain(list(folders))
-    except FileNotFoundError:
-        return None
-    if init_from:
-        from hrn_pyg.checkpoints import checkpoint_domain
-
-        try:
-            prior = checkpoint_domain(init_from)
-        except (FileNotFoundError, ValueError):
-            prior = None
-        if prior is not None:
-            domain = prior.merge(domain)
-    return domain
 
 
 def report_outside(model: Any, scene: Domain, strict: bool = False, prefix: str = "warning: ") -> str | None:

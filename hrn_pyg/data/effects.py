@@ -23,38 +23,16 @@ with a nonzero force) is an error rather than a silent change of the physics.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import NODE, copy_object_ids, object_span
+from hrn_pyg.data.kinds import SceneEffects
 
-
-@dataclass(frozen=True)
-class SceneEffects:
-    """The effects a scene can call for; None leaves the choice to the data (the default).
-
-    Attributes:
-        forces: True: external forces act (the force module runs on the steps whose force is
-            nonzero); False: never (the force module never runs; a nonzero force is an error).
-        collisions: True: objects can touch (collision search and module every step); False:
-            they cannot (no search, no collision module), e.g. a scene of one object.
-    """
-
-    forces: bool | None = None
-    collisions: bool | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("forces", "collisions"):
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, bool):
-                raise ValueError(f"SceneEffects.{name} must be True, False or None, got {value!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+__all__ = ["EffectPlan", "SceneEffects", "can_collide", "plan_effects"]
 
 
 class EffectPlan(NamedTuple):

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 
+from hrn_pyg.data.kinds import CLOTH, MATERIALS, RIGID, SOFT, STATIC  # noqa: F401  the material codes, here too
 from hrn_pyg.data.radius import collision_edges
 
 #: The only node type: leaves and their ancestors.
@@ -30,11 +31,6 @@ ANCESTOR_TO_DESCENDANT = (NODE, "ancestor_to_descendant", NODE)
 EDGE_TYPES = (CHILD_TO_PARENT, COLLISION, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
 #: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
 HISTORY = 2
-#: Material names in one-hot column order (episode files store the column index).
-MATERIALS = ("rigid", "soft", "cloth", "static")
-#: Material codes: the value of ``object_material`` and the column of ``graph['particle'].material``
-#: (static objects never move).
-RIGID, SOFT, CLOTH, STATIC = (MATERIALS.index(name) for name in ("rigid", "soft", "cloth", "static"))
 
 
 def _sort_edges(src: Tensor, dst: Tensor, num_nodes: int) -> Tensor:

@@ -29,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.cluster import KMeans
 
 #: k-means restarts per split; a few are enough for groups this small and keep building fast.
 KMEANS_N_INIT = 3
@@ -117,6 +116,8 @@ def _split(state: np.ndarray, members: np.ndarray, config: HierarchyConfig) -> l
     n_distinct = np.unique(points, axis=0).shape[0]
     labels = None
     if n_distinct >= 2:
+        from sklearn.cluster import KMeans  # here: scikit-learn takes a second to import
+
         km = KMeans(n_clusters=min(k, n_distinct), n_init=KMEANS_N_INIT, random_state=config.seed)
         labels = km.fit_predict(points)
         if np.unique(labels).shape[0] < 2:

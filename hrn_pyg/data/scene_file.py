@@ -81,7 +81,6 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.expressions import (
     CONSTANTS,
     LimitError,
@@ -91,7 +90,7 @@ from hrn_pyg.data.expressions import (
     evaluate,
     names_in,
 )
-from hrn_pyg.data.graph import CLOTH, MATERIALS, RIGID, SOFT, STATIC
+from hrn_pyg.data.kinds import CLOTH, MATERIALS, RIGID, SOFT, STATIC, SceneEffects
 from hrn_pyg.data.meshes import (
     PRIMITIVE_PROPORTIONS,
     PRIMITIVES,

@@ -42,8 +42,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from hrn_pyg.data.effects import SceneEffects
-from hrn_pyg.data.graph import CLOTH, RIGID, SOFT, STATIC
+from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC, SceneEffects
 from hrn_pyg.data.voxelise import (
     write_obj,
     write_tetrahedral_vtk,

@@ -165,6 +165,13 @@ def test_generate_answers_a_bad_file_at_once_writing_nothing(tmp_path: Path, cap
     assert seconds < SECONDS, seconds
 
 
+#: the whole command on a bad file, start-up included (under a second on an idle machine; the
+#: margin is for a loaded one)
+COMMAND_SECONDS = 10.0
+#: what the command may not import before it answers a bad file (each takes seconds)
+HEAVY = ("torch", "torch_geometric", "sklearn", "torchrl")
+
+
 @pytest.mark.parametrize("expression", BAD.values(), ids=BAD.keys())
 def test_the_hrn_pyg_command_exits_2_with_one_line(tmp_path: Path, expression: str) -> None:
     command = Path(sys.executable).with_name("hrn-pyg")
@@ -172,9 +179,21 @@ def test_the_hrn_pyg_command_exits_2_with_one_line(tmp_path: Path, expression: s
         pytest.skip("no hrn-pyg script beside this Python")
     out = tmp_path / "out"
     done = subprocess.run([str(command), *_generate(write(tmp_path, TEMPLATE.format(expression=expression)), out)],
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=COMMAND_SECONDS)
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert done.stderr.startswith("hrn-pyg generate: error: bad: draw.x: ") and not out.exists()
+
+
+def test_a_bad_file_is_answered_before_torch_is_imported(tmp_path: Path) -> None:
+    """The check of a scene file needs numpy, trimesh and pybullet only, so the answer does not
+    wait for torch (seconds to import)."""
+    out = tmp_path / "out"
+    argv = _generate(write(tmp_path, TEMPLATE.format(expression=BAD["power"])), out)
+    script = ("import sys\nfrom hrn_pyg.cli import main\n"
+              f"code = main({argv!r})\n"
+              f"print(code, sorted(m for m in {HEAVY!r} if m in sys.modules))\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=COMMAND_SECONDS)
+    assert done.stdout.split() == ["2", "[]"], done.stdout + done.stderr
 
 
 _HOSTILE = st.one_of(

@@ -1,0 +1,41 @@
+"""A scene's vocabulary without torch: the material names and codes, and :class:`SceneEffects`.
+
+Reading and checking a scene file (:mod:`hrn_pyg.data.scene_file`) needs these and nothing of
+torch, so a bad file is answered before torch is imported. :mod:`hrn_pyg.data.graph` and
+:mod:`hrn_pyg.data.effects` use the same names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+#: Material names in one-hot column order (episode files store the column index).
+MATERIALS = ("rigid", "soft", "cloth", "static")
+#: Material codes: the value of ``object_material`` and the column of ``graph['particle'].material``
+#: (static objects never move).
+RIGID, SOFT, CLOTH, STATIC = (MATERIALS.index(name) for name in ("rigid", "soft", "cloth", "static"))
+
+
+@dataclass(frozen=True)
+class SceneEffects:
+    """The effects a scene can call for; None leaves the choice to the data (the default).
+
+    Attributes:
+        forces: True: external forces act (the force module runs on the steps whose force is
+            nonzero); False: never (the force module never runs; a nonzero force is an error).
+        collisions: True: objects can touch (collision search and module every step); False:
+            they cannot (no search, no collision module), e.g. a scene of one object.
+    """
+
+    forces: bool | None = None
+    collisions: bool | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("forces", "collisions"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, bool):
+                raise ValueError(f"SceneEffects.{name} must be True, False or None, got {value!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
