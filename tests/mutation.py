@@ -54,6 +54,11 @@ EQUIVALENT: dict[str, str] = {
         "is a Python complex (a fractional power of a negative number) before it can reach an array",
     "hrn_pyg.data.expressions.x_checked__mutmut_5": "as x_checked__mutmut_4: no complex array can be formed",
     "hrn_pyg.data.expressions.x_tree_size__mutmut_3": "the root sits at depth 1, so the deepest is at least 1 either way",
+    "hrn_pyg.data.expressions.x__shape__mutmut_7":
+        "a shape is never non-finite: checked refuses an infinity or a NaN where it first appears",
+    "hrn_pyg.data.expressions.x__shape__mutmut_12":
+        "every array an expression builds is numeric (no string, bool or None literal parses)",
+    "hrn_pyg.data.expressions.x__zeros__mutmut_3": "zeros() reads the empty shape as () either way",
 }
 
 CONFIG = """[mutmut]

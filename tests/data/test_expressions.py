@@ -314,3 +314,25 @@ def test_brief_shows_numbers_as_written_and_cuts_long_text():
     assert brief(np.array([1.0, 2.0])) == "[1.0, 2.0]"
     assert brief("y" * SHOWN_CHARS) == "y" * SHOWN_CHARS
     assert brief("x" * (SHOWN_CHARS + 1)) == "x" * (SHOWN_CHARS - 3) + "..."
+
+
+def test_more_refusals_name_what_they_refuse(monkeypatch):
+    rng = np.random.default_rng(0)
+    assert evaluate("uniform([0, 1, 2], 5)", {}, rng).shape == (3,)   # three lower bounds, one upper
+    with pytest.raises(LimitError) as info:
+        evaluate("big", {"big": np.zeros(MAX_ELEMENTS + 1)}, rng)
+    assert str(info.value) == f"'big': an array of {MAX_ELEMENTS + 1} elements, more than {MAX_ELEMENTS}"
+    with pytest.raises(ValueError) as info:
+        evaluate("q", {"a": 1.0}, rng)
+    assert str(info.value) == "'q': unknown name 'q'; the names known here are a, pi"
+    with pytest.raises(ValueError) as info:
+        evaluate("[uniform][0](0, 1)", {}, rng)
+    assert str(info.value) == "'[uniform][0](0, 1)': only plain calls of the listed functions"
+
+    def too_deep(*args, **kwargs):
+        raise RecursionError
+
+    monkeypatch.setattr(ast, "parse", too_deep)                       # what a deeper parser would do
+    with pytest.raises(LimitError) as info:
+        evaluate("1 + 1", {}, rng)
+    assert str(info.value) == "an expression nested too deeply to parse: '1 + 1'"
