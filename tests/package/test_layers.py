@@ -13,6 +13,7 @@ itself only, not for its submodules):
 from __future__ import annotations
 
 import ast
+import functools
 from collections import defaultdict
 from pathlib import Path
 
@@ -106,6 +107,7 @@ def unit_of(module: str) -> str:
     return ".".join(module.split(".")[:2])
 
 
+@functools.lru_cache(maxsize=None)
 def graph(tables: bool = True) -> dict[str, list[tuple[str, str, int]]]:
     files = module_files()
     return {name: imports_of(name, path, set(files), tables) for name, path in files.items()}
