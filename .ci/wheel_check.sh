@@ -56,8 +56,8 @@ PY
 "$BIN/python" five_lines.py
 
 step "hrn-pyg generate, sample, evaluate (a shipped model by name)"
-"$BIN/hrn-pyg" generate --scene cube_collision --episodes 1 --seed-offset 9 --steps 20 --out data/cube_collision --no-progress
-"$BIN/hrn-pyg" sample --scene soft_bounce --k 2 --steps 5 --out sample
+"$BIN/hrn-pyg" generate --scene cube_collision --episodes 1 --first-seed 9 --episode-steps 20 --out data/cube_collision --no-progress
+"$BIN/hrn-pyg" sample --scene soft_bounce --k 2 --horizon 5 --out sample
 "$BIN/hrn-pyg" evaluate --data data/cube_collision --model ours=cube_collision --model shapes \
     --horizons 5 --long-horizons 10 --no-figure --out eval
 

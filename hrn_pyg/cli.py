@@ -5,6 +5,24 @@ Each sub-command lives in the module that does the work; that module exposes
 right after it (``hrn-pyg rl clone ...``, :data:`JOBS`), each in its own module the same way. Bad input raises ``ValueError`` (or
 ``FileNotFoundError``) with a message naming the problem; here it becomes one line on stderr
 and exit code 2.
+
+One name, one meaning, across every sub-command and job (:data:`MEANINGS` says what each shared
+name means; ``tests/test_command_line.py`` checks it):
+
+* a count and a list never share a name: a count is a plain plural (``--episodes``,
+  ``--updates``) or ``--num-<things>`` where the things are listed elsewhere (``--num-seeds``,
+  ``--num-envs``); a list is the plural alone (``--episode-seeds 8,18``, ``--horizons 5,15``);
+* steps say which: ``--episode-steps`` (model steps of a simulated episode), ``--horizon``
+  (model steps predicted from a start), ``--train-steps`` (optimiser steps);
+* seeds say what they seed: ``--seed`` (a run's own random draws: initialisation, batches,
+  noise), ``--episode-seed`` / ``--episode-seeds`` (the pybullet episodes simulated),
+  ``--first-seed`` (the first of consecutive seeds, one per episode or run counted by another
+  option), ``--sample-seed`` (the dropout masks of sampled futures);
+* every ``--help`` shows each default (:class:`~hrn_pyg.utils.options.HelpFormatter`); a command
+  that draws a progress bar takes ``--no-progress``; ``--scene`` takes the built-in scenes only.
+
+An old spelling of a renamed option still works for one release with a one-line warning on
+stderr (:func:`~hrn_pyg.utils.options.add_renamed`; :data:`RENAMED` lists them).
 """
 
 from __future__ import annotations
@@ -14,6 +32,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from hrn_pyg.utils.options import HelpFormatter
 from hrn_pyg.version import __version__
 
 #: sub-command -> (module, one-line help)
@@ -39,15 +58,55 @@ JOBS: dict[str, dict[str, tuple[str, str]]] = {
 }
 
 
+#: what each option name shared by two or more commands means (one meaning per name)
+MEANINGS: dict[str, str] = {
+    "--data": "an episode folder from `hrn-pyg generate` (calibrate: repeatable)",
+    "--device": "the torch device (cpu, cuda, cuda:1); default cuda when available",
+    "--episodes": "a count of episodes (generated, or demonstrations collected)",
+    "--eval-every": "updates or optimiser steps between evaluations",
+    "--first-seed": "the first of consecutive seeds, one per episode or run",
+    "--horizon": "model steps predicted from a start",
+    "--k": "sampled futures per start",
+    "--lr": "the optimiser's learning rate",
+    "--model": "a model checkpoint: a path or a shipped model's name (evaluate: NAME=PATH, repeatable)",
+    "--no-progress": "draw no progress bar",
+    "--no-sleep": "every object runs at every step (no sleeping objects at rest)",
+    "--out": "where the output goes (a folder or a file, as each command says)",
+    "--scene": "a built-in scene's name",
+    "--scene-file": "a scene file (TOML)",
+    "--seed": "seeds a run's own random draws (initialisation, batches, noise)",
+    "--sample-seed": "seeds the dropout masks of sampled futures",
+    "--split": "the split of a dataset: test, val or all",
+    "--strict": "data outside a model's training domain is an error, not a warning",
+    "--task": "an RL task's name",
+    "--threads": "torch threads",
+    "--time-limit": "minutes a call may train before it stops as if interrupted",
+    "--train-steps": "optimiser steps",
+    "--workers": "processes working beside the main one",
+}
+
+#: old spelling -> new, per command (each still works, with a warning, for one release)
+RENAMED: dict[str, dict[str, str]] = {
+    "generate": {"--steps": "--episode-steps", "--seed-offset": "--first-seed"},
+    "train": {"--steps": "--train-steps"},
+    "sample": {"--steps": "--horizon", "--seed": "--episode-seed"},
+    "calibrate": {"--steps": "--horizon", "--seeds": "--episode-seeds", "--modules": "--module-sets"},
+    "rl": {"--seeds": "--num-seeds", "--seed-start": "--first-seed"},
+    "rl clone": {"--steps": "--train-steps"},
+}
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported (the others load torchrl, pybullet, ...)."""
-    parser = argparse.ArgumentParser(prog="hrn-pyg", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="hrn-pyg", description=__doc__.splitlines()[0],
+                                     formatter_class=HelpFormatter)
     parser.add_argument("--version", action="version", version=f"hrn-pyg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
         jobs = JOBS.get(name, {})
         epilog = "; ".join(f"`hrn-pyg {name} {job} --help`: {text}" for job, (_, text) in jobs.items())
-        p = sub.add_parser(name, help=help_text, epilog=epilog or None)
+        p = sub.add_parser(name, help=help_text, description=help_text, epilog=epilog or None,
+                           formatter_class=HelpFormatter)
         if name != command:
             continue
         module = importlib.import_module(module_name)
@@ -59,7 +118,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def build_job_parser(command: str, job: str) -> argparse.ArgumentParser:
     """The parser of ``hrn-pyg <command> <job>`` (:data:`JOBS`)."""
     module_name, help_text = JOBS[command][job]
-    parser = argparse.ArgumentParser(prog=f"hrn-pyg {command} {job}", description=help_text)
+    parser = argparse.ArgumentParser(prog=f"hrn-pyg {command} {job}", description=help_text,
+                                     formatter_class=HelpFormatter)
     module = importlib.import_module(module_name)
     module.add_arguments(parser)
     parser.set_defaults(_run=module.run, command=f"{command} {job}")

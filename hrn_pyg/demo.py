@@ -12,8 +12,8 @@ hand:
    pybullet (the ground-truth check).
 
 Everything lands under one output folder, named at the end. A step whose checkpoint is not
-shipped is skipped with a note naming the command that makes it. ``--device`` is passed on to
-every step.
+shipped is skipped with a note naming the command that makes it. ``--device`` and
+``--no-progress`` are passed on to every step.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from pathlib import Path
 from hrn_pyg.checkpoints import CHECKPOINT_DIR
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_text
+from hrn_pyg.utils.options import add_no_progress
 
 #: test-split seeds (seed % 10 == 9) used for the demo's held-out episodes, far from the
 #: seeds of the shipped training data (0..199)
@@ -56,10 +57,11 @@ def _note(lines: list[str], text: str) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    parser.add_argument("--out", default="out/demo", help="output folder")
     parser.add_argument("--k", type=int, default=16, help="sampled futures per scene")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
+    add_no_progress(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     ckpt = checkpoint_dir()
     report: list[str] = ["# hrn-pyg demo", ""]
+    quiet = ["--no-progress"] if getattr(args, "no_progress", False) else []
     started = time.perf_counter()
 
     # 1. Table 1 on held-out episodes -----------------------------------------------------------
@@ -83,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             continue
         data = _held_out_episodes(scene, out / "data" / scene)
         code = cli(["evaluate", "--data", str(data), "--model", f"HRN={hrn}", "--model", f"ours={ours}",
-                    "--out", str(out / "table1" / scene), "--stride", "100", "--device", str(device)])
+                    "--out", str(out / "table1" / scene), "--stride", "100", *quiet, "--device", str(device)])
         if code:
             return code
         report += [(out / "table1" / scene / "table.md").read_text(), ""]
@@ -95,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
             continue
         target = out / "samples" / scene
         # no --rate: the model's calibrated rate (hrn-pyg calibrate), 0.3 if it was never calibrated
-        code = cli(["sample", "--scene", scene, "--k", str(args.k), "--seed", str(DEMO_SEEDS[0]),
-                    "--steps", "30", "--out", str(target), "--device", str(device)])
+        code = cli(["sample", "--scene", scene, "--k", str(args.k), "--episode-seed", str(DEMO_SEEDS[0]),
+                    "--horizon", "30", "--out", str(target), *quiet, "--device", str(device)])
         if code:
             return code
         meta = json.loads((target / "samples.json").read_text())

@@ -54,6 +54,7 @@ from hrn_pyg.sim.rollout import iterate, rollout
 from hrn_pyg.sim.step import NEXT_POS
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
+from hrn_pyg.utils.options import add_no_progress, progress_bar
 
 METRICS = ("position", "velocity", "shape")
 DEFAULT_HORIZONS = (5, 15)
@@ -413,11 +414,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "network, e.g. a GNS trained without it: --model gns_rigid=runs/gns/model.pt "
                              "--rigid-fit gns_rigid (repeatable)")
     parser.add_argument("--out", required=True, help="folder for table.md, results.json and the figure")
-    parser.add_argument("--horizons", default="5,15", help="comma-separated steps ahead (default 5,15)")
+    parser.add_argument("--horizons", default="5,15", help="comma-separated steps ahead")
     parser.add_argument("--long-horizons", default=",".join(map(str, DEFAULT_LONG_HORIZONS)),
                         help="comma-separated steps ahead of the long-rollout table, one rollout per "
                              "episode from its start; read at the episode's end when shorter "
-                             "(default 50,100; '' for the rest metrics only)")
+                             "('' for the rest metrics only)")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--stride", type=int, default=10, help="steps between window starts in an episode")
@@ -425,7 +426,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="test", choices=("test", "val", "all"),
                         help="held-out split to score (val for model selection, test for reporting; all: "
                              "every episode, for a dataset not split by seed such as a scene file's)")
-    parser.add_argument("--no-figure", action="store_true")
+    parser.add_argument("--no-figure", action="store_true", help="draw no rollout figure")
+    add_no_progress(parser)
 
 
 def _parse_models(specs: list[str]) -> dict[str, str]:
@@ -466,9 +468,17 @@ def run(args: argparse.Namespace) -> int:
     for model in models.values():
         report_outside(model, data_domain, strict=getattr(args, "strict", False), prefix="hrn-pyg evaluate: warning: ")
     windows = select_windows(dataset, args.stride, args.limit)
-    summaries = {name: summarise(evaluate_model(m, windows, horizons, device)) for name, m in models.items()}
     starts = episode_start_windows(args.data, args.split, args.limit)
-    long_results = {name: evaluate_long(m, starts, long_horizons, device) for name, m in models.items()}
+    bar = progress_bar(2 * len(models), "evaluate", "rollout", enabled=not getattr(args, "no_progress", False))
+    summaries, long_results = {}, {}
+    for name, m in models.items():
+        bar.set_postfix_str(f"{name}: {len(windows)} windows")
+        summaries[name] = summarise(evaluate_model(m, windows, horizons, device))
+        bar.update()
+        bar.set_postfix_str(f"{name}: {len(starts)} whole episodes")
+        long_results[name] = evaluate_long(m, starts, long_horizons, device)
+        bar.update()
+    bar.close()
     long_summaries = {name: summarise_long(r) for name, r in long_results.items()}
     truth_depth = _mean_sem(next(iter(long_results.values()))["truth_ground_depth"])
     scene = Path(args.data).name

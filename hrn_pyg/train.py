@@ -79,6 +79,7 @@ from hrn_pyg.utils.checkpoint import (
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog
+from hrn_pyg.utils.options import add_no_progress, add_renamed, attribute_help, shown_default
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
 from hrn_pyg.viz import plot_curves
 
@@ -868,17 +869,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="episode folder from `hrn-pyg generate`")
     parser.add_argument("--out", required=True, help="run folder")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    parser.add_argument("--no-progress", action="store_true")
+    add_no_progress(parser)
+    helps = attribute_help(TrainConfig)
     for f in fields(TrainConfig):
         if f.name in ("preset", "data", "out"):
             continue
-        parser.add_argument(f"--{f.name.replace('_', '-')}", type=_option_type(f.default), default=None)
+        parser.add_argument(train_flag(f.name), type=_option_type(f.default), default=None, dest=f.name,
+                            help=f"{helps.get(f.name, f.name)} ({preset_defaults(f.name)})")
+    model_helps = attribute_help(GNSConfig) | attribute_help(HRNConfig)
     for f in _model_fields():
         parser.add_argument(f"--model-{f.name.replace('_', '-')}", type=_option_type(f.default), default=None,
-                            dest=f"model_{f.name}")
+                            dest=f"model_{f.name}",
+                            help=f"{model_helps.get(f.name, f.name)} (default: {shown_default(f.default)})")
     parser.add_argument("--dropout-modules", default=None,
-                        help="comma-separated modules that take dropout masks (default force,collision; "
+                        help="comma-separated modules that take dropout masks (default: force,collision; "
                              "gns: processor)")
+    add_renamed(parser, "--steps", "--train-steps")
+
+
+#: TrainConfig fields whose option is not ``--<field>``
+TRAIN_FLAGS = {"steps": "--train-steps"}
+
+
+def train_flag(name: str) -> str:
+    """The ``hrn-pyg train`` option of a :class:`TrainConfig` field."""
+    return TRAIN_FLAGS.get(name, f"--{name.replace('_', '-')}")
+
+
+def preset_defaults(name: str) -> str:
+    """``default: X`` of a :class:`TrainConfig` field, or ``default: hrn X, ours Y, gns Z``
+    where the presets differ."""
+    values = {preset: shown_default(getattr(TrainConfig.for_preset(preset), name)) or "''" for preset in PRESETS}
+    if len(set(values.values())) == 1:
+        return f"default: {next(iter(values.values()))}"
+    return "default: " + ", ".join(f"{preset} {value}" for preset, value in values.items())
 
 
 def _model_fields() -> list:

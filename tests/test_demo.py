@@ -36,7 +36,7 @@ def test_demo_on_cpu_passes_the_device_on(tiny_checkpoints, tmp_path, monkeypatc
 
     def shorter(argv):  # the demo's own sub-commands, cut to 2 steps to keep the test fast
         calls.append(list(argv))
-        return main([("2" if prev == "--steps" else a) for prev, a in zip([None, *argv], argv)])
+        return main([("2" if prev == "--horizon" else a) for prev, a in zip([None, *argv], argv)])
 
     monkeypatch.setattr(hrn_pyg.cli, "main", shorter)
     out = tmp_path / "demo"

@@ -25,6 +25,7 @@ from hrn_pyg.recipe import (
     option_flags,
     parse_recipe,
 )
+from hrn_pyg.recipe.schema import CALIBRATE_FLAGS
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_MODEL = {"model-hidden": 8, "model-depth": 1, "model-effect-dim": 8, "batch-size": 2,
@@ -93,7 +94,7 @@ def test_shipped_recipe_matches_the_checkpoints_and_the_scenes():
     wedge = next(m for m in recipe.models if m.name == "wedge")
     args = wedge.train_args(Path("data"), Path("runs/recipe"))
     assert args == [
-        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--steps", "3000",
+        "train", "--preset", "ours", "--data", "data/wedge", "--out", "runs/recipe/wedge", "--train-steps", "3000",
         "--batch-size", "8", "--threads", "1", "--seq-end", "8", "--model-rigid-fit", "true",
         "--model-ground-contact", "true", "--model-mirror-average", "true", "--train-dropout", "0.1",
         "--dropout-modules", "force,collision", "--checkpoint-every", "100", "--eval-every", "500", "--seed", "1"]
@@ -186,7 +187,7 @@ def test_killed_run_continues_and_finished_work_is_not_redone(tmp_path):
     _write_recipe(tmp_path / "recipes.toml")
     data, runs, ckpt = tmp_path / "data" / "tiny", tmp_path / "runs", tmp_path / "ckpt"
     # a generation killed after its first episode: the recipe must only add the other two
-    assert main(["generate", "--scene", "cube_collision", "--episodes", "1", "--out", str(data), "--steps", "12",
+    assert main(["generate", "--scene", "cube_collision", "--episodes", "1", "--out", str(data), "--episode-steps", "12",
                  "--no-progress"]) == 0
     first = _mtimes(data, "episode_*.npz")
 
@@ -281,9 +282,9 @@ def test_a_calibrate_table_ships_the_calibrated_copy_and_is_not_redone(tmp_path)
                                                "k": 2, "members": 2, "steps": 2})
     (tmp_path / "recipes.toml").write_text(text)
     recipe = load_recipe(tmp_path / "recipes.toml")
-    assert option_flags(dict(recipe.models[0].calibrate)) == [
-        "--seeds", "8", "--rates", "0.05,0.2", "--modules", "force", "collision", "--k", "2", "--members", "2",
-        "--steps", "2"]
+    assert option_flags(dict(recipe.models[0].calibrate), CALIBRATE_FLAGS) == [
+        "--episode-seeds", "8", "--rates", "0.05,0.2", "--module-sets", "force", "collision", "--k", "2",
+        "--members", "2", "--horizon", "2"]
     assert main(_args(tmp_path, "--device", "cpu")) == 0
     runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
     shipped = ckpt / "b.pt"
@@ -337,7 +338,7 @@ def test_finetune_stages_start_from_the_stage_before_and_ship_the_last(tmp_path)
     assert model.num_stages == 2 and model.final_run == "b.ft1"
     runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
     assert model.train_args(Path("d"), runs, 1)[-12:] == [
-        "--init-from", str(runs / "b" / "model.pt"), "--steps", "3", "--seq-start", "3", "--seq-end", "3",
+        "--init-from", str(runs / "b" / "model.pt"), "--train-steps", "3", "--seq-start", "3", "--seq-end", "3",
         "--lr", "0.0001", "--threads", "1"]
     assert main(_args(tmp_path, "--device", "cpu")) == 0
     assert (ckpt / "b.pt").read_bytes() == (runs / "b.ft1" / "model.pt").read_bytes()

@@ -131,7 +131,7 @@ def test_data_parallel_under_torchrun(tiny_episodes, tmp_path):
     script = tmp_path / "record_ranks.py"
     script.write_text(RANK_RECORDER)
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", str(script), str(ranks), "train",
-           "--preset", "hrn", "--data", str(tiny_episodes), "--out", str(out), "--steps", "3", "--batch-size", "1",
+           "--preset", "hrn", "--data", str(tiny_episodes), "--out", str(out), "--train-steps", "3", "--batch-size", "1",
            "--model-hidden", "16", "--model-depth", "1", "--model-effect-dim", "16", "--no-progress"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=env)
@@ -190,7 +190,7 @@ def test_input_noise_is_a_random_walk_rigid_per_object_and_zero_on_static():
 
 def test_boolean_model_options_parse_false(tiny_episodes, tmp_path):
     out = tmp_path / "run"
-    args = ["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(out), "--steps", "2",
+    args = ["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(out), "--train-steps", "2",
             "--batch-size", "2", "--model-hidden", "8", "--model-effect-dim", "8", "--no-progress",
             "--model-rigid-fit", "false", "--model-ground-contact", "true"]
     assert main(args) == 0

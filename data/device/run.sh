@@ -36,14 +36,14 @@ COMMON="--batch-size ${BATCH:-32} --workers 1 --threads 1 --device $DEVICE --no-
 launch() {  # name data preset steps time_limit_min extra... ; the job's own options come last
   local name=$1 data=$2 preset=$3 steps=$4 limit=$5; shift 5
   python3 -m hrn_pyg.cli train --preset "$preset" --data "data/$data" --out "runs/$name" \
-    --steps "$steps" --time-limit "$limit" $COMMON "$@" > "runs/$name.log" 2>&1 &
+    --train-steps "$steps" --time-limit "$limit" $COMMON "$@" > "runs/$name.log" 2>&1 &
 }
 
 mkdir -p runs calib
 echo "== calibration $(date +%T)"
 for job in "${JOBS[@]}"; do
   IFS='|' read -r name data preset opts <<< "$job"
-  python3 -m hrn_pyg.cli train --preset "$preset" --data "data/$data" --out "calib/$name" --steps 100000 \
+  python3 -m hrn_pyg.cli train --preset "$preset" --data "data/$data" --out "calib/$name" --train-steps 100000 \
     --time-limit "$(python3 -c "print($CALIB_S/60)")" $COMMON $opts --seq-start 6 --seq-end 6 --warmup 1 \
     > "calib/$name.log" 2>&1 &
 done

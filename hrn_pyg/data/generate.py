@@ -1,6 +1,6 @@
 """``hrn-pyg generate``: simulate a scene's episodes in worker processes and write them.
 
-Episode ``i`` (``0 <= i < --episodes``) has seed ``--seed-offset + i`` and is written as
+Episode ``i`` (``0 <= i < --episodes``) has seed ``--first-seed + i`` and is written as
 ``<out>/episode_<seed:06d>.npz`` (:func:`hrn_pyg.data.io.save_episode`, atomic). A rerun skips
 files that exist, so a killed run loses at most the episodes in flight. ``--shard i/N`` keeps
 the episodes whose index is ``i`` modulo ``N``, so N machines can split one dataset.
@@ -24,27 +24,36 @@ from tqdm import tqdm
 
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.io import save_episode
-from hrn_pyg.data.scene_file import SCENES, builtin_scene, read_scene_file
+from hrn_pyg.data.scene_file import SCENES, builtin_scene, check_scene_name, read_scene_file
 from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.utils.options import add_no_progress, add_renamed
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--scene", help=f"a built-in scene: one of {', '.join(SCENES)}")
+    source.add_argument("--scene", help=f"a built-in scene: {', '.join(SCENES)}")
     source.add_argument("--scene-file", help="a scene file (TOML: objects from meshes, materials, pushes)")
     parser.add_argument("--episodes", type=int, required=True, help="episodes in the dataset")
     parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--shard", default="0/1", help="i/N: this machine's share (default 0/1)")
-    parser.add_argument("--steps", type=int, default=None, help="model steps per episode")
-    parser.add_argument("--seed-offset", type=int, default=0, help="seed of episode 0")
-    parser.add_argument("--substeps", type=int, default=None, help="physics steps per model step")
-    parser.add_argument("--physics-hz", type=float, default=None, help="physics rate (Hz)")
-    parser.add_argument("--pitch", type=float, default=None, help="voxel size of the leaves (m)")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes")
+    parser.add_argument("--shard", default="0/1", help="i/N: this machine's share of the episodes")
+    parser.add_argument("--episode-steps", type=int, default=None, dest="steps",
+                        help="model steps per episode (default: the scene's)")
+    parser.add_argument("--first-seed", type=int, default=0, dest="seed_offset", metavar="SEED",
+                        help="seed of episode 0 (episode i: first seed + i)")
+    parser.add_argument("--substeps", type=int, default=None, help="physics steps per model step (default: the scene's)")
+    parser.add_argument("--physics-hz", type=float, default=None, help="physics rate in Hz (default: the scene's)")
+    parser.add_argument("--pitch", type=float, default=None, help="voxel size of the leaves in m (default: the scene's)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
                         help="any other setting of the scene (its file's top level or [settings]), VALUE as "
                              "JSON, e.g. offset_range=[-0.003,0.003] (repeatable)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress(parser)
+    add_renamed(parser, "--steps", "--episode-steps")
+    add_renamed(parser, "--seed-offset", "--first-seed")
+
+
+#: settings of a scene that have an option of their own, and its name
+OWN_OPTIONS = {"steps": "--episode-steps", "substeps": "--substeps", "physics_hz": "--physics-hz", "pitch": "--pitch"}
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -56,8 +65,8 @@ def parse_overrides(items: list[str]) -> dict:
         name, sep, text = item.partition("=")
         if not sep or not name:
             raise ValueError(f"--set: expected NAME=VALUE, got {item!r}")
-        if name in ("steps", "substeps", "physics_hz", "pitch"):
-            raise ValueError(f"--set: {name} has its own option (--{name.replace('_', '-')})")
+        if name in OWN_OPTIONS:
+            raise ValueError(f"--set: {name} has its own option ({OWN_OPTIONS[name]})")
         try:
             value = json.loads(text)
         except json.JSONDecodeError:
@@ -97,14 +106,14 @@ def _generate_one(task: tuple[str, str, int, dict, str]) -> tuple[int, bool]:
 
 def run(args: argparse.Namespace) -> int:
     # --- validate everything before touching the disk --------------------------------------
-    if getattr(args, "scene_file", None) is None and args.scene not in SCENES:
-        raise ValueError(f"scene: unknown {args.scene!r}; choose one of {sorted(SCENES)}")
+    if getattr(args, "scene_file", None) is None:
+        check_scene_name(args.scene)
     if args.episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {args.episodes}")
     if args.workers < 1:
         raise ValueError(f"workers: must be >= 1, got {args.workers}")
     if args.seed_offset < 0:
-        raise ValueError(f"seed-offset: must be >= 0, got {args.seed_offset}")
+        raise ValueError(f"--first-seed: must be >= 0, got {args.seed_offset}")
     shard_index, shard_count = parse_shard(args.shard)
     settings = {k: v for k, v in (dict(steps=args.steps, substeps=args.substeps, physics_hz=args.physics_hz,
                                        pitch=args.pitch) | parse_overrides(getattr(args, "overrides", []))).items()

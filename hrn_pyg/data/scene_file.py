@@ -1091,9 +1091,16 @@ def leaves_of(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:
 def builtin_scene(name: str, **settings: Any) -> SceneSpec:
     """The built-in scene ``name`` (one of :data:`SCENES`), its settings replaced by ``settings``
     (``None`` values ignored; an unknown name is an error naming the settings there are)."""
-    if name not in SCENES:
-        raise ValueError(f"scene: unknown {name!r}; choose one of {sorted(SCENES)}")
+    check_scene_name(name)
     return _read_builtin(name).with_settings(**settings)
+
+
+def check_scene_name(name: str | None) -> None:
+    """Nothing for a built-in scene's name (or None: none given); else ValueError, one line
+    listing the built-in scenes."""
+    if name is not None and name not in SCENES:
+        raise ValueError(f"scene: unknown {name!r}; the built-in scenes are {', '.join(SCENES)} "
+                         "(your own scene: --scene-file)")
 
 
 _BUILTIN_CACHE: dict[str, SceneSpec] = {}

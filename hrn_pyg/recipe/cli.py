@@ -16,22 +16,21 @@ from hrn_pyg.recipe.schema import RECIPE_PATH, load_recipe
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--recipe", default=RECIPE_PATH, help=f"recipe file (default {RECIPE_PATH})")
-    parser.add_argument("--only", default="", help="NAME[,NAME]: only these models (default all)")
-    parser.add_argument("--data-dir", default="data", help="datasets go to DATA_DIR/<dataset> (default data)")
-    parser.add_argument("--runs-dir", default="runs/recipe", help="run folders (default runs/recipe)")
+    parser.add_argument("--recipe", default=RECIPE_PATH, help="recipe file")
+    parser.add_argument("--only", default="", help="NAME[,NAME]: only these models (default: all)")
+    parser.add_argument("--data-dir", default="data", help="datasets go to DATA_DIR/<dataset>")
+    parser.add_argument("--runs-dir", default="runs/recipe", help="run folders")
     parser.add_argument("--checkpoints-dir", default=str(DEFAULT_CHECKPOINTS_DIR),
                         help="where <model>.pt and manifest.json go, relative to the working directory "
-                             f"(default {DEFAULT_CHECKPOINTS_DIR}; `make checkpoints` names hrn_pyg/checkpoints, "
-                             "the shipped ones)")
+                             "(`make checkpoints` names hrn_pyg/checkpoints, the shipped ones)")
     parser.add_argument("--device", default=None, help="passed to train (default: CUDA when available)")
     parser.add_argument("--jobs", type=int, default=1,
-                        help="trainings at once, each its own process; also generate's --workers (default 1)")
+                        help="trainings at once, each its own process; also generate's --workers")
     parser.add_argument("--skip-generate", action="store_true",
                         help="the datasets are already there (checked, not generated)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run and write nothing")
     parser.add_argument("--time-limit", type=float, default=0.0,
-                        help="minutes each training may run in this call; a rerun continues it (default: none)")
+                        help="minutes each training may run in this call, 0 for no limit; a rerun continues it")
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:

@@ -86,8 +86,8 @@ class DatasetRecipe:
     def generate_args(self, data_dir: Path) -> list[str]:
         """``hrn-pyg generate`` arguments (no worker count: it does not change the bytes)."""
         args = ["generate", "--scene-file" if self.from_file else "--scene", self.scene, "--episodes", str(self.episodes),
-                "--out", str(self.folder(data_dir)), "--steps", str(self.steps),
-                "--seed-offset", str(self.seed_offset)]
+                "--out", str(self.folder(data_dir)), "--episode-steps", str(self.steps),
+                "--first-seed", str(self.seed_offset)]
         if self.pitch is not None:
             args += ["--pitch", repr(float(self.pitch))]
         for key, value in self.overrides:
@@ -165,8 +165,9 @@ class ModelRecipe:
             del options[EXTRA_DATASETS]
             options["extra-data"] = ",".join(str(data_dir / n) for n in self.extra_datasets(stage))
         if stage == 0:
-            return args + option_flags(options)
-        return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"), *option_flags(options)]
+            return args + option_flags(options, TRAIN_FLAGS)
+        return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"),
+                       *option_flags(options, TRAIN_FLAGS)]
 
     def calibrate_args(self, scene: str, runs_dir: Path, data: Sequence[Path] = ()) -> list[str]:
         """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
@@ -178,7 +179,7 @@ class ModelRecipe:
         run = runs_dir / self.final_run
         where = [flag for folder in data for flag in ("--data", str(folder))] if data else ["--scene", scene]
         return ["calibrate", *where, "--model", str(run / "model.pt"), "--out", str(run / CALIBRATED_NAME),
-                *option_flags(dict(self.calibrate))]
+                *option_flags(dict(self.calibrate), CALIBRATE_FLAGS)]
 
 
 @dataclass(frozen=True)
@@ -203,14 +204,22 @@ class Recipe:
         return tuple(m for m in self.models if not only or m.name in only)
 
 
-def option_flags(options: Mapping[str, OptionValue]) -> list[str]:
+#: recipe keys of a train table whose option is not ``--<key>`` (the key keeps its name, so
+#: recorded identities stay the same)
+TRAIN_FLAGS: dict[str, str] = {"steps": "--train-steps"}
+#: recipe keys of a calibrate table whose option is not ``--<key>``
+CALIBRATE_FLAGS: dict[str, str] = {"steps": "--horizon", "seeds": "--episode-seeds", "modules": "--module-sets"}
+
+
+def option_flags(options: Mapping[str, OptionValue], flags_of: Mapping[str, str] | None = None) -> list[str]:
     """``{"batch-size": 4, "ema": True, "amp": False}`` -> ``["--batch-size", "4", "--ema"]``.
 
-    Underscores in keys become dashes (``batch_size`` is ``--batch-size``).
+    Underscores in keys become dashes (``batch_size`` is ``--batch-size``); a key in
+    ``flags_of`` takes the option named there instead (``steps`` -> ``--train-steps``).
     """
     flags: list[str] = []
     for key, value in options.items():
-        flag = "--" + key.replace("_", "-")
+        flag = (flags_of or {}).get(key, "--" + key.replace("_", "-"))
         if isinstance(value, bool):
             flags += [flag] if value else []
         elif isinstance(value, tuple):  # a list in the recipe: one flag, several values

@@ -72,6 +72,7 @@ from hrn_pyg.rl.ppo import build_actor_critic, load_init_policy
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.files import file_sha256
+from hrn_pyg.utils.options import add_renamed
 
 #: what a clone checkpoint's config says it is
 CLONE_KIND = "planner_clone"
@@ -354,7 +355,7 @@ def load_policy_actor(path: str | os.PathLike, task: str | TaskConfig,
 # ---------------------------------------------------------------------------- CLI
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = CloneConfig()
-    parser.add_argument("--task", choices=sorted(PLANNERS), required=True)
+    parser.add_argument("--task", choices=sorted(PLANNERS), required=True, help="the task whose planner is cloned")
     parser.add_argument("--out", required=True, help="the clone checkpoint to write (.pt)")
     parser.add_argument("--model", default=None,
                         help="learned HRN checkpoint (default: the shipped model of the task's scene)")
@@ -363,11 +364,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="initial exploration noise, fraction of the force bound")
     parser.add_argument("--collect-noise", type=float, default=d.collect_noise,
                         help="action noise while collecting demonstrations, fraction of the force bound")
-    parser.add_argument("--steps", type=int, default=d.steps, help="Adam steps on the mean")
-    parser.add_argument("--lr", type=float, default=d.lr)
+    parser.add_argument("--train-steps", type=int, default=d.steps, dest="steps", help="full-batch Adam steps on the mean")
+    parser.add_argument("--lr", type=float, default=d.lr, help="Adam's learning rate")
     parser.add_argument("--hidden", type=int, default=d.hidden, help="actor width (PPO's)")
-    parser.add_argument("--seed", type=int, default=d.seed)
+    parser.add_argument("--seed", type=int, default=d.seed,
+                        help="seeds the network's initialisation and the collecting environment's generator")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    add_renamed(parser, "--steps", "--train-steps")
 
 
 def run(args: argparse.Namespace) -> int:

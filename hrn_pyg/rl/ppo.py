@@ -118,6 +118,7 @@ from hrn_pyg.utils.checkpoint import (
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, file_sha256
 from hrn_pyg.utils.metrics import CSVLog
+from hrn_pyg.utils.options import add_no_progress, add_renamed
 from hrn_pyg.utils.schedules import LinearSchedule
 from hrn_pyg.utils.stop import StopRequest
 from hrn_pyg.viz import plot_curves
@@ -551,17 +552,19 @@ def _progress(total: int, desc: str, enabled: bool):
 # ---------------------------------------------------------------------------- CLI
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = PPOConfig()
-    parser.add_argument("--task", choices=sorted(TASKS), default="cube_push")
+    parser.add_argument("--task", choices=sorted(TASKS), default="cube_push", help="the task")
     parser.add_argument("--mode", nargs="+", choices=MODES, default=list(MODES),
                         help="one or more modes (default: all five)")
-    parser.add_argument("--seeds", type=int, default=3, help="number of seeds per mode")
-    parser.add_argument("--seed-start", type=int, default=0)
+    parser.add_argument("--num-seeds", type=int, default=3, dest="seeds", metavar="N", help="runs per mode, one seed each")
+    parser.add_argument("--first-seed", type=int, default=0, dest="seed_start", metavar="SEED",
+                        help="seed of each mode's first run (run k: first seed + k)")
     parser.add_argument("--updates", type=int, default=d.updates, help="PPO updates per run")
-    parser.add_argument("--frames-per-batch", type=int, default=d.frames_per_batch)
-    parser.add_argument("--num-envs", type=int, default=d.num_envs)
-    parser.add_argument("--epochs", type=int, default=d.epochs)
-    parser.add_argument("--minibatch", type=int, default=d.minibatch)
-    parser.add_argument("--lr", type=float, default=d.lr)
+    parser.add_argument("--frames-per-batch", type=int, default=d.frames_per_batch,
+                        help="frames collected per update, over all environments")
+    parser.add_argument("--num-envs", type=int, default=d.num_envs, help="environments stepped together")
+    parser.add_argument("--epochs", type=int, default=d.epochs, help="passes over each batch")
+    parser.add_argument("--minibatch", type=int, default=d.minibatch, help="frames per gradient step")
+    parser.add_argument("--lr", type=float, default=d.lr, help="Adam's learning rate")
     parser.add_argument("--threads", type=int, default=d.threads, help="torch threads per run")
     parser.add_argument("--action-noise-std", type=float, default=d.action_noise_std,
                         help="action_noise mode: noise std as a fraction of the force bound")
@@ -570,7 +573,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "else the task's)")
     parser.add_argument("--anneal-updates", type=int, default=None,
                         help="stochastic_annealed: updates to reach rate 0 (default: the task's)")
-    parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
+                        help="episodes scoring the final policy in the model")
     parser.add_argument("--ground-truth-episodes", type=int, default=d.ground_truth_episodes,
                         help="with --model: final-policy episodes replayed in pybullet (0: none)")
     parser.add_argument("--eval-every", type=int, default=d.eval_every,
@@ -584,10 +588,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strict", action="store_true",
                         help="with --model: a task scene outside what the model was trained on is an "
                              "error (exit 2), not a one-line warning")
-    parser.add_argument("--out", default=None, help="output folder (default runs/rl/<task>)")
+    parser.add_argument("--out", default=None, help="output folder (default: runs/rl/<task>)")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress(parser)
     parser.add_argument("--no-sleep", action="store_true",
                         help="with --model: every object runs at every step (default: objects the state "
                              "shows at rest sleep until pushed or touched)")
@@ -596,12 +600,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init-policy", default=None,
                         help="policy checkpoint every mode's actor starts from (e.g. `hrn-pyg rl clone`); "
                              "the critic starts fresh")
+    add_renamed(parser, "--seeds", "--num-seeds")
+    add_renamed(parser, "--seed-start", "--first-seed")
 
 
 def run(args: argparse.Namespace) -> int:
     task = get_task(args.task)
     if args.seeds < 1:
-        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+        raise ValueError(f"--num-seeds must be >= 1, got {args.seeds}")
     if args.anneal_updates is not None and args.anneal_updates < 0:
         raise ValueError(f"--anneal-updates must be >= 0, got {args.anneal_updates}")
     if args.dropout_rate is not None and not 0.0 <= args.dropout_rate < 1.0:

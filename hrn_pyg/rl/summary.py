@@ -320,9 +320,9 @@ def summary_markdown(summary: dict) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from hrn_pyg.rl.tasks import TASKS
 
-    parser.add_argument("--task", choices=sorted(TASKS), required=True)
+    parser.add_argument("--task", choices=sorted(TASKS), required=True, help="the task of the sweep")
     parser.add_argument("--runs", required=True, help="a sweep folder (<mode>/seed<k>/log.csv)")
-    parser.add_argument("--out", default=None, help="default RUNS/rl_<task>_summary.json")
+    parser.add_argument("--out", default=None, help="the summary to write (default: RUNS/rl_<task>_summary.json)")
     parser.add_argument("--resamples", type=int, default=RESAMPLES, help="bootstrap resamples")
     parser.add_argument("--figure", default=None,
                         help="also draw the summary's four panels to this picture (hrn_pyg.rl.summary_figure)")

@@ -52,6 +52,7 @@ from hrn_pyg.data.dataset import (
     read_episode,
 )
 from hrn_pyg.data.graph import HISTORY, NODE
+from hrn_pyg.data.scene_file import SCENES, check_scene_name
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
@@ -62,10 +63,11 @@ from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
+from hrn_pyg.utils.options import add_no_progress, add_renamed
 
 #: candidate dropout rates tried by default
 DEFAULT_RATES = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
-#: validation seeds used when neither ``--seeds`` nor ``--data`` is given
+#: validation seeds used when neither ``--episode-seeds`` nor ``--data`` is given
 DEFAULT_SEEDS = (8, 18, 28)
 #: default output: ``<stem>.calibrated.pt`` beside the input
 CALIBRATED_SUFFIX = ".calibrated.pt"
@@ -84,18 +86,18 @@ def check_seeds(seeds: list[int] | tuple[int, ...]) -> list[int]:
     """
     seeds = [int(s) for s in seeds]
     if not seeds:
-        raise ValueError("--seeds must name at least one validation seed (seed % 10 == 8), e.g. 8,18,28")
+        raise ValueError("--episode-seeds must name at least one validation seed (seed % 10 == 8), e.g. 8,18,28")
     if len(set(seeds)) != len(seeds):
-        raise ValueError(f"--seeds has duplicates: {seeds}")
+        raise ValueError(f"--episode-seeds has duplicates: {seeds}")
     for seed in seeds:
         if seed < 0:
-            raise ValueError(f"--seeds: seed {seed} is negative")
+            raise ValueError(f"--episode-seeds: seed {seed} is negative")
         residue = seed % SPLIT_MODULUS
         if residue == TEST_RESIDUE:
-            raise ValueError(f"--seeds: {seed} is a test seed (seed % 10 == 9); calibrate on validation "
+            raise ValueError(f"--episode-seeds: {seed} is a test seed (seed % 10 == 9); calibrate on validation "
                              f"seeds only (seed % 10 == 8, e.g. 8,18,28), never on the test split")
         if residue != VAL_RESIDUE:
-            raise ValueError(f"--seeds: {seed} is a training seed; calibrate on validation seeds only "
+            raise ValueError(f"--episode-seeds: {seed} is a training seed; calibrate on validation seeds only "
                              f"(seed % 10 == 8, e.g. 8,18,28)")
     return seeds
 
@@ -104,7 +106,7 @@ def parse_seeds(text: str) -> list[int]:
     try:
         seeds = [int(s) for s in text.split(",") if s.strip()]
     except ValueError:
-        raise ValueError(f"--seeds must be comma-separated integers, got {text!r}") from None
+        raise ValueError(f"--episode-seeds must be comma-separated integers, got {text!r}") from None
     return check_seeds(seeds)
 
 
@@ -147,10 +149,10 @@ def parse_module_sets(values: list[str] | None, allowed: tuple[str, ...]) -> lis
     for value in values:
         names = tuple(dict.fromkeys(m.strip() for m in value.split(",") if m.strip()))
         if not names:
-            raise ValueError(f"--modules: empty module set {value!r}")
+            raise ValueError(f"--module-sets: empty module set {value!r}")
         unknown = [m for m in names if m not in allowed]
         if unknown:
-            raise ValueError(f"--modules: unknown module(s) {', '.join(unknown)}; this model takes "
+            raise ValueError(f"--module-sets: unknown module(s) {', '.join(unknown)}; this model takes "
                              f"dropout on {', '.join(allowed)}")
         ordered = tuple(m for m in allowed if m in names)  # one spelling per set
         if ordered not in sets:
@@ -297,7 +299,7 @@ def choose(candidates: list[dict]) -> int:
     best = min(range(len(candidates)), key=key)
     if candidates[best]["log_ratio_median"] is None:
         raise ValueError("no candidate spreads the samples at all (ratio 0 on every one): try higher "
-                         "--rates or other --modules")
+                         "--rates or other --module-sets")
     return best
 
 
@@ -387,43 +389,50 @@ def allowed_modules(model: HRN, record: dict | None) -> tuple[str, ...]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default=None,
                         help="built-in scene the model simulates (picks the default checkpoint); may be left "
-                             "out with --data, whose meta.json names the scene (a scene file's too)")
-    parser.add_argument("--model", default=None, help="checkpoint (default hrn_pyg/checkpoints/<scene>.pt)")
+                             "out with --data, whose meta.json names the scene (a scene file's too): "
+                             f"{', '.join(SCENES)}")
+    parser.add_argument("--model", default=None,
+                        help="checkpoint: a path or a shipped model's name (default: the shipped model of --scene)")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--data", action="append", default=None,
                         help="episode folder from `hrn-pyg generate`: its validation episodes are the starts "
                              "(repeatable: a model of many scenes is calibrated on all of them)")
-    source.add_argument("--seeds", default=None,
-                        help="comma-separated validation seeds (seed %% 10 == 8) simulated fresh (default 8,18,28)")
+    source.add_argument("--episode-seeds", default=None, dest="seeds", metavar="SEEDS",
+                        help="comma-separated validation seeds (seed %% 10 == 8) simulated fresh "
+                             f"(default without --data: {','.join(map(str, DEFAULT_SEEDS))})")
     parser.add_argument("--starts", type=int, default=4,
                         help="with --data: at most this many validation episodes per folder")
     parser.add_argument("--rates", default=",".join(f"{r:g}" for r in DEFAULT_RATES),
                         help="comma-separated candidate dropout rates, each in [0, 1)")
-    parser.add_argument("--modules", nargs="+", default=None, metavar="SET",
+    parser.add_argument("--module-sets", nargs="+", default=None, metavar="SET", dest="modules",
                         help="candidate module sets, each comma-separated, e.g. force force,collision "
                              "(default: all the model's dropout_modules, then each alone)")
-    parser.add_argument("--k", type=int, default=16, help="samples per candidate and start")
+    parser.add_argument("--k", type=int, default=16, help="sampled futures per candidate and start")
     parser.add_argument("--members", type=int, default=16, help="ground-truth ensemble members per start")
-    parser.add_argument("--steps", type=int, default=20, help="predicted steps; scored at the last")
+    parser.add_argument("--horizon", type=int, default=20, dest="steps", help="predicted steps; scored at the last")
     parser.add_argument("--position-std", type=float, default=PerturbationConfig().position_std,
-                        help="ensemble start perturbation, metres (default 0.002)")
+                        help="ensemble start perturbation in metres")
     parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
     target = parser.add_mutually_exclusive_group()
-    target.add_argument("--out", default=None, help="calibrated checkpoint to write (default <model>.calibrated.pt)")
+    target.add_argument("--out", default=None, help="calibrated checkpoint to write (default: <model>.calibrated.pt)")
     target.add_argument("--in-place", action="store_true", help="write the choice into --model itself")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda (default: cuda if available, else cpu)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_progress(parser)
+    add_renamed(parser, "--steps", "--horizon")
+    add_renamed(parser, "--seeds", "--episode-seeds")
+    add_renamed(parser, "--modules", "--module-sets")
 
 
 def run(args: argparse.Namespace) -> int:
+    check_scene_name(args.scene)
     # --- everything cheap is checked before anything is simulated ----------------------------
     rates = parse_rates(args.rates)
     for name in ("k", "members"):
         if getattr(args, name) < 2:
             raise ValueError(f"--{name} must be >= 2 (one trajectory has no spread), got {getattr(args, name)}")
     if args.steps < 1:
-        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+        raise ValueError(f"--horizon must be >= 1, got {args.steps}")
     if args.starts < 1:
         raise ValueError(f"--starts must be >= 1, got {args.starts}")
     perturbation = PerturbationConfig(position_std=args.position_std)

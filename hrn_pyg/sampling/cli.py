@@ -1,7 +1,7 @@
 """``hrn-pyg sample``: K futures of one scene by Monte Carlo dropout, drawn like Fig. 6.
 
 The initial state comes from a test episode of a dataset folder (``--data``) or from a fresh
-pybullet episode (``--seed``); the model's K sampled futures are drawn light, the simulator's
+pybullet episode (``--episode-seed``); the model's K sampled futures are drawn light, the simulator's
 ground truth dark, in a PNG of a few time columns and an animated GIF. Also writes
 ``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]`` from the start state on).
 
@@ -26,7 +26,7 @@ from hrn_pyg.checkpoints import checkpoint_path, load_model, resolve_model
 from hrn_pyg.checkpoints.domain import Domain, episode_domain, report_outside
 from hrn_pyg.data.io import load_episode
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scene_file import scene_effects
+from hrn_pyg.data.scene_file import SCENES, check_scene_name, scene_effects
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
@@ -34,6 +34,7 @@ from hrn_pyg.sim.fixed_shape import FixedShapeConfig
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
+from hrn_pyg.utils.options import add_no_progress, add_renamed, progress_bar
 
 if TYPE_CHECKING:
     from hrn_pyg.data.scene_file import SceneSpec
@@ -109,10 +110,11 @@ def scene_source(args: argparse.Namespace) -> str | SceneSpec:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     scene = parser.add_mutually_exclusive_group(required=True)
-    scene.add_argument("--scene", help="a built-in scene's name (picks the default checkpoint)")
+    scene.add_argument("--scene",
+                       help=f"a built-in scene (picks the default checkpoint): {', '.join(SCENES)}")
     scene.add_argument("--scene-file", default=None,
                        help="a scene file (TOML, docs/own_objects.md); needs --model")
-    parser.add_argument("--k", type=int, default=16, help="number of sampled futures")
+    parser.add_argument("--k", type=int, default=16, help="sampled futures")
     parser.add_argument("--rate", type=float, default=None,
                         help="dropout rate at test time (default: the model's calibrated rate, "
                              f"or {UNCALIBRATED_RATE} for an uncalibrated model)")
@@ -125,15 +127,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a scene outside what the model was trained on is an error (exit 2), "
                              "not a one-line warning")
     source = parser.add_mutually_exclusive_group()
-    source.add_argument("--data", default=None, help="episode folder: use a window of its test split")
-    source.add_argument("--seed", type=int, default=9, help="simulate a fresh episode with this seed (default)")
+    source.add_argument("--data", default=None, help="episode folder: use a window of its --split")
+    source.add_argument("--episode-seed", type=int, default=9, dest="seed",
+                        help="without --data: simulate a fresh episode with this seed")
     parser.add_argument("--window", type=int, default=0, help="window index within --data's --split")
     parser.add_argument("--split", default="test", choices=("test", "val", "all"),
                         help="the split of --data the window is taken from (all: every episode)")
-    parser.add_argument("--start", type=int, default=HISTORY, help="start step of a --seed episode")
-    parser.add_argument("--steps", type=int, default=None, help="predicted steps (default 30, or the episode's)")
+    parser.add_argument("--start", type=int, default=HISTORY, help="start step of a fresh episode")
+    parser.add_argument("--horizon", type=int, default=None, dest="steps",
+                        help="predicted steps (default: 30; with --data: 1)")
     parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
-    parser.add_argument("--out", default=None, help="output folder (default runs/sample/<scene>)")
+    parser.add_argument("--out", default=None, help="output folder (default: runs/sample/<scene>)")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     parser.add_argument("--no-sleep", action="store_true",
@@ -146,15 +150,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true",
                         help="run the network through torch.compile (Module.compile): a compile of "
                              "tens of seconds first, then fused steps while the graph's shapes hold")
+    add_no_progress(parser)
+    add_renamed(parser, "--steps", "--horizon")
+    add_renamed(parser, "--seed", "--episode-seed")
 
 
 def run(args: argparse.Namespace) -> int:
+    check_scene_name(args.scene)
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
     if args.rate is not None and not 0.0 <= args.rate < 1.0:
         raise ValueError(f"--rate must be in [0, 1), got {args.rate}")
     if args.steps is not None and args.steps < 1:
-        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+        raise ValueError(f"--horizon must be >= 1, got {args.steps}")
     if args.cuda_graph and not args.fixed_shape:
         raise ValueError("--cuda-graph needs --fixed-shape")
     device = resolve_device(args.device)
@@ -183,6 +191,8 @@ def run(args: argparse.Namespace) -> int:
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
     sleep = None if (args.no_sleep or args.fixed_shape) else DEFAULT_SLEEP
     fixed = FixedShapeConfig(cuda_graph=args.cuda_graph) if args.fixed_shape else None
+    bar = progress_bar(3, "sample", "stage", enabled=not getattr(args, "no_progress", False))
+    bar.set_postfix_str(f"{args.k} futures of {steps} steps")
     samples = sample(model, graph, args.k, steps, rate, forces=forces, generator=generator,
                      modules=modules, sleep=sleep, fixed_shape=fixed,
                      effects=scene_effects(source) if isinstance(source, str) else source.effects
@@ -201,7 +211,11 @@ def run(args: argparse.Namespace) -> int:
     colors = object_colors(np.asarray(leaf_object), static=np.asarray(store.is_static[leaf]))  # static light grey
     times = sorted({int(round(f * steps)) for f in FIGURE_COLUMNS})
     title = f"{name}: {args.k} samples, dropout {rate:g}"
+    bar.update()
+    bar.set_postfix_str("figure")
     samples_figure(truth, paths, times, colors, out / "samples.png", title=title)
+    bar.update()
+    bar.set_postfix_str("animation")
     write_gif({"truth (dark) + samples": truth}, colors, out / "samples.gif", samples=paths)
 
     def write_npz(f) -> None:
@@ -216,6 +230,8 @@ def run(args: argparse.Namespace) -> int:
         "device": str(device), "compiled": bool(args.compile),
         "fixed_shape": None if fixed is None else asdict(fixed), **origin,
     })
+    bar.update()
+    bar.close()
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "
           f"rate {rate:g}: {rate_source})")
     return 0

@@ -82,7 +82,7 @@ def _cube_collision_at(pitch: float, folder) -> str:
 
 def test_sample_outside_the_pitch_warns_in_one_line_and_strict_exits_2(tmp_path, capsys):
     scene = _cube_collision_at(0.025, tmp_path)
-    args = ["sample", "--scene-file", scene, "--model", "shapes", "--k", "1", "--steps", "1"]
+    args = ["sample", "--scene-file", scene, "--model", "shapes", "--k", "1", "--horizon", "1"]
     assert main([*args, "--out", str(tmp_path / "warned")]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["hrn-pyg sample: warning: shapes.pt was trained at pitch 0.05 m; "
@@ -93,13 +93,13 @@ def test_sample_outside_the_pitch_warns_in_one_line_and_strict_exits_2(tmp_path,
 
 
 def test_sample_inside_the_domain_says_nothing(tmp_path, capsys):
-    assert main(["sample", "--scene", "cube_collision", "--model", "shapes", "--k", "1", "--steps", "1",
+    assert main(["sample", "--scene", "cube_collision", "--model", "shapes", "--k", "1", "--horizon", "1",
                  "--strict", "--out", str(tmp_path / "s")]) == 0
     assert "warning" not in capsys.readouterr().err
 
 
 def test_multi_material_with_shapes_names_cloth(tmp_path, capsys):
-    assert main(["sample", "--scene", "multi_material", "--model", "shapes", "--k", "1", "--steps", "1",
+    assert main(["sample", "--scene", "multi_material", "--model", "shapes", "--k", "1", "--horizon", "1",
                  "--strict", "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err
     assert "this scene has cloth" in err and len(err.strip().splitlines()) == 1

@@ -92,7 +92,7 @@ def test_resume_after_kill(tmp_path):
         (["--scene", "wedge", "--pitch", "-0.1"], "pitch"),
         (["--scene", "wedge", "--shard", "2/2"], "shard"),
         (["--scene", "wedge", "--shard", "x"], "shard"),
-        (["--scene", "wedge", "--steps", "0"], "steps"),
+        (["--scene", "wedge", "--episode-steps", "0"], "steps"),
         (["--scene", "wedge", "--episodes", "0"], "episodes"),
         (["--scene", "wedge", "--set", "offset_range"], "NAME=VALUE"),
         (["--scene", "wedge", "--set", "offset_range=[0.1,"], "must be JSON"),

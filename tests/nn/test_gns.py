@@ -235,7 +235,7 @@ sys.exit(main(sys.argv[1:]))
 
 def test_cli_trains_gns_without_the_simulator_or_torchrl(tiny_episodes, tmp_path, capsys):
     out = tmp_path / "cli"
-    args = ["train", "--preset", "gns", "--data", str(tiny_episodes), "--out", str(out), "--steps", "1",
+    args = ["train", "--preset", "gns", "--data", str(tiny_episodes), "--out", str(out), "--train-steps", "1",
             "--batch-size", "1", "--threads", "1", "--device", "cpu", "--no-progress", "--model-latent", "8",
             "--model-hidden", "8", "--model-message-passing-steps", "1"]
     done = subprocess.run([sys.executable, "-c", BLOCKED, *args], capture_output=True, text=True, timeout=120)

@@ -58,7 +58,7 @@ def checkpoint(tmp_path_factory) -> Path:
 
 def calibrate_argv(model: Path, *extra: str) -> list[str]:
     return ["calibrate", "--scene", SCENE, "--model", str(model), "--k", str(K), "--members", str(MEMBERS),
-            "--steps", str(STEPS), "--no-progress", *extra]
+            "--horizon", str(STEPS), "--no-progress", *extra]
 
 
 @pytest.fixture(scope="module")
@@ -66,8 +66,8 @@ def calibrated(checkpoint, tmp_path_factory) -> tuple[Path, str]:
     """One calibrate run with the default output; returns the written file and the input's hash
     before the run."""
     before = digest(checkpoint)
-    code = main(calibrate_argv(checkpoint, "--seeds", ",".join(map(str, SEEDS)),
-                               "--rates", ",".join(map(str, RATES)), "--modules", "force,collision", "force",
+    code = main(calibrate_argv(checkpoint, "--episode-seeds", ",".join(map(str, SEEDS)),
+                               "--rates", ",".join(map(str, RATES)), "--module-sets", "force,collision", "force",
                                "--position-std", str(POSITION_STD)))
     assert code == 0
     return checkpoint.with_name("tiny.calibrated.pt"), before
@@ -150,7 +150,7 @@ def test_written_checkpoint_loads_with_rate_and_record(checkpoint, calibrated):
 def test_in_place_rewrites_only_the_input(checkpoint, tmp_path):
     target = tmp_path / "model.pt"
     target.write_bytes(checkpoint.read_bytes())
-    assert main(calibrate_argv(target, "--seeds", "8", "--rates", "0.3", "--modules", "force", "--in-place")) == 0
+    assert main(calibrate_argv(target, "--episode-seeds", "8", "--rates", "0.3", "--module-sets", "force", "--in-place")) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]  # no temporary file, no copy
     model = load_model(target)
     assert (model.config.dropout_rate, model.config.dropout_modules) == (0.3, ("force",))
@@ -159,7 +159,7 @@ def test_in_place_rewrites_only_the_input(checkpoint, tmp_path):
 
 def test_data_folder_gives_its_validation_episodes(checkpoint, tiny_episodes, tmp_path):
     out = tmp_path / "from_data.pt"
-    assert main(calibrate_argv(checkpoint, "--data", str(tiny_episodes), "--rates", "0.3", "--modules", "force",
+    assert main(calibrate_argv(checkpoint, "--data", str(tiny_episodes), "--rates", "0.3", "--module-sets", "force",
                                "--out", str(out))) == 0
     record = cal.calibration_record(out)
     assert record["seeds"] == [8] and record["data"] == [str(tiny_episodes)]  # seeds 0..9: only 8 validates
@@ -173,12 +173,12 @@ def test_scene_file_folders_name_their_scene(checkpoint, tiny_episodes, tmp_path
     scene_file = tmp_path / "two_cubes.toml"
     scene_file.write_text((BUILTIN_DIR / f"{SCENE}.toml").read_text())
     data = tmp_path / "two_cubes"
-    assert main(["generate", "--scene-file", str(scene_file), "--episodes", "2", "--seed-offset", "17",
-                 "--steps", str(HISTORY + STEPS), "--out", str(data), "--no-progress"]) == 0
+    assert main(["generate", "--scene-file", str(scene_file), "--episodes", "2", "--first-seed", "17",
+                 "--episode-steps", str(HISTORY + STEPS), "--out", str(data), "--no-progress"]) == 0
     scene_file.unlink()  # the recorded text is what is simulated, not the file as it is now
     out = tmp_path / "files.pt"
     argv = ["calibrate", "--model", str(checkpoint), "--data", str(data), "--k", str(K), "--members",
-            str(MEMBERS), "--steps", str(STEPS), "--rates", "0.3", "--modules", "force", "--no-progress",
+            str(MEMBERS), "--horizon", str(STEPS), "--rates", "0.3", "--module-sets", "force", "--no-progress",
             "--out", str(out)]
     assert main(argv) == 0
     record = cal.calibration_record(out)
@@ -209,7 +209,7 @@ def test_device_cpu_is_used_when_the_default_is_elsewhere(checkpoint, tmp_path, 
     monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
     devices = _spy_on_scoring(monkeypatch)
     out = tmp_path / "cpu.pt"
-    assert main(calibrate_argv(checkpoint, "--seeds", "8", "--rates", "0.3", "--modules", "force",
+    assert main(calibrate_argv(checkpoint, "--episode-seeds", "8", "--rates", "0.3", "--module-sets", "force",
                                "--out", str(out), "--device", "cpu")) == 0
     assert devices == [torch.device("cpu")] and cal.calibration_record(out)["rate"] == 0.3
 
@@ -220,7 +220,7 @@ def test_device_meta_scores_there(checkpoint, tmp_path, monkeypatch):
     devices = _spy_on_scoring(monkeypatch)
     out = tmp_path / "meta.pt"
     with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
-        main(calibrate_argv(checkpoint, "--seeds", "8", "--rates", "0.3", "--modules", "force",
+        main(calibrate_argv(checkpoint, "--episode-seeds", "8", "--rates", "0.3", "--module-sets", "force",
                             "--out", str(out), "--device", "meta"))
     assert devices == [torch.device("meta")] and not out.exists()
 
@@ -231,20 +231,20 @@ def test_output_equal_to_input_needs_in_place(checkpoint):
 
 
 @pytest.mark.parametrize(("seeds", "message"), [
-    ("9", r"--seeds: 9 is a test seed \(seed % 10 == 9\); calibrate on validation seeds only"),
-    ("8,19", r"--seeds: 19 is a test seed"),
-    ("3", r"--seeds: 3 is a training seed"),
-    ("8,x", r"--seeds must be comma-separated integers, got '8,x'"),
+    ("9", r"--episode-seeds: 9 is a test seed \(seed % 10 == 9\); calibrate on validation seeds only"),
+    ("8,19", r"--episode-seeds: 19 is a test seed"),
+    ("3", r"--episode-seeds: 3 is a training seed"),
+    ("8,x", r"--episode-seeds must be comma-separated integers, got '8,x'"),
 ])
 def test_non_validation_seeds_are_refused(checkpoint, seeds, message):
     with pytest.raises(ValueError, match=message):
-        cal.run(parse(calibrate_argv(checkpoint, "--seeds", seeds)))
+        cal.run(parse(calibrate_argv(checkpoint, "--episode-seeds", seeds)))
 
 
 def test_test_seed_is_a_one_line_cli_error(checkpoint, capsys):
-    assert main(calibrate_argv(checkpoint, "--seeds", "29")) == 2
+    assert main(calibrate_argv(checkpoint, "--episode-seeds", "29")) == 2
     err = capsys.readouterr().err.strip()
-    assert "\n" not in err and err.startswith("hrn-pyg calibrate: error: --seeds: 29 is a test seed"), err
+    assert "\n" not in err and err.startswith("hrn-pyg calibrate: error: --episode-seeds: 29 is a test seed"), err
 
 
 @pytest.mark.parametrize(("rates", "message"), [
@@ -263,15 +263,15 @@ def test_bad_rates_are_refused(checkpoint, rates, message, capsys):
 
 
 @pytest.mark.parametrize(("modules", "message"), [
-    (["wings"], r"--modules: unknown module\(s\) wings; this model takes dropout on force, collision"),
-    (["force", "force,state"], r"--modules: unknown module\(s\) state; this model takes dropout on"),
+    (["wings"], r"--module-sets: unknown module\(s\) wings; this model takes dropout on force, collision"),
+    (["force", "force,state"], r"--module-sets: unknown module\(s\) state; this model takes dropout on"),
 ])
 def test_unknown_modules_are_refused(checkpoint, modules, message, capsys):
     with pytest.raises(ValueError, match=message):
-        cal.run(parse(calibrate_argv(checkpoint, "--seeds", "8", "--modules", *modules)))
-    assert main(calibrate_argv(checkpoint, "--seeds", "8", "--modules", *modules)) == 2
+        cal.run(parse(calibrate_argv(checkpoint, "--episode-seeds", "8", "--module-sets", *modules)))
+    assert main(calibrate_argv(checkpoint, "--episode-seeds", "8", "--module-sets", *modules)) == 2
     err = capsys.readouterr().err.strip()
-    assert "\n" not in err and err.startswith("hrn-pyg calibrate: error: --modules"), err
+    assert "\n" not in err and err.startswith("hrn-pyg calibrate: error: --module-sets"), err
 
 
 def test_choose_breaks_ties_by_energy_and_needs_a_spread():
@@ -299,8 +299,8 @@ def test_sample_uses_the_calibrated_rate_by_default(checkpoint, calibrated, tmp_
     meta = {}
     for name, (model, extra) in runs.items():
         out = tmp_path / name
-        assert main(["sample", "--scene", SCENE, "--model", str(model), "--k", "2", "--steps", "2",
-                     "--seed", "8", "--out", str(out), *extra]) == 0
+        assert main(["sample", "--scene", SCENE, "--model", str(model), "--k", "2", "--horizon", "2",
+                     "--episode-seed", "8", "--out", str(out), *extra]) == 0
         meta[name] = json.loads((out / "samples.json").read_text())
     assert (meta["calibrated"]["rate"], meta["calibrated"]["rate_source"]) == (rate, "calibrated")
     assert meta["calibrated"]["modules"] == ["force", "collision"]

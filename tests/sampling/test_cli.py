@@ -25,7 +25,7 @@ def checkpoint(tmp_path_factory):
 
 def test_sample_writes_png_gif_and_arrays(checkpoint, tmp_path):
     out = tmp_path / "out"
-    code = main(["sample", "--scene", "wedge", "--k", "3", "--rate", "0.3", "--seed", "5", "--steps", "3",
+    code = main(["sample", "--scene", "wedge", "--k", "3", "--rate", "0.3", "--episode-seed", "5", "--horizon", "3",
                  "--model", str(checkpoint), "--out", str(out)])
     assert code == 0
     assert (out / "samples.png").stat().st_size > 0
@@ -82,7 +82,7 @@ def test_device_cpu_runs_and_is_recorded(checkpoint, tmp_path, monkeypatch):
 
     monkeypatch.setattr(sample_cli, "sample", spy_sample)
     out = tmp_path / "out"
-    code = main(["sample", "--scene", "wedge", "--k", "2", "--seed", "5", "--steps", "2",
+    code = main(["sample", "--scene", "wedge", "--k", "2", "--episode-seed", "5", "--horizon", "2",
                  "--model", str(checkpoint), "--out", str(out), "--device", "cpu"])
     assert code == 0
     cpu = torch.device("cpu")
@@ -96,7 +96,7 @@ def test_device_meta_puts_the_model_there(checkpoint, tmp_path, monkeypatch):
     devices = _spy_on_model_loading(monkeypatch)
     out = tmp_path / "out"
     with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
-        main(["sample", "--scene", "wedge", "--k", "2", "--seed", "5", "--steps", "2",
+        main(["sample", "--scene", "wedge", "--k", "2", "--episode-seed", "5", "--horizon", "2",
               "--model", str(checkpoint), "--out", str(out), "--device", "meta"])
     assert devices == [torch.device("meta")]
     assert not out.exists()
@@ -115,7 +115,7 @@ def test_unknown_device_is_a_one_line_error(checkpoint, tmp_path, capsys):
 def test_fixed_shape_flag_samples_the_no_sleep_futures(checkpoint, tmp_path, capsys):
     def run(*flags):
         out = tmp_path / "_".join(flags)
-        assert main(["sample", "--scene", "wedge", "--k", "2", "--rate", "0.3", "--seed", "5", "--steps", "3",
+        assert main(["sample", "--scene", "wedge", "--k", "2", "--rate", "0.3", "--episode-seed", "5", "--horizon", "3",
                      "--model", str(checkpoint), "--out", str(out), *flags]) == 0
         with np.load(out / "samples.npz", allow_pickle=False) as npz:
             return npz["samples"], json.loads((out / "samples.json").read_text())

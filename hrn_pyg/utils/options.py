@@ -1,0 +1,121 @@
+"""What the command lines of the package share: a help formatter that shows every default, old
+spellings of renamed options that still work with a one-line warning, the ``--no-progress``
+switch and its progress bar, and help texts read from a config's ``Attributes:`` docstring.
+
+Imports nothing heavy (argparse only; tqdm when a bar is made), so a command can check its
+input before torch is loaded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import re
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+
+def shows_default(default: Any) -> bool:
+    """Whether a default is worth showing: not None, False, an empty string or list, or suppressed."""
+    if default is None or default is False or default is argparse.SUPPRESS:
+        return False
+    return not (isinstance(default, (str, list, tuple)) and len(default) == 0)
+
+
+def shown_default(default: Any) -> str:
+    """A default as ``--help`` shows it: a list as its items separated by spaces, else ``str``."""
+    if isinstance(default, (list, tuple)):
+        return " ".join(map(str, default))
+    return str(default)
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's formatter with ``(default: X)`` after the help of every option whose default
+    :func:`shows_default` (what ``ArgumentDefaultsHelpFormatter`` does, without ``None`` and
+    ``False``). An option without a help text shows nothing, its default included: give each one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if shows_default(action.default) and action.option_strings:
+            suffix = f"(default: {shown_default(action.default)})".replace("%", "%%")
+            text = f"{text} {suffix}" if text else suffix
+        return text
+
+
+class Renamed(argparse.Action):
+    """The old spelling of a renamed option: hidden from ``--help``, stores into the new
+    option's destination and warns in one line on stderr."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, new: str = "", **kwargs: Any) -> None:
+        kwargs["help"] = argparse.SUPPRESS
+        kwargs["default"] = argparse.SUPPRESS
+        super().__init__(option_strings, dest, **kwargs)
+        self.new = new
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        print(f"{parser.prog}: warning: {option_string} is deprecated and goes in the next release; "
+              f"use {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def add_renamed(parser: argparse.ArgumentParser, old: str, new: str) -> None:
+    """Let ``old`` spell the option ``new`` that ``parser`` already has (same destination, type,
+    count and choices; in the same mutually exclusive group), with :class:`Renamed`'s warning."""
+    action = next(a for a in parser._actions if new in a.option_strings)
+    container: Any = next((g for g in parser._mutually_exclusive_groups if action in g._group_actions), parser)
+    kwargs: dict[str, Any] = {"nargs": 0} if action.nargs == 0 else {
+        "nargs": action.nargs, "type": action.type, "choices": action.choices, "metavar": action.metavar}
+    container.add_argument(old, action=Renamed, new=new, dest=action.dest, **kwargs)
+
+
+def renamed_options(parser: argparse.ArgumentParser) -> dict[str, str]:
+    """``{old spelling: new}`` of the :class:`Renamed` options of ``parser``."""
+    return {s: a.new for a in parser._actions if isinstance(a, Renamed) for s in a.option_strings}
+
+
+def add_no_progress(parser: argparse.ArgumentParser) -> None:
+    """``--no-progress``: the command draws no progress bar (``args.no_progress``)."""
+    parser.add_argument("--no-progress", action="store_true", help="draw no progress bar on stderr")
+
+
+def progress_bar(total: int, desc: str, unit: str, enabled: bool = True) -> Any:
+    """A tqdm bar on stderr, drawn only when stderr is a terminal (``enabled`` False: never), so
+    logs and captured output keep their lines."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, disable=True if not enabled else None, leave=False)
+
+
+def attribute_help(cls: type) -> dict[str, str]:
+    """``{field: first sentence}`` from the ``Attributes:`` section of ``cls``'s docstring (one
+    entry per name of a ``a, b: text`` line; continuation lines joined)."""
+    doc = inspect.getdoc(cls) or ""
+    _, found, section = doc.partition("Attributes:\n")
+    if not found:
+        return {}
+    entries: dict[str, str] = {}
+    names: list[str] = []
+    for line in section.splitlines():
+        if not line.strip():
+            continue
+        match = re.match(r"^ {4}([\w, ]+):\s*(.*)$", line)
+        if match:
+            names = [n.strip() for n in match.group(1).split(",")]
+            for name in names:
+                entries[name] = match.group(2)
+        elif line.startswith("        ") and names:
+            for name in names:
+                entries[name] += " " + line.strip()
+        elif not line.startswith(" "):
+            break
+    return {name: first_sentence(text) for name, text in entries.items()}
+
+
+def first_sentence(text: str) -> str:
+    """The text up to its first full stop followed by a space (or all of it), without the stop;
+    reST roles (``:class:`X```) and double backquotes shown plain."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "")
+    head = re.split(r"\.\s", text + " ", maxsplit=1)[0].rstrip(". ")
+    return head.replace("%", "%%")
