@@ -44,7 +44,7 @@ echo "== calibration $(date +%T)"
 for job in "${JOBS[@]}"; do
   IFS='|' read -r name data opts <<< "$job"
   rm -rf "calib/$name"
-  python3 -m hrn_pyg.cli train --data "data/$data" --out "calib/$name" --steps 100000 --warmup 1 \
+  python3 -m hrn_pyg.cli train --data "data/$data" --out "calib/$name" --train-steps 100000 --warmup 1 \
     --checkpoint-every 100000 --eval-every 100000 --time-limit "$(python3 -c "print($CALIB_S/60)")" $COMMON $opts \
     > "calib/$name.log" 2>&1 &
 done
@@ -63,7 +63,7 @@ PY
 )
   echo "$name: $steps steps"
   rm -rf "runs/$name"
-  python3 -m hrn_pyg.cli train --data "data/$data" --out "runs/$name" --steps "$steps" \
+  python3 -m hrn_pyg.cli train --data "data/$data" --out "runs/$name" --train-steps "$steps" \
     --checkpoint-every 250 --eval-every 250 --time-limit "$(python3 -c "print(($BUDGET_S+30)/60)")" $COMMON $opts \
     > "runs/$name.log" 2>&1 &
 done
