@@ -1,4 +1,4 @@
-"""The warm start measured: a planner cloned into the PPO actor (``hrn-pyg rl clone``), in the
+"""The warm start measured: a planner cloned into the PPO actor (``python -m experiments.rl.clone``), in the
 learned model and in pybullet, and what its spread leaves to relaxation at update 0.
 
 For one task and one clone checkpoint:
@@ -9,7 +9,7 @@ For one task and one clone checkpoint:
   collects with at update 0 (actions drawn from the clone's TanhNormal) at each ``--rates``
   with ``k`` samples and relaxation: the partial-hit share over all steps and over the
   goal-reaching steps (near-miss share), success and length
-  (:func:`hrn_pyg.rl.partial_hits.partial_hit_share`);
+  (:func:`experiments.rl.partial_hits.partial_hit_share`);
 - **evaluation scenes** (the fixed scenes of ``hrn-pyg rl --eval-every``:
   :func:`hrn_pyg.rl.success_curve.evaluation_env`, ``--eval-scenes`` of them drawn from the
   training pool by :data:`~hrn_pyg.rl.success_curve.EVAL_SEED`): the clone's mean action in the
@@ -37,13 +37,14 @@ from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: experiments/ beside the package
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from planners import closed_loop_rates  # noqa: E402  (a sibling benchmark's closed loop)
 
-from hrn_pyg.rl.clone import ActorPolicy, load_policy_actor  # noqa: E402
+from experiments.rl.clone import ActorPolicy, load_policy_actor  # noqa: E402
+from experiments.rl.partial_hits import partial_hit_share  # noqa: E402
+from experiments.rl.planners import PLANNERS, planner_policy  # noqa: E402
 from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, VALIDATION_SEEDS, HRNDynamics  # noqa: E402
-from hrn_pyg.rl.partial_hits import partial_hit_share  # noqa: E402
-from hrn_pyg.rl.planners import PLANNERS, planner_policy  # noqa: E402
 from hrn_pyg.rl.success_curve import EvalConfig, evaluate_point, evaluation_env  # noqa: E402
 from hrn_pyg.rl.tasks import get_task  # noqa: E402
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP  # noqa: E402
@@ -65,7 +66,7 @@ def evaluation_scenes(task, dynamics, policy_module, planner_fn, scenes: int) ->
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", choices=sorted(PLANNERS), default="cube_push_stop")
-    parser.add_argument("--policy", required=True, help="clone checkpoint (hrn-pyg rl clone)")
+    parser.add_argument("--policy", required=True, help="clone checkpoint (python -m experiments.rl.clone)")
     parser.add_argument("--model", default=None, help="default hrn_pyg/checkpoints/<scene>.pt")
     parser.add_argument("--rates", type=float, nargs="+", default=[0.0, 0.1, 0.3])
     parser.add_argument("--episodes", type=int, default=64)

@@ -2,7 +2,7 @@
 policy (the policy at PPO update 0) for a grid of dropout rates and goal tolerances.
 
 A step is a partial hit when some but not all of the k samples meet the goal; only then can
-reward relaxation change a reward (:mod:`hrn_pyg.rl.partial_hits`). The share is counted over
+reward relaxation change a reward (:mod:`experiments.rl.partial_hits`). The share is counted over
 every step of ``--episodes`` episodes started from the validation scenes
 (:data:`hrn_pyg.rl.hrn_dynamics.VALIDATION_SEEDS`, apart from the RL training pool), so that a
 rate and a tolerance can be chosen (e.g. 10-30 % of steps) without looking at training scenes.
@@ -13,9 +13,9 @@ Run: ``python benchmarks/partial_hits.py --task tower [--model PATH] [--rates 0.
 ``hrn_pyg/checkpoints/<scene>.pt``; the output to ``partial_hits_<task>.json`` for the random
 policy, ``partial_hits_<task>_<policy>_noise<noise>.json`` otherwise, ``_clone[_noise<noise>]``
 for a clone). ``--policy planner`` runs the task's scripted planner
-(:data:`hrn_pyg.rl.planners.PLANNERS`) with ``--noise`` action noise: near the goal more often
+(:data:`experiments.rl.planners.PLANNERS`) with ``--noise`` action noise: near the goal more often
 than a random policy, as PPO is once it learns. ``--policy clone:PATH`` runs a policy
-checkpoint (``hrn-pyg rl clone``) as PPO collects with it at update 0: actions drawn from its
+checkpoint (``python -m experiments.rl.clone``) as PPO collects with it at update 0: actions drawn from its
 TanhNormal (``--deterministic``: its mean action). Each row holds the share over all steps
 (``partial_hit_share``) and over the goal-reaching steps (``near_miss_share``). Prints a table
 and writes JSON atomically.
@@ -26,14 +26,18 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from hrn_pyg.rl.clone import ActorPolicy, load_policy_actor
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: experiments/ beside the package
+
+from experiments.rl.clone import ActorPolicy, load_policy_actor
+from experiments.rl.partial_hits import partial_hit_table
+from experiments.rl.planners import PLANNERS
 from hrn_pyg.rl.hrn_dynamics import VALIDATION_SEEDS, HRNDynamics
-from hrn_pyg.rl.partial_hits import partial_hit_table
-from hrn_pyg.rl.planners import PLANNERS
 from hrn_pyg.rl.tasks import TASKS, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.files import atomic_write_json, file_sha256

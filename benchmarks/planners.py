@@ -1,7 +1,7 @@
 """Scripted planners of the tasks with room to learn: episode lengths in the learned model and in
 pybullet, and the length thresholds they set.
 
-For each policy (the greedy push and the task's planner, :mod:`hrn_pyg.rl.planners`) it runs
+For each policy (the greedy push and the task's planner, :mod:`experiments.rl.planners`) it runs
 ``--episodes`` episodes in the learned model at rate 0 from the RL pool scenes
 (:data:`hrn_pyg.rl.hrn_dynamics.POOL_SEEDS`, the scenes PPO trains on) and replays each episode's
 actions open loop in pybullet from the same scene against the same goal
@@ -10,7 +10,7 @@ actions open loop in pybullet from the same scene against the same goal
 ``max_steps`` long. The same policy also runs closed loop in pybullet (it sees pybullet's
 states), from the same scenes and goals: what the policy can do in physics, apart from the
 open-loop replay's drift. The planner's mean in-model length ``L`` sets the task's thresholds
-(:func:`hrn_pyg.rl.planners.length_thresholds`).
+(:func:`experiments.rl.planners.length_thresholds`).
 
 Run: ``python benchmarks/planners.py --task tower_aside [--episodes 64]
 [--out benchmarks/results/planners_tower_aside.json]``. Prints a table and writes JSON atomically.
@@ -21,10 +21,21 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import sys
 import time
+from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: experiments/ beside the package
+
+from experiments.rl.planners import (
+    PLANNERS,
+    Planner,
+    greedy_push,
+    length_thresholds,
+    planner_policy,
+)
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import (
     closed_loop_in_pybullet,
@@ -32,13 +43,6 @@ from hrn_pyg.rl.evaluate import (
     ground_truth_success,
 )
 from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, HRNDynamics
-from hrn_pyg.rl.planners import (
-    PLANNERS,
-    Planner,
-    greedy_push,
-    length_thresholds,
-    planner_policy,
-)
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.files import atomic_write_json

@@ -67,16 +67,10 @@ MODULES = (
     "hrn_pyg.rl.hrn_dynamics",
     "hrn_pyg.rl.env",
     "hrn_pyg.rl.policy",
-    "hrn_pyg.rl.partial_hits",
-    "hrn_pyg.rl.planners",
     "hrn_pyg.rl.ppo",
-    "hrn_pyg.rl.clone",
     "hrn_pyg.rl.evaluate",
     "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",
-    "hrn_pyg.rl.stats",
-    "hrn_pyg.rl.summary",
-    "hrn_pyg.rl.summary_figure",
     "hrn_pyg.recipe",
 )
 

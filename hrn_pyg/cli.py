@@ -1,17 +1,18 @@
 """The ``hrn-pyg`` command: one entry point, one sub-command per job.
 
 Each sub-command lives in the module that does the work; that module exposes
-``add_arguments(parser)`` and ``run(args) -> int``. A sub-command may have further jobs, named
-right after it (``hrn-pyg rl clone ...``, :data:`JOBS`), each in its own module the same way. Bad input raises ``ValueError`` (or
+``add_arguments(parser)`` and ``run(args) -> int``. Bad input raises ``ValueError`` (or
 ``FileNotFoundError``) with a message naming the problem; here it becomes one line on stderr
 and exit code 2.
 
-One name, one meaning, across every sub-command and job (:data:`MEANINGS` says what each shared
-name means; ``tests/test_command_line.py`` checks it):
+One name, one meaning, across every sub-command (:data:`MEANINGS` says what each shared
+name means; ``tests/test_command_line.py`` checks it, and holds the experiment scripts beside the
+package, ``python -m experiments.rl.<script>``, to the same rule):
 
 * a count and a list never share a name: a count is a plain plural (``--episodes``,
-  ``--updates``) or ``--num-<things>`` where the things are listed elsewhere (``--num-seeds``,
-  ``--num-envs``); a list is the plural alone (``--episode-seeds 8,18``, ``--horizons 5,15``);
+  ``--updates``) or ``--num-<things>`` where the things are listed elsewhere (``--num-envs``,
+  a sweep's ``--num-seeds``); a list is the plural alone (``--episode-seeds 8,18``, ``--horizons 5,15``,
+  a sweep's ``--modes``);
 * steps say which: ``--episode-steps`` (model steps of a simulated episode), ``--horizon``
   (model steps predicted from a start), ``--train-steps`` (optimiser steps);
 * seeds say what they seed: ``--seed`` (a run's own random draws: initialisation, batches,
@@ -43,20 +44,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sample": ("hrn_pyg.sampling.cli", "sample K futures with Monte Carlo dropout"),
     "calibrate": ("hrn_pyg.sampling.calibrate",
                   "choose a model's sampling rate so its spread matches a validation ensemble"),
-    "rl": ("hrn_pyg.rl.ppo", "train a PPO agent in the learned environment"),
+    "rl": ("hrn_pyg.rl.ppo", "train and score one PPO run in the learned environment "
+           "(sweeps over modes and seeds: python -m experiments.rl.sweep in a checkout)"),
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
     "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),
     "models": ("hrn_pyg.checkpoints.cli", "list the shipped models and what each was trained on"),
 }
-
-#: jobs under a sub-command, ``hrn-pyg <command> <job> ...``: command -> job -> (module, one-line help)
-JOBS: dict[str, dict[str, tuple[str, str]]] = {
-    "rl": {"clone": ("hrn_pyg.rl.clone", "clone a task's scripted planner into a PPO actor "
-                     "(the initial policy of --init-policy)"),
-           "summary": ("hrn_pyg.rl.summary", "the statistics of a sweep's runs so far "
-                       "(rl_<task>_summary.json and a table)")},
-}
-
 
 #: what each option name shared by two or more commands means (one meaning per name)
 MEANINGS: dict[str, str] = {
@@ -91,8 +84,6 @@ RENAMED: dict[str, dict[str, str]] = {
     "train": {"--steps": "--train-steps"},
     "sample": {"--steps": "--horizon", "--seed": "--episode-seed"},
     "calibrate": {"--steps": "--horizon", "--seeds": "--episode-seeds", "--modules": "--module-sets"},
-    "rl": {"--seeds": "--num-seeds", "--seed-start": "--first-seed"},
-    "rl clone": {"--steps": "--train-steps"},
 }
 
 
@@ -103,10 +94,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"hrn-pyg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
-        jobs = JOBS.get(name, {})
-        epilog = "; ".join(f"`hrn-pyg {name} {job} --help`: {text}" for job, (_, text) in jobs.items())
-        p = sub.add_parser(name, help=help_text, description=help_text, epilog=epilog or None,
-                           formatter_class=HelpFormatter)
+        p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=HelpFormatter)
         if name != command:
             continue
         module = importlib.import_module(module_name)
@@ -115,24 +103,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def build_job_parser(command: str, job: str) -> argparse.ArgumentParser:
-    """The parser of ``hrn-pyg <command> <job>`` (:data:`JOBS`)."""
-    module_name, help_text = JOBS[command][job]
-    parser = argparse.ArgumentParser(prog=f"hrn-pyg {command} {job}", description=help_text,
-                                     formatter_class=HelpFormatter)
-    module = importlib.import_module(module_name)
-    module.add_arguments(parser)
-    parser.set_defaults(_run=module.run, command=f"{command} {job}")
-    return parser
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if len(argv) >= 2 and argv[1] in JOBS.get(argv[0], {}):
-        args = build_job_parser(argv[0], argv[1]).parse_args(argv[2:])
-    else:
-        command = next((a for a in argv if not a.startswith("-")), None)
-        args = build_parser(command if command in COMMANDS else None).parse_args(argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command if command in COMMANDS else None).parse_args(argv)
     try:
         return int(args._run(args) or 0)
     except (ValueError, FileNotFoundError) as exc:

@@ -1,7 +1,7 @@
 """``hrn-pyg demo``: the two-minute tour on the checkpoints shipped in ``hrn_pyg/checkpoints``.
 
-It is a script of the package's own commands, so every picture it draws can be redrawn by
-hand:
+It is a script of the package's own commands (each step builds that command's parser from its
+module and runs it), so every picture it draws can be redrawn by hand:
 
 1. simulates a few held-out ``soft_bounce`` and ``cube_collision`` episodes in pybullet (test
    seeds, never trained on) and prints a short Table 1 (``hrn-pyg evaluate``), HRN vs ours;
@@ -22,11 +22,15 @@ import argparse
 import json
 import time
 from pathlib import Path
+from types import ModuleType
 
+import hrn_pyg.evaluate as evaluate_command
+import hrn_pyg.sampling.cli as sample_command
 from hrn_pyg.checkpoints import CHECKPOINT_DIR
+from hrn_pyg.rl.showcase import showcase_policy
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_text
-from hrn_pyg.utils.options import add_no_progress
+from hrn_pyg.utils.options import HelpFormatter, add_no_progress
 
 #: test-split seeds (seed % 10 == 9) used for the demo's held-out episodes, far from the
 #: seeds of the shipped training data (0..199)
@@ -51,6 +55,14 @@ def _held_out_episodes(scene: str, folder: Path) -> Path:
     return folder
 
 
+def run_command(name: str, module: ModuleType, argv: list[str]) -> int:
+    """``hrn-pyg <name> <argv>`` run in this process: a parser from ``module.add_arguments``
+    (the one the command line builds, renamed options included), then ``module.run``."""
+    parser = argparse.ArgumentParser(prog=f"hrn-pyg {name}", formatter_class=HelpFormatter)
+    module.add_arguments(parser)
+    return int(module.run(parser.parse_args(argv)) or 0)
+
+
 def _note(lines: list[str], text: str) -> None:
     print(text, flush=True)
     lines.append(text)
@@ -65,8 +77,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrn_pyg.cli import main as cli
-
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
     device = resolve_device(args.device)
@@ -85,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
                           f"(make them with `hrn-pyg train`, see docs/results.md)")
             continue
         data = _held_out_episodes(scene, out / "data" / scene)
-        code = cli(["evaluate", "--data", str(data), "--model", f"HRN={hrn}", "--model", f"ours={ours}",
+        code = run_command("evaluate", evaluate_command, ["--data", str(data), "--model", f"HRN={hrn}", "--model", f"ours={ours}",
                     "--out", str(out / "table1" / scene), "--stride", "100", *quiet, "--device", str(device)])
         if code:
             return code
@@ -98,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             continue
         target = out / "samples" / scene
         # no --rate: the model's calibrated rate (hrn-pyg calibrate), 0.3 if it was never calibrated
-        code = cli(["sample", "--scene", scene, "--k", str(args.k), "--episode-seed", str(DEMO_SEEDS[0]),
+        code = run_command("sample", sample_command, ["--scene", scene, "--k", str(args.k), "--episode-seed", str(DEMO_SEEDS[0]),
                     "--horizon", "30", "--out", str(target), *quiet, "--device", str(device)])
         if code:
             return code
@@ -109,8 +119,6 @@ def run(args: argparse.Namespace) -> int:
     # 3. a learned cube-push policy ---------------------------------------------------------------
     policy = ckpt / "cube_push_policy.pt"
     if policy.is_file() and (ckpt / "cube_push.pt").is_file():
-        from hrn_pyg.rl.showcase import showcase_policy
-
         summary = showcase_policy(ckpt / "cube_push.pt", policy, out / "policy", device=device)
         _note(report, f"- cube_push policy: {summary}")
     else:

@@ -1,7 +1,7 @@
 """Mutation testing with mutmut (``make mutation``; the optional ``mutation`` extra, not part of
-``make test`` or CI): each module below in turn, mutated in a copy of the package and the tests
-under ``out/mutation/<name>/`` (the checkout is never touched), one process, against its own
-test files only. Prints the survivors and writes them to ``out/mutation/<name>/survivors.txt``;
+``make test`` or CI): each module below in turn, mutated in a copy of the package, the
+experiments beside it and the tests under ``out/mutation/<name>/`` (the checkout is never
+touched), one process, against its own test files only. Prints the survivors and writes them to ``out/mutation/<name>/survivors.txt``;
 exits 1 when a survivor is not listed in :data:`EQUIVALENT` (a mutant no test can tell apart).
 
     python tests/mutation.py [stats stability scene_file expressions]
@@ -21,7 +21,7 @@ MUTMUT = Path(sys.executable).parent / "mutmut"
 
 #: name -> (the file mutated, its test files, the mutants run: an fnmatch pattern of mutmut's names)
 MODULES: dict[str, tuple[str, tuple[str, ...], str]] = {
-    "stats": ("hrn_pyg/rl/stats.py", ("tests/rl/test_stats.py",), "hrn_pyg.rl.stats.*"),
+    "stats": ("experiments/rl/stats.py", ("tests/experiments/rl/test_stats.py",), "experiments.rl.stats.*"),
     "stability": ("hrn_pyg/sim/stability.py", ("tests/sim/test_stability.py",), "hrn_pyg.sim.stability.*"),
     # the scene file's draws: every function or method with "draw" in its name
     "scene_file": ("hrn_pyg/data/scene_file.py",
@@ -33,16 +33,16 @@ MODULES: dict[str, tuple[str, tuple[str, ...], str]] = {
 #: surviving mutants that behave as the original does, each with the reason (mutmut numbers the
 #: mutants of a function in order: an edit of the function renumbers them, and a rerun lists them)
 EQUIVALENT: dict[str, str] = {
-    "hrn_pyg.rl.stats.x__as_runs__mutmut_10": "unsqueeze(+1) of a 1-D tensor is unsqueeze(-1): (n, 1)",
-    "hrn_pyg.rl.stats.x__resampled_medians__mutmut_12": "median's default dim -1 is dim 1 of the [R, n] draws",
-    "hrn_pyg.rl.stats.x_probability_of_improvement_point__mutmut_23":
+    "experiments.rl.stats.x__as_runs__mutmut_10": "unsqueeze(+1) of a 1-D tensor is unsqueeze(-1): (n, 1)",
+    "experiments.rl.stats.x__resampled_medians__mutmut_12": "median's default dim -1 is dim 1 of the [R, n] draws",
+    "experiments.rl.stats.x_probability_of_improvement_point__mutmut_23":
         "mean over (-3, +2) then -1 averages the same equally weighted wins over (n, m, T) "
         "(and is (-3, -2) itself for a batch)",
-    "hrn_pyg.rl.stats.x_reference_levels__mutmut_6": "0.75 and 0.5 of an integer step limit have at most 2 decimals",
-    "hrn_pyg.rl.stats.x__number__mutmut_11": "only +-inf reach the test: v >= 0 is v > 0 for them",
-    "hrn_pyg.rl.stats.x__number__mutmut_12": "only +-inf reach the test: v > 1 is v > 0 for them",
-    "hrn_pyg.rl.stats.x_comparison_markdown__mutmut_63": "a missing versus table read as None or {}: both false",
-    "hrn_pyg.rl.stats.x_comparison_markdown__mutmut_65": "a missing versus table read as None or {}: both false",
+    "experiments.rl.stats.x_reference_levels__mutmut_6": "0.75 and 0.5 of an integer step limit have at most 2 decimals",
+    "experiments.rl.stats.x__number__mutmut_11": "only +-inf reach the test: v >= 0 is v > 0 for them",
+    "experiments.rl.stats.x__number__mutmut_12": "only +-inf reach the test: v > 1 is v > 0 for them",
+    "experiments.rl.stats.x_comparison_markdown__mutmut_63": "a missing versus table read as None or {}: both false",
+    "experiments.rl.stats.x_comparison_markdown__mutmut_65": "a missing versus table read as None or {}: both false",
     "hrn_pyg.sim.stability.x_mean_pairwise_distance__mutmut_22":
         "with fewer than two points every distance sum is 0, divided by 1 or 2",
     "hrn_pyg.sim.stability.x_stability_report__mutmut_57":
@@ -62,7 +62,7 @@ EQUIVALENT: dict[str, str] = {
 }
 
 CONFIG = """[mutmut]
-source_paths = hrn_pyg
+source_paths = {folder}
 only_mutate = {source}
 pytest_add_cli_args_test_selection =
 {tests}
@@ -75,7 +75,7 @@ pytest_add_cli_args =
     ignore::DeprecationWarning
 
 [tool:pytest]
-pythonpath = tests
+pythonpath = tests .
 addopts = -q
 """
 
@@ -86,9 +86,10 @@ def run(name: str) -> list[str]:
     work = ROOT / "out" / "mutation" / name
     shutil.rmtree(work, ignore_errors=True)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
-    shutil.copytree(ROOT / "hrn_pyg", work / "hrn_pyg", ignore=ignore)
-    shutil.copytree(ROOT / "tests", work / "tests", ignore=ignore)
-    (work / "setup.cfg").write_text(CONFIG.format(source=source, tests="\n".join(f"    {t}" for t in tests)))
+    for folder in ("hrn_pyg", "experiments", "tests"):
+        shutil.copytree(ROOT / folder, work / folder, ignore=ignore)
+    (work / "setup.cfg").write_text(CONFIG.format(folder=source.split("/")[0], source=source,
+                                                  tests="\n".join(f"    {t}" for t in tests)))
     print(f"== {name}: {source} against {', '.join(tests)}", flush=True)
     subprocess.run([str(MUTMUT), "run", "--max-children", "1", pattern], cwd=work, check=True,
                    stdout=subprocess.DEVNULL)

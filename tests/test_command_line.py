@@ -1,4 +1,4 @@
-"""The command line as a whole: every sub-command and job parser, walked.
+"""The command line as a whole: every sub-command's parser and the experiment scripts', walked.
 
 One meaning per option name (the same type, count and kind wherever a name appears, and
 :data:`hrn_pyg.cli.MEANINGS` saying what each shared name means), every default shown in
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import importlib
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -17,13 +18,19 @@ from pathlib import Path
 import pytest
 
 import hrn_pyg
-from hrn_pyg.cli import COMMANDS, JOBS, MEANINGS, RENAMED, build_job_parser, build_parser, main
+from experiments.command import build_parser as build_script_parser
+from hrn_pyg.cli import COMMANDS, MEANINGS, RENAMED, build_parser, main
 from hrn_pyg.data.scene_file import SCENES
 from hrn_pyg.utils.options import HelpFormatter, Renamed, renamed_options, shown_default, shows_default
 
 ROOT = Path(hrn_pyg.__file__).resolve().parent
 #: commands whose module draws a progress bar (tqdm or progress_bar) somewhere
 PROGRESS = ("generate", "train", "evaluate", "sample", "calibrate", "rl", "demo")
+#: the experiment scripts beside the package (``python -m <module>``), walked with the commands
+SCRIPTS = ("experiments.rl.sweep", "experiments.rl.clone", "experiments.rl.summary")
+#: old spelling -> new of the experiment scripts' options
+SCRIPT_RENAMED = {"experiments.rl.sweep": {"--mode": "--modes", "--seeds": "--num-seeds", "--seed-start": "--first-seed"},
+                  "experiments.rl.clone": {"--steps": "--train-steps"}}
 
 
 def sub_parser(command: str) -> argparse.ArgumentParser:
@@ -32,11 +39,15 @@ def sub_parser(command: str) -> argparse.ArgumentParser:
     return sub.choices[command]
 
 
+def script_parser(name: str) -> argparse.ArgumentParser:
+    module = importlib.import_module(name)
+    return build_script_parser(f"python -m {name}", module.DESCRIPTION, module.add_arguments)
+
+
 def all_parsers() -> dict[str, argparse.ArgumentParser]:
-    """``{"generate": parser, ..., "rl clone": parser}``: every sub-command and job."""
-    parsers = {name: sub_parser(name) for name in COMMANDS}
-    parsers |= {f"{c} {j}": build_job_parser(c, j) for c, jobs in JOBS.items() for j in jobs}
-    return parsers
+    """``{"generate": parser, ..., "experiments.rl.sweep": parser}``: every sub-command and
+    experiment script."""
+    return {name: sub_parser(name) for name in COMMANDS} | {name: script_parser(name) for name in SCRIPTS}
 
 
 @pytest.fixture(scope="module")
@@ -59,23 +70,28 @@ def kind(action: argparse.Action) -> tuple[str, str]:
     return (getattr(action.type, "__name__", "str") if action.type else "str", count)
 
 
-def test_every_command_and_job_is_walked(parsers):
-    assert set(parsers) == set(COMMANDS) | {"rl clone", "rl summary"}
+def test_every_command_and_script_is_walked(parsers):
+    assert set(parsers) == set(COMMANDS) | set(SCRIPTS)
     assert all(isinstance(p.formatter_class, type) and issubclass(p.formatter_class, HelpFormatter)
                for p in parsers.values())
 
 
 def test_no_option_name_has_two_meanings(parsers):
+    """The same kind of value wherever a name appears, in the commands and the scripts; what a
+    name shared by two commands means is in :data:`hrn_pyg.cli.MEANINGS`."""
     kinds: dict[str, dict[tuple[str, str], list[str]]] = defaultdict(lambda: defaultdict(list))
     for command, parser in parsers.items():
         for option, action in live_options(parser):
             kinds[option][kind(action)].append(command)
     two = {option: dict(by_kind) for option, by_kind in kinds.items() if len(by_kind) > 1}
     assert not two, f"one name, two kinds of value: {two}"
-    shared = sorted(option for option, by_kind in kinds.items() if sum(map(len, by_kind.values())) > 1)
+    used = defaultdict(set)
+    for option, by_kind in kinds.items():
+        used[option] = {c for commands in by_kind.values() for c in commands if c in COMMANDS}
+    shared = sorted(option for option, commands in used.items() if len(commands) > 1)
     missing = [option for option in shared if option not in MEANINGS]
     assert not missing, f"shared by two commands, without a meaning in hrn_pyg.cli.MEANINGS: {missing}"
-    stale = sorted(set(MEANINGS) - set(kinds))
+    stale = sorted(option for option in MEANINGS if not used[option])
     assert not stale, f"MEANINGS names options no command has: {stale}"
 
 
@@ -89,18 +105,18 @@ def test_the_retired_names_are_gone(parsers):
 
 def test_renamed_spellings_are_the_table(parsers):
     found = {command: renamed_options(parser) for command, parser in parsers.items()}
-    assert {c: r for c, r in found.items() if r} == RENAMED
+    assert {c: r for c, r in found.items() if r} == RENAMED | SCRIPT_RENAMED
 
 
-@pytest.mark.parametrize("command", sorted(RENAMED))
+@pytest.mark.parametrize("command", sorted(RENAMED | SCRIPT_RENAMED))
 def test_an_old_spelling_sets_the_new_option_and_warns_once(parsers, command, capsys):
     parser = parsers[command]
-    for old, new in RENAMED[command].items():
+    for old, new in (RENAMED | SCRIPT_RENAMED)[command].items():
         action = next(a for a in parser._actions if new in a.option_strings)
-        value = "8" if action.type is int or new == "--episode-seeds" else "force"
+        value = "8" if action.type is int or new == "--episode-seeds" else "stochastic" if new == "--modes" else "force"
         required = {"generate": ["--scene", "wedge", "--episodes", "1", "--out", "o"],
                     "train": ["--preset", "ours", "--data", "d", "--out", "o"],
-                    "rl clone": ["--task", "cube_push_stop", "--out", "o.pt"],
+                    "experiments.rl.clone": ["--task", "cube_push_stop", "--out", "o.pt"],
                     "sample": ["--scene", "wedge"]}.get(command, [])
         args = parser.parse_args([*required, old, value])
         expected = parser.parse_args([*required, new, value])
@@ -144,7 +160,6 @@ def _draws_progress(module: str) -> bool:
 
 def test_no_progress_wherever_a_bar_is_drawn(parsers):
     drawing = {c for c, (module, _) in COMMANDS.items() if _draws_progress(module)}
-    drawing |= {f"{c} {j}" for c, jobs in JOBS.items() for j, (module, _) in jobs.items() if _draws_progress(module)}
     assert set(PROGRESS) <= drawing | {"demo"}  # demo's bars are its steps'
     for command in drawing | set(PROGRESS):
         assert "--no-progress" in dict(live_options(parsers[command])), command
@@ -164,10 +179,12 @@ def test_an_unknown_scene_lists_the_known_ones(argv, capsys):
 
 def test_every_help_runs(parsers, capsys):
     for command in parsers:
+        script = command in SCRIPTS
         with pytest.raises(SystemExit) as exit_info:
-            main([*command.split(), "--help"])
+            importlib.import_module(command).main(["--help"]) if script else main([command, "--help"])
         assert exit_info.value.code == 0
-        assert capsys.readouterr().out.startswith(f"usage: hrn-pyg {command}")
+        usage = f"usage: python -m {command}" if script else f"usage: hrn-pyg {command}"
+        assert capsys.readouterr().out.startswith(usage)
 
 
 def test_the_cli_module_imports_no_torch():

@@ -8,7 +8,6 @@ import json
 import pytest
 import torch
 
-import hrn_pyg.cli
 import hrn_pyg.demo
 from hrn_pyg.cli import main
 from hrn_pyg.nn.hrn import HRN, HRNConfig
@@ -33,12 +32,13 @@ def test_demo_on_cpu_passes_the_device_on(tiny_checkpoints, tmp_path, monkeypatc
 
     monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("meta"))
     calls = []
+    run_command = hrn_pyg.demo.run_command
 
-    def shorter(argv):  # the demo's own sub-commands, cut to 2 steps to keep the test fast
-        calls.append(list(argv))
-        return main([("2" if prev == "--horizon" else a) for prev, a in zip([None, *argv], argv)])
+    def shorter(name, module, argv):  # the demo's own sub-commands, cut to 2 steps to keep the test fast
+        calls.append([name, *argv])
+        return run_command(name, module, [("2" if prev == "--horizon" else a) for prev, a in zip([None, *argv], argv)])
 
-    monkeypatch.setattr(hrn_pyg.cli, "main", shorter)
+    monkeypatch.setattr(hrn_pyg.demo, "run_command", shorter)
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--k", "2", "--device", "cpu"]) == 0
     assert [c[0] for c in calls] == ["sample"] and calls[0][-2:] == ["--device", "cpu"]
@@ -54,11 +54,11 @@ def test_demo_passes_on_a_device_other_than_the_default(tiny_checkpoints, tmp_pa
     """``--device meta`` (a device the default never is) reaches the sampling step as asked."""
     calls = []
 
-    def record(argv):
-        calls.append(list(argv))
+    def record(name, module, argv):
+        calls.append([name, *argv])
         raise _Stop
 
-    monkeypatch.setattr(hrn_pyg.cli, "main", record)
+    monkeypatch.setattr(hrn_pyg.demo, "run_command", record)
     with pytest.raises(_Stop):
         main(["demo", "--out", str(tmp_path / "demo"), "--k", "2", "--device", "meta"])
     assert [c[0] for c in calls] == ["sample"] and calls[0][-2:] == ["--device", "meta"]

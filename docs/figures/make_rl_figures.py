@@ -10,7 +10,7 @@ model; failing that, the first).
 
 Also copies ``<runs>/episode_length.png`` to ``docs/figures/rl_<task>_episode_length.png`` and
 ``<runs>/summary.{json,md}`` to ``docs/results/rl_<task>_summary.{json,md}`` and
-``<runs>/comparison.{json,md}`` (bootstrap intervals, :mod:`hrn_pyg.rl.stats`) to
+``<runs>/comparison.{json,md}`` (bootstrap intervals, :mod:`experiments.rl.stats`) to
 ``docs/results/rl_<task>_comparison.{json,md}``.
 
 Run: ``python docs/figures/make_rl_figures.py --task cube_push --runs runs/rl/cube_push

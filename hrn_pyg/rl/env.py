@@ -1,8 +1,9 @@
 """A TorchRL environment whose step is a (learned, stochastic) physics predictor.
 
 Each step samples ``k`` next states (5 in the seed paper) with Monte Carlo dropout and applies
-**reward relaxation** (seed paper, section 3.3): if any sample reaches the goal, the agent is
-rewarded 1 and the episode terminates (the first such sample becomes the next state); otherwise
+**reward relaxation** (seed paper, section 3.3; :func:`choose_next`, called by the step): if any
+sample reaches the goal, the agent is rewarded 1 and the episode terminates (the first such
+sample becomes the next state); otherwise
 one sample, drawn uniformly with the environment's generator, becomes the next state, and the
 reward is the task's ``step_penalty`` (0 by default, so returns are 1 on success and 0 otherwise
 and the discount alone favours short episodes). The episode is truncated after
@@ -243,22 +244,6 @@ class HRNEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
-
-
-def relax_reward(task: TaskConfig, sample_roots: Tensor, samples: Tensor, goal: Tensor,
-                 generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Reward relaxation over ``k`` sampled futures.
-
-    Returns the next state of each environment and whether any sample met the goal: the first
-    sample in the goal if one is, otherwise a sample drawn uniformly from ``generator`` (one draw
-    per environment, made every step so the random stream does not depend on the outcome) on
-    the generator's device; the results are on ``samples``' device.
-
-    **Shapes**: sample_roots ``(B, k, O, 6)``, samples ``(B, k, S)``, goal ``(B, 2)`` ->
-    next state ``(B, S)``, hit ``(B,)`` bool.
-    """
-    in_goal = goal_reached(task, sample_roots, goal.unsqueeze(1))               # (B, k)
-    return choose_next(in_goal, samples, generator, relax=True)
 
 
 def choose_next(in_goal: Tensor, samples: Tensor, generator: torch.Generator,

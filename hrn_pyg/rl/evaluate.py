@@ -14,7 +14,7 @@ same actions replayed in pybullet.
 - :func:`ground_truth_success` puts them side by side (the check ``hrn-pyg rl --model`` runs
   after training).
 
-Training lives in :mod:`hrn_pyg.rl.ppo`, learning curves and summaries in
+Training lives in :mod:`hrn_pyg.rl.ppo`, the learning curve's metrics in
 :mod:`hrn_pyg.rl.curves`.
 """
 

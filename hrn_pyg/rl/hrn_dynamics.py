@@ -60,7 +60,7 @@ from hrn_pyg.utils.checks import check_count, check_rate
 #: agent starts from scenes the model never saw in training
 POOL_SEEDS = tuple(range(10_000, 10_064))
 #: seeds of validation scenes, apart from the training pool and the datasets: settings such as a
-#: task's dropout rate and goal tolerance are chosen on them (:mod:`hrn_pyg.rl.partial_hits`)
+#: task's dropout rate and goal tolerance are chosen on them (:mod:`experiments.rl.partial_hits`)
 VALIDATION_SEEDS = tuple(range(20_000, 20_032))
 #: batched static graphs kept (one per copy count: training batch x k, the same at rate 0 with
 #: k = 1, evaluation batches); a handful covers every count one PPO run uses

@@ -1,10 +1,10 @@
-"""``hrn-pyg rl``: PPO in the (stochastic) learned environment, the seed paper's Figs. 7 and 8.
+"""``hrn-pyg rl``: one PPO run in the (stochastic) learned environment, trained and scored.
 
 Built from TorchRL pieces: a :class:`~torchrl.modules.ProbabilisticActor` with a
 :class:`~torchrl.modules.TanhNormal` head and a :class:`~torchrl.modules.ValueOperator`, a
 single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
 ``SyncDataCollector``), :class:`~torchrl.objectives.value.GAE` and
-:class:`~torchrl.objectives.ClipPPOLoss`. Five modes:
+:class:`~torchrl.objectives.ClipPPOLoss`. A run has one of five modes (``--mode``):
 
 - ``deterministic``: dropout rate 0.
 - ``action_noise``: rate 0, Gaussian noise on the actions (``PPOConfig.action_noise_std`` of
@@ -22,10 +22,10 @@ Every update logs the partial-hit share of its batch two ways: over all its step
 over its goal-reaching steps, those with at least one sample in the goal (``near_miss_share``,
 :func:`~hrn_pyg.rl.env.near_miss_share`; empty when no step reached the goal).
 
-``--init-policy PATH`` starts every mode's actor from a policy checkpoint, e.g. the task's
-planner cloned by ``hrn-pyg rl clone`` (:mod:`hrn_pyg.rl.clone`); the critic starts fresh. The
-file's SHA-256 is part of the run's identity (``init_policy_sha256``), so a run resumes only
-from the same initial policy.
+``--init-policy PATH`` starts the actor from a policy checkpoint (another run's ``policy.pt``,
+or a task's planner cloned into an actor by ``python -m experiments.rl.clone`` in a checkout);
+the critic starts fresh. The file's SHA-256 is part of the run's identity
+(``init_policy_sha256``), so a run resumes only from the same initial policy.
 
 The rate of the stochastic modes is ``--dropout-rate`` when given, else the model's calibrated
 rate (``hrn-pyg calibrate``; :attr:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.calibrated_rate`), else
@@ -34,39 +34,32 @@ the task's ``dropout_rate``.
 Without ``--model`` the environment steps :class:`~hrn_pyg.rl.dynamics.PointMassDynamics`, an
 analytic **development / smoke-test** dynamics; its curves are not the paper's result.
 
-Output (``--out``, default ``runs/rl/<task>``)::
+Output (``--out``, default ``runs/rl/<task>/<mode>/seed<seed>``)::
 
-    <mode>/seed<k>/log.csv        one row per PPO update (CSVLog)
-    <mode>/seed<k>/policy.pt      actor, critic, optimiser, random states and the update count
-                                  (atomic, weights-only); running the command again continues
-                                  each run from it; one of another run (other settings or
-                                  dynamics) stops the command with an error and is kept
-                                  (``--restart``: afresh)
-    <mode>/seed<k>/curve.png      this run's average episode length
-    <mode>/seed<k>/eval.csv       with --eval-every N: every N updates, the deterministic policy
-                                  at rate 0 on fixed evaluation scenes, in the learned model and
-                                  replayed in pybullet (rl/success_curve.py)
-    episode_length.png            every mode found under --out: median over seeds, range shaded
-    summary.json                  per run: final evaluation in the learned model (dropout off),
-                                  curve metrics (final average length, updates to reach it) and,
-                                  with --model, the pybullet ground-truth check
-    summary.csv, summary.md       the same per run, and per mode over seeds (median [min, max])
-    comparison.json, .md          per mode: updates to fixed episode lengths, final length and
-                                  success, median over seeds with bootstrap 95 % intervals, and
-                                  each mode's difference from deterministic (rl/stats.py)
-    rl_<task>_summary.json        per run: partial-hit share (update 0, along training), frames to
-                                  50 / 80 % success and success AUC; per mode: IQM with stratified
-                                  bootstrap intervals, probability of improvement over
-                                  deterministic, performance profiles (rl/summary.py)
+    log.csv        one row per PPO update (CSVLog)
+    policy.pt      actor, critic, optimiser, random states and the update count (atomic,
+                   weights-only); running the command again continues the run from it; one of
+                   another run (other settings or dynamics) stops the command with an error and
+                   is kept (``--restart``: afresh)
+    curve.png      the run's average episode length
+    eval.csv       with --eval-every N: every N updates, the deterministic policy at rate 0 on
+                   fixed evaluation scenes, in the learned model and in pybullet
+                   (:mod:`hrn_pyg.rl.success_curve`)
+    result.json    the final evaluation in the learned model (dropout off), the curve's metrics
+                   (:func:`~hrn_pyg.rl.curves.curve_metrics`) and, with --model, the pybullet
+                   ground-truth check
 
-With ``--model``, each run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
+With ``--model``, the run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
 final policy's episodes in the learned model (dropout 0) are replayed open loop in pybullet
-from the same start scene and goal, and both success rates are reported side by side.
+from the same start scene and goal and run closed loop there, and the success rates are
+reported side by side.
 
-This module holds the training: configuration, mode settings, actor-critic, the PPO loop with
-its log and checkpoint, and the CLI. The evaluation of a policy (learned model and pybullet
-replay) is in :mod:`hrn_pyg.rl.evaluate`; curve metrics, the figure and the summary tables
-are in :mod:`hrn_pyg.rl.curves`.
+This module holds the training of one run: configuration, mode settings, actor-critic, the PPO
+loop with its log and checkpoint, and the command. Its parts that read a command line
+(:func:`add_training_arguments`, :func:`setup_from_args`, :func:`train_from_args`) also serve
+the sweeps over modes and seeds that compare the modes (``experiments/rl/sweep.py`` beside the
+package); the evaluation of a policy is :mod:`hrn_pyg.rl.evaluate`, the curve's metrics
+:mod:`hrn_pyg.rl.curves`.
 """
 
 from __future__ import annotations
@@ -75,7 +68,7 @@ import argparse
 import json
 import os
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -88,16 +81,10 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from hrn_pyg.rl.curves import (
-    curve_metrics,
-    plot_episode_length,
-    read_curve,
-    write_summary,
-)
+from hrn_pyg.rl.curves import curve_metrics, read_curve
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv, near_miss_share, partial_hits
 from hrn_pyg.rl.evaluate import evaluate_policy, ground_truth_success
-from hrn_pyg.rl.stats import json_safe, write_comparison
 from hrn_pyg.rl.success_curve import (
     EVAL_FIELDS,
     EvalConfig,
@@ -106,7 +93,6 @@ from hrn_pyg.rl.success_curve import (
     evaluation_env,
     read_eval,
 )
-from hrn_pyg.rl.summary import write_task_summary
 from hrn_pyg.rl.tasks import MODES, TASKS, UNRELAXED_MODES, TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.checkpoint import (
@@ -116,9 +102,9 @@ from hrn_pyg.utils.checkpoint import (
     set_rng_state,
 )
 from hrn_pyg.utils.device import resolve_device
-from hrn_pyg.utils.files import atomic_write_json, file_sha256
+from hrn_pyg.utils.files import atomic_write_json, file_sha256, json_safe
 from hrn_pyg.utils.metrics import CSVLog
-from hrn_pyg.utils.options import add_no_progress, add_renamed
+from hrn_pyg.utils.options import add_no_progress
 from hrn_pyg.utils.schedules import LinearSchedule
 from hrn_pyg.utils.stop import StopRequest
 from hrn_pyg.viz import plot_curves
@@ -550,14 +536,22 @@ def _progress(total: int, desc: str, enabled: bool):
 
 
 # ---------------------------------------------------------------------------- CLI
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+@dataclass(frozen=True)
+class RunSetup:
+    """What every run of a command shares: the task, the PPO settings, the device and the
+    dynamics (built once)."""
+
+    task: TaskConfig
+    config: PPOConfig
+    device: torch.device
+    dynamics: StochasticDynamics
+
+
+def add_training_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of a run's training and scoring, apart from its mode, seed and output:
+    shared by ``hrn-pyg rl`` and the sweeps over modes and seeds."""
     d = PPOConfig()
     parser.add_argument("--task", choices=sorted(TASKS), default="cube_push", help="the task")
-    parser.add_argument("--mode", nargs="+", choices=MODES, default=list(MODES),
-                        help="one or more modes (default: all five)")
-    parser.add_argument("--num-seeds", type=int, default=3, dest="seeds", metavar="N", help="runs per mode, one seed each")
-    parser.add_argument("--first-seed", type=int, default=0, dest="seed_start", metavar="SEED",
-                        help="seed of each mode's first run (run k: first seed + k)")
     parser.add_argument("--updates", type=int, default=d.updates, help="PPO updates per run")
     parser.add_argument("--frames-per-batch", type=int, default=d.frames_per_batch,
                         help="frames collected per update, over all environments")
@@ -588,7 +582,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strict", action="store_true",
                         help="with --model: a task scene outside what the model was trained on is an "
                              "error (exit 2), not a one-line warning")
-    parser.add_argument("--out", default=None, help="output folder (default: runs/rl/<task>)")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     add_no_progress(parser)
@@ -596,59 +589,57 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --model: every object runs at every step (default: objects the state "
                              "shows at rest sleep until pushed or touched)")
     parser.add_argument("--restart", action="store_true",
-                        help="start every run afresh (default: continue each run from its policy.pt)")
+                        help="start afresh (default: continue a run from its policy.pt)")
     parser.add_argument("--init-policy", default=None,
-                        help="policy checkpoint every mode's actor starts from (e.g. `hrn-pyg rl clone`); "
-                             "the critic starts fresh")
-    add_renamed(parser, "--seeds", "--num-seeds")
-    add_renamed(parser, "--seed-start", "--first-seed")
+                        help="policy checkpoint the actor starts from (another run's policy.pt, or a "
+                             "planner's clone); the critic starts fresh")
 
 
-def run(args: argparse.Namespace) -> int:
+def setup_from_args(args: argparse.Namespace) -> RunSetup:
+    """Check the options of :func:`add_training_arguments` and build what the runs share."""
     task = get_task(args.task)
-    if args.seeds < 1:
-        raise ValueError(f"--num-seeds must be >= 1, got {args.seeds}")
     if args.anneal_updates is not None and args.anneal_updates < 0:
         raise ValueError(f"--anneal-updates must be >= 0, got {args.anneal_updates}")
     if args.dropout_rate is not None and not 0.0 <= args.dropout_rate < 1.0:
         raise ValueError(f"--dropout-rate must be in [0, 1), got {args.dropout_rate}")
     if args.init_policy is not None and not Path(args.init_policy).is_file():
         raise FileNotFoundError(f"--init-policy not found: {args.init_policy}")
-    config = replace(PPOConfig(), updates=args.updates, frames_per_batch=args.frames_per_batch,
-                     num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
-                     lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
-                     eval_episodes=args.eval_episodes,
-                     ground_truth_episodes=args.ground_truth_episodes,
-                     eval_every=args.eval_every, eval_scenes=args.eval_scenes)
+    config = PPOConfig(updates=args.updates, frames_per_batch=args.frames_per_batch,
+                       num_envs=args.num_envs, epochs=args.epochs, minibatch=args.minibatch,
+                       lr=args.lr, threads=args.threads, action_noise_std=args.action_noise_std,
+                       eval_episodes=args.eval_episodes, ground_truth_episodes=args.ground_truth_episodes,
+                       eval_every=args.eval_every, eval_scenes=args.eval_scenes)
     device = resolve_device(args.device)
-    modes = list(dict.fromkeys(args.mode))
     dynamics = load_dynamics(task, args.model, device, sleep=not args.no_sleep, strict=args.strict)
-    out = Path(args.out) if args.out else Path("runs/rl") / task.name
-    results = []
-    # seed by seed, every mode of a seed together: a sweep cut short has all modes on its first seeds
-    for seed in range(args.seed_start, args.seed_start + args.seeds):
-        for mode in modes:
-            res = train(task, mode, seed, config, out / mode / f"seed{seed}", dynamics,
-                        args.anneal_updates, progress=not args.no_progress, device=device,
-                        dropout_rate=args.dropout_rate, restart=args.restart,
-                        init_policy=args.init_policy)
-            results.append(res)
-            truth = (f", pybullet replay success {res['pybullet_success_rate']:.2f} length "
-                     f"{res['pybullet_mean_length']:.2f}, closed loop {res['closed_loop_success_rate']:.2f}"
-                     if "closed_loop_success_rate" in res else "")
-            print(f"{task.name} {mode} seed {seed}: success {res['success_rate']:.2f}, "
-                  f"mean length {res['mean_episode_length']:.2f}{truth} ({res['seconds']:.0f} s)",
-                  flush=True)
-    summary_path = out / "summary.json"
-    previous = json.loads(summary_path.read_text()) if summary_path.is_file() else []
-    keep = [r for r in previous if (r.get("mode"), r.get("seed")) not in
-            {(r2["mode"], r2["seed"]) for r2 in results}]
-    atomic_write_json(summary_path, keep + results)
-    write_summary(out, keep + results)
-    write_comparison(out, keep + results, task.name, task.max_steps)
-    write_task_summary(out, task)
-    drawn = plot_episode_length(out, out / "episode_length.png",
-                                title=f"{task.name}: average episode length"
-                                + ("" if args.model else " (point-mass dynamics)"))
-    print(f"wrote {out / 'episode_length.png'} ({', '.join(drawn)})")
+    return RunSetup(task, config, device, dynamics)
+
+
+def train_from_args(args: argparse.Namespace, setup: RunSetup, mode: str, seed: int, out_dir: Path) -> dict:
+    """One run of :func:`train` with the options of :func:`add_training_arguments`, its result
+    printed in one line."""
+    res = train(setup.task, mode, seed, setup.config, out_dir, setup.dynamics, args.anneal_updates,
+                progress=not args.no_progress, device=setup.device, dropout_rate=args.dropout_rate,
+                restart=args.restart, init_policy=args.init_policy)
+    truth = (f", pybullet replay success {res['pybullet_success_rate']:.2f} length "
+             f"{res['pybullet_mean_length']:.2f}, closed loop {res['closed_loop_success_rate']:.2f}"
+             if "closed_loop_success_rate" in res else "")
+    print(f"{setup.task.name} {mode} seed {seed}: success {res['success_rate']:.2f}, "
+          f"mean length {res['mean_episode_length']:.2f}{truth} ({res['seconds']:.0f} s)", flush=True)
+    return res
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_training_arguments(parser)
+    parser.add_argument("--mode", choices=MODES, default="stochastic", help="the run's mode")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seeds the run's initialisation, batches, noise and environments")
+    parser.add_argument("--out", default=None, help="the run's folder (default: runs/rl/<task>/<mode>/seed<seed>)")
+
+
+def run(args: argparse.Namespace) -> int:
+    setup = setup_from_args(args)
+    out = Path(args.out) if args.out else Path("runs/rl") / setup.task.name / args.mode / f"seed{args.seed}"
+    result = train_from_args(args, setup, args.mode, args.seed, out)
+    atomic_write_json(out / "result.json", json_safe(result))
+    print(f"wrote {out}")
     return 0

@@ -13,7 +13,7 @@ collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
 ``cube_push_stop`` (the cube_push scene and model): a cube must *stop* (slower than 5 mm per
 step) inside a 3 cm disc drawn 0.15-0.3 m from the origin and at least 0.15 m from both cubes,
 within 20 steps. A full-force push at the goal overshoots; a push that brakes in time
-(:func:`hrn_pyg.rl.planners.stop_push`) succeeds. Dropout 0.3 on the force module.
+(:func:`experiments.rl.planners.stop_push`) succeeds. Dropout 0.3 on the force module.
 
 ``cube_push_hold`` (the cube_push scene and model): as ``cube_push_stop``, but the cube must
 stay stopped (slower than 3 mm per step) inside the 3 cm disc for 3 steps in a row. A pass that
@@ -23,7 +23,7 @@ steps spent holding, so reward relaxation acts on many steps of an episode, not 
 ``tower_aside`` (the tower scene and model): the middle cube must reach a 4.5 cm disc 12-15 cm
 beside the tower, on a side at least 45 degrees off the line from the ball to the tower, within
 40 steps. Pushing the ball straight at the tower moves the stack along that line and never gets
-there; driving the ball around the tower first (:func:`hrn_pyg.rl.planners.aside_push`) does.
+there; driving the ball around the tower first (:func:`experiments.rl.planners.aside_push`) does.
 Dropout 0.3 on the force and collision modules.
 
 A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``, ``aside``) or the

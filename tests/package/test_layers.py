@@ -1,10 +1,11 @@
-"""The package's imports point down a fixed order of layers and form no cycle.
+"""The package's imports point down a fixed order of layers and form no cycle, and the package
+never imports the experiments beside it.
 
 Read from the source with ``ast`` (imports inside functions included, so a lazy import cannot
 hide a cycle; ``importlib.import_module("hrn_pyg....")`` counts as an import, and a module that
-imports a computed name imports every package module it names in a string). The order, bottom
-first; a module may import from its own layer or below (the package root is a layer entry for
-itself only, not for its submodules):
+imports a computed name imports every package module it names in a string, as ``cli.py``'s
+command table does). The order, bottom first; a module may import from its own layer or below
+(the package root is a layer entry for itself only, not for its submodules):
 
     utils, version -> data, viz -> nn -> checkpoints -> sim -> train, losses, evaluate, metrics_rest,
     sampling -> rl -> recipe, demo, cli, the package root
@@ -53,13 +54,12 @@ def _dynamic_import(node: ast.AST) -> ast.expr | None:
     return node.args[0] if callee in ("import_module", "__import__") else None
 
 
-def imports_of(name: str, path: Path, modules: set[str], tables: bool = True) -> list[tuple[str, str, int]]:
+def imports_of(name: str, path: Path, modules: set[str]) -> list[tuple[str, str, int]]:
     """``(target module, imported name, line)`` of every package import in one module.
 
     Besides ``import`` statements: ``import_module("hrn_pyg.x")`` with a literal name imports
     ``hrn_pyg.x``; where a module imports a computed name (``import_module(name)``), every string
-    in it that names a package module is taken as imported (``cli.py``'s command table), unless
-    ``tables`` is false.
+    in it that names a package module is taken as imported (``cli.py``'s command table).
     """
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     tree = ast.parse(path.read_text(), str(path))
@@ -71,7 +71,7 @@ def imports_of(name: str, path: Path, modules: set[str], tables: bool = True) ->
         if isinstance(argument, ast.Constant) and isinstance(argument.value, str):
             if argument.value.split(".")[0] == "hrn_pyg":
                 found.append((argument.value, "", node.lineno))
-        elif tables and computed and isinstance(node, ast.Constant) and node.value in modules:
+        elif computed and isinstance(node, ast.Constant) and node.value in modules:
             found.append((node.value, "", node.lineno))
         if isinstance(node, ast.Import):
             found += [(a.name, "", node.lineno) for a in node.names if a.name.split(".")[0] == "hrn_pyg"]
@@ -108,9 +108,9 @@ def unit_of(module: str) -> str:
 
 
 @functools.lru_cache(maxsize=None)
-def graph(tables: bool = True) -> dict[str, list[tuple[str, str, int]]]:
+def graph() -> dict[str, list[tuple[str, str, int]]]:
     files = module_files()
-    return {name: imports_of(name, path, set(files), tables) for name, path in files.items()}
+    return {name: imports_of(name, path, set(files)) for name, path in files.items()}
 
 
 def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
@@ -164,15 +164,15 @@ def test_no_module_imports_the_package_root():
 
 
 def test_no_cycle_between_modules():
-    """Without the command table: ``cli`` dispatches to ``demo`` by name and ``demo`` runs other
-    commands through ``cli.main``, a cycle at run time only (the layer order still sees both)."""
-    edges = {name: {t for t, _, _ in found if t != name} for name, found in graph(tables=False).items()}
+    """The command table included: ``cli`` dispatches to every command by name, and no command
+    calls back into ``cli``."""
+    edges = {name: {t for t, _, _ in found if t != name} for name, found in graph().items()}
     assert cycles(edges) == []
 
 
 def test_no_cycle_between_subpackages():
     edges: dict[str, set[str]] = defaultdict(set)
-    for name, found in graph(tables=False).items():
+    for name, found in graph().items():
         for target, _, _ in found:
             if unit_of(target) != unit_of(name):
                 edges[unit_of(name)].add(unit_of(target))
@@ -222,7 +222,51 @@ def test_imports_by_name_are_seen(tmp_path):
 
 def test_the_command_table_of_cli_counts_as_its_imports():
     found = {target for target, _, _ in graph()["hrn_pyg.cli"]}
-    assert {"hrn_pyg.rl.ppo", "hrn_pyg.rl.clone", "hrn_pyg.rl.summary", "hrn_pyg.demo"} <= found
+    assert {"hrn_pyg.rl.ppo", "hrn_pyg.sampling.cli", "hrn_pyg.recipe", "hrn_pyg.demo"} <= found
+
+
+def experiments_imported(path: Path) -> list[tuple[str, int]]:
+    """``(module, line)`` of every import of the ``experiments`` folder in one file: statements
+    (inside functions too), ``import_module`` / ``__import__`` of a literal name, and any string
+    naming an ``experiments.`` module where the file imports a computed name."""
+    tree = ast.parse(path.read_text(), str(path))
+    arguments = [a for a in map(_dynamic_import, ast.walk(tree)) if a is not None]
+    computed = any(not (isinstance(a, ast.Constant) and isinstance(a.value, str)) for a in arguments)
+    found = []
+    for node in ast.walk(tree):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names = [node.module or ""]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            argument = node in arguments
+            if argument or computed:
+                names = [node.value] if argument or node.value.startswith("experiments.") else []
+        found += [(n, node.lineno) for n in names if n.split(".")[0] == "experiments"]
+    return found
+
+
+def test_the_package_never_imports_the_experiments():
+    """``experiments/`` sits beside the package and is not in the wheel: a library module that
+    imported it would fail once installed."""
+    offenders = [f"{name}:{line} imports {target}" for name, path in module_files().items()
+                 for target, line in experiments_imported(path)]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_experiments_checker_sees_each_kind_of_import(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("import importlib\n"
+                     "import experiments.rl.stats\n"
+                     "from experiments.rl import sweep\n"
+                     "def f(name):\n"
+                     "    from experiments.rl.summary import task_summary\n"
+                     "    importlib.import_module('experiments.rl.clone')\n"
+                     "    return importlib.import_module(name), 'experiments.rl.planners', 'hrn_pyg.rl.env'\n")
+    assert sorted(experiments_imported(probe)) == [
+        ("experiments.rl", 3), ("experiments.rl.clone", 6), ("experiments.rl.planners", 7),
+        ("experiments.rl.stats", 2), ("experiments.rl.summary", 5)]
 
 
 def test_the_three_stages_of_a_step_are_chained_in_one_place():

@@ -5,7 +5,7 @@ import torch
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics, dropout_spread
-from hrn_pyg.rl.env import HRNEnv, choose_next, partial_hits, relax_reward
+from hrn_pyg.rl.env import HRNEnv, choose_next, partial_hits
 from hrn_pyg.rl.tasks import (
     CUBE_PUSH,
     TOWER,
@@ -84,14 +84,14 @@ def test_relaxation_otherwise_next_state_is_one_sample_drawn_at_random():
     assert set(tag.tolist()) == {0, 1, 2, 3, 4}           # drawn, not always the same one
 
 
-def test_relax_reward_first_hit_and_random_choice_by_hand():
+def test_relaxation_takes_the_first_hit_by_hand():
     task = CUBE_PUSH
     samples = torch.zeros(2, 3, 12)
     samples[..., 0] = torch.tensor([[1.0, 0.05, 0.0], [1.0, 1.0, 1.0]])   # cube 0 x per sample
     samples[..., 6] = 1.0                                                 # cube 1 away
-    goal = torch.zeros(2, 2)
+    in_goal = goal_reached(task, samples.reshape(2, 3, 2, 6), torch.zeros(2, 1, 2))
     gen = torch.Generator().manual_seed(0)
-    nxt, hit = relax_reward(task, samples.reshape(2, 3, 2, 6), samples, goal, gen)
+    nxt, hit = choose_next(in_goal, samples, gen, relax=True)
     assert hit.tolist() == [True, False]
     assert nxt[0, 0] == 0.05                                               # the first in the goal
 
@@ -331,10 +331,9 @@ def test_explicit_cpu_device_everywhere():
 
 
 def test_draws_follow_the_generator_and_results_the_samples():
-    """relax_reward draws on the generator's device and indexes on the samples' (the meta device
+    """choose_next draws on the generator's device and indexes on the samples' (the meta device
     stands in for CUDA)."""
-    task = get_task("cube_push")
     samples = torch.zeros(3, 2, 12, device="meta")
-    roots = samples.reshape(3, 2, 2, 6)
-    state, hit = relax_reward(task, roots, samples, torch.zeros(3, 2, device="meta"), torch.Generator())
+    in_goal = torch.zeros(3, 2, dtype=torch.bool, device="meta")
+    state, hit = choose_next(in_goal, samples, torch.Generator(), relax=True)
     assert state.device.type == "meta" and state.shape == (3, 12) and hit.shape == (3,)

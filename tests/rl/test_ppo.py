@@ -9,7 +9,7 @@ import torch
 
 from hrn_pyg.cli import main
 from hrn_pyg.rl import ppo
-from hrn_pyg.rl.curves import curve_metrics, plot_episode_length, read_curve
+from hrn_pyg.rl.curves import curve_metrics, read_curve
 from hrn_pyg.rl.dynamics import PointMassDynamics
 from hrn_pyg.rl.env import HRNEnv
 from hrn_pyg.rl.evaluate import evaluate_policy
@@ -147,25 +147,35 @@ def test_evaluate_policy_by_hand():
         assert evaluate_policy(actor, env, 5) == pytest.approx(expected)
 
 
-def test_cli_runs_and_draws_the_figure(tmp_path):
-    out = tmp_path / "rl"
-    code = main(["rl", "--task", "tower", "--mode", "deterministic", "action_noise", "--seeds", "1",
-                 "--updates", "1", "--num-envs", "4", "--frames-per-batch", "20", "--minibatch", "20",
-                 "--eval-episodes", "2", "--out", str(out), "--no-progress"])
+def test_cli_trains_and_scores_one_run(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["rl", "--task", "tower", "--mode", "action_noise", "--seed", "3", "--updates", "1",
+                 "--num-envs", "4", "--frames-per-batch", "20", "--minibatch", "20", "--eval-episodes", "2",
+                 "--out", str(out), "--no-progress"])
     assert code == 0
-    assert (out / "deterministic" / "seed0" / "log.csv").is_file()
-    assert (out / "episode_length.png").stat().st_size > 0
-    summary = json.loads((out / "summary.json").read_text())
-    assert sorted(r["mode"] for r in summary) == ["action_noise", "deterministic"]
-    assert plot_episode_length(out, tmp_path / "again.png") == ["deterministic", "action_noise"]
-    comparison = json.loads((out / "comparison.json").read_text())
-    assert sorted(comparison["modes"]) == ["action_noise", "deterministic"]
-    assert comparison["levels"] == [11.25, 7.5]  # three quarters and half of the tower's 15 steps
-    assert list(comparison["versus_deterministic"]) == ["action_noise"]
+    assert sorted(p.name for p in out.iterdir()) == ["curve.png", "log.csv", "policy.pt", "result.json"]
+    result = json.loads((out / "result.json").read_text())
+    assert (result["task"], result["mode"], result["seed"], result["updates"]) == ("tower", "action_noise", 3, 1)
+    assert "tower action_noise seed 3: success" in capsys.readouterr().out
+
+
+def test_cli_default_folder_names_the_task_mode_and_seed(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(CLI_RUN) == 0
+    assert (tmp_path / "runs/rl/cube_push/deterministic/seed0/result.json").is_file()
+
+
+def test_cli_sweep_options_are_not_one_runs(tmp_path):
+    """``hrn-pyg rl`` trains one run: modes and seeds in numbers are the sweep's
+    (``python -m experiments.rl.sweep``)."""
+    for argv in (["--num-seeds", "2"], ["--first-seed", "1"], ["--mode", "deterministic", "stochastic"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["rl", "--out", str(tmp_path), "--no-progress", *argv])
+        assert exc.value.code == 2
+    assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("argv", [
-    ["--seeds", "0"],
     ["--updates", "0"],
     ["--frames-per-batch", "33"],
     ["--model", "does/not/exist.pt"],
@@ -193,7 +203,7 @@ def _spy_on_environments(monkeypatch) -> list[tuple[torch.device | None, torch.d
     return made
 
 
-CLI_RUN = ["rl", "--task", "cube_push", "--mode", "deterministic", "--seeds", "1", "--updates", "1",
+CLI_RUN = ["rl", "--task", "cube_push", "--mode", "deterministic", "--updates", "1",
            "--num-envs", "2", "--frames-per-batch", "10", "--minibatch", "10", "--eval-episodes", "2",
            "--no-progress"]
 
@@ -210,7 +220,7 @@ def test_cli_device_cpu(tmp_path, monkeypatch):
     code = main([*CLI_RUN, "--out", str(out), "--device", "cpu"])
     assert code == 0
     assert made == [(torch.device("cpu"), torch.device("cpu"))]
-    ckpt = load_checkpoint(out / "deterministic" / "seed0" / "policy.pt")
+    ckpt = load_checkpoint(out / "policy.pt")
     weights = [*ckpt["model"]["actor"].values(), *ckpt["model"]["critic"].values()]
     assert weights and all(w.device.type == "cpu" for w in weights)
 
@@ -223,7 +233,7 @@ def test_cli_device_meta_builds_the_run_there(tmp_path, monkeypatch):
     with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
         main([*CLI_RUN, "--out", str(out), "--device", "meta"])
     assert made == [(torch.device("meta"), torch.device("meta"))]
-    assert not (out / "deterministic" / "seed0" / "policy.pt").exists()
+    assert not (out / "policy.pt").exists()
 
 
 def test_train_on_an_explicit_device_repeats_the_default_run(tmp_path, monkeypatch):
@@ -294,32 +304,6 @@ def test_curve_metrics_by_hand():
     assert curve_metrics([9.0, 7.0] * 5 + [2.0] * 10)["start_length"] == 8.0  # first ten
     flat = curve_metrics([9.0] * 50)
     assert flat["final_length"] == 9.0 and flat["updates_to_final"] is None   # no learning
-
-
-def test_write_summary_tables(tmp_path):
-    from hrn_pyg.rl.curves import write_summary
-
-    for mode, seed, curve in (("deterministic", 0, [10.0] * 5 + [4.0] * 20),
-                              ("stochastic", 0, [10.0, 4.0] + [3.0] * 23)):
-        log = tmp_path / mode / f"seed{seed}" / "log.csv"
-        log.parent.mkdir(parents=True)
-        log.write_text("update,mean_episode_length\n" + "".join(f"{i},{v}\n" for i, v in enumerate(curve)))
-    results = [{"task": "cube_push", "mode": "stochastic", "seed": 0, "final_length": 3.0,
-                "updates_to_final": 2, "success_rate": 1.0, "mean_episode_length": 3.0,
-                "pybullet_success_rate": 0.5, "pybullet_mean_length": 6.5},
-               {"task": "cube_push", "mode": "deterministic", "seed": 0, "final_length": 4.0,
-                "updates_to_final": 13, "success_rate": 0.5, "mean_episode_length": 7.0}]
-    write_summary(tmp_path, results)
-    with open(tmp_path / "summary.csv", newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    assert [r["mode"] for r in rows] == ["deterministic", "stochastic"]
-    md = (tmp_path / "summary.md").read_text().splitlines()
-    det = next(line for line in md if line.startswith("| deterministic"))
-    sto = next(line for line in md if line.startswith("| stochastic"))
-    assert "4.00 [4.00, 4.00]" in det and "| - | - |" in det          # no pybullet check there
-    # the stochastic curve's trailing mean is <= 4 from update 7 on, (10 + 4 + 6 * 3) / 8, but
-    # only full ten-update windows count: update 9
-    assert "| 9.00 [9.00, 9.00] |" in sto and "0.50 [0.50, 0.50]" in sto
 
 
 class Interrupt(Exception):

@@ -1,4 +1,4 @@
-"""The planner cloned into the PPO actor (hrn_pyg.rl.clone) and PPO started from it; the
+"""The planner cloned into the PPO actor (experiments.rl.clone) and PPO started from it; the
 near-miss share. On the point-mass stand-in of cube_push_stop, so each test takes seconds."""
 
 import csv
@@ -9,9 +9,8 @@ import json
 import pytest
 import torch
 
-from hrn_pyg.cli import main
-from hrn_pyg.rl import ppo
-from hrn_pyg.rl.clone import (
+from experiments.rl.clone import main as clone_main
+from experiments.rl.clone import (
     ActorPolicy,
     CloneConfig,
     action_distribution,
@@ -22,10 +21,12 @@ from hrn_pyg.rl.clone import (
     policy_network,
     save_clone,
 )
+from experiments.rl.partial_hits import partial_hit_share
+from experiments.rl.planners import stop_push
+from hrn_pyg.cli import main
+from hrn_pyg.rl import ppo
 from hrn_pyg.rl.dynamics import PointMassDynamics
 from hrn_pyg.rl.env import HRNEnv, near_miss_share
-from hrn_pyg.rl.partial_hits import partial_hit_share
-from hrn_pyg.rl.planners import stop_push
 from hrn_pyg.rl.ppo import (
     PPOConfig,
     RunMismatch,
@@ -237,23 +238,23 @@ def test_near_miss_share_by_hand_and_in_the_ppo_log(cloned, clone_file, tmp_path
 ])
 def test_clone_cli_bad_input_exits_2(argv, match, tmp_path, capsys):
     out = tmp_path / "clone.pt"
-    assert main(["rl", "clone", "--task", "cube_push_stop", "--out", str(out), *argv]) == 2
+    assert clone_main(["--task", "cube_push_stop", "--out", str(out), *argv]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("hrn-pyg rl clone: error:") and "\n" not in err and match in err
+    assert err.startswith("python -m experiments.rl.clone: error:") and "\n" not in err and match in err
     assert not out.exists()
 
 
 def test_clone_cli_refuses_a_folder_and_unknown_task(tmp_path, capsys):
-    assert main(["rl", "clone", "--task", "cube_push_stop", "--out", str(tmp_path)]) == 2
+    assert clone_main(["--task", "cube_push_stop", "--out", str(tmp_path)]) == 2
     assert "folder" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
-        main(["rl", "clone", "--task", "cube_push", "--out", str(tmp_path / "x.pt")])
+        clone_main(["--task", "cube_push", "--out", str(tmp_path / "x.pt")])
     assert exc.value.code == 2
 
 
 def test_rl_cli_init_policy_errors_exit_2(clone_file, tmp_path, capsys):
     path, _ = clone_file
-    base = ["rl", "--mode", "stochastic", "--seeds", "1", "--updates", "1", "--num-envs", "2",
+    base = ["rl", "--mode", "stochastic", "--updates", "1", "--num-envs", "2",
             "--frames-per-batch", "10", "--minibatch", "10", "--eval-episodes", "2",
             "--ground-truth-episodes", "0", "--no-progress", "--out", str(tmp_path / "runs")]
     assert main([*base, "--task", "cube_push_stop", "--init-policy", str(tmp_path / "missing.pt")]) == 2

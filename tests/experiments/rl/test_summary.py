@@ -4,15 +4,15 @@ import math
 
 import pytest
 
-from hrn_pyg.cli import main
-from hrn_pyg.rl.success_curve import EVAL_FIELDS
-from hrn_pyg.rl.summary import (
+from experiments.rl.summary import main as summary_main
+from experiments.rl.summary import (
     run_finished,
     run_record,
     share_by_part,
     task_summary,
     write_task_summary,
 )
+from hrn_pyg.rl.success_curve import EVAL_FIELDS
 from hrn_pyg.utils.checkpoint import save_checkpoint
 
 #: per mode and seed: pybullet success at frames 0, 100, 200, and the partial-hit share per update
@@ -177,11 +177,11 @@ def test_summary_command_leaves_out_runs_under_way(tmp_path, capsys):
     (tmp_path / "deterministic" / "seed1" / "policy.pt").unlink()  # never saved
     assert run_finished(tmp_path / "stochastic" / "seed0") and not run_finished(tmp_path / "stochastic" / "seed2")
     out = tmp_path / "summary.json"
-    assert main(["rl", "summary", "--task", "tower", "--runs", str(tmp_path), "--out", str(out),
+    assert summary_main(["--task", "tower", "--runs", str(tmp_path), "--out", str(out),
                  "--resamples", "50"]) == 0
     summary = json.loads(out.read_text())
     assert summary["modes"]["stochastic"]["seeds"] == [0, 1]
     assert summary["modes"]["deterministic"]["seeds"] == [0, 2]
     printed = capsys.readouterr().out
     assert "| stochastic | 2 |" in printed and "probability of improvement over deterministic" in printed
-    assert main(["rl", "summary", "--task", "tower", "--runs", str(tmp_path / "none")]) == 2
+    assert summary_main(["--task", "tower", "--runs", str(tmp_path / "none")]) == 2

@@ -18,10 +18,11 @@ so that they cannot be picked to favour a mode.
 torch): the interquartile mean (:func:`iqm`) with stratified-bootstrap intervals
 (:func:`stratified_bootstrap`), the probability that a run of one mode beats a run of another
 (:func:`probability_of_improvement`), performance profiles (:func:`performance_profile`) and
-IQM curves (:func:`iqm_curve`). :mod:`hrn_pyg.rl.summary` applies them to a sweep.
+IQM curves (:func:`iqm_curve`). :mod:`experiments.rl.summary` applies them to a sweep.
 
 Nothing here trains or steps an environment: it reads ``<mode>/seed<k>/log.csv`` through
-:mod:`hrn_pyg.rl.curves` and the per-run results ``hrn-pyg rl`` writes to ``summary.json``.
+:mod:`hrn_pyg.rl.curves` and the per-run results a sweep (:mod:`experiments.rl.sweep`) writes to
+``summary.json``.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import torch
 
 from hrn_pyg.rl.curves import curve_metrics, read_curve, updates_to_reach
 from hrn_pyg.rl.tasks import MODES
-from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
+from hrn_pyg.utils.files import atomic_write_json, atomic_write_text, json_safe
 
 #: fixed episode lengths, as fractions of the task's step limit, whose first crossing by the
 #: smoothed curve measures learning speed
@@ -240,18 +241,6 @@ def comparison_markdown(comparison: dict, task: str, baseline: str = "determinis
                          + f" | {_fmt_diff(d.get('final_length'), 2)} | "
                          f"{_fmt_diff(d.get('pybullet_success_rate'), 2)} |")
     return "\n".join(lines) + "\n"
-
-
-def json_safe(obj):
-    """``obj`` with every non-finite float replaced by None (strict JSON has no Infinity): in
-    ``comparison.json`` a null update count or bound means "never reached"."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def write_comparison(out_root: str | Path, results: list[dict], task: str, max_steps: int) -> dict:

@@ -11,7 +11,7 @@ Reads every run under a sweep folder (``<mode>/seed<k>/log.csv`` and, with ``--e
   pybullet (:mod:`hrn_pyg.rl.success_curve`); the final and the mean in-model training episode length;
 - per mode and metric (:data:`METRICS`): the IQM over seeds with a stratified-bootstrap 95 %
   interval, and, for every other mode, the probability of improvement over ``deterministic``
-  with its interval (:mod:`hrn_pyg.rl.stats`);
+  with its interval (:mod:`experiments.rl.stats`);
 - performance profiles of the success AUC and final success in pybullet (replayed and closed
   loop) and of the final episode length, and IQM curves of success against frames (replayed,
   or in the model when nothing was replayed; closed loop) and of the in-model episode length
@@ -23,10 +23,10 @@ Reads every run under a sweep folder (``<mode>/seed<k>/log.csv`` and, with ``--e
 A run that never reaches a success level counts as :math:`+\\infty` frames in the statistics
 and is written as ``null`` (strict JSON has no infinity).
 
-``hrn-pyg rl summary --task T --runs DIR [--out PATH] [--figure PNG]`` writes the summary of the
+``python -m experiments.rl.summary --task T --runs DIR [--out PATH] [--figure PNG]`` writes the summary of the
 finished runs a sweep folder holds so far (of a sweep cut short too; a run under way is left out),
 prints its main table (:func:`summary_markdown`) and draws its picture
-(:func:`hrn_pyg.rl.summary_figure.plot_summary`).
+(:func:`experiments.rl.summary_figure.plot_summary`).
 """
 
 from __future__ import annotations
@@ -35,22 +35,26 @@ import argparse
 import csv
 import json
 import math
+import sys
 from pathlib import Path
 
-from hrn_pyg.rl.curves import SMOOTH_UPDATES, curve_metrics, read_curve, smooth
-from hrn_pyg.rl.stats import (
+from experiments.command import script_main
+from experiments.rl.stats import (
     RESAMPLES,
     iqm_curve,
-    json_safe,
     performance_profile,
     probability_of_improvement,
     stratified_bootstrap,
 )
+from experiments.rl.summary_figure import plot_summary
+from hrn_pyg.rl.curves import SMOOTH_UPDATES, curve_metrics, read_curve, smooth
 from hrn_pyg.rl.success_curve import curve_summary, read_eval
-from hrn_pyg.rl.tasks import MODES, TaskConfig, get_task
+from hrn_pyg.rl.tasks import MODES, TASKS, TaskConfig, get_task
 from hrn_pyg.utils.checkpoint import load_checkpoint
-from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.utils.files import atomic_write_json, json_safe
 
+#: what the script does (its --help)
+DESCRIPTION = "the statistics of a sweep's runs so far (rl_<task>_summary.json and a table)"
 #: seeds per mode a summary should hold to decide anything
 MIN_SEEDS = 10
 #: partial-hit share at update 0 below which relaxation has (almost) nothing to act on
@@ -318,14 +322,12 @@ def summary_markdown(summary: dict) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hrn_pyg.rl.tasks import TASKS
-
     parser.add_argument("--task", choices=sorted(TASKS), required=True, help="the task of the sweep")
     parser.add_argument("--runs", required=True, help="a sweep folder (<mode>/seed<k>/log.csv)")
     parser.add_argument("--out", default=None, help="the summary to write (default: RUNS/rl_<task>_summary.json)")
     parser.add_argument("--resamples", type=int, default=RESAMPLES, help="bootstrap resamples")
     parser.add_argument("--figure", default=None,
-                        help="also draw the summary's four panels to this picture (hrn_pyg.rl.summary_figure)")
+                        help="also draw the summary's four panels to this picture (experiments.rl.summary_figure)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -335,11 +337,17 @@ def run(args: argparse.Namespace) -> int:
     summary = write_task_summary(args.runs, args.task, out, resamples=args.resamples, finished_only=True)
     print(summary_markdown(summary), end="")
     if args.figure:
-        from hrn_pyg.rl.summary_figure import plot_summary
-
         plot_summary(json.loads(out.read_text()), args.figure)
         print(f"drew {args.figure}")
     checks = summary["checks"]
     print(f"seeds per mode {checks['seeds_per_mode']} (enough: {checks['enough_seeds']}); "
           f"near-miss share at update 0 enough: {checks['near_miss_share_enough']}; wrote {out}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main("python -m experiments.rl.summary", DESCRIPTION, add_arguments, run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

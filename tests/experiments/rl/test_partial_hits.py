@@ -3,15 +3,15 @@ import dataclasses
 import pytest
 import torch
 
-from hrn_pyg.rl.dynamics import PointMassDynamics
-from hrn_pyg.rl.partial_hits import (
+from experiments.rl.partial_hits import (
     in_band,
     partial_hit_share,
     partial_hit_table,
     random_actions,
     with_tolerance,
 )
-from hrn_pyg.rl.planners import greedy_push
+from experiments.rl.planners import greedy_push
+from hrn_pyg.rl.dynamics import PointMassDynamics
 from hrn_pyg.rl.tasks import CUBE_PUSH, TOWER
 
 #: cube_push with its goal disc at the origin

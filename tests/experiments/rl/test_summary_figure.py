@@ -3,11 +3,11 @@ import json
 import pytest
 from test_summary import RUNS, _save_policy, _write_runs
 
-import hrn_pyg.rl.summary_figure as summary_figure
-from hrn_pyg.cli import main
-from hrn_pyg.rl.stats import json_safe
-from hrn_pyg.rl.summary import task_summary
-from hrn_pyg.rl.summary_figure import MODE_COLORS, plot_summary
+import experiments.rl.summary_figure as summary_figure
+from experiments.rl.summary import main as summary_main
+from experiments.rl.summary import task_summary
+from experiments.rl.summary_figure import MODE_COLORS, plot_summary
+from hrn_pyg.utils.files import json_safe
 
 
 def _summary(root):
@@ -87,7 +87,7 @@ def test_summary_command_draws_the_figure(tmp_path, drawn):
             _save_policy(tmp_path / mode / f"seed{seed}", 4, 4)
     png = tmp_path / "fig" / "s.svg"
     png.parent.mkdir()
-    assert main(["rl", "summary", "--task", "tower", "--runs", str(tmp_path), "--out", str(tmp_path / "s.json"),
+    assert summary_main(["--task", "tower", "--runs", str(tmp_path), "--out", str(tmp_path / "s.json"),
                  "--resamples", "20", "--figure", str(png)]) == 0
     assert png.read_text().lstrip().startswith("<?xml")
     assert len(drawn) == 1

@@ -35,9 +35,9 @@ import torch
 from torch import Tensor
 from torchrl.envs.utils import step_mdp
 
+from experiments.rl.planners import Planner
 from hrn_pyg.rl.dynamics import StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv, partial_hits
-from hrn_pyg.rl.planners import Planner
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 
 
@@ -66,11 +66,11 @@ def partial_hit_share(task: str | TaskConfig, dynamics: StochasticDynamics, rate
     r"""The partial-hit share of a policy at dropout ``rate``, over ``episodes`` episodes.
 
     ``policy``: None, a uniformly random policy (the policy at update 0); else a planner
-    (:mod:`hrn_pyg.rl.planners`) called on each observation, e.g. the task's scripted planner,
+    (:mod:`experiments.rl.planners`) called on each observation, e.g. the task's scripted planner,
     with Gaussian action noise of ``action_noise_std`` times the force bound added by the
     environment (the ``action_noise`` mode's exploration, closer to what PPO tries than a
     random policy), or a policy with a ``manual_seed`` method that draws its own actions
-    (:class:`~hrn_pyg.rl.clone.ActorPolicy` sampling a cloned actor, PPO's update 0 when it
+    (:class:`~experiments.rl.clone.ActorPolicy` sampling a cloned actor, PPO's update 0 when it
     starts from the clone): it is reseeded with ``seed + 2`` first.
 
     Runs rounds of ``num_envs`` environments (:class:`~hrn_pyg.rl.env.HRNEnv`, seeded with

@@ -12,7 +12,7 @@ JSON alone, so a committed summary can be redrawn without its run folders.
 4. **Probability of improvement** of each mode over the baseline (deterministic) on the
    closed-loop success AUC, a dot and its 95 % interval per mode; 0.5 (no difference) is marked.
 
-:func:`plot_summary` draws them; ``hrn-pyg rl summary ... --figure PATH`` writes the picture
+:func:`plot_summary` draws them; ``python -m experiments.rl.summary ... --figure PATH`` writes the picture
 beside the JSON.
 """
 
@@ -53,7 +53,7 @@ def _changing_span(profile: dict[str, Any], pad: int = 1) -> tuple[float, float]
 
 
 def plot_summary(summary: dict[str, Any], path: str | os.PathLike, title: str | None = None) -> None:
-    """Draw the four panels of a :func:`~hrn_pyg.rl.summary.task_summary` (as loaded from its
+    """Draw the four panels of a :func:`~experiments.rl.summary.task_summary` (as loaded from its
     JSON: nulls for infinities are fine) to ``path`` (atomically, format from the suffix)."""
     for key in ("task", "modes", "iqm_curves", "performance_profiles", "baseline"):
         if key not in summary:

@@ -1,4 +1,4 @@
-"""Statistics of RL sweeps (hrn_pyg.rl.stats): medians with censoring, bootstrap intervals,
+"""Statistics of RL sweeps (experiments.rl.stats): medians with censoring, bootstrap intervals,
 and the per-mode comparison read from run logs."""
 
 import json
@@ -9,14 +9,13 @@ import pytest
 import torch
 from scipy import stats
 
-from hrn_pyg.rl.stats import (
+from experiments.rl.stats import (
     bootstrap_median,
     bootstrap_median_difference,
     compare_modes,
     comparison_markdown,
     iqm,
     iqm_curve,
-    json_safe,
     median,
     performance_profile,
     probability_of_improvement,
@@ -27,6 +26,7 @@ from hrn_pyg.rl.stats import (
     stratified_bootstrap,
     write_comparison,
 )
+from hrn_pyg.utils.files import json_safe
 
 
 def test_median_by_hand_with_censored_values():

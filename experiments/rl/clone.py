@@ -1,10 +1,10 @@
-r"""``hrn-pyg rl clone``: a task's scripted planner cloned into the PPO actor, the warm start of
+r"""``python -m experiments.rl.clone``: a task's scripted planner cloned into the PPO actor, the warm start of
 every mode.
 
 With the sparse reward (1 at the goal, else 0) a random policy never reaches the goals of the
 tasks with room to learn, so PPO from scratch gets no reward and the ``k`` sampled futures never
-straddle a goal (:mod:`hrn_pyg.rl.partial_hits`). Started from the task's planner
-(:data:`hrn_pyg.rl.planners.PLANNERS`) cloned into the actor, every mode's update 0 already
+straddle a goal (:mod:`experiments.rl.partial_hits`). Started from the task's planner
+(:data:`experiments.rl.planners.PLANNERS`) cloned into the actor, every mode's update 0 already
 reaches the goal in part of its episodes, where reward relaxation can act.
 
 **Demonstrations** (:func:`collect_demonstrations`). ``episodes`` episodes in the given dynamics
@@ -40,12 +40,12 @@ the scale state-dependent again as it trains.
 **Checkpoint** (:func:`save_clone`; :func:`hrn_pyg.rl.ppo.load_init_policy` reads it): the ``hrn_pyg.checkpoint.v1``
 layout of a PPO run's ``policy.pt`` (``model.actor``; ``config`` JSON holding ``ppo.hidden``,
 the task, the settings and the fit), written atomically and read weights-only, so
-:func:`hrn_pyg.rl.policy.load_actor` reads it too. ``hrn-pyg rl --init-policy PATH`` starts
-every mode's actor from it (critic fresh) and records its SHA-256 in the run's identity.
+:func:`hrn_pyg.rl.policy.load_actor` reads it too. ``hrn-pyg rl --init-policy PATH`` (and a
+sweep's) starts each run's actor from it (critic fresh) and records its SHA-256 in the run's identity.
 
 Command::
 
-    hrn-pyg rl clone --task cube_push_stop --out runs/clone/cube_push_stop.pt \
+    python -m experiments.rl.clone --task cube_push_stop --out runs/clone/cube_push_stop.pt \
         [--episodes 256 --noise 0.1 --seed 0 --model PATH]
 """
 
@@ -54,6 +54,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -65,15 +66,18 @@ from torch import Tensor, nn
 from torchrl.envs.utils import step_mdp
 from torchrl.modules import ProbabilisticActor
 
+from experiments.command import script_main
+from experiments.rl.planners import PLANNERS, Planner
 from hrn_pyg.rl.dynamics import StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.rl.planners import PLANNERS, Planner
 from hrn_pyg.rl.ppo import build_actor_critic, load_init_policy
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.files import file_sha256
 from hrn_pyg.utils.options import add_renamed
 
+#: what the script does (its --help)
+DESCRIPTION = "clone a task's scripted planner into a PPO actor (the initial policy of hrn-pyg rl --init-policy)"
 #: what a clone checkpoint's config says it is
 CLONE_KIND = "planner_clone"
 
@@ -264,7 +268,7 @@ class ActorPolicy:
     """An actor as a planner-like callable ``(task, observation (B, D)) -> action (B, A)``:
     its deterministic action, or with ``sample=True`` a draw from its TanhNormal made with the
     policy's own generator (:meth:`manual_seed`), so a measurement with it depends only on its
-    seeds (:func:`hrn_pyg.rl.partial_hits.partial_hit_share` reseeds it)."""
+    seeds (:func:`experiments.rl.partial_hits.partial_hit_share` reseeds it)."""
 
     def __init__(self, actor: ProbabilisticActor, sample: bool = False, seed: int = 0) -> None:
         self.actor, self.sample = actor, bool(sample)
@@ -291,14 +295,10 @@ def clone_planner(task: str | TaskConfig, dynamics: StochasticDynamics,
                   config: CloneConfig = CloneConfig(),
                   planner: Planner | None = None) -> tuple[ProbabilisticActor, dict]:
     """Collect, fit the mean, set the exploration: the task's planner (default:
-    :data:`~hrn_pyg.rl.planners.PLANNERS`) as a PPO actor on the CPU, and a report of the fit
+    :data:`~experiments.rl.planners.PLANNERS`) as a PPO actor on the CPU, and a report of the fit
     (``states``, ``loss_initial``, ``loss_final``, ``max_abs_error`` in units of the force
     bound, ``exploration_scale`` per action entry, ``seconds``). Deterministic given
     ``config`` (the caller's random state is left as it was)."""
-    from hrn_pyg.rl.ppo import (
-        build_actor_critic,  # ppo imports this module for --init-policy
-    )
-
     task = get_task(task)
     if planner is None:
         if task.name not in PLANNERS:
@@ -396,3 +396,11 @@ def run(args: argparse.Namespace) -> int:
           f"{report['max_abs_error']:.3f} x max force ({report['seconds']:.0f} s); wrote {out} "
           f"(sha256 {digest[:12]})")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main("python -m experiments.rl.clone", DESCRIPTION, add_arguments, run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
