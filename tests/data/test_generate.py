@@ -16,7 +16,7 @@ from hrn_pyg.data.io import load_episode
 
 def _generate(out, *extra):
     return main(["generate", "--scene", "cube_collision", "--episodes", "3", "--out", str(out),
-                 "--steps", "4", "--no-progress", *extra])
+                 "--episode-steps", "4", "--no-progress", *extra])
 
 
 def test_writes_episodes_and_meta(tmp_path):
@@ -39,7 +39,7 @@ def test_rerun_skips_finished(tmp_path):
 
 
 def test_shards_and_seed_offset(tmp_path):
-    assert _generate(tmp_path, "--shard", "1/2", "--seed-offset", "10") == 0
+    assert _generate(tmp_path, "--shard", "1/2", "--first-seed", "10") == 0
     assert sorted(f for f in os.listdir(tmp_path) if f.endswith(".npz")) == ["episode_000011.npz"]
 
 
@@ -55,7 +55,7 @@ def test_resume_after_kill(tmp_path):
     out = tmp_path / "data"
     n = 30
     args = ["generate", "--scene", "cube_collision", "--episodes", str(n), "--out", str(out),
-            "--steps", "15", "--no-progress"]
+            "--episode-steps", "15", "--no-progress"]
     # the generate module alone (the full CLI imports every sub-command: slow to start)
     script = ("import argparse, sys; from hrn_pyg.data import generate as g; "
               "p = argparse.ArgumentParser(); g.add_arguments(p); "
@@ -115,7 +115,7 @@ def test_cli_errors(tmp_path, capsys, extra, word):
 def test_other_config_in_same_folder_is_refused(tmp_path, capsys):
     assert _generate(tmp_path) == 0
     assert main(["generate", "--scene", "cube_collision", "--episodes", "3", "--out",
-                 str(tmp_path), "--steps", "5", "--no-progress"]) == 2
+                 str(tmp_path), "--episode-steps", "5", "--no-progress"]) == 2
     assert "another scene/config" in capsys.readouterr().err
 
 
@@ -123,7 +123,7 @@ def test_set_overrides_a_scene_field_and_is_recorded(tmp_path):
     """``--set offset_range=[...]``: the wedge ball starts within 1 mm of the ridge (x = 0), and
     meta.json records the field."""
     out = tmp_path / "ridge"
-    assert main(["generate", "--scene", "wedge", "--episodes", "3", "--out", str(out), "--steps", "2",
+    assert main(["generate", "--scene", "wedge", "--episodes", "3", "--out", str(out), "--episode-steps", "2",
                  "--set", "offset_range=[-0.001,0.001]", "--no-progress"]) == 0
     meta = json.loads((out / "meta.json").read_text())
     assert meta["config"]["offset_range"] == [-0.001, 0.001]
@@ -136,8 +136,8 @@ def test_set_overrides_a_scene_field_and_is_recorded(tmp_path):
 def test_soft_and_cloth_episodes_do_not_depend_on_the_ones_before(tmp_path):
     """pybullet's soft-body state outlives a reset within a process; each episode of a scene with
     soft bodies or cloth runs in a fresh one, so a seed gives the same bytes alone or after others."""
-    args = ["generate", "--scene", "multi_material", "--steps", "10", "--no-progress"]
+    args = ["generate", "--scene", "multi_material", "--episode-steps", "10", "--no-progress"]
     assert main([*args, "--episodes", "2", "--out", str(tmp_path / "both")]) == 0
-    assert main([*args, "--episodes", "1", "--seed-offset", "1", "--out", str(tmp_path / "alone")]) == 0
+    assert main([*args, "--episodes", "1", "--first-seed", "1", "--out", str(tmp_path / "alone")]) == 0
     name = "episode_000001.npz"
     assert (tmp_path / "both" / name).read_bytes() == (tmp_path / "alone" / name).read_bytes()

@@ -268,7 +268,7 @@ def test_any_model_samples_and_scores_a_scene_file_dataset(tmp_path, capsys):
     assert "no episodes of split 'test'" in capsys.readouterr().err
     samples = tmp_path / "samples"
     assert main(["sample", "--scene-file", str(path), "--model", str(checkpoint), "--k", "2", "--rate", "0.2",
-                 "--steps", "3", "--seed", "1", "--out", str(samples), "--device", "cpu"]) == 0
+                 "--horizon", "3", "--episode-seed", "1", "--out", str(samples), "--device", "cpu"]) == 0
     record = json.loads((samples / "samples.json").read_text())
     assert record["scene_file"] == str(path) and record["k"] == 2 and (samples / "samples.png").is_file()
     assert main(["sample", "--scene-file", str(path), "--out", str(samples)]) == 2

@@ -29,7 +29,7 @@ def test_the_shipped_scene_files_are_all_found():
 
 def _seeds(path: Path) -> list[int]:
     """The first seeds of the dataset the file's comment says to generate (0: none given)."""
-    found = re.search(r"--seed-offset (\d+)", path.read_text())
+    found = re.search(r"--(?:first-seed|seed-offset) (\d+)", path.read_text())
     start = int(found.group(1)) if found else 0
     return list(range(start, start + 3))
 
