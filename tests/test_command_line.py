@@ -21,7 +21,7 @@ import hrn_pyg
 from experiments.command import build_parser as build_script_parser
 from hrn_pyg.cli import COMMANDS, MEANINGS, RENAMED, build_parser, main
 from hrn_pyg.data.scene_file import SCENES
-from hrn_pyg.utils.options import HelpFormatter, Renamed, renamed_options, shown_default, shows_default
+from hrn_pyg.utils.options import HelpFormatter, Moved, Renamed, renamed_options, shown_default, shows_default
 
 ROOT = Path(hrn_pyg.__file__).resolve().parent
 #: commands whose module draws a progress bar (tqdm or progress_bar) somewhere
@@ -56,8 +56,9 @@ def parsers() -> dict[str, argparse.ArgumentParser]:
 
 
 def live_options(parser: argparse.ArgumentParser) -> list[tuple[str, argparse.Action]]:
-    """``(option string, action)`` of every long option but help and the renamed spellings."""
-    return [(s, a) for a in parser._actions if not isinstance(a, (Renamed, argparse._HelpAction))
+    """``(option string, action)`` of every long option but help, the renamed spellings and the
+    options that moved to another command (they take nothing and only say where they went)."""
+    return [(s, a) for a in parser._actions if not isinstance(a, (Renamed, Moved, argparse._HelpAction))
             for s in a.option_strings if s.startswith("--")]
 
 

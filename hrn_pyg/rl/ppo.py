@@ -104,7 +104,7 @@ from hrn_pyg.utils.checkpoint import (
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, file_sha256, json_safe
 from hrn_pyg.utils.metrics import CSVLog
-from hrn_pyg.utils.options import add_no_progress
+from hrn_pyg.utils.options import add_moved, add_no_progress
 from hrn_pyg.utils.schedules import LinearSchedule
 from hrn_pyg.utils.stop import StopRequest
 from hrn_pyg.viz import plot_curves
@@ -634,6 +634,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0,
                         help="seeds the run's initialisation, batches, noise and environments")
     parser.add_argument("--out", default=None, help="the run's folder (default: runs/rl/<task>/<mode>/seed<seed>)")
+    add_moved(parser, ("--num-seeds", "--seeds", "--first-seed", "--seed-start", "--modes"),
+              "the sweep over seeds and modes, `python -m experiments.rl.sweep` in a checkout; "
+              "`hrn-pyg rl` trains one run (--mode, --seed)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -60,6 +60,26 @@ class Renamed(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
+class Moved(argparse.Action):
+    """An option that went to another command: hidden from ``--help``; using it ends the command
+    with one line naming where the option lives now (exit 2)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, where: str = "", **kwargs: Any) -> None:
+        kwargs.update(help=argparse.SUPPRESS, default=argparse.SUPPRESS, nargs="?")
+        super().__init__(option_strings, dest, **kwargs)
+        self.where = where
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        parser.exit(2, f"{parser.prog}: error: {option_string} belongs to {self.where}\n")
+
+
+def add_moved(parser: argparse.ArgumentParser, options: Sequence[str], where: str) -> None:
+    """Let ``options``, which moved to another command, say so in one line (:class:`Moved`)."""
+    for option in options:
+        parser.add_argument(option, action=Moved, where=where, dest=f"moved_{option.strip('-').replace('-', '_')}")
+
+
 def add_renamed(parser: argparse.ArgumentParser, old: str, new: str) -> None:
     """Let ``old`` spell the option ``new`` that ``parser`` already has (same destination, type,
     count and choices; in the same mutually exclusive group), with :class:`Renamed`'s warning."""

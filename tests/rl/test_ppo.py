@@ -3,6 +3,8 @@ import dataclasses
 import json
 import os
 import signal
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -473,3 +475,10 @@ def test_a_finished_run_is_extended_not_repeated_and_restart_starts_afresh(tmp_p
 def read_curve_rows(folder):
     with open(folder / "log.csv", newline="") as fh:
         return list(csv.DictReader(fh))
+
+
+def test_a_sweep_option_says_in_one_line_where_it_went():
+    proc = subprocess.run([sys.executable, "-m", "hrn_pyg.cli", "rl", "--task", "cube_push", "--num-seeds", "3"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "experiments.rl.sweep" in proc.stderr
