@@ -15,7 +15,8 @@ force, which in pybullet leaves every object where it is. Reported per run
   object's leaves) at the end to the start.
 
 Run: ``python benchmarks/long_rollouts.py --model soft_bounce=hrn_pyg/checkpoints/soft_bounce_ours.pt
-[--model ...] [--seeds 8,18,28] [--steps 1000] [--mirror-average x|xy] [--out benchmarks/results/long_rollouts.json]``.
+[--model ...] [--seeds 8,18,28] [--steps 1000] [--mirror-average x|xy] [--rigid-fit LABEL]
+[--out benchmarks/results/long_rollouts.json]``.
 Validation seeds (``seed % 10 == 8``) by default, so it can be used for model selection. Prints a
 markdown table and writes JSON atomically.
 """
@@ -47,6 +48,9 @@ def main() -> int:
     parser.add_argument("--mirror-average", choices=("x", "xy"), default=None,
                         help="roll every model as if averaged over these mirrors (HRNConfig.mirror_planes), "
                              "the same weights: what the average alone does, before any training with it")
+    parser.add_argument("--rigid-fit", action="append", default=[], metavar="LABEL",
+                        help="roll the model labelled LABEL with the rigid fit after its network "
+                             "(e.g. a GNS trained without it; repeatable)")
     parser.add_argument("--out", default="benchmarks/results/long_rollouts.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -58,6 +62,8 @@ def main() -> int:
         if scene not in SCENES:
             parser.error(f"unknown scene {scene!r}; choose from {sorted(SCENES)}")
         model = load_model(path)
+        if label and label in args.rigid_fit:
+            model = with_applied_options(model, rigid_fit=True)
         if args.mirror_average:
             model = with_applied_options(model, mirror_average=True, mirror_planes=args.mirror_average)
         for seed in seeds:
