@@ -73,8 +73,15 @@ def main(argv: list[str] | None = None) -> dict:
                         help="no declared effects: the data decide (a collision search every step)")
     parser.add_argument("--compile", action="store_true",
                         help="time the network through torch.compile (compiled during the warm-up)")
+    parser.add_argument("--one-pass", action="store_true",
+                        help="run the network over all copies in one pass, not in cache-sized groups of copies "
+                             "(what grouping gains; hrn_pyg.sim.copy_groups)")
     parser.add_argument("--out", default="benchmarks/results/sampling.json")
     args = parser.parse_args(argv)
+    if args.one_pass:
+        import hrn_pyg.sim.step as step_module
+
+        step_module.copy_groups = lambda inputs: None
     effects = None if args.no_effects else scene_effects(SCENE)
     if args.repeats < 5:
         raise SystemExit("--repeats must be >= 5 (median of at least 5 runs)")
@@ -175,6 +182,7 @@ def main(argv: list[str] | None = None) -> dict:
         "steps": args.steps, "repeats": args.repeats, "statistic": "median over interleaved rounds (each k once a round), divided by steps; the goal ratio is the median of the per-round ratios",
         "rate": RATE, "dropout_modules": list(model.config.dropout_modules),
         "compiled": bool(args.compile), "warm_up_seconds": warm_up_seconds,
+        "copy_groups": not args.one_pass,
         "model": model.config.to_dict(), "weights": "random init (seed 0), normaliser fitted on the window",
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
                     "torch": torch.__version__, "torch_threads": args.threads,
