@@ -32,9 +32,11 @@ SCENE_OF = {
 #: shipped files that are not dynamics models (they have no rollout to keep)
 NOT_MODELS = ("cube_push_policy",)
 #: how far a rollout may move from its reference where kernels round differently (another torch,
-#: CPU vector unit or math-library path): 10 um, a twentieth of what a resting start moves
-#: in one step (2.2e-4 m), while rounding alone moves these 12-step rollouts by about 2e-6 m
-CROSS_MACHINE_ATOL = 1e-5
+#: CPU vector unit or math-library path): 30 um. Rounding alone moved these 12-step rollouts by at
+#: most 5e-6 m (shapes' sampled rollout, AVX512 against AVX2 kernels), while 0.1 % more on every
+#: weight moves a start near rest by 2.4e-4 to 8.7e-4 m (the shipped models) and a resting start
+#: moves 2.2e-4 m in one step
+CROSS_MACHINE_ATOL = 3e-5
 #: episode arrays the start states are rebuilt from
 EPISODE_KEYS = ("positions", "forces", "leaf_mass", "leaf_object", "object_material", "object_stiffness",
                 "hierarchy_parent")
