@@ -8,7 +8,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
-from hrn_pyg.utils.options import HelpFormatter
+from hrn_pyg.utils.options import HelpFormatter, run_reporting_errors
 
 
 def build_parser(prog: str, description: str,
@@ -25,11 +25,4 @@ def script_main(prog: str, description: str, add_arguments: Callable[[argparse.A
     ``FileNotFoundError`` become one line ``<prog>: error: ...`` and exit code 2, an interrupt
     exit code 130."""
     args = build_parser(prog, description, add_arguments).parse_args(sys.argv[1:] if argv is None else list(argv))
-    try:
-        return int(run(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; finished work is kept", file=sys.stderr)
-        return 130
+    return run_reporting_errors(prog, run, args)

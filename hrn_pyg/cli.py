@@ -33,7 +33,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from hrn_pyg.utils.options import HelpFormatter
+from hrn_pyg.utils.options import HelpFormatter, run_reporting_errors
 from hrn_pyg.version import __version__
 
 #: sub-command -> (module, one-line help)
@@ -107,14 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(command if command in COMMANDS else None).parse_args(argv)
-    try:
-        return int(args._run(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"hrn-pyg {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"hrn-pyg {args.command}: interrupted; finished work is kept", file=sys.stderr)
-        return 130
+    return run_reporting_errors(f"hrn-pyg {args.command}", args._run, args)
 
 
 if __name__ == "__main__":

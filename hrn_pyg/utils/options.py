@@ -95,6 +95,19 @@ def renamed_options(parser: argparse.ArgumentParser) -> dict[str, str]:
     return {s: a.new for a in parser._actions if isinstance(a, Renamed) for s in a.option_strings}
 
 
+def run_reporting_errors(prog: str, run: Any, args: argparse.Namespace) -> int:
+    """``run(args)`` as a command runs it: bad input (``ValueError``, ``FileNotFoundError``)
+    becomes one line ``<prog>: error: ...`` on stderr and exit code 2, an interrupt exit code 130."""
+    try:
+        return int(run(args) or 0)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; finished work is kept", file=sys.stderr)
+        return 130
+
+
 def add_no_progress(parser: argparse.ArgumentParser) -> None:
     """``--no-progress``: the command draws no progress bar (``args.no_progress``)."""
     parser.add_argument("--no-progress", action="store_true", help="draw no progress bar on stderr")
