@@ -52,15 +52,7 @@ wait
 echo "== training $(date +%T)"
 for job in "${JOBS[@]}"; do
   IFS='|' read -r name data opts <<< "$job"
-  # steps from the calibration: rows after the first 5 (start-up), 85 % of the budget
-  steps=$(python3 - "$name" "$BUDGET_S" <<'PY'
-import csv, sys
-rows = list(csv.DictReader(open(f"calib/{sys.argv[1]}/metrics.csv")))
-t = [float(r["seconds"]) for r in rows]
-rate = (len(t) - 6) / (t[-1] - t[5]) if len(t) > 8 else 1.0
-print(max(250, int(0.85 * float(sys.argv[2]) * rate) // 250 * 250))
-PY
-)
+  steps=$(python3 data/device/steps_for_budget.py "calib/$name/metrics.csv" "$BUDGET_S" 250 250)
   echo "$name: $steps steps"
   rm -rf "runs/$name"
   python3 -m hrn_pyg.cli train --data "data/$data" --out "runs/$name" --train-steps "$steps" \
