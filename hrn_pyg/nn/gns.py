@@ -28,8 +28,7 @@ What differs from the paper, and why:
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
@@ -40,7 +39,7 @@ from hrn_pyg.data.graph import MATERIALS, NODE
 from hrn_pyg.data.radius import collision_edges
 from hrn_pyg.nn.collision import safe_norm
 from hrn_pyg.nn.hrn import GROUND_CONTACT_DIM, STATE_DIM, STATE_LAYOUT, HRNInputs
-from hrn_pyg.nn.mlp import MLP, MLPConfig, dropout_mask
+from hrn_pyg.nn.mlp import MLP, NetworkConfig, dropout_mask
 from hrn_pyg.nn.normalizer import Normalizer
 
 #: what a checkpoint's model config says in its ``network`` field to be a GNS (no field: HRN)
@@ -81,7 +80,7 @@ EDGE_INPUTS = 4
 
 
 @dataclass(frozen=True)
-class GNSConfig:
+class GNSConfig(NetworkConfig):
     """Everything that fixes the shape and behaviour of a :class:`GNS`; saved with checkpoints.
 
     Attributes:
@@ -152,18 +151,6 @@ class GNSConfig:
         """Columns of the state vector the step builds for this model (ground column included)."""
         return STATE_DIM + GROUND_CONTACT_DIM
 
-    @property
-    def mlp(self) -> MLPConfig:
-        return MLPConfig(hidden=self.hidden, depth=self.depth, activation=self.activation)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["dropout_modules"] = list(self.dropout_modules)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> GNSConfig:
-        return cls(**dict(d))
 
 
 def radius_graph(pos: Tensor, radius: float, batch: Tensor | None = None) -> Tensor:

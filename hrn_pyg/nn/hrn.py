@@ -4,8 +4,8 @@ through each object hierarchy, decoded into next velocities in the parent's fram
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
-from typing import Any, NamedTuple
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -13,7 +13,7 @@ from torch import Tensor, nn
 from hrn_pyg.nn.collision import CollisionModule
 from hrn_pyg.nn.force import ForceModule
 from hrn_pyg.nn.history import HistoryModule
-from hrn_pyg.nn.mlp import MLPConfig, dropout_mask
+from hrn_pyg.nn.mlp import NetworkConfig, dropout_mask
 from hrn_pyg.nn.normalizer import Normalizer
 from hrn_pyg.nn.propagation import PropagationModule
 from hrn_pyg.nn.state import NextStateModule
@@ -55,7 +55,7 @@ GRAVITY_DIRECTION = (0.0, 0.0, -1.0)
 
 
 @dataclass(frozen=True)
-class HRNConfig:
+class HRNConfig(NetworkConfig):
     r"""Everything that fixes the shape and behaviour of an :class:`HRN`; saved with checkpoints.
 
     Attributes:
@@ -132,18 +132,6 @@ class HRNConfig:
         """Size of a particle's state vector under this config."""
         return STATE_DIM + (GROUND_CONTACT_DIM if self.ground_contact else 0)
 
-    @property
-    def mlp(self) -> MLPConfig:
-        return MLPConfig(hidden=self.hidden, depth=self.depth, activation=self.activation)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["dropout_modules"] = list(self.dropout_modules)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> HRNConfig:
-        return cls(**dict(d))
 
 
 @dataclass(frozen=True)

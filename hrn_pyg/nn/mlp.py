@@ -9,8 +9,9 @@ edge of that trajectory; the mask is therefore not drawn inside the layer but pa
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -54,6 +55,25 @@ class MLPConfig:
             raise ValueError(
                 f"MLPConfig.activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}"
             )
+
+
+class NetworkConfig:
+    """What the configs of the networks (HRN, GNS) share, for a frozen dataclass with the fields
+    ``hidden``, ``depth``, ``activation`` and ``dropout_modules``: the :class:`MLPConfig` of its
+    MLPs, and a JSON-ready dict and back (how checkpoints store it)."""
+
+    @property
+    def mlp(self) -> MLPConfig:
+        return MLPConfig(hidden=self.hidden, depth=self.depth, activation=self.activation)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["dropout_modules"] = list(self.dropout_modules)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Any:
+        return cls(**dict(d))
 
 
 def dropout_mask(
