@@ -138,6 +138,12 @@ def main() -> int:
     parser.add_argument("--check", action="store_true")
     args = parser.parse_args()
     text = render()
+    root = str(Path(__file__).resolve().parents[1])
+    if root in text:
+        line = next(line for line in text.splitlines() if root in line)
+        print(f"docs/api.md would hold this checkout's path (a default that is a path?): {line}",
+              file=sys.stderr)
+        return 1
     if args.check:
         current = TARGET.read_text() if TARGET.exists() else ""
         if current != text:

@@ -179,9 +179,12 @@ def training_domain(folders: tuple[str, ...], init_from: str = "") -> Domain | N
     return domain
 
 
-def read_manifest(path: str | os.PathLike = MANIFEST_PATH) -> dict[str, dict[str, Any]]:
-    """The manifest's entries, model name -> record (empty when there is no manifest)."""
-    path = Path(path)
+def read_manifest(path: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:
+    """The manifest's entries, model name -> record (empty when there is no manifest).
+
+    ``path`` defaults to the manifest shipped beside the checkpoints.
+    """
+    path = Path(MANIFEST_PATH if path is None else path)
     if not path.is_file():
         return {}
     return dict(json.loads(path.read_text()).get("checkpoints", {}))
