@@ -12,6 +12,39 @@ from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.data.scene_file import SceneSpec, scene_spec
 from hrn_pyg.data.scenes import Scene
 
+#: a leaf farther than this from the origin (m) marks an episode pybullet lost
+MAX_DISTANCE = 50.0
+#: a leaf that moves more than this in one model step (m) marks an episode pybullet lost
+MAX_STEP_DISPLACEMENT = 0.5
+
+
+class DivergedEpisode(RuntimeError):
+    """pybullet lost an episode: non-finite positions, a leaf far away, through the ground or
+    jumping; the message names the seed and what was seen."""
+
+
+def check_plausible(positions: np.ndarray, pitch: float, where: str) -> None:
+    """Raise :class:`DivergedEpisode` unless every leaf stays finite, within :data:`MAX_DISTANCE`
+    of the origin, no more than one ``pitch`` under the ground ``z = 0``, and moves at most
+    :data:`MAX_STEP_DISPLACEMENT` a step.
+
+    **Shapes:** ``positions [S+1, L, 3]``.
+    """
+    if not np.all(np.isfinite(positions)):
+        raise DivergedEpisode(f"{where}: pybullet produced non-finite positions")
+    farthest = float(np.abs(positions).max())
+    if farthest > MAX_DISTANCE:
+        raise DivergedEpisode(f"{where}: a leaf reached {farthest:.4g} m from the origin "
+                              f"(more than {MAX_DISTANCE} m)")
+    lowest = float(positions[..., 2].min())
+    if lowest < -pitch:
+        raise DivergedEpisode(f"{where}: a leaf went {-lowest:.3g} m under the ground "
+                              f"(more than one pitch, {pitch} m)")
+    jump = float(np.abs(np.diff(positions, axis=0)).max()) if len(positions) > 1 else 0.0
+    if jump > MAX_STEP_DISPLACEMENT:
+        raise DivergedEpisode(f"{where}: a leaf moved {jump:.3g} m in one step "
+                              f"(more than {MAX_STEP_DISPLACEMENT} m)")
+
 
 def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None, *,
                      after_reset: Callable[[Scene], None] | None = None) -> dict[str, np.ndarray]:
@@ -30,6 +63,8 @@ def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None
     ``leaf_object [L]`` i64, ``object_material [O]`` i64, ``object_stiffness [O]`` f32,
     ``hierarchy_parent [N]`` i64, ``seed``/``scene``/``params``/``dt`` scalars; ``params`` is JSON
     of what the seed drew, the scene's settings and (for a scene from a file) the file's text.
+
+    An episode pybullet lost (:func:`check_plausible`) raises :class:`DivergedEpisode`.
     """
     spec = scene_spec(scene)
     if steps is not None:
@@ -68,8 +103,7 @@ def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None
         }
     finally:
         sim.close()
-    if not np.all(np.isfinite(positions)):
-        raise RuntimeError(f"{sim.name} seed {seed}: pybullet produced non-finite positions")
+    check_plausible(positions, float(spec.config.pitch), f"{sim.name} seed {seed}")
     episode["hierarchy_parent"] = np.asarray(
         build_hierarchy(positions[0].astype(np.float64), leaf_mass.astype(np.float64), leaf_object),
         dtype=np.int64)

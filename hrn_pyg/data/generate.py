@@ -8,7 +8,10 @@ the episodes whose index is ``i`` modulo ``N``, so N machines can split one data
 FILE`` simulates a scene read from a TOML file (:mod:`hrn_pyg.data.scene_file`) instead of a
 built-in one; its meta.json keeps the file's text. ``--set NAME=VALUE`` changes a setting of
 either. An episode of a scene with soft bodies or cloth runs in a process of its own, so its
-bytes depend on its seed and settings only, not on the episodes generated before it.
+bytes depend on its seed and settings only, not on the episodes generated before it. A seed
+that pybullet loses (:func:`hrn_pyg.data.episodes.check_plausible`) is not written: one line on
+stderr says why, ``<out>/episode_<seed:06d>.rejected`` keeps the reason (a rerun skips it), and
+meta.json counts it.
 """
 
 from __future__ import annotations
@@ -17,15 +20,16 @@ import argparse
 import json
 import multiprocessing as mp
 import os
+import sys
 import time
 from pathlib import Path
 
 from tqdm import tqdm
 
-from hrn_pyg.data.episodes import simulate_episode
+from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode
 from hrn_pyg.data.io import save_episode
 from hrn_pyg.data.scene_file import SCENES, builtin_scene, check_scene_name, read_scene_file
-from hrn_pyg.utils.files import atomic_write_json
+from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 from hrn_pyg.utils.options import add_no_progress, add_renamed
 
 
@@ -92,6 +96,12 @@ def episode_path(out: str, seed: int) -> str:
     return os.path.join(out, f"episode_{seed:06d}.npz")
 
 
+def rejected_path(out: str, seed: int) -> str:
+    """Where a seed that pybullet lost is marked (:class:`~hrn_pyg.data.episodes.DivergedEpisode`):
+    a text file with the reason, which a rerun skips and no dataset reads."""
+    return os.path.join(out, f"episode_{seed:06d}.rejected")
+
+
 def _generate_one(task: tuple[str, str, int, dict, str]) -> tuple[int, bool]:
     """Worker: simulate one episode and write it; ``(seed, written)``. ``kind`` is ``"scene"``
     (``source`` a built-in scene's name) or ``"file"`` (``source`` a scene file); ``settings``
@@ -100,7 +110,13 @@ def _generate_one(task: tuple[str, str, int, dict, str]) -> tuple[int, bool]:
     if os.path.exists(path):
         return seed, False
     spec = read_scene_file(source) if kind == "file" else builtin_scene(source)
-    save_episode(path, simulate_episode(spec.with_settings(**settings), seed))
+    try:
+        episode = simulate_episode(spec.with_settings(**settings), seed)
+    except DivergedEpisode as lost:
+        atomic_write_text(path.removesuffix(".npz") + ".rejected", f"{lost}\n")
+        print(f"rejected: {lost}", file=sys.stderr, flush=True)
+        return seed, False
+    save_episode(path, episode)
     return seed, True
 
 
@@ -139,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"out: {args.out} holds a dataset with another scene/config "
                              "(see its meta.json); choose a new --out")
     seeds = [args.seed_offset + i for i in range(args.episodes) if i % shard_count == shard_index]
-    todo = [s for s in seeds if not os.path.exists(episode_path(args.out, s))]
+    todo = [s for s in seeds if not os.path.exists(episode_path(args.out, s))
+            and not os.path.exists(rejected_path(args.out, s))]
     meta = {
         "scene": name,
         **record,
@@ -179,7 +196,8 @@ def run(args: argparse.Namespace) -> int:
                 bar.update(1)
     finally:
         bar.close()
-    meta.update(written=written, complete=True,
+    rejected = sum(os.path.exists(rejected_path(args.out, s)) for s in seeds)
+    meta.update(written=written, rejected=rejected, complete=True,
                 seconds=round(time.perf_counter() - start, 3))
     atomic_write_json(meta_path, meta)
     return 0

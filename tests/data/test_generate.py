@@ -141,3 +141,39 @@ def test_soft_and_cloth_episodes_do_not_depend_on_the_ones_before(tmp_path):
     assert main([*args, "--episodes", "1", "--first-seed", "1", "--out", str(tmp_path / "alone")]) == 0
     name = "episode_000001.npz"
     assert (tmp_path / "both" / name).read_bytes() == (tmp_path / "alone" / name).read_bytes()
+
+
+def test_check_plausible_names_what_it_saw():
+    from hrn_pyg.data.episodes import DivergedEpisode, check_plausible
+
+    still = np.zeros((4, 5, 3), dtype=np.float32)
+    still[..., 2] = 0.1
+    check_plausible(still, 0.05, "fine")  # nothing to say
+    check_plausible(still - [0, 0, 0.149], 0.05, "a leaf 4.9 cm under the ground is within a pitch")
+    for change, word in ((lambda p: p.__setitem__((2, 1, 0), np.nan), "non-finite"),
+                         (lambda p: p.__setitem__((3, 0, 1), 60.0), "from the origin"),
+                         (lambda p: p.__setitem__((1, 4, 2), -0.051), "under the ground"),
+                         (lambda p: p.__setitem__((3, 2, 0), 0.51), "in one step")):
+        lost = still.copy()
+        change(lost)
+        with pytest.raises(DivergedEpisode, match=word):
+            check_plausible(lost, 0.05, "scene seed 7")
+
+
+def test_a_lost_episode_is_marked_skipped_and_counted(tmp_path, capsys):
+    scene = tmp_path / "buried.toml"
+    scene.write_text('steps = 3\npitch = 0.05\n[[objects]]\nmesh = "box"\nmaterial = "rigid"\n'
+                     'size = 0.1\nmass = 1.0\nposition = '
+                     '"[0.0, 0.0, uniform(-0.3, -0.2)]"\n')
+    out = tmp_path / "out"
+    args = ["generate", "--scene-file", str(scene), "--episodes", "2", "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    assert sorted(os.listdir(out)) == ["episode_000000.rejected", "episode_000001.rejected", "meta.json"]
+    assert "under the ground" in (out / "episode_000000.rejected").read_text()
+    assert capsys.readouterr().err.count("rejected: buried seed") == 2
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["rejected"] == 2 and meta["written"] == 0
+    stamp = os.stat(out / "episode_000001.rejected").st_mtime_ns
+    assert main(args) == 0  # a rerun skips them
+    assert os.stat(out / "episode_000001.rejected").st_mtime_ns == stamp
+    assert json.loads((out / "meta.json").read_text())["rejected"] == 2
