@@ -71,6 +71,7 @@ MODULES = (
     "hrn_pyg.rl.evaluate",
     "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",
+    "hrn_pyg.rl.planning",
     "hrn_pyg.recipe",
 )
 

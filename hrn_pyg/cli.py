@@ -46,6 +46,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                   "choose a model's sampling rate so its spread matches a validation ensemble"),
     "rl": ("hrn_pyg.rl.ppo", "train and score one PPO run in the learned environment "
            "(sweeps over modes and seeds: python -m experiments.rl.sweep in a checkout)"),
+    "plan": ("hrn_pyg.rl.planning", "plan each action through the learned model (CEM over sampled "
+             "futures), one closed-loop episode judged in pybullet"),
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
     "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),
     "models": ("hrn_pyg.checkpoints.cli", "list the shipped models and what each was trained on"),
@@ -56,6 +58,7 @@ MEANINGS: dict[str, str] = {
     "--data": "an episode folder from `hrn-pyg generate` (calibrate: repeatable)",
     "--device": "the torch device (cpu, cuda, cuda:1); default cuda when available",
     "--episodes": "a count of episodes (generated, or demonstrations collected)",
+    "--episode-seed": "the pybullet episode simulated",
     "--eval-every": "updates or optimiser steps between evaluations",
     "--first-seed": "the first of consecutive seeds, one per episode or run",
     "--horizon": "model steps predicted from a start",
@@ -68,6 +71,7 @@ MEANINGS: dict[str, str] = {
     "--scene": "a built-in scene's name",
     "--scene-file": "a scene file (TOML)",
     "--seed": "seeds a run's own random draws (initialisation, batches, noise)",
+    "--rate": "the dropout rate of sampled futures (default: the model's calibrated rate, else a default of the command)",
     "--sample-seed": "seeds the dropout masks of sampled futures",
     "--split": "the split of a dataset: test, val or all",
     "--strict": "data outside a model's training domain is an error, not a warning",

@@ -27,7 +27,8 @@ ROOT = Path(hrn_pyg.__file__).resolve().parent
 #: commands whose module draws a progress bar (tqdm or progress_bar) somewhere
 PROGRESS = ("generate", "train", "evaluate", "sample", "calibrate", "rl", "demo")
 #: the experiment scripts beside the package (``python -m <module>``), walked with the commands
-SCRIPTS = ("experiments.rl.sweep", "experiments.rl.clone", "experiments.rl.summary")
+SCRIPTS = ("experiments.rl.sweep", "experiments.rl.clone", "experiments.rl.summary",
+           "experiments.planning.sweep", "experiments.planning.summary")
 #: old spelling -> new of the experiment scripts' options
 SCRIPT_RENAMED = {"experiments.rl.sweep": {"--mode": "--modes", "--seeds": "--num-seeds", "--seed-start": "--first-seed"},
                   "experiments.rl.clone": {"--steps": "--train-steps"}}

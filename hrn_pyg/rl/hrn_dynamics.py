@@ -186,6 +186,15 @@ class HRNDynamics:
     def _join(self, pos: Tensor, index: Tensor) -> Tensor:
         return torch.cat([pos.flatten(-3), index.to(pos.dtype).unsqueeze(-1)], dim=-1)
 
+    def leaf_history(self, states: Tensor) -> tuple[Tensor, Tensor]:
+        """``(..., S)`` -> leaf positions ``(..., 3, L, 3)`` at ``t-2, t-1, t`` and pool index
+        ``(...)`` long."""
+        return self._split(states)
+
+    def state_of(self, leaf_pos: Tensor, index: Tensor) -> Tensor:
+        """The inverse of :meth:`leaf_history`: ``(..., 3, L, 3)`` and ``(...)`` -> ``(..., S)``."""
+        return self._join(leaf_pos, index)
+
     def scene_seeds(self, states: Tensor) -> Tensor:
         """The pybullet seed each state's episode started from, ``(...)`` long."""
         return self.pool_seeds[self._split(states)[1]]
@@ -212,33 +221,44 @@ class HRNDynamics:
         if forces.shape != (B, self.num_objects, 3):
             raise ValueError(f"forces must be ({B}, {self.num_objects}, 3), got {tuple(forces.shape)}")
         pos, index = self._split(states)  # [B, 3, L, 3], [B]
-        per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [B, L, 3]
         # rate 0: the k samples are one deterministic prediction, made once per environment
         copies_per_env = k if rate > 0 else 1
         n = B * copies_per_env
-        copies = index.repeat_interleave(copies_per_env)  # [n]
-        leaf_pos = pos.repeat_interleave(copies_per_env, dim=0)  # [n, 3, L, 3]
-        per_leaf = per_leaf.repeat_interleave(copies_per_env, dim=0)
-        graph = self._batched_structure(copies)
-        graph = set_state(graph, leaf_pos[:, 0].reshape(-1, 3), leaf_pos[:, 1].reshape(-1, 3),
-                          leaf_pos[:, 2].reshape(-1, 3), radius=self.model.config.collision_radius,
-                          force=per_leaf.reshape(-1, 3))
         masks = None
         if rate > 0:  # one mask per copy on the masked modules only (cube_push: force)
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.dropout_modules}
+        leaf_pos = pos.repeat_interleave(copies_per_env, dim=0)  # [n, 3, L, 3]
+        nxt = self.next_positions(leaf_pos, index.repeat_interleave(copies_per_env),
+                                  forces.repeat_interleave(copies_per_env, dim=0), masks)
+        new_pos = torch.cat([leaf_pos[:, 1:], nxt.unsqueeze(1)], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
+        new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
+        return self._join(new_pos, index[:, None].expand(B, k))
+
+    def next_positions(self, leaf_pos: Tensor, index: Tensor, forces: Tensor,
+                       masks: dict[str, Tensor] | None = None) -> Tensor:
+        """One model step of ``n`` copies as one batched graph, differentiable in the positions
+        and the forces (no ``no_grad`` here; :meth:`sample_next` wraps it).
+
+        **Shapes:** leaf positions ``(n, 3, L, 3)`` at ``t-2, t-1, t``, pool indices ``(n,)``
+        long, forces ``(n, O, 3)`` Newton, masks ``{module: (rows, hidden)}`` on the masked
+        modules (:func:`~hrn_pyg.sampling.sample.draw_masks` of ``n`` copies; None: the
+        deterministic model) -> leaf positions at ``t+1``, ``(n, L, 3)``.
+        """
+        n = leaf_pos.shape[0]
+        per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [n, L, 3]
+        graph = self._batched_structure(index)
+        graph = set_state(graph, leaf_pos[:, 0].reshape(-1, 3), leaf_pos[:, 1].reshape(-1, 3),
+                          leaf_pos[:, 2].reshape(-1, 3), radius=self.model.config.collision_radius,
+                          force=per_leaf.reshape(-1, 3))
         objs = self._objects_of(graph, n)
         held = held_from_history(self.sleep, graph, objs, graph[NODE].force) if self.sleep is not None else None
         if held is not None and not holds_movable(held, graph):
             held = None
-        # every environment is pushed by its action: the force module runs (a zero row adds nothing)
+        # every copy is pushed by its action: the force module runs (a zero row adds nothing)
         options = StepOptions(force_active=True, objects=(objs.of_node, objs.count))
         next_pos = predict_held(self.model, graph, graph[NODE].force, masks, held, options).pos
-        leaves = graph[NODE].is_leaf
-        nxt = next_pos[leaves].reshape(n, 1, self.num_leaves, 3)
-        new_pos = torch.cat([leaf_pos[:, 1:], nxt], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
-        new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
-        return self._join(new_pos, index[:, None].expand(B, k))
+        return next_pos[graph[NODE].is_leaf].reshape(n, self.num_leaves, 3)
 
     def _objects_of(self, graph: HeteroData, n: int) -> Objects:
         """The :class:`~hrn_pyg.sim.sleeping.Objects` of a batched graph of ``n`` copies, found

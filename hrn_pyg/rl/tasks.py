@@ -1,4 +1,5 @@
-"""The manipulation tasks: the seed paper's two (section 4.3) and three with room to learn;
+"""The manipulation tasks: the seed paper's two (section 4.3), three with room to learn and one
+with an uncertain outcome;
 configs and goal tests.
 
 ``cube_push``: two rigid cubes that pass through each other; the agent pushes the cubes (one
@@ -25,6 +26,12 @@ beside the tower, on a side at least 45 degrees off the line from the ball to th
 40 steps. Pushing the ball straight at the tower moves the stack along that line and never gets
 there; driving the ball around the tower first (:func:`experiments.rl.planners.aside_push`) does.
 Dropout 0.3 on the force and collision modules.
+
+``tower_top_aside`` (the tower scene and model): the *top* cube must come to rest (slower than
+1 cm per step) inside a 5 cm disc 12-16 cm beside the tower, off the line from the ball to the
+tower, within 40 steps. The stack slides or topples when the ball strikes it, and where a
+falling cube comes to rest is the part of the tower's physics the learned model is least sure
+of: a task whose outcome is uncertain, for planners that weigh sampled futures.
 
 A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``, ``aside``) or the
 tower axis (``displaced``). Goal tests take root states with any leading dimensions, so one call
@@ -225,8 +232,14 @@ TOWER_ASIDE = TaskConfig(
     goal_distance=(0.12, 0.15), dropout_modules=("force", "collision"), dropout_rate=0.3,
     anneal_updates=1200,
 )
+TOWER_TOP_ASIDE = TaskConfig(
+    name="tower_top_aside", scene="tower", max_steps=40, num_objects=4, controlled_objects=(3,),
+    force_axes=(0, 1, 2), max_force=8.0, goal_kind="aside", goal_objects=(2,), goal_radius=0.05,
+    goal_speed=0.01, goal_distance=(0.12, 0.16), dropout_modules=("force", "collision"),
+    dropout_rate=0.3, anneal_updates=1200,
+)
 TASKS: dict[str, TaskConfig] = {t.name: t for t in (CUBE_PUSH, TOWER, CUBE_PUSH_STOP, CUBE_PUSH_HOLD,
-                                                     TOWER_ASIDE)}
+                                                     TOWER_ASIDE, TOWER_TOP_ASIDE)}
 
 
 def get_task(task: str | TaskConfig) -> TaskConfig:

@@ -109,3 +109,25 @@ def test_goal_speed_a_cube_must_stop_in_the_disc():
     many = torch.randn(4096, 2, 6, generator=gen) * 0.05
     g = torch.randn(4096, 2, generator=gen) * 0.05
     assert torch.equal(goal_clearance(CUBE_PUSH_STOP, many, g) <= 0, goal_reached(CUBE_PUSH_STOP, many, g))
+
+
+def test_tower_top_aside_the_top_cube_must_rest_beside_the_tower():
+    from hrn_pyg.rl.tasks import TOWER_TOP_ASIDE
+
+    task = TOWER_TOP_ASIDE
+    assert TASKS[task.name] is task and task.scene_name == "tower" and task.goal_objects == (2,)
+    dyn = PointMassDynamics.for_task(task.scene_name)
+    env = HRNEnv(task, dyn, batch_size=512, seed=5)
+    td = env.reset()
+    roots = dyn.roots(td["state"])
+    assert (goal_clearance(task, roots, td["goal"]) > task.goal_margin).all()
+    dist = (td["goal"] - roots[:, 2, :2]).norm(dim=-1)           # from the top cube's start
+    lo, hi = task.goal_distance
+    assert (dist >= lo - 1e-6).all() and (dist <= hi + 1e-6).all()
+    # the top cube in the disc counts only at rest; the middle cube there does not count
+    state = torch.zeros(3, 4, 6)
+    state[:, :, :2] = 1.0                                         # everything far away
+    state[0, 2, :2] = 0.0                                         # top cube in the disc, at rest
+    state[1, 2, :2], state[1, 2, 5] = 0.0, -0.05                  # in the disc, still falling
+    state[2, 1, :2] = 0.0                                         # the middle cube, not the top
+    assert goal_reached(task, state, torch.zeros(3, 2)).tolist() == [True, False, False]

@@ -1,0 +1,495 @@
+r"""Model-predictive control through the stochastic HRN: a cross-entropy planner that scores
+every candidate action sequence on K Monte Carlo dropout futures, judged closed loop in pybullet.
+
+**One planning step.** From the current state :math:`s_0` (leaf positions at :math:`t-2, t-1,
+t`) and the goal :math:`g`, a candidate is an action sequence :math:`a_{0:H}` of shape
+``(H, A)`` inside the force bounds. All ``N`` candidates and all ``K`` futures are one batched
+graph of ``N K`` copies of the scene per model step (:func:`rollout_futures`); future :math:`j`
+of every candidate steps with the same dropout masks :math:`m^{(j)}_h` (common random numbers:
+candidates differ only by their actions, not by their luck), fresh masks at every model step:
+
+.. math::
+    s^{(i,j)}_{h+1} = f_\theta\big(s^{(i,j)}_h, a^{(i)}_h; m^{(j)}_h\big), \qquad
+    R_{ij} = \sum_{h=1}^{H} \gamma^{h-1} r\big(s^{(i,j)}_h\big), \qquad
+    r(s) = -\max\big(c_g(s), 0\big) - w\, d_{\text{reach}}(s)
+
+with :math:`c_g` the task's goal clearance (:func:`~hrn_pyg.rl.tasks.goal_clearance`: metres
+from meeting the goal, the speed bound included) and, for tasks whose goal object is not pushed
+directly (``tower``, ``tower_aside``), :math:`d_{\text{reach}}` the ground distance from the
+pushed object to the point :data:`REACH_BACKOFF` behind the goal object, on the far side from
+the goal (where a push moves it toward the goal); :math:`w` = ``reach_weight``.
+
+**Scores** of a candidate from its return row :math:`R_{i\cdot}` (:func:`score_returns`):
+
+- ``deterministic``: the model without dropout, :math:`K = 1`, :math:`S_i = R_{i1}`;
+- ``mean``: :math:`S_i = \frac1K \sum_j R_{ij}` at the sampling rate :math:`p` (the model's
+  calibrated rate when its checkpoint has one, else the task's);
+- ``risk``: :math:`S_i = \bar R_i - c\, \sigma_i` (mean minus ``risk_std`` times the standard
+  deviation over the K futures, population form), which prefers a sequence whose futures agree.
+
+**Cross-entropy method** (:func:`cem`, TorchRL's ``CEMPlanner`` in spirit): a Gaussian
+:math:`\mathcal N(\mu, \sigma^2)` over ``(H, A)``, ``N`` samples clipped to the bounds (sample 0
+is :math:`\mu` itself), the ``E`` best by score give the next :math:`\mu, \sigma`
+(:math:`\sigma \ge` ``min_std`` :math:`F_{\max}`); after ``iterations`` the best sequence seen is
+returned. Between control steps :math:`\mu` is the last plan shifted by one step (warm start).
+TorchRL's planners roll candidates out through a batch-locked environment with one future per
+candidate and its global random stream; here the K futures per candidate, shared masks and a
+generator of the planner's own are the point, so the loop is written out.
+
+**Gradient refinement** (:func:`refine`): a few Adam steps on the chosen sequence through the
+differentiable rollout, minimising :math:`-S` (the same score and masks as the search), each
+step projected back into the bounds; the best sequence seen is kept, so the loss never rises.
+
+**Closed loop** (:func:`plan_episode`): at every control step the state is rebuilt from
+pybullet's own leaves (the last three frames), the plan is redone, its first action is applied in
+pybullet, and the task's goal is judged there, as :func:`~hrn_pyg.rl.evaluate.closed_loop_in_pybullet`
+judges a policy.
+
+**Shapes:** state ``(S,)``; actions ``(N, H, A)``; roots ``(N, K, H, O, 6)``; returns
+``(N, K)``; scores ``(N,)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from hrn_pyg.data.graph import HISTORY, object_centres
+from hrn_pyg.rl.hrn_dynamics import HRNDynamics
+from hrn_pyg.rl.tasks import (
+    TASKS,
+    TaskConfig,
+    action_to_forces,
+    get_task,
+    goal_clearance,
+    goal_held,
+    goal_reached,
+    goal_streak,
+    sample_goal,
+)
+from hrn_pyg.sampling.sample import draw_masks
+from hrn_pyg.utils.checks import check_rate
+
+#: the ways to score a candidate from its K futures
+SCORES = ("deterministic", "mean", "risk")
+#: metres behind the goal object (away from the goal) that the pushed object is drawn to: about
+#: a cube's half edge plus the ball's radius, so the ball touches the object's far face
+REACH_BACKOFF = 0.08
+
+#: ``score_fn(actions (N, H, A)) -> scores (N,)``, higher is better
+ScoreFn = Callable[[Tensor], Tensor]
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """A model-predictive planner's settings.
+
+    Attributes:
+        score: how a candidate is scored over its futures (:data:`SCORES`).
+        candidates: ``N``, action sequences per CEM iteration.
+        elites: ``E``, best candidates that refit the sampling distribution.
+        iterations: CEM iterations per control step.
+        horizon: ``H``, model steps a candidate plans ahead.
+        futures: ``K``, dropout futures per candidate for ``mean`` and ``risk`` (``deterministic``
+            uses one, at rate 0).
+        rate: dropout rate of the futures; None: the model's calibrated rate, else the task's.
+        risk_std: ``c`` of the ``risk`` score, mean minus ``c`` standard deviations.
+        init_std: the first sampling spread, a fraction of ``max_force``.
+        min_std: the smallest sampling spread, a fraction of ``max_force``.
+        discount: ``gamma`` of the planning return.
+        reach_weight: ``w``, weight of the pushed object's distance to the push point (tasks
+            whose goal objects are not pushed directly).
+        refine_steps: Adam steps of gradient refinement after the search (0: none).
+        refine_lr: Adam's step size, a fraction of ``max_force``.
+    """
+
+    score: str = "deterministic"
+    candidates: int = 16
+    elites: int = 4
+    iterations: int = 2
+    horizon: int = 6
+    futures: int = 4
+    rate: float | None = None
+    risk_std: float = 1.0
+    init_std: float = 0.5
+    min_std: float = 0.05
+    discount: float = 1.0
+    reach_weight: float = 0.2
+    refine_steps: int = 0
+    refine_lr: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.score not in SCORES:
+            raise ValueError(f"score must be one of {SCORES}, got {self.score!r}")
+        for name in ("candidates", "elites", "iterations", "horizon", "futures"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.elites > self.candidates:
+            raise ValueError(f"elites ({self.elites}) must not exceed candidates ({self.candidates})")
+        if self.rate is not None:
+            check_rate(self.rate)
+        if self.risk_std < 0 or self.init_std <= 0 or self.min_std < 0 or self.refine_steps < 0:
+            raise ValueError("need risk_std >= 0, init_std > 0, min_std >= 0 and refine_steps >= 0")
+        if not 0 < self.discount <= 1 or self.refine_lr <= 0 or self.reach_weight < 0:
+            raise ValueError("need 0 < discount <= 1, refine_lr > 0 and reach_weight >= 0")
+
+    @property
+    def num_futures(self) -> int:
+        """Futures simulated per candidate: 1 for ``deterministic``, else ``futures``."""
+        return 1 if self.score == "deterministic" else self.futures
+
+
+def score_returns(returns: Tensor, score: str, risk_std: float = 1.0) -> Tensor:
+    """A candidate's score from its returns over K futures, ``(N, K)`` -> ``(N,)``:
+    ``deterministic`` the first column, ``mean`` the mean, ``risk`` the mean minus ``risk_std``
+    population standard deviations (so ``risk <= mean``, equal when the futures agree)."""
+    if returns.dim() != 2:
+        raise ValueError(f"returns must be (N, K), got {tuple(returns.shape)}")
+    if score == "deterministic":
+        return returns[:, 0]
+    if score == "mean":
+        return returns.mean(1)
+    if score == "risk":
+        return returns.mean(1) - risk_std * returns.std(1, correction=0)
+    raise ValueError(f"score must be one of {SCORES}, got {score!r}")
+
+
+def push_point(task: TaskConfig, roots: Tensor, goal: Tensor, backoff: float = REACH_BACKOFF) -> Tensor:
+    r""":math:`x_g - b\,\widehat{(g - x_g)}`: the ground point ``backoff`` behind the first goal
+    object :math:`x_g`, away from the goal :math:`g`. **Shapes:** roots ``(*, O, 6)``, goal
+    broadcastable to ``(*, 2)`` -> ``(*, 2)``."""
+    obj = roots[..., task.goal_objects[0], :2]
+    away = obj - goal
+    return obj + backoff * away / away.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+
+
+def planning_rewards(task: TaskConfig, roots: Tensor, goal: Tensor, reach_weight: float) -> Tensor:
+    r"""The per-step planning reward :math:`-\max(c_g, 0) - w\, d_{\text{reach}}` (module
+    docstring); the reach term only where no goal object is pushed directly.
+
+    **Shapes:** roots ``(*, O, 6)``, goal broadcastable to ``(*, 2)`` -> ``(*,)``.
+    """
+    reward = -goal_clearance(task, roots, goal).clamp_min(0.0)
+    if reach_weight > 0 and not set(task.goal_objects) & set(task.controlled_objects):
+        pusher = roots[..., task.controlled_objects[0], :2]
+        reward = reward - reach_weight * (pusher - push_point(task, roots, goal)).norm(dim=-1)
+    return reward
+
+
+def discounted_returns(rewards: Tensor, discount: float) -> Tensor:
+    """``(..., H)`` -> ``(...)``: :math:`\\sum_h \\gamma^{h} r_h`."""
+    weights = discount ** torch.arange(rewards.shape[-1], dtype=rewards.dtype, device=rewards.device)
+    return (rewards * weights).sum(-1)
+
+
+def shared_masks(dynamics: HRNDynamics, candidates: int, futures: int, rate: float,
+                 generator: torch.Generator) -> dict[str, Tensor]:
+    """One model step's dropout masks for ``candidates x futures`` copies: ``futures`` masks
+    drawn once and repeated for every candidate (copy ``i K + j`` takes mask ``j``), on the
+    dynamics' masked modules. **Shapes:** ``{module: (passes * N * K, hidden)}``."""
+    out = {}
+    for name, mask in draw_masks(dynamics.model, futures, rate, generator).items():
+        if name in dynamics.dropout_modules:
+            passes = mask.shape[0] // futures
+            out[name] = mask.reshape(passes, 1, futures, -1).expand(passes, candidates, futures, -1) \
+                .reshape(passes * candidates * futures, -1)
+    return out
+
+
+def rollout_futures(dynamics: HRNDynamics, state: Tensor, actions: Tensor, futures: int, rate: float,
+                    generator: torch.Generator) -> Tensor:
+    """Every candidate's K futures from one state, one batched graph of ``N K`` copies per model
+    step (:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.next_positions`), differentiable in the
+    actions. At rate 0 the futures are one deterministic prediction (``futures`` must be 1).
+
+    **Shapes:** state ``(S,)``, actions ``(N, H, A)`` -> roots ``(N, K, H, O, 6)`` after each step.
+    """
+    check_rate(rate)
+    if futures < 1 or (rate == 0 and futures != 1):
+        raise ValueError(f"futures must be >= 1, and 1 at rate 0; got {futures} at rate {rate}")
+    if actions.dim() != 3 or actions.shape[-1] != dynamics.task.action_dim:
+        raise ValueError(f"actions must be (N, H, {dynamics.task.action_dim}), got {tuple(actions.shape)}")
+    N, H, _ = actions.shape
+    n = N * futures
+    pos, index = dynamics.leaf_history(state.unsqueeze(0))             # (1, 3, L, 3), (1,)
+    pos, index = pos.expand(n, *pos.shape[1:]), index.expand(n)
+    forces = action_to_forces(dynamics.task, actions).repeat_interleave(futures, dim=0)  # (n, H, O, 3)
+    roots = []
+    for h in range(H):  # a loop over model steps
+        masks = shared_masks(dynamics, N, futures, rate, generator) if rate > 0 else None
+        nxt = dynamics.next_positions(pos, index, forces[:, h], masks)  # (n, L, 3)
+        pos = torch.cat([pos[:, 1:], nxt.unsqueeze(1)], dim=1)
+        roots.append(dynamics.roots(dynamics.state_of(pos, index)))     # (n, O, 6)
+    return torch.stack(roots, 1).reshape(N, futures, H, *roots[0].shape[-2:])
+
+
+def cem(score_fn: ScoreFn, mean: Tensor, std: Tensor, bound: float, config: PlannerConfig,
+        generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The cross-entropy method over action sequences ``(H, A)`` inside ``[-bound, bound]``.
+
+    Each of ``config.iterations`` draws ``config.candidates`` sequences from
+    :math:`\\mathcal N(\\mu, \\sigma^2)` (the first is :math:`\\mu`), clipped; the
+    ``config.elites`` best refit :math:`\\mu, \\sigma`. Returns the best sequence seen, its score,
+    and the last :math:`\\mu, \\sigma`. **Shapes:** mean, std ``(H, A)`` -> ``(H, A)``, ``()``,
+    ``(H, A)``, ``(H, A)``.
+    """
+    if mean.shape != std.shape or mean.dim() != 2:
+        raise ValueError(f"mean and std must both be (H, A), got {tuple(mean.shape)}, {tuple(std.shape)}")
+    best, best_score = mean.clamp(-bound, bound), torch.tensor(-float("inf"))
+    floor = config.min_std * bound
+    for _ in range(config.iterations):  # a loop over CEM iterations
+        noise = torch.randn((config.candidates, *mean.shape), generator=generator, dtype=mean.dtype)
+        noise[0] = 0.0
+        actions = (mean + std * noise).clamp(-bound, bound)              # (N, H, A)
+        scores = score_fn(actions)                                      # (N,)
+        top = scores.topk(config.elites).indices
+        if scores[top[0]] > best_score:
+            best, best_score = actions[top[0]], scores[top[0]]
+        elite = actions[top]
+        mean, std = elite.mean(0), elite.std(0, correction=0).clamp_min(floor)
+    return best, best_score, mean, std
+
+
+def refine(loss_fn: Callable[[Tensor], Tensor], actions: Tensor, bound: float, steps: int,
+           lr: float) -> tuple[Tensor, list[float]]:
+    """Adam on an action sequence ``(H, A)`` through a differentiable ``loss_fn`` (a scalar),
+    projected into ``[-bound, bound]`` after every step. Returns the sequence of lowest loss
+    seen (the start included) and the loss of every evaluation (``steps + 1``; fewer when the
+    loss has no gradient, as when every object sleeps through the rollout)."""
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    u = actions.detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([u], lr=lr)
+    best, best_loss, losses = u.detach().clone(), float("inf"), []
+    for i in range(steps + 1):  # a loop over optimiser steps; the last one only evaluates
+        with torch.enable_grad():
+            loss = loss_fn(u)
+        value = float(loss.detach())
+        losses.append(value)
+        if value < best_loss:
+            best, best_loss = u.detach().clone(), value
+        if i == steps or not loss.requires_grad:  # no gradient (nothing moves): nothing to follow
+            break
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            u.clamp_(-bound, bound)
+    return best, losses
+
+
+class MPCPlanner:
+    """Plans an action for a state by :func:`cem` (and :func:`refine`) over the learned model.
+
+    Args:
+        dynamics: the learned physics (its model, pool masses and sleep settings).
+        config: the planner's settings; ``config.rate`` None takes ``dynamics.calibrated_rate``,
+            else the task's ``dropout_rate``.
+        seed: seeds the planner's own generator (candidates and dropout masks).
+
+    :meth:`act` keeps the last plan for the warm start; :meth:`reset` forgets it.
+    """
+
+    def __init__(self, dynamics: HRNDynamics, config: PlannerConfig, seed: int = 0) -> None:
+        self.dynamics, self.config, self.task = dynamics, config, dynamics.task
+        rate = config.rate
+        if rate is None:
+            rate = dynamics.calibrated_rate if dynamics.calibrated_rate is not None else self.task.dropout_rate
+        #: the dropout rate of the futures (0 for ``deterministic``)
+        self.rate = 0.0 if config.score == "deterministic" else float(rate)
+        if config.score != "deterministic" and self.rate == 0:
+            raise ValueError(f"score {config.score!r} needs a dropout rate above 0")
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self.reset()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(task={self.task.name!r}, rate={self.rate:g}, {self.config})"
+
+    def reset(self) -> None:
+        self._plan = torch.zeros(self.config.horizon, self.task.action_dim)
+
+    def objective(self, state: Tensor, goal: Tensor, mask_seed: int) -> ScoreFn:
+        """``actions (N, H, A) -> scores (N,)`` from ``state`` toward ``goal``; every call draws the
+        same masks (a generator seeded with ``mask_seed``), so scores of one planning step compare."""
+        cfg = self.config
+
+        def score_fn(actions: Tensor) -> Tensor:
+            generator = torch.Generator().manual_seed(mask_seed)
+            roots = rollout_futures(self.dynamics, state, actions, cfg.num_futures, self.rate, generator)
+            rewards = planning_rewards(self.task, roots, goal, cfg.reach_weight)   # (N, K, H)
+            return score_returns(discounted_returns(rewards, cfg.discount), cfg.score, cfg.risk_std)
+
+        return score_fn
+
+    def plan(self, state: Tensor, goal: Tensor) -> dict:
+        """One planning step: ``{"actions": (H, A), "score": float, "refine_losses": [...]}``."""
+        cfg, bound = self.config, self.task.max_force
+        mask_seed = int(torch.randint(2**62, (), generator=self.generator))
+        score_fn = self.objective(state, goal.reshape(2), mask_seed)
+        mean = torch.cat([self._plan[1:], self._plan[-1:]])  # warm start: the last plan, shifted
+        std = torch.full_like(mean, cfg.init_std * bound)
+        with torch.no_grad():
+            best, score, _, _ = cem(score_fn, mean, std, bound, cfg, self.generator)
+        losses: list[float] = []
+        if cfg.refine_steps > 0:
+            best, losses = refine(lambda u: -score_fn(u.unsqueeze(0))[0], best, bound,
+                                  cfg.refine_steps, cfg.refine_lr * bound)
+            score = torch.tensor(-min(losses))
+        self._plan = best.detach()
+        return {"actions": self._plan, "score": float(score), "refine_losses": losses}
+
+    def act(self, state: Tensor, goal: Tensor) -> Tensor:
+        """The first action of a fresh plan, ``(A,)``."""
+        return self.plan(state, goal)["actions"][0].clone()
+
+
+def plan_episode(planner: MPCPlanner, seed: int, goal: Tensor, pool_index: int = 0) -> dict:
+    """One closed-loop episode in the pybullet scene ``seed`` against ``goal`` ``(2,)``.
+
+    After the reset and ``HISTORY`` zero-force steps (as the learned episodes start), every control step rebuilds the
+    learned state from pybullet's last three frames of leaves (masses of pool entry
+    ``pool_index``, which must be scene ``seed``), plans, applies the first action in pybullet
+    and judges the goal there, for up to ``task.max_steps`` steps.
+
+    Returns ``success``, ``steps``, ``plan_seconds`` and ``physics_seconds`` (one per control
+    step), ``actions`` ``(T, A)``, ``roots`` ``(T + 1, O, 6)`` and the ``goal``.
+    """
+    from hrn_pyg.data.scene_file import make_scene
+
+    task, dyn = planner.task, planner.dynamics
+    if int(dyn.pool_seeds[pool_index]) != seed:
+        raise ValueError(f"pool entry {pool_index} is not pybullet scene {seed}")
+    goal = torch.as_tensor(goal, dtype=torch.float32).reshape(2)
+    planner.reset()
+    scene = make_scene(task.scene_name, seed)
+    index = torch.tensor(pool_index)
+    mass = dyn.leaf_mass[pool_index]
+    try:
+        frames = [torch.as_tensor(scene.reset(), dtype=torch.float32)]
+        for _ in range(HISTORY):  # a loop over time steps
+            frames.append(torch.as_tensor(scene.step(scene.zero_action()), dtype=torch.float32))
+
+        def roots_now() -> Tensor:  # (O, 6) from the last two frames
+            c = object_centres(torch.stack(frames[-2:]), dyn.leaf_object, task.num_objects, mass)
+            return torch.cat([c[1], c[1] - c[0]], -1)
+
+        roots, actions, plan_s, physics_s = [roots_now()], [], [], []
+        held, success = 0, False
+        for _ in range(task.max_steps):  # a loop over control steps
+            state = dyn.state_of(torch.stack(frames[-3:]), index)
+            start = time.perf_counter()
+            action = planner.act(state, goal).clamp(-task.max_force, task.max_force)
+            plan_s.append(time.perf_counter() - start)
+            forces = action_to_forces(task, action.unsqueeze(0))[0]
+            start = time.perf_counter()
+            leaves = scene.step(forces.double().numpy())
+            physics_s.append(time.perf_counter() - start)
+            frames.append(torch.as_tensor(leaves, dtype=torch.float32))
+            actions.append(action)
+            roots.append(roots_now())
+            held = goal_streak(held, bool(goal_reached(task, roots[-1], goal)))
+            if goal_held(task, held):
+                success = True
+                break
+    finally:
+        scene.close()
+    return {"success": success, "steps": len(actions), "plan_seconds": plan_s, "physics_seconds": physics_s,
+            "actions": torch.stack(actions), "roots": torch.stack(roots), "goal": goal}
+
+
+def episode_goal(task: TaskConfig, dynamics: HRNDynamics, pool_index: int, seed: int) -> Tensor:
+    """A goal ``(2,)`` for pool entry ``pool_index``, drawn by :func:`~hrn_pyg.rl.tasks.sample_goal`
+    from a generator seeded with ``seed``."""
+    state = dynamics.state_of(dynamics.pool[pool_index], torch.tensor(pool_index))
+    return sample_goal(task, dynamics.roots(state).unsqueeze(0), torch.Generator().manual_seed(seed))[0]
+
+
+def episode_figure(result: dict, task: TaskConfig, path: str | Path, title: str = "") -> None:
+    """Top view of the objects' paths with the goal disc, and planning vs pybullet time per step."""
+    from hrn_pyg.viz import pyplot, save_figure
+
+    plt = pyplot()
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 4.5))
+    roots = result["roots"].numpy()
+    for o in range(task.num_objects):
+        kind = "pushed" if o in task.controlled_objects else "goal" if o in task.goal_objects else "object"
+        ax.plot(roots[:, o, 0], roots[:, o, 1], "-o", ms=2, label=f"object {o} ({kind})")
+    goal = result["goal"].numpy()
+    ax.add_patch(plt.Circle(goal, task.goal_radius, color="g", alpha=0.3, label="goal"))
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=7)
+    ax.set_title(f"{'success' if result['success'] else 'failure'} in {result['steps']} steps")
+    steps = range(1, result["steps"] + 1)
+    bx.semilogy(steps, result["plan_seconds"], "-o", ms=3, label="planning")
+    bx.semilogy(steps, result["physics_seconds"], "-o", ms=3, label="pybullet step")
+    bx.set_xlabel("control step")
+    bx.set_ylabel("seconds")
+    bx.legend()
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    defaults = PlannerConfig()
+    parser.add_argument("--task", required=True, choices=sorted(TASKS), help="an RL task's name")
+    parser.add_argument("--model", required=True,
+                        help="a model checkpoint: a path or a shipped model's name")
+    parser.add_argument("--score", choices=SCORES, default=defaults.score, help="how a candidate is scored")
+    parser.add_argument("--refine", action="store_true", help="gradient refinement of each plan")
+    parser.add_argument("--refine-steps", type=int, default=3, help="Adam steps of --refine")
+    parser.add_argument("--candidates", type=int, default=defaults.candidates, help="CEM candidates N")
+    parser.add_argument("--elites", type=int, default=defaults.elites, help="CEM elites E")
+    parser.add_argument("--iterations", type=int, default=defaults.iterations, help="CEM iterations")
+    parser.add_argument("--horizon", type=int, default=defaults.horizon, help="model steps predicted from a start")
+    parser.add_argument("--k", type=int, default=defaults.futures, help="sampled futures per start")
+    parser.add_argument("--rate", type=float, default=None,
+                        help="dropout rate of the futures (default: the model's calibrated rate, else the task's)")
+    parser.add_argument("--risk-std", type=float, default=defaults.risk_std, help="c of the risk score")
+    parser.add_argument("--control-steps", type=int, default=None,
+                        help="stop after this many control steps (default: the task's limit)")
+    parser.add_argument("--episode-seed", type=int, default=10_000, help="the pybullet episode simulated")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the planner's candidates and masks")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--out", default="runs/plan/episode.png", help="the picture (PNG)")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = PlannerConfig(score=args.score, candidates=args.candidates, elites=args.elites,
+                           iterations=args.iterations, horizon=args.horizon, futures=args.k,
+                           rate=args.rate, risk_std=args.risk_std,
+                           refine_steps=args.refine_steps if args.refine else 0)
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    if args.control_steps is not None and args.control_steps < 1:
+        raise ValueError(f"--control-steps must be >= 1, got {args.control_steps}")
+    task = get_task(args.task)
+    if args.control_steps is not None:
+        task = replace(task, max_steps=min(args.control_steps, task.max_steps),
+                       hold_steps=min(task.hold_steps, args.control_steps))
+    torch.set_num_threads(args.threads)
+    dynamics = HRNDynamics.from_checkpoint(args.model, task, pool_seeds=(args.episode_seed,))
+    planner = MPCPlanner(dynamics, config, seed=args.seed)
+    goal = episode_goal(task, dynamics, 0, args.episode_seed)
+    result = plan_episode(planner, args.episode_seed, goal)
+    plan_s, physics_s = result["plan_seconds"], result["physics_seconds"]
+    print(f"{task.name}: {'success' if result['success'] else 'failure'} after {result['steps']} steps "
+          f"(score {config.score}{', refined' if config.refine_steps else ''}, rate {planner.rate:g})")
+    print(f"planning per control step: {sum(plan_s) / len(plan_s):.3f} s "
+          f"(max {max(plan_s):.3f} s); pybullet step: {sum(physics_s) / len(physics_s) * 1e3:.2f} ms")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    episode_figure(result, task, out, title=f"{task.name}, model {args.model}, score {config.score}"
+                   f"{' + refine' if config.refine_steps else ''}, N={config.candidates}, "
+                   f"H={config.horizon}, K={config.num_futures}, rate {planner.rate:g}")
+    print(f"picture: {out}")
+    return 0
+

@@ -1,0 +1,63 @@
+"""The planning sweep resumes where it stopped and refuses other settings; the summary's
+statistics on hand-made episodes."""
+
+import json
+
+import pytest
+
+from experiments.planning import summary as summary_mod
+from experiments.planning import sweep
+from hrn_pyg.rl.hrn_dynamics import HRNDynamics
+from hrn_pyg.rl.planning import PlannerConfig
+
+TINY = ["--task", "cube_push_stop", "--model", "cube_push", "--num-scenes", "1", "--num-seeds", "1",
+        "--modes", "deterministic", "--candidates", "2", "--elites", "1", "--iterations", "1",
+        "--horizon", "1", "--k", "2"]
+
+
+@pytest.fixture
+def one_scene_pool(monkeypatch):
+    """The sweep's dynamics on a pool of one pybullet scene (the fixed scenes then differ by goal)."""
+    original = HRNDynamics.from_checkpoint.__func__
+
+    def small(cls, path, task, *args, **kwargs):
+        return original(cls, path, task, pool_seeds=(10_000,))
+
+    monkeypatch.setattr(HRNDynamics, "from_checkpoint", classmethod(small))
+
+
+def test_sweep_writes_one_line_per_episode_and_skips_them_on_a_rerun(tmp_path, one_scene_pool):
+    out = tmp_path / "sweep"
+    assert sweep.main(TINY + ["--out", str(out)]) == 0
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    assert len(lines) == 1
+    episode = json.loads(lines[0])
+    assert episode["mode"] == "deterministic" and episode["scene_seed"] == 10_000 and episode["steps"] >= 1
+    assert sweep.main(TINY + ["--out", str(out)]) == 0                 # nothing left to do
+    assert (out / "episodes.jsonl").read_text().splitlines() == lines
+    assert sweep.main(TINY[:-2] + ["--k", "3", "--out", str(out)]) == 2  # other settings: refused
+
+
+def test_mode_config_and_bad_modes():
+    base = PlannerConfig(refine_steps=3)
+    assert sweep.mode_config(base, "deterministic_refine").refine_steps == 3
+    assert sweep.mode_config(base, "risk") == PlannerConfig(score="risk", refine_steps=0)
+    with pytest.raises(ValueError, match="mode"):
+        sweep.mode_config(base, "optimistic")
+
+
+def test_summary_by_hand(tmp_path):
+    episodes = []
+    for seed in range(4):
+        for scene in range(2):
+            episodes.append({"mode": "deterministic", "seed": seed, "scene": scene, "success": scene == 0,
+                             "steps": 5, "plan_seconds": 0.1, "physics_seconds": 0.001})
+            episodes.append({"mode": "mean", "seed": seed, "scene": scene, "success": True,
+                             "steps": 4, "plan_seconds": 0.4, "physics_seconds": 0.001})
+    out = summary_mod.summarise(episodes, "cube_push_stop", tmp_path / "missing.json")
+    det, mean = out["modes"]["deterministic"], out["modes"]["mean"]
+    assert det["success_rate"]["value"] == 0.5 and mean["success_rate"]["value"] == 1.0
+    assert det["steps"]["value"] == (5 + 20) / 2                      # a failure counts the step limit
+    assert mean["versus_deterministic"]["success_rate"]["value"] == 1.0
+    assert mean["versus_deterministic"]["plan_seconds"]["value"] == 0.0  # slower: never better
+    assert "versus_deterministic" not in det and "ppo" not in out
