@@ -2,7 +2,9 @@
 checked to leave every model's predictions as they were (to rounding).
 
 ``python tests/sim/reference_rollouts.py --write`` remakes ``reference_rollouts.npz`` (only
-when the predictions are *meant* to change); ``tests/sim/test_reference_rollouts.py`` compares.
+when the predictions are *meant* to change); ``--add NAME[,NAME]`` adds the rollouts of newly
+shipped checkpoints from the stored start states and keeps every other array as it is;
+``tests/sim/test_reference_rollouts.py`` compares.
 The start states are stored with the file (pybullet is not rerun), so the comparison is of the
 model code alone.
 """
@@ -28,6 +30,7 @@ SCENE_OF = {
     "cube_collision_hrn": "cube_collision", "cube_push": "cube_push", "multi_material": "multi_material",
     "soft_bounce": "soft_bounce", "soft_bounce_fine": "soft_bounce", "soft_bounce_hrn": "soft_bounce",
     "tower": "tower", "wedge": "wedge", "shapes": "data/shapes/shapes_drop.toml",
+    "gns_cube_collision": "cube_collision", "gns_soft_bounce": "soft_bounce",
 }
 #: shipped files that are not dynamics models (they have no rollout to keep)
 NOT_MODELS = ("cube_push_policy",)
@@ -73,11 +76,15 @@ def push(graph, steps: int) -> torch.Tensor:
     return force
 
 
-def compute(episode_arrays: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Every reference rollout, keyed ``<checkpoint>/<kind>``."""
+def compute(episode_arrays: dict[str, dict[str, np.ndarray]], names: tuple[str, ...] | None = None,
+            rl: bool = True) -> dict[str, np.ndarray]:
+    """Every reference rollout (of ``names`` only, when given; the RL ones with ``rl``), keyed
+    ``<checkpoint>/<kind>``."""
     torch.set_num_threads(1)
     out: dict[str, np.ndarray] = {}
     for name, scene in SCENE_OF.items():
+        if names is not None and name not in names:
+            continue
         model = load_model(CHECKPOINT_DIR / f"{name}.pt")
         ep = episode_arrays[scene_key(scene)]
         with torch.no_grad():
@@ -93,7 +100,7 @@ def compute(episode_arrays: dict[str, dict[str, np.ndarray]]) -> dict[str, np.nd
                     g = torch.Generator().manual_seed(3)
                     out[f"{key}/sample"] = hrn_pyg.sample(model, state, k=3, steps=STEPS, rate=rate,
                                                           forces=forces, generator=g).numpy()
-    for name, task in RL_TASKS.items():
+    for name, task in RL_TASKS.items() if rl else ():
         from hrn_pyg.rl.hrn_dynamics import HRNDynamics
 
         dyn = HRNDynamics(load_model(CHECKPOINT_DIR / f"{name}.pt"), task, pool_seeds=RL_POOL)
@@ -130,6 +137,22 @@ def write() -> None:
     print(f"wrote {FILE} ({FILE.stat().st_size / 1e6:.2f} MB, {len(arrays)} arrays)")
 
 
+def add(names: tuple[str, ...]) -> None:
+    """Add the reference rollouts of ``names`` (in :data:`SCENE_OF`) from the stored start states,
+    keeping every other array of the file."""
+    unknown = sorted(set(names) - set(SCENE_OF))
+    if unknown:
+        raise SystemExit(f"--add: {unknown} are not in SCENE_OF")
+    arrays = read()
+    arrays.update(compute(stored_episodes(arrays), names, rl=False))
+    digests = checkpoint_digests()
+    arrays.update({f"digest/{k}": np.array(digests[k]) for k in names})
+    tmp = FILE.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(FILE)
+    print(f"added {', '.join(names)} to {FILE} ({FILE.stat().st_size / 1e6:.2f} MB, {len(arrays)} arrays)")
+
+
 def read() -> dict[str, np.ndarray]:
     with np.load(FILE, allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
@@ -147,5 +170,9 @@ def stored_episodes(arrays: dict[str, np.ndarray]) -> dict[str, dict[str, np.nda
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--write", action="store_true", help="remake the reference file")
-    if parser.parse_args().write:
+    parser.add_argument("--add", default="", help="NAME[,NAME]: add these models' rollouts, keep the rest")
+    args = parser.parse_args()
+    if args.write:
         write()
+    elif args.add:
+        add(tuple(n for n in args.add.split(",") if n))
