@@ -30,7 +30,6 @@ SCENE_OF = {
     "cube_collision_hrn": "cube_collision", "cube_push": "cube_push", "multi_material": "multi_material",
     "soft_bounce": "soft_bounce", "soft_bounce_fine": "soft_bounce", "soft_bounce_hrn": "soft_bounce",
     "tower": "tower", "wedge": "wedge", "shapes": "data/shapes/shapes_drop.toml",
-    "gns_cube_collision": "cube_collision", "gns_soft_bounce": "soft_bounce",
 }
 #: shipped files that are not dynamics models (they have no rollout to keep)
 NOT_MODELS = ("cube_push_policy",)
