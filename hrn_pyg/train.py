@@ -67,6 +67,7 @@ from hrn_pyg.nn.gns import NOISE_TO_VELOCITY_STD, GNS, GNSConfig, fit_accelerati
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.networks import Network, NetworkConfig, build_network, network_from_dict
 from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
+from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware
 from hrn_pyg.nn.state import to_local_velocity
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.step import root_of
@@ -292,7 +293,6 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     if "pos_seq" not in store or store.pos_seq.size(1) < seq_len + 3:
         have = store.pos_seq.size(1) - 3 if "pos_seq" in store else 0
         raise ValueError(f"window holds {have} future steps, the unroll needs {seq_len}")
-    radius = model.config.collision_radius
     seq, forces = store.pos_seq, store.force_seq
     inputs = seq[:, :3]
     if config.input_noise > 0:
@@ -306,6 +306,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         store = window[NODE]
         seq, forces = store.pos_seq, store.force_seq
         inputs = inputs.repeat(n_samples, 1, 1)
+    radius = collision_radius_of(model.config, window)  # one per window when their pitches differ
     graph = set_state(window, inputs[:, 0], inputs[:, 1], inputs[:, 2], radius=radius)
     norm = model.normalizer
     vel_scale = norm.velocity_std
@@ -506,7 +507,7 @@ def model_payload(model: HRN, config: TrainConfig, step: int) -> dict[str, Any]:
         "config": json.dumps({"model": model.config.to_dict(), "train": asdict(config)}),
         "step": step,
     }
-    domain = training_domain(tuple(config.data_folders), config.init_from or "")
+    domain = training_domain(tuple(config.data_folders), config.init_from or "", pitch_range=is_pitch_aware(model.config))
     if domain is not None:
         payload["domain"] = json.dumps(domain.to_dict())
     return payload
@@ -608,7 +609,8 @@ def _fit_to_training_windows(model: Network, train_set: EpisodeWindows, seed: in
     :data:`NORMALIZER_WINDOWS` training windows drawn by ``seed``."""
     picks = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(seed))
     windows = [train_set[int(i)] for i in picks[:NORMALIZER_WINDOWS]]
-    fit_normalizer(windows, model.normalizer)
+    reference = model.config.reference_pitch if is_pitch_aware(model.config) else None
+    fit_normalizer(windows, model.normalizer, reference_pitch=reference)
     if isinstance(model, GNS):
         fit_acceleration(windows, model)
 

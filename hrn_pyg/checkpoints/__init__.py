@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from hrn_pyg.checkpoints.domain import Domain, dataset_domain
+from hrn_pyg.checkpoints.domain import Domain, dataset_domain, with_pitch_range
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.networks import applied_options, network_from_dict
 from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
@@ -161,10 +161,12 @@ def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = Non
 
 
 @lru_cache(maxsize=8)
-def training_domain(folders: tuple[str, ...], init_from: str = "") -> Domain | None:
+def training_domain(folders: tuple[str, ...], init_from: str = "", pitch_range: bool = False) -> Domain | None:
     """The domain a training on the dataset ``folders`` gives its model, with that of the
     ``init_from`` checkpoint it starts from (when that records one); None when a folder has no
-    episodes. Read once per arguments (a run writes many checkpoints)."""
+    episodes. ``pitch_range`` (a pitch-aware model): the domain also records the span of its
+    pitches (:attr:`~hrn_pyg.checkpoints.domain.Domain.pitch_range`), so any pitch between them
+    is inside. Read once per arguments (a run writes many checkpoints)."""
     try:
         domain = dataset_domain(list(folders))
     except FileNotFoundError:
@@ -176,7 +178,7 @@ def training_domain(folders: tuple[str, ...], init_from: str = "") -> Domain | N
             prior = None
         if prior is not None:
             domain = prior.merge(domain)
-    return domain
+    return with_pitch_range(domain) if pitch_range else domain
 
 
 def read_manifest(path: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:

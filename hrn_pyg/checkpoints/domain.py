@@ -1,6 +1,7 @@
 """What a model was trained on, and what of a scene lies outside it.
 
-A :class:`Domain` summarises episodes: the voxel pitches (m), the materials, the range of an
+A :class:`Domain` summarises episodes: the voxel pitches (m) (and, for a pitch-aware model,
+their span), the materials, the range of an
 object's size (m across: the largest distance between two of its leaves at the start, plus one
 pitch; the same whatever the object's orientation),
 the range of moving objects per scene (objects that are not ``static``) and the fastest leaf
@@ -12,7 +13,8 @@ domain of its datasets in each checkpoint it writes; the shipped checkpoints car
 :func:`outside` lists what of a scene's domain lies outside a model's and by how much, each as a
 :class:`Outside`; :func:`outside_line` makes that one line, e.g. ``shapes.pt was trained at
 pitch 0.05 m; this scene's pitch is 0.025 m (0.5x)``. A scene is inside when its pitch is one
-the model saw (within :data:`PITCH_TOLERANCE`), its materials are among the model's, its object
+the model saw (within :data:`PITCH_TOLERANCE`; for a domain with a ``pitch_range``, a
+pitch-aware model's, any pitch in that range widened by the tolerance), its materials are among the model's, its object
 count within the model's range, its object sizes within the model's range widened by
 :data:`SIZE_TOLERANCE` and its fastest leaf no faster than :data:`SPEED_TOLERANCE` times the
 model's. A field a domain does not know (None, or empty) is not compared.
@@ -20,17 +22,17 @@ model's. A field a domain does not know (None, or empty) is not compared.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hrn_pyg.data.graph import MATERIALS, STATIC
+from hrn_pyg.data.io import episode_pitch
 
 #: a scene's pitch differing from each of the model's by more than this fraction is outside
 PITCH_TOLERANCE = 0.01
@@ -64,9 +66,14 @@ class Domain:
     episodes: int = 0
     #: the datasets or scenes measured
     sources: tuple[str, ...] = field(default=())
+    #: (finest, coarsest) pitch in m of a pitch-aware model, which covers every pitch between;
+    #: None: only the pitches listed
+    pitch_range: tuple[float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, as stored in a checkpoint (``domain``) and in ``manifest.json``."""
+        """JSON-ready, as stored in a checkpoint (``domain``) and in ``manifest.json``
+        (``pitch_range`` only when there is one)."""
+        extra = {} if self.pitch_range is None else {"pitch_range": list(self.pitch_range)}
         return {
             "pitches": list(self.pitches),
             "materials": list(self.materials),
@@ -75,6 +82,7 @@ class Domain:
             "speed": None if self.speed is None else _round(self.speed),
             "episodes": self.episodes,
             "sources": list(self.sources),
+            **extra,
         }
 
     @classmethod
@@ -90,7 +98,7 @@ class Domain:
             bad = sorted(set(materials) - set(MATERIALS))
             if bad:
                 raise ValueError(f"unknown materials {bad}")
-            size, count = raw.get("object_size"), raw.get("objects")
+            size, count, span = raw.get("object_size"), raw.get("objects"), raw.get("pitch_range")
             return cls(
                 pitches=tuple(float(p) for p in raw.get("pitches") or ()),
                 materials=materials,
@@ -99,6 +107,7 @@ class Domain:
                 speed=None if raw.get("speed") is None else float(raw["speed"]),
                 episodes=int(raw.get("episodes") or 0),
                 sources=tuple(str(s) for s in raw.get("sources") or ()),
+                pitch_range=None if span is None else (float(span[0]), float(span[1])),
             )
         except (TypeError, IndexError, ValueError) as exc:
             raise ValueError(f"domain: malformed ({exc})") from None
@@ -113,6 +122,7 @@ class Domain:
             speed=_largest(self.speed, other.speed),
             episodes=self.episodes + other.episodes,
             sources=tuple(dict.fromkeys((*self.sources, *other.sources))),
+            pitch_range=_span(self.pitch_range, other.pitch_range),
         )
 
 
@@ -124,6 +134,15 @@ class Outside:
     field: str
     trained: str
     scene: str
+
+
+def with_pitch_range(domain: Domain) -> Domain:
+    """``domain`` with ``pitch_range`` spanning its pitches (and its own range, if any): the
+    domain of a pitch-aware model, which covers every pitch between its finest and coarsest."""
+    values = [*domain.pitches, *(domain.pitch_range or ())]
+    if not values:
+        return domain
+    return replace(domain, pitch_range=(min(values), max(values)))
 
 
 def merge_all(domains: Iterable[Domain]) -> Domain:
@@ -172,15 +191,6 @@ def leaf_diameter(points: np.ndarray) -> float:
     return float(pdist(points).max()) if len(points) > 1 else 0.0
 
 
-def episode_pitch(episode: Mapping[str, Any]) -> float | None:
-    """The voxel pitch an episode was made at (its ``params`` JSON's ``config.pitch``), or None."""
-    try:
-        pitch = json.loads(str(episode["params"]))["config"]["pitch"]
-    except (KeyError, TypeError, ValueError):
-        return None
-    return float(pitch) if pitch else None
-
-
 def episode_domain(episode: Mapping[str, Any], source: str = "") -> Domain:
     """The domain of an episode dict (:func:`hrn_pyg.data.episodes.simulate_episode`'s keys)."""
     dt = float(episode["dt"]) if "dt" in episode else None
@@ -216,7 +226,16 @@ def dataset_domain(folders: str | Path | Sequence[str | Path], limit: int | None
 def outside(model: Domain, scene: Domain) -> list[Outside]:
     """What of ``scene`` lies outside ``model``, by how much; empty when it is all inside."""
     found: list[Outside] = []
-    if model.pitches and scene.pitches:
+    if model.pitch_range and scene.pitches:
+        low, high = model.pitch_range
+        unseen = [p for p in scene.pitches
+                  if p < low * (1 - PITCH_TOLERANCE) or p > high * (1 + PITCH_TOLERANCE)]
+        if unseen:
+            near = low if unseen[0] < low else high
+            found.append(Outside("pitch", f"at pitches {low:g}-{high:g} m",
+                                 f"this scene's pitch is {_m(unseen)} ({unseen[0] / near:.2g}x the "
+                                 f"{'finest' if near == low else 'coarsest'})"))
+    elif model.pitches and scene.pitches:
         unseen = [p for p in scene.pitches
                   if all(abs(p - q) > PITCH_TOLERANCE * q for q in model.pitches)]
         if unseen:

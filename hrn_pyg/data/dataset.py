@@ -9,7 +9,8 @@ state at ``t`` (:func:`hrn_pyg.data.graph.set_state`), and for every node
 * ``pos_seq (N, T+3, 3)``: ``x_{t-2} .. x_{t+T}`` (ancestors: mass-weighted leaf means),
 * ``force_seq (N, T, 3)``: the forces of steps ``t .. t+T-1`` (zero on ancestors),
 
-plus graph-level ``episode_seed (1,)`` and ``start_step (1,)``. Nothing is processed to disk:
+plus graph-level ``episode_seed (1,)``, ``start_step (1,)`` and ``pitch (1,)`` (the voxel pitch
+the episode was made at, from its ``params``). Nothing is processed to disk:
 episodes are read lazily (npz, ``allow_pickle=False``) and a few decoded episodes are kept in
 memory. Splits are disjoint by seed: ``seed % 10 == 9`` test, ``== 8`` val, the rest train.
 """
@@ -34,7 +35,7 @@ from hrn_pyg.data.graph import (
     leaf_to_ancestor_mean,
     set_state,
 )
-from hrn_pyg.data.io import load_episode
+from hrn_pyg.data.io import episode_pitch, load_episode
 
 SPLITS = ("train", "val", "test")
 #: every episode of a folder, for scoring a dataset that is not split by seed (a scene file's)
@@ -64,9 +65,10 @@ def split_of_seed(seed: int) -> str:
 
 
 def read_episode(path: str | Path) -> dict[str, np.ndarray]:
-    """The arrays of one episode file (the keys in :data:`EPISODE_KEYS`), validated, no pickle."""
+    """The arrays of one episode file (the keys in :data:`EPISODE_KEYS`, and ``params``, the
+    JSON record its pitch is read from), validated, no pickle."""
     episode = load_episode(path)
-    return {key: np.asarray(episode[key]) for key in EPISODE_KEYS}
+    return {key: np.asarray(episode[key]) for key in (*EPISODE_KEYS, "params")}
 
 
 def episode_steps(path: Path) -> int:
@@ -111,6 +113,10 @@ class EpisodeWindows(Dataset):
             up to 6 for recurrent training).
         collision_radius: ``r_c`` for the window's ``collision`` edges at step ``t``; None
             leaves them empty (the trainer recomputes them at every unrolled step anyway).
+        reference_pitch: with it, the collision radius scales with each episode's pitch
+            :math:`p`: a window's edges are those of radius :math:`r_c p / p_{ref}` (a
+            pitch-aware model's, :func:`hrn_pyg.nn.pitch.collision_radius_of`); None: ``r_c``
+            for every episode.
         cache_episodes: how many decoded episodes to keep in memory (per worker process).
         transform: PyG transform applied to each window.
 
@@ -128,6 +134,7 @@ class EpisodeWindows(Dataset):
         collision_radius: float | None = None,
         cache_episodes: int = 4,
         transform: Callable[[HeteroData], HeteroData] | None = None,
+        reference_pitch: float | None = None,
     ) -> None:
         if split not in SPLITS + (ALL,):
             raise ValueError(f"split must be one of {SPLITS + (ALL,)}, got {split!r}")
@@ -137,6 +144,8 @@ class EpisodeWindows(Dataset):
             raise ValueError(f"collision_radius must be >= 0, got {collision_radius}")
         if int(cache_episodes) < 1:
             raise ValueError(f"cache_episodes must be >= 1, got {cache_episodes}")
+        if reference_pitch is not None and not 0 < float(reference_pitch) < float("inf"):
+            raise ValueError(f"reference_pitch must be a finite number > 0, got {reference_pitch}")
         folders = [Path(root)] if isinstance(root, (str, Path)) else [Path(r) for r in root]
         if not folders:
             raise ValueError("no episode folder given")
@@ -147,6 +156,7 @@ class EpisodeWindows(Dataset):
         self.horizon = int(horizon)
         self.collision_radius = None if collision_radius is None else float(collision_radius)
         self.cache_episodes = int(cache_episodes)
+        self.reference_pitch = None if reference_pitch is None else float(reference_pitch)
 
         found = []
         for folder in folders:
@@ -176,6 +186,7 @@ class EpisodeWindows(Dataset):
 
         self._episodes: OrderedDict[int, dict[str, Tensor]] = OrderedDict()
         self._structures: dict[int, HeteroData] = {}
+        self._pitches: dict[int, float | None] = {}
         super().__init__(root=str(folders[0]), transform=transform, log=False)
 
     @property
@@ -197,7 +208,8 @@ class EpisodeWindows(Dataset):
         path = self.paths[index]
         arrays = read_episode(path)
         _check_episode(path, arrays)
-        episode = {key: torch.from_numpy(np.ascontiguousarray(value)) for key, value in arrays.items()}
+        self._pitches[index] = episode_pitch(arrays)
+        episode = {key: torch.from_numpy(np.ascontiguousarray(arrays[key])) for key in EPISODE_KEYS}
         self._episodes[index] = episode
         if len(self._episodes) > self.cache_episodes:
             self._episodes.popitem(last=False)
@@ -214,8 +226,27 @@ class EpisodeWindows(Dataset):
                 ep["object_material"].long(),
                 ep["object_stiffness"].float(),
                 rest_pos=ep["positions"][0].float(),
+                pitch=self._pitches[index],
             )
         return self._structures[index]
+
+    def pitch(self, index: int) -> float | None:
+        """The voxel pitch (m) episode ``index`` was made at (None when its ``params`` lack it)."""
+        if index not in self._pitches:
+            self._episode(index)
+        return self._pitches[index]
+
+    def window_radius(self, index: int) -> float | None:
+        """The collision radius of the windows of episode ``index``: ``collision_radius``, scaled
+        by the episode's pitch over ``reference_pitch`` when that is given."""
+        radius = self.collision_radius
+        if radius is None or self.reference_pitch is None:
+            return radius
+        pitch = self.pitch(index)
+        if pitch is None:
+            raise ValueError(f"{self.paths[index]}: its params record no pitch, which a radius that "
+                             "scales with the pitch needs")
+        return radius * pitch / self.reference_pitch
 
     def get(self, idx: int) -> HeteroData:
         index, t = int(self._window_episode[idx]), int(self._window_start[idx])
@@ -234,7 +265,7 @@ class EpisodeWindows(Dataset):
             pos_seq[0],
             pos_seq[1],
             pos_seq[2],
-            radius=self.collision_radius,
+            radius=self.window_radius(index),
             force=force_seq[0],
         )
         window[NODE].pos_seq = pos_seq.transpose(0, 1).contiguous()

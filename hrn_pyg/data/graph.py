@@ -7,6 +7,10 @@ dynamic part (``pos``, ``prev_pos``, ``prev_prev_pos``, ``force`` and the ``coll
 is filled by :func:`set_state` at every step. Ancestor states are always derived from the
 leaves with :func:`leaf_to_ancestor_mean`. :func:`replicate` makes K copies of a scene as one
 batched graph; every function here works on batched graphs as well as single scenes.
+
+A graph built from an episode or a scene also carries its voxel pitch (metres) as the
+graph-level ``pitch`` ``(1,)`` float64; batching gives one value per graph, and
+:func:`node_pitch` gives every node the pitch of its own graph.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ ANCESTOR_TO_DESCENDANT = (NODE, "ancestor_to_descendant", NODE)
 EDGE_TYPES = (CHILD_TO_PARENT, COLLISION, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
 #: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
 HISTORY = 2
+#: The graph-level attribute holding the voxel pitch (m) the scene was made at, ``(B,)`` float64.
+PITCH = "pitch"
 
 
 def _sort_edges(src: Tensor, dst: Tensor, num_nodes: int) -> Tensor:
@@ -127,6 +133,7 @@ def build_structure(
     object_material: Tensor,
     object_stiffness: Tensor,
     rest_pos: Tensor | None = None,
+    pitch: float | None = None,
 ) -> HeteroData:
     r"""Static part of the scene graph: node attributes and the hierarchy's edge sets.
 
@@ -152,11 +159,13 @@ def build_structure(
         object_stiffness: stiffness of each object.
         rest_pos: leaf positions of the rest shape (e.g. an episode's first state); stored as
             ``rest_pos (N, 3)`` with ancestors derived, for models with ``rest_offsets``.
+        pitch: the voxel pitch (m) the scene's leaves were made at; stored as the graph-level
+            ``pitch (1,)`` float64 (:data:`PITCH`), read by pitch-aware models.
 
     Returns:
         HeteroData with ``graph['particle']``: ``mass (N,1)``, ``material (N,4)`` one-hot,
         ``stiffness (N,1)``, ``object (N,)``, ``depth (N,)``, ``is_leaf``, ``is_root``,
-        ``is_static`` ``(N,)`` bool, and the five edge types.
+        ``is_static`` ``(N,)`` bool, and the five edge types; ``graph.pitch`` with ``pitch``.
 
     **Shapes**: parent ``(N,)``, leaf_mass ``(L,)``, leaf_object ``(L,)``,
     object_material ``(O,)``, object_stiffness ``(O,)``.
@@ -212,7 +221,47 @@ def build_structure(
         if rest_pos.shape != (n_leaves, 3) or not bool(torch.isfinite(rest_pos).all()):
             raise ValueError(f"rest_pos must be finite with shape [{n_leaves}, 3], got {list(rest_pos.shape)}")
         store.rest_pos = leaf_to_ancestor_mean(_to_nodes("rest_pos", rest_pos.to(device=device, dtype=dtype), graph), graph)
+    if pitch is not None:
+        set_pitch(graph, pitch)
     return graph
+
+
+def set_pitch(graph: HeteroData, pitch: float) -> HeteroData:
+    """Record the voxel pitch (m, finite and > 0) of a one-scene graph as ``graph.pitch``
+    ``(1,)`` float64, in place; returns ``graph``."""
+    value = float(pitch)
+    if not 0.0 < value < float("inf"):
+        raise ValueError(f"pitch must be a finite number > 0 (metres), got {pitch}")
+    device = graph[NODE].is_leaf.device if "is_leaf" in graph[NODE] else None
+    setattr(graph, PITCH, torch.tensor([value], dtype=torch.float64, device=device))
+    return graph
+
+
+def graph_pitch(graph: HeteroData) -> Tensor | None:
+    """The voxel pitch of each graph of a (batched) graph, ``(B,)`` float64 (metres), or None
+    when the graph carries none."""
+    return getattr(graph, PITCH) if PITCH in graph else None
+
+
+def node_pitch(graph: HeteroData) -> Tensor:
+    r"""The voxel pitch of every node's own graph, ``(N,)`` float64 (metres):
+    :math:`p_{b(i)}`, with :math:`b(i)` the node's batch copy (``graph['particle'].batch``; all
+    nodes share the one value of an unbatched graph). Raises ValueError when the graph carries
+    no pitch (:func:`set_pitch`).
+
+    **Shapes**: ``pitch (B,)``, ``batch (N,)`` -> ``(N,)``.
+    """
+    pitch = graph_pitch(graph)
+    if pitch is None:
+        raise ValueError("the graph carries no voxel pitch (graph.pitch): build it with "
+                         "build_structure(..., pitch=...) or set_pitch")
+    store = graph[NODE]
+    n = store.num_nodes
+    if pitch.numel() == 1:
+        return pitch.reshape(1).expand(n)
+    if "batch" not in store:
+        raise ValueError(f"graph.pitch holds {pitch.numel()} values but the nodes have no batch vector")
+    return pitch.index_select(0, store.batch)
 
 
 def object_span(leaf_object: Tensor) -> int:
@@ -292,7 +341,7 @@ def set_state(
     prev_pos: Tensor,
     pos: Tensor,
     *,
-    radius: float | None,
+    radius: float | Tensor | None,
     force: Tensor | None = None,
 ) -> HeteroData:
     r"""A shallow copy of ``graph`` carrying the state ``x_{t-2}, x_{t-1}, x_t`` and its collisions.
@@ -302,7 +351,8 @@ def set_state(
     with :func:`leaf_to_ancestor_mean`; ``force`` is kept on leaves and zero on ancestors.
     ``collision`` edges are :func:`hrn_pyg.data.radius.collision_edges` of the leaves at ``x_t``,
     grouped by ``graph['particle'].batch`` when present (so copies never collide), mapped to
-    node indices. ``radius=None`` leaves the collision set empty. The input graph is not
+    node indices. ``radius=None`` leaves the collision set empty; a tensor ``(B,)`` is one
+    radius per graph of a batch (:func:`leaf_collision_edges`). The input graph is not
     modified; its static tensors are shared, not copied.
 
     **Shapes**: positions and force ``(N, 3)`` or ``(L, 3)``; sets ``pos``, ``prev_pos``,
@@ -325,19 +375,37 @@ def set_state(
     return out
 
 
-def leaf_collision_edges(graph: HeteroData, pos: Tensor, radius: float | None) -> Tensor:
+def leaf_collision_edges(graph: HeteroData, pos: Tensor, radius: float | Tensor | None) -> Tensor:
     """Collision edges (node indices) of the leaves of ``graph`` at positions ``pos`` ``[N, 3]``
     (:func:`hrn_pyg.data.radius.collision_edges`), grouped by ``graph['particle'].batch`` when
     present so copies never collide; none when ``radius`` is None or 0.
 
-    **Shapes**: pos ``(N, 3)``; returns ``(2, |E_C|)``.
+    ``radius`` is one number for every graph, or a tensor ``(B,)`` with the radius of each
+    graph of a batch (scenes at different pitches: :func:`hrn_pyg.nn.pitch.collision_radius_of`);
+    each graph then gets exactly the edges of a search at its own radius.
+
+    **Shapes**: pos ``(N, 3)``, radius ``(B,)`` or a number; returns ``(2, |E_C|)``.
     """
     store = graph[NODE]
-    if radius is None or radius <= 0:
+    if radius is None or (not isinstance(radius, Tensor) and radius <= 0):
         return torch.empty(2, 0, dtype=torch.long, device=pos.device)
     leaf_index = torch.nonzero(store.is_leaf).flatten()
     batch = store.batch[leaf_index] if "batch" in store else None
+    if isinstance(radius, Tensor):
+        radius = per_node_radius(graph, radius).index_select(0, leaf_index)
     return leaf_index[collision_edges(pos[leaf_index], store.object[leaf_index], radius, batch)]
+
+
+def per_node_radius(graph: HeteroData, radius: Tensor) -> Tensor:
+    """Every node's radius ``(N,)`` from one radius per graph ``(B,)`` (a single value is every
+    node's), looked up by ``graph['particle'].batch``."""
+    store = graph[NODE]
+    radius = radius.reshape(-1)
+    if radius.numel() == 1:
+        return radius.expand(store.num_nodes)
+    if "batch" not in store:
+        raise ValueError(f"{radius.numel()} radii given for a graph without a batch vector")
+    return radius.index_select(0, store.batch)
 
 
 def replicate(graph: HeteroData, k: int) -> HeteroData:

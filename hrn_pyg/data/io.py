@@ -8,8 +8,11 @@ table of ``docs/architecture.md``.
 from __future__ import annotations
 
 import io
+import json
 import os
 import zipfile
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -71,6 +74,16 @@ def validate_episode(episode: dict[str, np.ndarray]) -> None:
     parent = episode["hierarchy_parent"]
     if len(parent) < leaves or np.any((parent < -1) | (parent >= len(parent))):
         raise ValueError("episode['hierarchy_parent']: must have N >= L entries in -1..N-1")
+
+
+def episode_pitch(episode: Mapping[str, Any]) -> float | None:
+    """The voxel pitch (m) an episode was made at: its ``params`` JSON's ``config.pitch``
+    (every episode ``hrn-pyg generate`` writes records it), or None when it has none."""
+    try:
+        pitch = json.loads(str(episode["params"]))["config"]["pitch"]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return float(pitch) if pitch else None
 
 
 def save_episode(path: str | os.PathLike, episode: dict[str, np.ndarray]) -> None:

@@ -16,6 +16,11 @@ tests every pair (:func:`dense_collision_edges`); above, it uses a uniform cell 
    a dense body this removes almost every candidate;
 5. the remaining cell pairs are expanded into leaf pairs, which are kept when the objects differ
    and ``|x_i - x_j|^2 < r^2``.
+
+The radius may also be given per leaf (a batch of scenes at different voxel pitches, each with
+a radius of its own): the search then runs at the largest radius and keeps a pair only within
+its destination's radius (:func:`within_radius`), which gives each batch copy exactly the edges
+of a search at its own radius.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ DENSE_MAX_POINTS = 256
 _OFFSETS = torch.cartesian_prod(*(torch.tensor([-1, 0, 1]),) * 3)
 
 
-def _validate(leaf_pos: Tensor, leaf_object: Tensor, radius: float, batch: Tensor | None) -> None:
+def _validate(leaf_pos: Tensor, leaf_object: Tensor, radius: float | Tensor, batch: Tensor | None) -> None:
     if leaf_pos.dim() != 2 or leaf_pos.shape[1] != 3:
         raise ValueError(f"leaf_pos must have shape [L, 3], got {list(leaf_pos.shape)}")
     n = leaf_pos.shape[0]
@@ -50,9 +55,16 @@ def _validate(leaf_pos: Tensor, leaf_object: Tensor, radius: float, batch: Tenso
         raise ValueError(f"leaf_object must be an integer tensor of shape [{n}], got {list(leaf_object.shape)}")
     if batch is not None and (batch.shape != (n,) or batch.is_floating_point()):
         raise ValueError(f"batch must be an integer tensor of shape [{n}], got {list(batch.shape)}")
-    radius = float(radius)
-    if not radius >= 0 or radius == float("inf"):
-        raise ValueError(f"radius must be finite and >= 0, got {radius}")
+    if isinstance(radius, Tensor):
+        if radius.shape != (n,) or not radius.is_floating_point():
+            raise ValueError(f"a per-leaf radius must be a float tensor of shape [{n}], got "
+                             f"{radius.dtype} {list(radius.shape)}")
+        if n > 0 and not bool((torch.isfinite(radius) & (radius >= 0)).all()):
+            raise ValueError("a per-leaf radius must be finite and >= 0 everywhere")
+    else:
+        radius = float(radius)
+        if not radius >= 0 or radius == float("inf"):
+            raise ValueError(f"radius must be finite and >= 0, got {radius}")
     if n > 0 and not bool(torch.isfinite(leaf_pos).all()):
         raise ValueError("leaf_pos contains NaN or infinite values")
 
@@ -93,6 +105,34 @@ def dense_collision_edges(leaf_pos: Tensor, leaf_object: Tensor, radius: float,
     return torch.stack([src, dst])
 
 
+def squared_limit(radius: Tensor, dtype: torch.dtype) -> Tensor:
+    r"""The per-leaf squared radius :math:`r_i^2` as the search compares it: squared in float64,
+    then rounded once to the positions' ``dtype``, which is what a comparison of ``dtype``
+    distances with the Python number ``r * r`` does. So a per-leaf radius equal to a scalar
+    radius keeps the same pairs, bit for bit.
+
+    **Shapes**: ``(L,)`` -> ``(L,)``.
+    """
+    r = radius.detach().to(torch.float64)
+    return (r * r).to(dtype)
+
+
+def within_radius(edge_index: Tensor, leaf_pos: Tensor, radius: Tensor) -> Tensor:
+    r"""The edges ``j -> i`` of ``edge_index`` with :math:`\lVert x_i - x_j \rVert^2 < r_i^2`
+    (``radius`` per leaf; the destination's radius decides, and both ends share it when they lie
+    in one batch copy), in their order. The squared distance is the search's own float
+    expression and the limit :func:`squared_limit`'s, so a pair kept here is a pair that a
+    search at radius :math:`r_i` keeps.
+
+    **Shapes**: edge_index ``(2, E)``, leaf_pos ``(L, 3)``, radius ``(L,)``; returns ``(2, E')``.
+    """
+    src, dst = edge_index
+    pos = leaf_pos.detach()
+    diff = pos[dst] - pos[src]
+    keep = (diff * diff).sum(dim=-1) < squared_limit(radius, pos.dtype)[dst]
+    return edge_index[:, keep]
+
+
 def _empty(device: torch.device) -> Tensor:
     return torch.empty(2, 0, dtype=torch.long, device=device)
 
@@ -121,13 +161,18 @@ def cell_keys(pos: Tensor, radius: float, batch: Tensor | None = None) -> tuple[
 def collision_edges(
     leaf_pos: Tensor,
     leaf_object: Tensor,
-    radius: float,
+    radius: float | Tensor,
     batch: Tensor | None = None,
 ) -> Tensor:
     r"""All ordered leaf pairs of different objects of one batch copy closer than ``radius``.
 
     .. math::
-        \mathcal{E}_C = \{(j, i) : o_j \ne o_i,\ b_j = b_i,\ \lVert x_i - x_j \rVert^2 < r^2\}
+        \mathcal{E}_C = \{(j, i) : o_j \ne o_i,\ b_j = b_i,\ \lVert x_i - x_j \rVert^2 < r_i^2\}
+
+    ``radius`` is one number :math:`r` for every leaf, or a tensor ``(L,)`` of radii
+    :math:`r_i` (equal within a batch copy, e.g. the copies of scenes at different pitches): the
+    search then runs at the largest and keeps each pair within its destination's radius
+    (:func:`within_radius`).
 
     Both directions of every pair are returned; there are no self loops (a leaf shares its own
     object). Edges are sorted by destination, then source, so the result is deterministic.
@@ -136,7 +181,8 @@ def collision_edges(
     Args:
         leaf_pos: leaf positions.
         leaf_object: object index of each leaf (within its batch copy).
-        radius: collision radius ``r`` (strict ``<``); 0 gives no edges.
+        radius: collision radius ``r`` (strict ``<``); 0 gives no edges. A float tensor
+            ``(L,)``: each leaf's own radius.
         batch: batch copy of each leaf; all zeros if None.
 
     Returns:
@@ -147,6 +193,13 @@ def collision_edges(
     returns ``(2, |E_C|)``.
     """
     _validate(leaf_pos, leaf_object, radius, batch)
+    if isinstance(radius, Tensor):
+        if leaf_pos.shape[0] < 2:
+            return _empty(leaf_pos.device)
+        widest = float(radius.max())
+        if widest == 0.0:
+            return _empty(leaf_pos.device)
+        return within_radius(collision_edges(leaf_pos, leaf_object, widest, batch), leaf_pos, radius)
     device = leaf_pos.device
     n = leaf_pos.shape[0]
     radius = float(radius)

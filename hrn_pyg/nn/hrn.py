@@ -15,6 +15,7 @@ from hrn_pyg.nn.force import ForceModule
 from hrn_pyg.nn.history import HistoryModule
 from hrn_pyg.nn.mlp import NetworkConfig, dropout_mask
 from hrn_pyg.nn.normalizer import Normalizer
+from hrn_pyg.nn.pitch import PITCH_DIM
 from hrn_pyg.nn.propagation import PropagationModule
 from hrn_pyg.nn.state import NextStateModule
 
@@ -86,6 +87,13 @@ class HRNConfig(NetworkConfig):
             horizontal velocity of its own making: a learnt bias cannot make it creep.
             ``"d4"`` adds the exchange of x and y (eight passes: the four of ``"xy"`` and the
             quarter-turns about z with their mirrors), the symmetries of the voxel lattice.
+        pitch_aware: read each scene relative to its voxel pitch :math:`p` (the graph's
+            ``pitch``; :mod:`hrn_pyg.nn.pitch`), with :math:`s = p / p_{ref}`: collision radius
+            :math:`r_c s` (and the ground-contact column's), positions and rest positions
+            divided by :math:`s`, and a last state column :math:`\log_2 s`. One model then
+            serves scenes of several pitches. False: the pitch is not read.
+        reference_pitch: :math:`p_{ref}` (m), the pitch at which a pitch-aware model reads a
+            scene as a plain model with the same ``collision_radius`` does.
     """
 
     hidden: int = 64
@@ -101,6 +109,8 @@ class HRNConfig(NetworkConfig):
     ground_contact: bool = False
     mirror_average: bool = False
     mirror_planes: str = "x"
+    pitch_aware: bool = False
+    reference_pitch: float = 0.05
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -119,6 +129,8 @@ class HRNConfig(NetworkConfig):
         if self.mirror_planes not in MIRROR_GROUPS:
             raise ValueError(f"HRNConfig.mirror_planes must be one of {sorted(MIRROR_GROUPS)}, "
                              f"got {self.mirror_planes!r}")
+        if not 0.0 < self.reference_pitch < float("inf"):
+            raise ValueError(f"HRNConfig.reference_pitch must be a finite number > 0, got {self.reference_pitch}")
 
     @property
     def mirror_group(self) -> tuple[tuple[int | str, ...], ...]:
@@ -129,8 +141,9 @@ class HRNConfig(NetworkConfig):
 
     @property
     def state_dim(self) -> int:
-        """Size of a particle's state vector under this config."""
-        return STATE_DIM + (GROUND_CONTACT_DIM if self.ground_contact else 0)
+        """Size of a particle's state vector under this config: :data:`STATE_LAYOUT`, then the
+        ground-contact column (``ground_contact``), then the pitch column (``pitch_aware``)."""
+        return STATE_DIM + (GROUND_CONTACT_DIM if self.ground_contact else 0) + (PITCH_DIM if self.pitch_aware else 0)
 
 
 
@@ -185,10 +198,11 @@ class HRNInputs(NamedTuple):
     :func:`hrn_pyg.sim.step.build_inputs`).
 
     Shapes: ``state``, ``prev_state`` ``[N, STATE_DIM]`` (s(t), s(t-1)); ``pos`` ``[N, 3]``
-    positions divided by the length scale (only differences are used); ``force`` ``[N, 3]``
+    positions divided by the length scale (only differences are used; a pitch-aware model's
+    also by each node's pitch scale :math:`s_i`); ``force`` ``[N, 3]``
     normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
-    the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided by the
-    length scale, or None (models without ``rest_offsets``). ``options``: the step's
+    the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided as
+    ``pos``, or None (models without ``rest_offsets``). ``options``: the step's
     :class:`StepOptions`; the pass reads ``force_active``, ``collision_weight`` (``[E_C]``, one
     per edge of ``collision``) and ``fixed_shape``.
     """
@@ -218,15 +232,19 @@ def state_features(
     depth: Tensor,
     is_leaf: Tensor,
     is_root: Tensor,
-    ground_radius: float | None = None,
+    ground_radius: float | Tensor | None = None,
+    pitch: Tensor | None = None,
 ) -> Tensor:
     r"""A particle's state vector in the order of :data:`STATE_LAYOUT`, then (with
-    ``ground_radius``) the ground-contact column :math:`\mathrm{clip}(z / r, -1, 1)`.
+    ``ground_radius``) the ground-contact column :math:`\mathrm{clip}(z / r, -1, 1)`, then (with
+    ``pitch``) the pitch column as given (:func:`hrn_pyg.nn.pitch.pitch_column`).
 
     No absolute horizontal position enters: shifting a scene in x or y leaves it unchanged.
 
     **Shapes:** velocity ``[N, 3]``, z / mass / stiffness ``[N, 1]``, material ``[N, 4]``,
-    depth / is_leaf / is_root ``[N]``; returns ``[N, STATE_DIM]`` (``+ 1`` with ``ground_radius``).
+    depth / is_leaf / is_root ``[N]``, ``ground_radius`` a number or ``[N, 1]`` (each node's),
+    ``pitch`` ``[N, 1]``; returns ``[N, STATE_DIM]`` (``+ 1`` with ``ground_radius``, ``+ 1``
+    with ``pitch``).
     """
     dtype = velocity.dtype
     root = is_root.to(dtype).unsqueeze(-1)
@@ -234,6 +252,7 @@ def state_features(
     # cannot record one from pageable memory)
     gravity = torch.cat([root * g for g in GRAVITY_DIRECTION], dim=-1)
     ground = [] if ground_radius is None else [(z / ground_radius).clamp(-1.0, 1.0)]
+    pitch_part = [] if pitch is None else [pitch.to(dtype)]
     return torch.cat(
         [
             normalizer.velocity(velocity),
@@ -246,6 +265,7 @@ def state_features(
             root,
             gravity,
             *ground,
+            *pitch_part,
         ],
         dim=-1,
     )
@@ -374,6 +394,7 @@ class HRN(nn.Module):
             f"{self.__class__.__name__}(hidden={c.hidden}, depth={c.depth}, effect_dim={c.effect_dim}, "
             f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
+            + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 

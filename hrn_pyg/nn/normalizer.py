@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE
+from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, node_pitch
 from hrn_pyg.nn.state import to_local_velocity
 
 #: a column whose training values span at most this fraction of their largest magnitude "never
@@ -144,7 +144,8 @@ def _positions(store) -> Tensor:
     return torch.stack([store.prev_prev_pos, store.prev_pos, store.pos], dim=1)
 
 
-def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None = None) -> Normalizer:
+def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None = None,
+                   reference_pitch: float | None = None) -> Normalizer:
     r"""Fit a :class:`Normalizer` on training graphs or dataset windows.
 
     Uses ``pos_seq`` (or ``prev_prev_pos, prev_pos, pos``) for velocities, their local changes and
@@ -152,6 +153,11 @@ def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None =
     rows); ``mass`` for the log-mass statistics; ``child_to_parent`` offsets at the first frame for
     the length scale. Static nodes are left out everywhere. Statistics without data stay at the
     identity.
+
+    ``reference_pitch`` (a pitch-aware model's, :mod:`hrn_pyg.nn.pitch`): the offsets of the
+    length scale are measured as that model reads them, each divided by its graph's
+    :math:`s = p / p_{ref}` (graphs of several pitches then share one scale); velocities,
+    heights and forces stay in metres.
 
     Returns ``normalizer`` (a new one if None) with its buffers overwritten and ``fitted`` True.
     """
@@ -181,7 +187,10 @@ def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None =
         force.add(f[(f != 0).any(-1)])
         if c2p.numel():
             offset = pos[c2p[0], 0] - pos[c2p[1], 0]
-            length.add(offset.norm(dim=-1))
+            size = offset.norm(dim=-1)
+            if reference_pitch is not None:
+                size = size / (node_pitch(graph).to(size.dtype) / reference_pitch)[c2p[0]]
+            length.add(size)
     if seen == 0:
         raise ValueError("fit_normalizer: no training graphs given")
     norm = normalizer if normalizer is not None else Normalizer()

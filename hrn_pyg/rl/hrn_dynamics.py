@@ -42,6 +42,7 @@ from hrn_pyg.checkpoints.domain import frames_domain, merge_all, report_outside
 from hrn_pyg.data.graph import HISTORY, NODE, build_structure, object_centres, set_state
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.nn.hrn import HRN, StepOptions
+from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.sampling.sample import draw_masks, model_device
@@ -148,7 +149,7 @@ class HRNDynamics:
         parent = torch.as_tensor(build_hierarchy(pool[0, -1], masses[0], leaf_object), dtype=torch.long)
         self._structures = [
             build_structure(parent, leaf_mass[i], leaf_object_t, torch.as_tensor(material),
-                            torch.as_tensor(stiffness)).to(device)
+                            torch.as_tensor(stiffness), pitch=pitch).to(device)
             for i in range(len(pool_seeds))
         ]
         self.pool_seeds = torch.tensor(list(pool_seeds), dtype=torch.long, device=device)
@@ -249,7 +250,7 @@ class HRNDynamics:
         per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [n, L, 3]
         graph = self._batched_structure(index)
         graph = set_state(graph, leaf_pos[:, 0].reshape(-1, 3), leaf_pos[:, 1].reshape(-1, 3),
-                          leaf_pos[:, 2].reshape(-1, 3), radius=self.model.config.collision_radius,
+                          leaf_pos[:, 2].reshape(-1, 3), radius=collision_radius_of(self.model.config, graph),
                           force=per_leaf.reshape(-1, 3))
         objs = self._objects_of(graph, n)
         held = held_from_history(self.sleep, graph, objs, graph[NODE].force) if self.sleep is not None else None

@@ -30,6 +30,7 @@ from hrn_pyg.data.graph import (
     leaf_to_ancestor_mean,
     set_state,
 )
+from hrn_pyg.data.io import episode_pitch
 from hrn_pyg.data.scene_file import SceneSpec
 from hrn_pyg.data.scenes import Scene
 
@@ -117,8 +118,8 @@ def episode_state(
     Like a dataset window (:class:`hrn_pyg.data.dataset.EpisodeWindows`): the episode's static
     structure, the state ``x_{start-2}, x_{start-1}, x_{start}`` with the force of step
     ``start``, and ``pos_seq (N, steps+3, 3)`` (``x_{start-2} .. x_{start+steps}``, ancestors
-    derived), ``force_seq (N, steps, 3)`` (zero on ancestors). ``steps`` defaults to all steps
-    left in the episode.
+    derived), ``force_seq (N, steps, 3)`` (zero on ancestors), and the graph-level ``pitch``
+    when the episode's ``params`` record one. ``steps`` defaults to all steps left in the episode.
     """
     positions = torch.from_numpy(np.asarray(episode["positions"], dtype=np.float32))  # [S+1, L, 3]
     forces = torch.from_numpy(np.asarray(episode["forces"], dtype=np.float32))  # [S, L, 3]
@@ -135,6 +136,7 @@ def episode_state(
         torch.as_tensor(np.asarray(episode["object_material"]), dtype=torch.long),
         torch.as_tensor(np.asarray(episode["object_stiffness"]), dtype=torch.float32),
         rest_pos=positions[0],
+        pitch=episode_pitch(episode),
     )
     n, leaves = structure[NODE].num_nodes, positions.shape[1]
     seq = positions[start - HISTORY : start + steps + 1]  # [steps+3, L, 3]

@@ -51,6 +51,7 @@ from hrn_pyg.data.candidates import (
 from hrn_pyg.data.effects import SceneEffects, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
+from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim.rollout import check_forces
 from hrn_pyg.sim.step import NEXT_POS, MasksFn, object_of, predict, require_state
 from hrn_pyg.utils.checks import non_finite_error
@@ -208,7 +209,10 @@ class FixedShapeSimulator:
         check_forces(graph, steps, forces)
         plan = plan_effects(graph, steps, forces, effects)
         store = graph[NODE]
-        radius = float(self.model.config.collision_radius) if plan.collisions else 0.0
+        radius = collision_radius_of(self.model.config, graph) if plan.collisions else 0.0
+        if isinstance(radius, Tensor):
+            raise ValueError("fixed_shape_rollout: the batch mixes graphs of different voxel pitches, whose "
+                             "collision radii differ; roll each pitch out on its own (or use hrn_pyg.sim.rollout)")
         skin = config.skin * radius
         zero_force = torch.zeros_like(store.pos)
         empty_edges = torch.zeros(2, 0, dtype=torch.long, device=store.pos.device)

@@ -21,6 +21,7 @@ from torch_geometric.data import HeteroData
 from hrn_pyg.data.effects import EffectPlan, SceneEffects, plan_effects
 from hrn_pyg.data.graph import NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
+from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim import sleeping
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 from hrn_pyg.sim.step import MasksFn, Step, object_of, require_state, step
@@ -67,7 +68,7 @@ def iterate(
     check_forces(graph, steps, forces)
     plan = plan_effects(graph, steps, forces, effects)
     store = graph[NODE]
-    radius = model.config.collision_radius if plan.collisions else None
+    radius = collision_radius_of(model.config, graph) if plan.collisions else None
     require_state(graph)  # once here, so no step has to
     graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=radius)
     # the tree does not change during a rollout: its objects are found once (one host read)

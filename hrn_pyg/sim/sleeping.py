@@ -83,12 +83,15 @@ from hrn_pyg.data.graph import (
     COLLISION,
     LEAF_TO_ANCESTOR,
     NODE,
+    PITCH,
     WITHIN_SIBLINGS,
     copy_object_ids,
     object_span,
+    per_node_radius,
 )
 from hrn_pyg.data.radius import cell_keys, collision_edges
 from hrn_pyg.nn.hrn import HRN, StepOptions
+from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim.step import Prediction, Step, check_next_pos, object_of, predict, step
 from hrn_pyg.sim.step import advance as advance_graph
 
@@ -257,7 +260,8 @@ def subgraph(graph: HeteroData, asleep_node: Tensor, prev_pos: Tensor, prev_prev
     leaf that is the source of a collision edge into an awake leaf, in node order, flagged
     ``is_static`` (a collision source that is not moved). Edges: the hierarchy's edges of the
     awake objects and the collision edges into awake leaves, renumbered. Node attributes keep
-    their values (``batch`` ids included, so dropout masks ``[B, H]`` look up the same rows);
+    their values (``batch`` ids included, so dropout masks ``[B, H]`` look up the same rows, and
+    so does the graphs' ``pitch``, which the sub-graph carries too);
     ``prev_pos``, ``prev_prev_pos`` are the frozen ones of :func:`freeze`.
 
     Returns ``(sub, index, awake_rows)``: ``index`` ``[n]`` the full-graph node of every
@@ -288,6 +292,8 @@ def subgraph(graph: HeteroData, asleep_node: Tensor, prev_pos: Tensor, prev_prev
         edge_index = graph[edge_type].edge_index
         sub[edge_type].edge_index = new_id[edge_index[:, awake[edge_index[1]]]]
     sub[COLLISION].edge_index = new_id[torch.stack([src[into_awake], dst[into_awake]])]
+    if PITCH in graph:  # the graphs' pitches, which the kept batch ids look up
+        setattr(sub, PITCH, getattr(graph, PITCH))
     return sub, index, awake_rows
 
 
@@ -325,7 +331,7 @@ def sleeping_step(
         result = step(model, graph, force, masks, options)
         return result._replace(asleep=graph[NODE].is_static), state
     pos, local, velocity = predict_held(model, graph, force, masks, asleep_node, options)
-    nxt = advance(graph, asleep_node, pos, model.config.collision_radius if options.collisions else None)
+    nxt = advance(graph, asleep_node, pos, collision_radius_of(model.config, graph) if options.collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 
 
@@ -416,7 +422,7 @@ def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) ->
     return SleepState(asleep=asleep, still=torch.where(still, config.patience, 0).to(torch.long))
 
 
-def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> HeteroData:
+def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | Tensor | None) -> HeteroData:
     """The graph at ``t+1`` after a step with sleeping objects: :func:`hrn_pyg.sim.step.advance`
     with the asleep nodes held (all three positions equal to the held one) and the collision
     edges of :func:`next_collision_edges`.
@@ -429,7 +435,8 @@ def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float |
     return advance_graph(graph, pos, radius, held=asleep_node, edges=edges, check=False)
 
 
-def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | None) -> Tensor:
+def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor,
+                         radius: float | Tensor | None) -> Tensor:
     r"""The collision edges of ``pos`` (``x_{t+1}``), searched only where something moved.
 
     Asleep leaves do not move, so an edge between two of them is the same at :math:`x_{t+1}` as
@@ -439,14 +446,21 @@ def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, ra
     with an awake end. The union, sorted by destination then source, is exactly the full
     search's edge set. When more than half of the leaves are awake the full search is cheaper
     and is what runs; when none is, the graph's edges are returned as they are (no search).
+    ``radius``: a number, or one per graph of a batch (``(B,)``, graphs of different pitches:
+    :func:`~hrn_pyg.nn.pitch.collision_radius_of`), each leaf then searched at its graph's and
+    the leaves near an awake one found at the largest.
 
     **Shapes:** asleep_node ``(N,)`` bool, pos ``(N, 3)``; returns ``(2, |E_C|)``.
     """
     store = graph[NODE]
     leaf = store.is_leaf
     n = store.num_nodes
-    if radius is None or radius <= 0:
+    if radius is None or (not isinstance(radius, Tensor) and radius <= 0):
         return torch.empty(2, 0, dtype=torch.long, device=pos.device)
+    widest = radius
+    if isinstance(radius, Tensor):  # each node's own radius; the box / cell tests at the largest
+        radius = per_node_radius(graph, radius)
+        widest = float(radius.max())
     batch = store.batch if "batch" in store else torch.zeros_like(store.object)
     awake_leaf = leaf & ~asleep_node
     awake_count = int(awake_leaf.sum())
@@ -454,14 +468,19 @@ def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor, ra
         return graph[COLLISION].edge_index
     if awake_count * 2 > int(leaf.sum()):
         index = torch.nonzero(leaf).flatten()
-        return index[collision_edges(pos[index], store.object[index], radius, batch[index])]
+        return index[collision_edges(pos[index], store.object[index], _at(radius, index), batch[index])]
     old = graph[COLLISION].edge_index
     kept = old[:, asleep_node[old[0]] & asleep_node[old[1]]]
-    index = torch.nonzero(leaf & (awake_leaf | near_awake(pos, batch, leaf, awake_leaf, radius, store.object))).flatten()
-    found = index[collision_edges(pos[index], store.object[index], radius, batch[index])]
+    index = torch.nonzero(leaf & (awake_leaf | near_awake(pos, batch, leaf, awake_leaf, widest, store.object))).flatten()
+    found = index[collision_edges(pos[index], store.object[index], _at(radius, index), batch[index])]
     found = found[:, ~(asleep_node[found[0]] & asleep_node[found[1]])]
     edges = torch.cat([kept, found], dim=1)
     return edges[:, torch.argsort(edges[1] * n + edges[0])]
+
+
+def _at(radius: float | Tensor, index: Tensor) -> float | Tensor:
+    """The radius of the nodes ``index``: a number as it is, a per-node tensor's rows."""
+    return radius.index_select(0, index) if isinstance(radius, Tensor) else radius
 
 
 def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float,

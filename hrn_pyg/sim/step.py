@@ -46,6 +46,7 @@ from hrn_pyg.data.graph import (
 )
 from hrn_pyg.nn.gns import GNS
 from hrn_pyg.nn.hrn import HRN, HRNInputs, StepOptions, state_features
+from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware, node_radius, pitch_column, pitch_scale
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
 from hrn_pyg.sim.copy_groups import copy_groups, group_inputs
@@ -151,7 +152,10 @@ def build_inputs(
     :math:`v_{t-1} = x_{t-1} - x_{t-2}` and :math:`z_{t-1}`, plus the static attributes;
     positions divided by the length scale (edges only see differences); force divided by its
     scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
-    collision edges are read from the graph as they are. ``options``
+    collision edges are read from the graph as they are. A pitch-aware model
+    (:mod:`hrn_pyg.nn.pitch`) reads each node relative to its graph's pitch, :math:`s_i = p_i /
+    p_{ref}`: positions and rest positions divided by :math:`s_i` too, the ground-contact column
+    at radius :math:`r_c s_i`, and the state column :math:`\log_2 s_i` last. ``options``
     (:class:`~hrn_pyg.nn.hrn.StepOptions`) go into the inputs for the network pass;
     ``options.check=False`` skips the finite checks of the positions and the force (each a host
     read on a GPU): for a caller that has checked them already, as a rollout does.
@@ -164,19 +168,31 @@ def build_inputs(
     pos, prev, prev2 = store.pos, store.prev_pos, store.prev_prev_pos
     static = (store.mass, store.material, store.stiffness, store.depth, store.is_leaf, store.is_root)
     ground = config.collision_radius if config.ground_contact else None
-    state = state_features(norm, pos - prev, pos[:, 2:], *static, ground_radius=ground)
-    prev_state = state_features(norm, prev - prev2, prev[:, 2:], *static, ground_radius=ground)
+    pitch = scale = None
+    if is_pitch_aware(config):
+        node_scale = pitch_scale(graph, config.reference_pitch)  # [N] float64
+        pitch = pitch_column(node_scale, pos.dtype)
+        scale = node_scale.to(pos.dtype).unsqueeze(-1)  # [N, 1]
+        if config.ground_contact:
+            ground = node_radius(config, node_scale, pos.dtype)
+    state = state_features(norm, pos - prev, pos[:, 2:], *static, ground_radius=ground, pitch=pitch)
+    prev_state = state_features(norm, prev - prev2, prev[:, 2:], *static, ground_radius=ground, pitch=pitch)
+
+    def geometric(x: Tensor) -> Tensor:  # positions as the edge modules read them
+        x = norm.length(x)
+        return x if scale is None else x / scale
+
     rest_pos = None
     if config.rest_offsets:
         # a graph without a recorded rest shape takes its current shape as the rest shape
-        rest_pos = norm.length(store.rest_pos if "rest_pos" in store else pos)
+        rest_pos = geometric(store.rest_pos if "rest_pos" in store else pos)
     batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)
     empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
     collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
     return HRNInputs(
         state=state,
         prev_state=prev_state,
-        pos=norm.length(pos),
+        pos=geometric(pos),
         force=norm.force(node_force(graph, force, check)),
         is_static=store.is_static,
         is_root=store.is_root,
@@ -362,14 +378,14 @@ def step(
     """
     options = _with_legacy(options, legacy, "step")
     pos, local, velocity = predict(model, graph, force, masks, options)
-    nxt = advance(graph, pos, model.config.collision_radius if options.collisions else None)
+    nxt = advance(graph, pos, collision_radius_of(model.config, graph) if options.collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
 
 
 def advance(
     graph: HeteroData,
     pos: Tensor,
-    radius: float | None,
+    radius: float | Tensor | None,
     held: Tensor | None = None,
     edges: Tensor | None = None,
     check: bool = True,
@@ -383,7 +399,8 @@ def advance(
     (optional): nodes held still in this step (:mod:`hrn_pyg.sim.sleeping`), whose
     ``prev_prev_pos`` becomes ``x_t`` so they start from rest when they wake. ``edges``
     ``(2, |E_C|)`` (optional): the collision edges of ``x_{t+1}`` when the caller has them
-    (the sleeping step searches only where something moved); else all leaves are searched.
+    (the sleeping step searches only where something moved); else all leaves are searched at
+    ``radius`` (a number, or one per graph of a batch: :func:`~hrn_pyg.nn.pitch.collision_radius_of`).
     ``check=False``: the caller has checked ``pos`` for NaN / inf (with :func:`check_next_pos`).
 
     **Shapes:** pos ``(N, 3)``; returns a graph with ``collision`` ``(2, |E_C|)``.
