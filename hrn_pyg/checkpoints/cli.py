@@ -30,7 +30,8 @@ def model_row(model: ShippedModel) -> tuple[str, ...]:
     test = ", ".join(f"{k} {v:.3g}" for k, v in model.test) or "-"
     return (name, ", ".join(model.datasets) or "-",
             "-" if d is None else ", ".join(d.materials) or "-",
-            "-" if d is None else ", ".join(f"{p:g}" for p in d.pitches) or "-",
+            "-" if d is None else (f"{d.pitch_range[0]:g}-{d.pitch_range[1]:g}" if d.pitch_range
+                                   else ", ".join(f"{p:g}" for p in d.pitches) or "-"),
             objects, size, "-" if d is None or d.speed is None else f"{d.speed:.2g}", rate, test)
 
 

@@ -20,8 +20,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from hrn_pyg.checkpoints import MANIFEST_PATH, entry_datasets, read_manifest
-from hrn_pyg.checkpoints.domain import Domain, episode_domain, merge_all
+from hrn_pyg.checkpoints import MANIFEST_PATH, entry_datasets, entry_pitch_aware, read_manifest
+from hrn_pyg.checkpoints.domain import Domain, episode_domain, merge_all, with_pitch_range
 from hrn_pyg.data.dataset import split_of_seed
 from hrn_pyg.recipe.schema import RECIPE_PATH, DatasetRecipe, load_recipe
 from hrn_pyg.utils.files import atomic_write_json
@@ -88,6 +88,8 @@ def derive_domains(recipe_path: str | Path, manifest_path: str | Path, count: in
                 say(f"{dataset}: {json.dumps(measured[dataset].to_dict())} "
                     f"({time.perf_counter() - started:.0f} s)")
         domains[name] = merge_all(measured[d] for d in entry_datasets(entry))
+        if entry_pitch_aware(entry):  # a pitch-aware model covers the span of its pitches
+            domains[name] = with_pitch_range(domains[name])
     raw = json.loads(Path(manifest_path).read_text())
     for name, domain in domains.items():
         raw["checkpoints"][name]["domain"] = domain.to_dict()
