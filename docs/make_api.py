@@ -48,6 +48,7 @@ MODULES = (
     "hrn_pyg.nn.normalizer",
     "hrn_pyg.nn.rigid",
     "hrn_pyg.nn.hrn",
+    "hrn_pyg.nn.pitch",
     "hrn_pyg.checkpoints",
     "hrn_pyg.checkpoints.domain",
     "hrn_pyg.sim.step",
