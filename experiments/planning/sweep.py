@@ -5,7 +5,9 @@ Modes (:data:`MODES`): the three scores of :mod:`hrn_pyg.rl.planning` and the de
 planner with gradient refinement. Scenes: the fixed evaluation scenes and goals of the PPO
 sweeps (:func:`fixed_scenes`: the environment of :class:`~hrn_pyg.rl.success_curve.EvalConfig`,
 its generator reset to ``EVAL_SEED``, one reset of ``--num-scenes`` environments), so the
-planners and the PPO policies of docs/rl.md face the same starts and goals.
+planners and the PPO policies of docs/rl.md face the same starts and goals. ``--validation``
+plays the validation scenes instead (:func:`validation_scenes`: other pybullet scenes, other
+goals), the ones a planner's sizes are chosen on.
 
 **Resumable.** Each finished episode is one JSON line of ``<out>/episodes.jsonl`` (the file is
 rewritten atomically after every episode); a rerun skips the (mode, scene, seed) triples it
@@ -64,6 +66,24 @@ def fixed_scenes(task, dynamics, count: int) -> list[dict]:
              "goal": [float(v) for v in td["goal"][i]]} for i in range(count)]
 
 
+def validation_scenes(task, dynamics, count: int) -> list[dict]:
+    """The first ``count`` validation scenes: pool entry ``i`` of ``dynamics`` (built on
+    :data:`~hrn_pyg.rl.hrn_dynamics.VALIDATION_SEEDS`, pybullet scenes 20000 + i, apart from the
+    evaluation pool) against the goal :func:`~hrn_pyg.rl.planning.episode_goal` draws from a
+    generator seeded with the scene's seed (the scene and goal ``hrn-pyg plan --episode-seed``
+    plays)."""
+    from hrn_pyg.rl.planning import episode_goal
+
+    if not 1 <= count <= len(dynamics.pool_seeds):
+        raise ValueError(f"--num-scenes must lie in [1, {len(dynamics.pool_seeds)}], got {count}")
+    out = []
+    for i in range(count):  # a loop over scenes
+        seed = int(dynamics.pool_seeds[i])
+        goal = episode_goal(task, dynamics, i, seed)
+        out.append({"scene": i, "pool_index": i, "scene_seed": seed, "goal": [float(v) for v in goal]})
+    return out
+
+
 def read_episodes(path: Path) -> list[dict]:
     """The finished episodes of a sweep (none when the file does not exist)."""
     if not path.exists():
@@ -87,29 +107,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--horizon", type=int, default=d.horizon, help="model steps predicted from a start")
     parser.add_argument("--k", type=int, default=d.futures, help="sampled futures per start")
     parser.add_argument("--refine-steps", type=int, default=3, help="Adam steps of the refined mode")
+    parser.add_argument("--action-repeat", type=int, default=d.action_repeat,
+                        help="model steps each planned action is held")
+    parser.add_argument("--reach-weight", type=float, default=d.reach_weight,
+                        help="weight of the pushed object's route length")
+    parser.add_argument("--horizontal", action="store_true",
+                        help="forces in the ground plane, at most the task's bound in magnitude")
+    parser.add_argument("--route-proposal", action="store_true",
+                        help="add the full-force push along the reach route to the first CEM draw")
+    parser.add_argument("--validation", action="store_true",
+                        help="play the validation scenes (pybullet seeds 20000+), not the 32 evaluation scenes")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--out", required=True, help="the sweep's folder")
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrn_pyg.rl.hrn_dynamics import HRNDynamics
+    from hrn_pyg.rl.hrn_dynamics import VALIDATION_SEEDS, HRNDynamics
     from hrn_pyg.rl.planning import MPCPlanner, PlannerConfig, plan_episode
 
     if args.num_seeds < 1 or args.threads < 1:
         raise ValueError(f"--num-seeds and --threads must be >= 1, got {args.num_seeds}, {args.threads}")
     task = get_task(args.task)
     base = PlannerConfig(candidates=args.candidates, elites=args.elites, iterations=args.iterations,
-                         horizon=args.horizon, futures=args.k, refine_steps=args.refine_steps)
+                         horizon=args.horizon, futures=args.k, refine_steps=args.refine_steps,
+                         action_repeat=args.action_repeat, reach_weight=args.reach_weight,
+                         horizontal=args.horizontal, route_proposal=args.route_proposal)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     settings = {"task": task.name, "model": args.model, "planner": asdict(base)}
+    if args.validation:
+        settings["scenes"] = "validation"
     record = out / "sweep.json"
     if record.exists() and json.loads(record.read_text()) != settings:
         raise ValueError(f"{record} holds other settings ({record.read_text().strip()}); use another --out")
     atomic_write_json(record, settings)
     torch.set_num_threads(args.threads)
-    dynamics = HRNDynamics.from_checkpoint(args.model, task)
-    scenes = fixed_scenes(task, dynamics, args.num_scenes)
+    if args.validation:
+        dynamics = HRNDynamics.from_checkpoint(args.model, task, pool_seeds=VALIDATION_SEEDS[:args.num_scenes])
+        scenes = validation_scenes(task, dynamics, args.num_scenes)
+    else:
+        dynamics = HRNDynamics.from_checkpoint(args.model, task)
+        scenes = fixed_scenes(task, dynamics, args.num_scenes)
     path = out / "episodes.jsonl"
     lines = path.read_text().splitlines() if path.exists() else []
     done = {(e["mode"], e["scene"], e["seed"]) for e in read_episodes(path)}

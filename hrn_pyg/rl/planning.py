@@ -15,9 +15,12 @@ candidates differ only by their actions, not by their luck), fresh masks at ever
 
 with :math:`c_g` the task's goal clearance (:func:`~hrn_pyg.rl.tasks.goal_clearance`: metres
 from meeting the goal, the speed bound included) and, for tasks whose goal object is not pushed
-directly (``tower``, ``tower_aside``), :math:`d_{\text{reach}}` the ground distance from the
-pushed object to the point :data:`REACH_BACKOFF` behind the goal object, on the far side from
-the goal (where a push moves it toward the goal); :math:`w` = ``reach_weight``.
+directly (``tower``, ``tower_aside``, ``tower_top_aside``), :math:`d_{\text{reach}}` the length of
+the route the pushed object still has to travel (:func:`route_length`): around the goal object
+to the approach point behind it, then through it to where it stands when the goal object sits on
+the goal; :math:`w` = ``reach_weight``. With ``action_repeat`` :math:`r > 1` each of the ``H``
+planned actions is held for :math:`r` model steps (the sum runs over :math:`H r` steps) and the
+closed loop plans once per held action.
 
 **Scores** of a candidate from its return row :math:`R_{i\cdot}` (:func:`score_returns`):
 
@@ -78,9 +81,19 @@ from hrn_pyg.utils.checks import check_rate
 
 #: the ways to score a candidate from its K futures
 SCORES = ("deterministic", "mean", "risk")
-#: metres behind the goal object (away from the goal) that the pushed object is drawn to: about
-#: a cube's half edge plus the ball's radius, so the ball touches the object's far face
-REACH_BACKOFF = 0.08
+#: the reach route (:func:`route_length`), metres: the approach point lies this far behind the goal
+#: object, away from the goal (the scripted ``aside_push`` of ``experiments/rl/planners.py``
+#: drives the ball to the same point before it pushes)
+APPROACH_DISTANCE = 0.24
+#: the pushed object's centre lies this far from the goal object's axis when it touches the
+#: stack: a cube's half edge plus the ball's radius
+CONTACT_DISTANCE = 0.125
+#: the route keeps this far from the goal object's axis until it is behind the object: past the
+#: corner of a cube (half diagonal 7.1 cm) plus the ball's radius, with 2.5 cm to spare
+CLEARANCE_RADIUS = 0.17
+#: the pushed object is behind the goal object when it lies more than ``BEHIND`` behind it along
+#: the push direction and at most ``LATERAL`` off the push line (``aside_push``'s test)
+BEHIND, LATERAL = 0.1, 0.06
 
 #: ``score_fn(actions (N, H, A)) -> scores (N,)``, higher is better
 ScoreFn = Callable[[Tensor], Tensor]
@@ -107,6 +120,13 @@ class PlannerConfig:
             whose goal objects are not pushed directly).
         refine_steps: Adam steps of gradient refinement after the search (0: none).
         refine_lr: Adam's step size, a fraction of ``max_force``.
+        action_repeat: ``r``, model steps each planned action is held; a plan covers ``H r``
+            model steps and the closed loop plans again every ``r`` control steps.
+        horizontal: forces in the ground plane only, each controlled object's at most
+            ``max_force`` in magnitude (the pushes the scenes were generated with); False: every
+            action entry inside ``[-max_force, max_force]``.
+        route_proposal: where the reach route applies, the first CEM draw also holds the
+            full-force push along the route (:func:`route_push`) as a candidate.
     """
 
     score: str = "deterministic"
@@ -123,11 +143,14 @@ class PlannerConfig:
     reach_weight: float = 0.2
     refine_steps: int = 0
     refine_lr: float = 0.1
+    action_repeat: int = 1
+    horizontal: bool = False
+    route_proposal: bool = False
 
     def __post_init__(self) -> None:
         if self.score not in SCORES:
             raise ValueError(f"score must be one of {SCORES}, got {self.score!r}")
-        for name in ("candidates", "elites", "iterations", "horizon", "futures"):
+        for name in ("candidates", "elites", "iterations", "horizon", "futures", "action_repeat"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.elites > self.candidates:
@@ -160,26 +183,127 @@ def score_returns(returns: Tensor, score: str, risk_std: float = 1.0) -> Tensor:
     raise ValueError(f"score must be one of {SCORES}, got {score!r}")
 
 
-def push_point(task: TaskConfig, roots: Tensor, goal: Tensor, backoff: float = REACH_BACKOFF) -> Tensor:
-    r""":math:`x_g - b\,\widehat{(g - x_g)}`: the ground point ``backoff`` behind the first goal
-    object :math:`x_g`, away from the goal :math:`g`. **Shapes:** roots ``(*, O, 6)``, goal
-    broadcastable to ``(*, 2)`` -> ``(*, 2)``."""
-    obj = roots[..., task.goal_objects[0], :2]
-    away = obj - goal
-    return obj + backoff * away / away.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+def push_direction(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
+    r""":math:`\hat u = (g - x_g) / \lVert g - x_g \rVert`, the ground direction from the first goal
+    object :math:`x_g` to the goal. **Shapes:** roots ``(*, O, 6)``, goal ``(*, 2)`` -> ``(*, 2)``."""
+    away = goal - roots[..., task.goal_objects[0], :2]
+    return away / away.norm(dim=-1, keepdim=True).clamp_min(1e-6)
 
 
-def planning_rewards(task: TaskConfig, roots: Tensor, goal: Tensor, reach_weight: float) -> Tensor:
+def detour_length(start: Tensor, end: Tensor, centre: Tensor, radius: float) -> Tensor:
+    r"""The shortest ground path from ``start`` to ``end`` that stays out of the disc of ``radius``
+    around ``centre``: the straight segment when it misses the disc, else the two tangents and
+    the arc between them, :math:`\sqrt{p^2 - \rho^2} + \sqrt{q^2 - \rho^2} + \rho\,(\theta -
+    \arccos\frac{\rho}{p} - \arccos\frac{\rho}{q})` (:math:`p, q` the ends' distances from the
+    centre, at least :math:`\rho`; :math:`\theta` the angle between them).
+    **Shapes:** all ``(*, 2)`` (broadcast) -> ``(*,)``."""
+    p, q = start - centre, end - centre
+    seg = q - p
+    t = (-(p * seg).sum(-1) / (seg * seg).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+    closest = (p + t.unsqueeze(-1) * seg).norm(dim=-1)
+    straight = seg.norm(dim=-1)
+    # tangent lengths and angles in atan2 form: exact and with finite gradients at the ends
+    tp = (p.norm(dim=-1).clamp_min(radius) ** 2 - radius**2).clamp_min(1e-12).sqrt()
+    tq = (q.norm(dim=-1).clamp_min(radius) ** 2 - radius**2).clamp_min(1e-12).sqrt()
+    cross = (p[..., 0] * q[..., 1] - p[..., 1] * q[..., 0]).abs()
+    theta = torch.atan2(cross, (p * q).sum(-1))
+    arc = (theta - torch.atan2(tp, torch.tensor(radius)) - torch.atan2(tq, torch.tensor(radius))).clamp_min(0.0)
+    around = tp + tq + radius * arc
+    return torch.where(closest >= radius, straight, around)
+
+
+def route_object(task: TaskConfig, roots: Tensor) -> int:
+    """The object the reach route runs around and pushes: of the objects not controlled, the
+    lowest in ``roots`` ``(O, 6)`` (the tower's base, which the rolling ball meets; the goal
+    object may sit on it)."""
+    free = [o for o in range(task.num_objects) if o not in task.controlled_objects]
+    return free[int(roots[free, 2].argmin())]
+
+
+def route_length(task: TaskConfig, roots: Tensor, goal: Tensor, direction: Tensor,
+                 pushed: int | None = None) -> Tensor:
+    r"""How far the pushed object :math:`b` still has to travel to bring the goal object onto
+    the goal :math:`g` by pushing the object :math:`x_g` (``pushed``, default the first goal
+    object; :func:`route_object` for a stack) along :math:`\hat u` (``direction``, see
+    :func:`push_direction`), the route of the scripted ``aside_push``:
+
+    - behind the goal object (:math:`s = (b - x_g)\cdot\hat u < -` :data:`BEHIND` and at most
+      :data:`LATERAL` off the line): straight to the end point :math:`T = g - D\hat u`, where it
+      stands when the goal object sits on the goal (:math:`D` = :data:`CONTACT_DISTANCE`);
+    - elsewhere: around the goal object (outside :data:`CLEARANCE_RADIUS`,
+      :func:`detour_length`) to the approach point :math:`A = x_g - R\hat u`
+      (:data:`APPROACH_DISTANCE`), then :math:`\lVert T - A \rVert`.
+
+    **Shapes:** roots ``(*, O, 6)``, goal and direction broadcastable to ``(*, 2)`` -> ``(*,)``.
+    """
+    ball = roots[..., task.controlled_objects[0], :2]
+    obj = roots[..., task.goal_objects[0] if pushed is None else pushed, :2]
+    u = direction.expand_as(obj)
+    rel = ball - obj
+    along = (rel * u).sum(-1)
+    lateral = (rel - along.unsqueeze(-1) * u).norm(dim=-1)
+    end = goal - CONTACT_DISTANCE * u
+    approach = obj - APPROACH_DISTANCE * u
+    behind = (along < -BEHIND) & (lateral < LATERAL)
+    direct = (ball - end).norm(dim=-1)
+    around = detour_length(ball, approach, obj, CLEARANCE_RADIUS) + (end - approach).norm(dim=-1)
+    return torch.where(behind, direct, around)
+
+
+def uses_route(task: TaskConfig) -> bool:
+    """Whether the task's planning reward has the reach route: no goal object is pushed directly."""
+    return not set(task.goal_objects) & set(task.controlled_objects)
+
+
+def route_push(task: TaskConfig, roots: Tensor, goal: Tensor, direction: Tensor,
+               pushed: int | None = None) -> Tensor:
+    r"""The action ``(A,)`` that pushes the (first) controlled object at ``max_force`` down the
+    reach route: along :math:`-\nabla_b` :func:`route_length` (toward the end point when behind
+    the goal object, else toward the approach point or along the tangent around the object),
+    horizontal. **Shapes:** roots ``(O, 6)``, goal and direction ``(2,)`` -> ``(A,)``."""
+    with torch.enable_grad():
+        ball = roots[task.controlled_objects[0], :2].detach().clone().requires_grad_(True)
+        moved = roots.detach().clone()
+        moved = torch.cat([moved[:task.controlled_objects[0]],
+                           torch.cat([ball, moved[task.controlled_objects[0], 2:]]).unsqueeze(0),
+                           moved[task.controlled_objects[0] + 1:]])
+        (grad,) = torch.autograd.grad(route_length(task, moved, goal, direction, pushed), ball)
+    push = -grad / grad.norm().clamp_min(1e-9) * task.max_force
+    force = torch.zeros(task.num_objects, 3)
+    force[task.controlled_objects[0], :2] = push
+    axes = list(task.force_axes)
+    return force[list(task.controlled_objects)][:, axes].reshape(task.action_dim)
+
+
+def planning_rewards(task: TaskConfig, roots: Tensor, goal: Tensor, reach_weight: float,
+                     direction: Tensor | None = None, pushed: int | None = None) -> Tensor:
     r"""The per-step planning reward :math:`-\max(c_g, 0) - w\, d_{\text{reach}}` (module
-    docstring); the reach term only where no goal object is pushed directly.
+    docstring); the reach term (:func:`route_length` along ``direction``, default
+    :func:`push_direction` of each state, around ``pushed``) only where no goal object is pushed
+    directly.
 
-    **Shapes:** roots ``(*, O, 6)``, goal broadcastable to ``(*, 2)`` -> ``(*,)``.
+    **Shapes:** roots ``(*, O, 6)``, goal and direction broadcastable to ``(*, 2)`` -> ``(*,)``.
     """
     reward = -goal_clearance(task, roots, goal).clamp_min(0.0)
-    if reach_weight > 0 and not set(task.goal_objects) & set(task.controlled_objects):
-        pusher = roots[..., task.controlled_objects[0], :2]
-        reward = reward - reach_weight * (pusher - push_point(task, roots, goal)).norm(dim=-1)
+    if reach_weight > 0 and uses_route(task):
+        if direction is None:
+            direction = push_direction(task, roots, goal)
+        reward = reward - reach_weight * route_length(task, roots, goal, direction, pushed)
     return reward
+
+
+def project_actions(task: TaskConfig, actions: Tensor, horizontal: bool) -> Tensor:
+    """Actions ``(..., A)`` into the planner's force bounds: each entry clipped to
+    ``[-max_force, max_force]``, or with ``horizontal`` the vertical entries zeroed and each
+    controlled object's horizontal force scaled down to at most ``max_force`` in magnitude."""
+    if not horizontal:
+        return actions.clamp(-task.max_force, task.max_force)
+    parts = actions.reshape(*actions.shape[:-1], len(task.controlled_objects), len(task.force_axes))
+    keep = torch.tensor([axis < 2 for axis in task.force_axes], dtype=actions.dtype)
+    parts = parts * keep
+    norm = parts.norm(dim=-1, keepdim=True)
+    parts = parts * (task.max_force / norm.clamp_min(1e-9)).clamp(max=1.0)
+    return parts.reshape(actions.shape)
 
 
 def discounted_returns(rewards: Tensor, discount: float) -> Tensor:
@@ -230,8 +354,11 @@ def rollout_futures(dynamics: HRNDynamics, state: Tensor, actions: Tensor, futur
 
 
 def cem(score_fn: ScoreFn, mean: Tensor, std: Tensor, bound: float, config: PlannerConfig,
-        generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The cross-entropy method over action sequences ``(H, A)`` inside ``[-bound, bound]``.
+        generator: torch.Generator, project: Callable[[Tensor], Tensor] | None = None,
+        proposals: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The cross-entropy method over action sequences ``(H, A)`` inside ``[-bound, bound]``
+    (or ``project``'s set: a map of sequences into the bounds). ``proposals`` ``(P, H, A)``
+    take the places after :math:`\\mu` in the first draw (``P < N``).
 
     Each of ``config.iterations`` draws ``config.candidates`` sequences from
     :math:`\\mathcal N(\\mu, \\sigma^2)` (the first is :math:`\\mu`), clipped; the
@@ -241,12 +368,19 @@ def cem(score_fn: ScoreFn, mean: Tensor, std: Tensor, bound: float, config: Plan
     """
     if mean.shape != std.shape or mean.dim() != 2:
         raise ValueError(f"mean and std must both be (H, A), got {tuple(mean.shape)}, {tuple(std.shape)}")
-    best, best_score = mean.clamp(-bound, bound), torch.tensor(-float("inf"))
+    if project is None:
+        def project(a: Tensor) -> Tensor:
+            return a.clamp(-bound, bound)
+    best, best_score = project(mean), torch.tensor(-float("inf"))
     floor = config.min_std * bound
-    for _ in range(config.iterations):  # a loop over CEM iterations
+    if proposals is not None and not 0 < len(proposals) < config.candidates:
+        raise ValueError(f"proposals must be 1 to candidates - 1 = {config.candidates - 1}, got {len(proposals)}")
+    for it in range(config.iterations):  # a loop over CEM iterations
         noise = torch.randn((config.candidates, *mean.shape), generator=generator, dtype=mean.dtype)
         noise[0] = 0.0
-        actions = (mean + std * noise).clamp(-bound, bound)              # (N, H, A)
+        actions = project(mean + std * noise)                           # (N, H, A)
+        if it == 0 and proposals is not None:
+            actions[1:1 + len(proposals)] = project(proposals)
         scores = score_fn(actions)                                      # (N,)
         top = scores.topk(config.elites).indices
         if scores[top[0]] > best_score:
@@ -257,9 +391,9 @@ def cem(score_fn: ScoreFn, mean: Tensor, std: Tensor, bound: float, config: Plan
 
 
 def refine(loss_fn: Callable[[Tensor], Tensor], actions: Tensor, bound: float, steps: int,
-           lr: float) -> tuple[Tensor, list[float]]:
+           lr: float, project: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, list[float]]:
     """Adam on an action sequence ``(H, A)`` through a differentiable ``loss_fn`` (a scalar),
-    projected into ``[-bound, bound]`` after every step. Returns the sequence of lowest loss
+    projected into ``[-bound, bound]`` (or by ``project``) after every step. Returns the sequence of lowest loss
     seen (the start included) and the loss of every evaluation (``steps + 1``; fewer when the
     loss has no gradient, as when every object sleeps through the rollout)."""
     if steps < 0:
@@ -280,7 +414,7 @@ def refine(loss_fn: Callable[[Tensor], Tensor], actions: Tensor, bound: float, s
         loss.backward()
         opt.step()
         with torch.no_grad():
-            u.clamp_(-bound, bound)
+            u.copy_(project(u) if project is not None else u.clamp(-bound, bound))
     return best, losses
 
 
@@ -293,7 +427,8 @@ class MPCPlanner:
             else the task's ``dropout_rate``.
         seed: seeds the planner's own generator (candidates and dropout masks).
 
-    :meth:`act` keeps the last plan for the warm start; :meth:`reset` forgets it.
+    :meth:`act` keeps the last plan for the warm start (and, with ``action_repeat`` ``r``, holds
+    its first action for ``r`` calls); :meth:`reset` forgets it.
     """
 
     def __init__(self, dynamics: HRNDynamics, config: PlannerConfig, seed: int = 0) -> None:
@@ -313,16 +448,27 @@ class MPCPlanner:
 
     def reset(self) -> None:
         self._plan = torch.zeros(self.config.horizon, self.task.action_dim)
+        self._held = 0  # control steps the current first action is still to be held
+
+    def project(self, actions: Tensor) -> Tensor:
+        """Actions ``(..., A)`` into the planner's force bounds (:func:`project_actions`)."""
+        return project_actions(self.task, actions, self.config.horizontal)
 
     def objective(self, state: Tensor, goal: Tensor, mask_seed: int) -> ScoreFn:
         """``actions (N, H, A) -> scores (N,)`` from ``state`` toward ``goal``; every call draws the
         same masks (a generator seeded with ``mask_seed``), so scores of one planning step compare."""
         cfg = self.config
 
+        # the reach route's push direction and object, from the state the plan starts in
+        start = self.dynamics.roots(state.unsqueeze(0))[0]
+        direction = push_direction(self.task, start, goal)
+        pushed = route_object(self.task, start) if uses_route(self.task) else None
+
         def score_fn(actions: Tensor) -> Tensor:
             generator = torch.Generator().manual_seed(mask_seed)
-            roots = rollout_futures(self.dynamics, state, actions, cfg.num_futures, self.rate, generator)
-            rewards = planning_rewards(self.task, roots, goal, cfg.reach_weight)   # (N, K, H)
+            held = actions.repeat_interleave(cfg.action_repeat, dim=1)          # (N, H r, A)
+            roots = rollout_futures(self.dynamics, state, held, cfg.num_futures, self.rate, generator)
+            rewards = planning_rewards(self.task, roots, goal, cfg.reach_weight, direction, pushed)  # (N, K, H r)
             return score_returns(discounted_returns(rewards, cfg.discount), cfg.score, cfg.risk_std)
 
         return score_fn
@@ -334,19 +480,31 @@ class MPCPlanner:
         score_fn = self.objective(state, goal.reshape(2), mask_seed)
         mean = torch.cat([self._plan[1:], self._plan[-1:]])  # warm start: the last plan, shifted
         std = torch.full_like(mean, cfg.init_std * bound)
+        proposals = None
+        if cfg.route_proposal and uses_route(self.task) and cfg.candidates > 1:
+            roots = self.dynamics.roots(state.unsqueeze(0))[0]
+            goal2 = goal.reshape(2)
+            push = route_push(self.task, roots, goal2, push_direction(self.task, roots, goal2),
+                              route_object(self.task, roots))
+            proposals = push.expand(1, cfg.horizon, -1)
         with torch.no_grad():
-            best, score, _, _ = cem(score_fn, mean, std, bound, cfg, self.generator)
+            best, score, _, _ = cem(score_fn, mean, std, bound, cfg, self.generator, self.project, proposals)
         losses: list[float] = []
         if cfg.refine_steps > 0:
             best, losses = refine(lambda u: -score_fn(u.unsqueeze(0))[0], best, bound,
-                                  cfg.refine_steps, cfg.refine_lr * bound)
+                                  cfg.refine_steps, cfg.refine_lr * bound, self.project)
             score = torch.tensor(-min(losses))
         self._plan = best.detach()
         return {"actions": self._plan, "score": float(score), "refine_losses": losses}
 
     def act(self, state: Tensor, goal: Tensor) -> Tensor:
-        """The first action of a fresh plan, ``(A,)``."""
-        return self.plan(state, goal)["actions"][0].clone()
+        """The first action of a fresh plan, ``(A,)``; with ``action_repeat`` ``r`` a fresh plan
+        every ``r`` calls, its first action held in between."""
+        if self._held == 0:
+            self.plan(state, goal)
+            self._held = self.config.action_repeat
+        self._held -= 1
+        return self._plan[0].clone()
 
 
 def plan_episode(planner: MPCPlanner, seed: int, goal: Tensor, pool_index: int = 0) -> dict:
@@ -454,6 +612,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=None,
                         help="dropout rate of the futures (default: the model's calibrated rate, else the task's)")
     parser.add_argument("--risk-std", type=float, default=defaults.risk_std, help="c of the risk score")
+    parser.add_argument("--action-repeat", type=int, default=defaults.action_repeat,
+                        help="model steps each planned action is held (the plan is redone as often)")
+    parser.add_argument("--reach-weight", type=float, default=defaults.reach_weight,
+                        help="weight of the pushed object's route length (tasks whose goal object is not pushed)")
+    parser.add_argument("--horizontal", action="store_true",
+                        help="forces in the ground plane, at most the task's bound in magnitude")
+    parser.add_argument("--route-proposal", action="store_true",
+                        help="add the full-force push along the reach route to the first CEM draw")
     parser.add_argument("--control-steps", type=int, default=None,
                         help="stop after this many control steps (default: the task's limit)")
     parser.add_argument("--episode-seed", type=int, default=10_000, help="the pybullet episode simulated")
@@ -466,7 +632,9 @@ def run(args: argparse.Namespace) -> int:
     config = PlannerConfig(score=args.score, candidates=args.candidates, elites=args.elites,
                            iterations=args.iterations, horizon=args.horizon, futures=args.k,
                            rate=args.rate, risk_std=args.risk_std,
-                           refine_steps=args.refine_steps if args.refine else 0)
+                           refine_steps=args.refine_steps if args.refine else 0,
+                           action_repeat=args.action_repeat, reach_weight=args.reach_weight,
+                           horizontal=args.horizontal, route_proposal=args.route_proposal)
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
     if args.control_steps is not None and args.control_steps < 1:
@@ -489,7 +657,7 @@ def run(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     episode_figure(result, task, out, title=f"{task.name}, model {args.model}, score {config.score}"
                    f"{' + refine' if config.refine_steps else ''}, N={config.candidates}, "
-                   f"H={config.horizon}, K={config.num_futures}, rate {planner.rate:g}")
+                   f"H={config.horizon}x{config.action_repeat}, K={config.num_futures}, rate {planner.rate:g}")
     print(f"picture: {out}")
     return 0
 

@@ -1,22 +1,32 @@
 """The model-predictive planner: one batched graph of candidates x futures, the CEM search, the
 three scores, gradient refinement, determinism, bad input, and ``hrn-pyg plan`` end to end."""
 
+import math
+
 import pytest
 import torch
 
 from hrn_pyg.cli import main
 from hrn_pyg.rl.hrn_dynamics import HRNDynamics
 from hrn_pyg.rl.planning import (
+    APPROACH_DISTANCE,
+    CONTACT_DISTANCE,
     MPCPlanner,
     PlannerConfig,
     cem,
+    detour_length,
     episode_goal,
     plan_episode,
+    planning_rewards,
+    project_actions,
     refine,
     rollout_futures,
+    route_length,
+    route_object,
+    route_push,
     score_returns,
 )
-from hrn_pyg.rl.tasks import CUBE_PUSH_STOP, action_to_forces
+from hrn_pyg.rl.tasks import CUBE_PUSH_STOP, TOWER_ASIDE, action_to_forces
 from hrn_pyg.sim.copy_groups import MAX_NODES_PER_GROUP
 
 SEED = 10_000
@@ -145,6 +155,7 @@ def test_planner_is_deterministic_given_its_seed(dynamics):
     ({"elites": 20}, "elites"),
     ({"rate": 1.5}, "rate"),
     ({"discount": 0.0}, "discount"),
+    ({"action_repeat": 0}, "action_repeat"),
 ])
 def test_bad_planner_settings_raise(change, match):
     with pytest.raises(ValueError, match=match):
@@ -180,3 +191,113 @@ def test_plan_command_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
                "--out", str(tmp_path / "x.png")])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "candidates" in err
+
+
+def test_action_repeat_holds_each_planned_action_and_replans_once_per_hold(dynamics):
+    state, goal = _start(dynamics), episode_goal(CUBE_PUSH_STOP, dynamics, 0, SEED)
+    actions = _actions(3, 2, seed=6)
+    held = MPCPlanner(dynamics, PlannerConfig(horizon=2, action_repeat=3)).objective(state, goal, mask_seed=0)
+    flat = MPCPlanner(dynamics, PlannerConfig(horizon=6)).objective(state, goal, mask_seed=0)
+    # a plan of 2 actions held 3 model steps scores as the 6-step plan that repeats them
+    torch.testing.assert_close(held(actions), flat(actions.repeat_interleave(3, dim=1)), atol=1e-5, rtol=0)
+    planner = MPCPlanner(dynamics, PlannerConfig(candidates=2, elites=1, iterations=1, horizon=2, action_repeat=3))
+    plans = []
+    original = planner.plan
+    planner.plan = lambda s, g: plans.append(1) or original(s, g)
+    got = [planner.act(state, goal) for _ in range(7)]
+    assert len(plans) == 3                                   # calls 0, 3 and 6 plan
+    assert torch.equal(got[0], got[1]) and torch.equal(got[0], got[2])
+    planner.reset()
+    planner.act(state, goal)
+    assert len(plans) == 4                                   # a reset plans afresh
+
+
+def test_horizontal_projection_keeps_forces_in_the_ground_plane_and_the_disc():
+    bound = TOWER_ASIDE.max_force
+    actions = torch.tensor([[3.0, 4.0, 5.0], [8.0, 8.0, -2.0], [-20.0, 0.0, 1.0]])
+    out = project_actions(TOWER_ASIDE, actions, horizontal=True)
+    assert (out[:, 2] == 0).all()
+    torch.testing.assert_close(out[0], torch.tensor([3.0, 4.0, 0.0]))             # inside: kept
+    torch.testing.assert_close(out[1, :2].norm(), torch.tensor(bound))             # scaled to the rim
+    torch.testing.assert_close(out[1, 0], out[1, 1])                               # direction kept
+    torch.testing.assert_close(out[2], torch.tensor([-bound, 0.0, 0.0]))
+    boxed = project_actions(TOWER_ASIDE, actions, horizontal=False)
+    assert torch.equal(boxed, actions.clamp(-bound, bound))
+    # the two controlled cubes of cube_push_stop are projected one by one
+    two = project_actions(CUBE_PUSH_STOP, torch.tensor([30.0, 40.0, 1.0, 2.0]), horizontal=True)
+    torch.testing.assert_close(two, torch.tensor([9.0, 12.0, 1.0, 2.0]))
+
+
+def test_detour_length_goes_around_the_disc_only_when_the_segment_crosses_it():
+    c = torch.zeros(2)
+    a, b = torch.tensor([-1.0, 0.0]), torch.tensor([1.0, 0.0])
+    tangent, arc = math.sqrt(1 - 0.25), 0.5 * (math.pi - 2 * math.acos(0.5))
+    assert float(detour_length(a, b, c, 0.5)) == pytest.approx(2 * tangent + arc, abs=1e-5)
+    assert float(detour_length(a, torch.tensor([1.0, 2.0]), c, 0.5)) == pytest.approx(math.sqrt(8), abs=1e-6)
+    assert float(detour_length(a, b, torch.tensor([0.0, 0.6]), 0.5)) == pytest.approx(2.0, abs=1e-6)
+
+
+def _tower_roots(ball, obj=(0.0, 0.0)):
+    roots = torch.zeros(4, 6)
+    roots[:3, :2] = torch.tensor(obj)
+    roots[3, :2] = torch.tensor(ball)
+    return roots
+
+
+def test_route_leads_around_the_tower_to_the_approach_point_then_through_it():
+    goal, u = torch.tensor([0.0, 0.13]), torch.tensor([0.0, 1.0])   # push along +y
+    end = goal[1] - CONTACT_DISTANCE
+    # behind the tower, on the push line: straight to where the ball stands at the end
+    behind = route_length(TOWER_ASIDE, _tower_roots((0.0, -0.2)), goal, u)
+    assert float(behind) == pytest.approx(end + 0.2, abs=1e-6)
+    # at the approach point the two legs meet
+    at_a = route_length(TOWER_ASIDE, _tower_roots((0.0, -APPROACH_DISTANCE)), goal, u)
+    assert float(at_a) == pytest.approx(end + APPROACH_DISTANCE, abs=1e-6)
+    # beside the tower (the side the goal lies off): back to the approach point first, more than
+    # the straight line to the end
+    side = route_length(TOWER_ASIDE, _tower_roots((-0.3, 0.0)), goal, u)
+    assert float(side) > math.hypot(0.3, end) + 0.1
+    # on the goal's side: the route wraps the tower, longer than from beside it
+    front = route_length(TOWER_ASIDE, _tower_roots((0.0, 0.3)), goal, u)
+    assert float(front) > float(side)
+    # going around lowers it step by step
+    path = [(-0.3, 0.0), (-0.25, -0.15), (-0.1, -0.24), (0.0, -0.2), (0.0, -0.15)]
+    lengths = [float(route_length(TOWER_ASIDE, _tower_roots(p), goal, u)) for p in path]
+    assert lengths == sorted(lengths, reverse=True)
+    # the planning reward carries it with its weight; a directly pushed goal object has none
+    r = planning_rewards(TOWER_ASIDE, _tower_roots((0.0, -0.2)), goal, 0.5, u)
+    assert float(r) == pytest.approx(-(0.13 - TOWER_ASIDE.goal_radius) - 0.5 * float(behind), abs=1e-6)
+    cube = torch.zeros(2, 6)
+    assert float(planning_rewards(CUBE_PUSH_STOP, cube, torch.tensor([0.2, 0.0]), 0.5)) == \
+        pytest.approx(-(0.2 - CUBE_PUSH_STOP.goal_radius), abs=1e-6)
+
+
+def test_route_runs_around_the_lowest_free_object_and_its_push_follows_it():
+    roots = _tower_roots((0.0, -0.2))
+    roots[:3, 2] = torch.tensor([0.05, 0.15, 0.25])
+    assert route_object(TOWER_ASIDE, roots) == 0
+    roots[2, 2] = 0.05 - 0.01                                      # the top cube fell below the base
+    assert route_object(TOWER_ASIDE, roots) == 2
+    goal, u = torch.tensor([0.0, 0.13]), torch.tensor([0.0, 1.0])
+    behind = route_push(TOWER_ASIDE, _tower_roots((0.0, -0.2)), goal, u, pushed=0)
+    torch.testing.assert_close(behind, torch.tensor([0.0, TOWER_ASIDE.max_force, 0.0]))
+    side = route_push(TOWER_ASIDE, _tower_roots((-0.3, 0.0)), goal, u, pushed=0)
+    assert side[2] == 0 and float(side[:2].norm()) == pytest.approx(TOWER_ASIDE.max_force, abs=1e-4)
+    assert side[0] > 0 and side[1] < 0                             # toward the approach point, behind
+
+
+def test_cem_tries_the_proposals_in_its_first_draw():
+    target = torch.tensor([[4.0, -4.0], [4.0, -4.0]])
+
+    def score_fn(actions):
+        return -((actions - target) ** 2).sum((-1, -2))
+
+    config = PlannerConfig(candidates=4, elites=1, iterations=1, horizon=2)
+    mean, std = torch.zeros(2, 2), torch.full((2, 2), 0.1)
+    best, score, _, _ = cem(score_fn, mean, std, 10.0, config, torch.Generator().manual_seed(0),
+                            proposals=target.unsqueeze(0))
+    assert torch.equal(best, target) and float(score) == 0.0
+    without, _, _, _ = cem(score_fn, mean, std, 10.0, config, torch.Generator().manual_seed(0))
+    assert (without - target).abs().max() > 3.0
+    with pytest.raises(ValueError, match="proposals"):
+        cem(score_fn, mean, std, 10.0, config, torch.Generator(), proposals=target.expand(4, 2, 2))

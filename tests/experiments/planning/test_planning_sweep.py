@@ -61,3 +61,16 @@ def test_summary_by_hand(tmp_path):
     assert mean["versus_deterministic"]["success_rate"]["value"] == 1.0
     assert mean["versus_deterministic"]["plan_seconds"]["value"] == 0.0  # slower: never better
     assert "versus_deterministic" not in det and "ppo" not in out
+
+
+def test_validation_scenes_are_other_pybullet_scenes_with_their_own_goals(tmp_path):
+    out = tmp_path / "validation"
+    assert sweep.main(TINY + ["--validation", "--out", str(out)]) == 0
+    episode = json.loads((out / "episodes.jsonl").read_text())
+    assert episode["scene_seed"] == 20_000 and episode["pool_index"] == 0
+    assert json.loads((out / "sweep.json").read_text())["scenes"] == "validation"
+    dynamics = HRNDynamics.from_checkpoint("cube_push", "cube_push_stop", pool_seeds=(20_000, 20_001))
+    scenes = sweep.validation_scenes(sweep.get_task("cube_push_stop"), dynamics, 2)
+    assert [s["scene_seed"] for s in scenes] == [20_000, 20_001] and scenes[0]["goal"] != scenes[1]["goal"]
+    with pytest.raises(ValueError, match="num-scenes"):
+        sweep.validation_scenes(sweep.get_task("cube_push_stop"), dynamics, 3)
