@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import torch
-from torch import Tensor
-from torch_geometric.nn import MessagePassing
+from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree
+from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
 
 #: added under the square root of a squared distance so that its gradient stays finite when two
 #: particles coincide (d|x|/dx is undefined at 0)
@@ -18,7 +17,7 @@ def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = True) -> Tensor:
     return torch.sqrt((x * x).sum(dim=dim, keepdim=keepdim) + NORM_EPSILON)
 
 
-class CollisionModule(MessagePassing):
+class CollisionModule(nn.Module):
     r"""Sum of pairwise collision effects over the collision edges.
 
     .. math::
@@ -51,13 +50,12 @@ class CollisionModule(MessagePassing):
     """
 
     def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig()) -> None:
-        super().__init__(aggr="add")
+        super().__init__()
         self.state_dim = state_dim
         self.effect_dim = effect_dim
         self.phi = MLP(2 * state_dim + 4, effect_dim, mlp)
 
     def reset_parameters(self) -> None:
-        super().reset_parameters()
         self.phi.reset_parameters()
 
     def forward(
@@ -81,32 +79,27 @@ class CollisionModule(MessagePassing):
             raise ValueError(f"CollisionModule: edge_weight must be [{edge_index.size(1)}], "
                              f"got {tuple(edge_weight.shape)}")
         # an edge takes the trajectory copy of its destination (both ends share one copy)
-        edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
+        src, dst = edge_index
+        edge_batch = batch.index_select(0, dst) if mask is not None else None
         n = state.size(0)
-        # phi_C's first layer applied per node, then gathered onto the edges (see message)
+        # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks,
+        # each applied per node and gathered onto the edges
         w_dst, w_src, w_offset, w_dist = self.phi.split_first_weight((self.state_dim, self.state_dim, 3, 1))
         from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
         from_src = state @ w_src.T
-        # phi_C's last hidden layer is summed per destination; its output layer runs once per node
-        hidden_sum = self.propagate(edge_index, a=from_dst, b=from_src, x=pos, w_offset=w_offset,
-                                    w_dist=w_dist, edge_batch=edge_batch, mask=mask, edge_weight=edge_weight,
-                                    size=(n, n))
-        return self.phi.output_of_sum(hidden_sum, in_degree(edge_index, n, edge_weight))
-
-    def message(
-        self, a_i: Tensor, b_j: Tensor, x_i: Tensor, x_j: Tensor, w_offset: Tensor, w_dist: Tensor,
-        edge_batch: Tensor | None, mask: Tensor | None, edge_weight: Tensor | None
-    ) -> Tensor:
-        # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks
-        # (a_i is gathered for this call alone, so without autograd it takes the sum in place)
-        offset = x_i - x_j
-        pre = a_i.add_(b_j) if not torch.is_grad_enabled() else a_i + b_j
+        offset = pos.index_select(0, dst) - pos.index_select(0, src)  # x_i - x_j
+        # the gathered rows are made for this call alone: without autograd they take the sum in place
+        pre = from_dst.index_select(0, dst)
+        b_j = from_src.index_select(0, src)
+        pre = pre.add_(b_j) if not torch.is_grad_enabled() else pre + b_j
         pre = pre.addmm_(offset, w_offset.T).addmm_(safe_norm(offset), w_dist.T)
         hidden = self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
-        if edge_weight is None:
-            return hidden
-        weight = edge_weight.to(hidden.dtype).unsqueeze(-1)
-        return hidden.mul_(weight) if not torch.is_grad_enabled() else hidden * weight
+        if edge_weight is not None:
+            weight = edge_weight.to(hidden.dtype).unsqueeze(-1)
+            hidden = hidden.mul_(weight) if not torch.is_grad_enabled() else hidden * weight
+        # phi_C's last hidden layer is summed per destination; its output layer runs once per node
+        hidden_sum = sum_by_index(hidden, dst, n)
+        return self.phi.output_of_sum(hidden_sum, in_degree(edge_index, n, edge_weight))
 
     def __repr__(self) -> str:
         return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"

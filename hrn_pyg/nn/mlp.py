@@ -115,6 +115,19 @@ def in_degree(edge_index: Tensor, num_nodes: int, edge_weight: Tensor | None = N
     return edge_weight.new_zeros(num_nodes).index_add_(0, dst, edge_weight)
 
 
+def sum_by_index(values: Tensor, index: Tensor, num_rows: int) -> Tensor:
+    r"""Rows of ``values`` summed by ``index``: :math:`y_i = \sum_{e:\, \mathrm{index}_e = i} v_e`.
+
+    One ``scatter_add_``, the sum that PyG's ``aggr="add"`` computes, in the same order (the
+    same numbers, bit for bit), without the message-passing machinery around it; a row no
+    index names is an exact zero.
+
+    **Shapes:** values ``(E, F)``, index ``(E,)`` long in ``[0, num_rows)``; returns ``(num_rows, F)``.
+    """
+    expanded = index.unsqueeze(-1).expand_as(values)
+    return values.new_zeros(num_rows, values.size(-1)).scatter_add_(0, expanded, values)
+
+
 class MLP(nn.Module):
     r"""Fully connected network with an optional per-trajectory mask on its hidden activations.
 

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import torch
-from torch import Tensor
-from torch_geometric.nn import MessagePassing
+from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree
+from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
 
 
-class PropagationModule(MessagePassing):
+class PropagationModule(nn.Module):
     r"""One phase of hierarchical effect propagation, summed into the destination.
 
     .. math::
@@ -36,13 +35,15 @@ class PropagationModule(MessagePassing):
         - **input:** state :math:`(|\mathcal{V}|, S)`, effect :math:`(|\mathcal{V}|, D)`,
           pos :math:`(|\mathcal{V}|, 3)`, edge_index :math:`(2, |\mathcal{E}|)`,
           mask :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)` (needed with a mask),
-          rest_pos :math:`(|\mathcal{V}|, 3)` (needed with ``rest_offsets``)
+          rest_pos :math:`(|\mathcal{V}|, 3)` (needed with ``rest_offsets``), optionally
+          degree :math:`(|\mathcal{V}|,)` and rest_offset :math:`(|\mathcal{E}|, 3)` when the
+          caller has them (:meth:`forward`)
         - **output:** effect increment :math:`(|\mathcal{V}|, D)`
     """
 
     def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig(), name: str = "",
                  rest_offsets: bool = False) -> None:
-        super().__init__(aggr="add")
+        super().__init__()
         self.state_dim = state_dim
         self.effect_dim = effect_dim
         self.name = name
@@ -51,7 +52,6 @@ class PropagationModule(MessagePassing):
         self.eta = MLP(2 * state_dim + effect_dim + self.offset_dim, effect_dim, mlp)
 
     def reset_parameters(self) -> None:
-        super().reset_parameters()
         self.eta.reset_parameters()
 
     def forward(
@@ -63,7 +63,14 @@ class PropagationModule(MessagePassing):
         mask: Tensor | None = None,
         batch: Tensor | None = None,
         rest_pos: Tensor | None = None,
+        degree: Tensor | None = None,
+        rest_offset: Tensor | None = None,
     ) -> Tensor:
+        """The effect increment; ``degree`` ``(N,)`` (the in-degree of ``edge_index``,
+        :func:`~hrn_pyg.nn.mlp.in_degree`) and ``rest_offset`` ``(E, 3)`` (the edges' rest
+        offsets :math:`\bar x_j - \bar x_i`, :func:`edge_offsets` of ``rest_pos``) may be given
+        by a caller that has them (a rollout: the hierarchy does not change); the result is the
+        same, bit for bit."""
         n = state.size(0)
         if state.dim() != 2 or state.size(1) != self.state_dim:
             raise ValueError(f"PropagationModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
@@ -75,37 +82,31 @@ class PropagationModule(MessagePassing):
             raise ValueError(f"PropagationModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
         if mask is not None and batch is None:
             raise ValueError("PropagationModule: a dropout mask needs the node batch vector")
+        src, dst = edge_index
+        offset = edge_offsets(pos, edge_index)  # x_j - x_i
         if self.rest_offsets:
-            if rest_pos is None or rest_pos.shape != (n, 3):
-                got = None if rest_pos is None else tuple(rest_pos.shape)
-                raise ValueError(f"PropagationModule: rest_offsets needs rest_pos [N, 3], got {got}")
-            pos = torch.cat([pos, rest_pos], dim=-1)  # both offsets go through one weight block
+            if rest_offset is None:
+                if rest_pos is None or rest_pos.shape != (n, 3):
+                    got = None if rest_pos is None else tuple(rest_pos.shape)
+                    raise ValueError(f"PropagationModule: rest_offsets needs rest_pos [N, 3], got {got}")
+                rest_offset = edge_offsets(rest_pos, edge_index)
+            offset = torch.cat([offset, rest_offset], dim=-1)  # both offsets go through one weight block
         # an edge takes the trajectory copy of its destination (both ends share one copy)
-        edge_batch = batch.index_select(0, edge_index[1]) if mask is not None else None
-        # eta's first layer applied per node, then gathered onto the edges (see message)
+        edge_batch = batch.index_select(0, dst) if mask is not None else None
+        # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks,
+        # each applied per node and gathered onto the edges
         w_src, w_dst, w_effect, w_offset = self.eta.split_first_weight(
             (self.state_dim, self.state_dim, self.effect_dim, self.offset_dim))
         from_src = state @ w_src.T + effect @ w_effect.T
         from_dst = torch.addmm(self.eta.first_bias, state, w_dst.T)
+        # the gathered rows are made for this call alone: without autograd they take the sum in place
+        pre = from_src.index_select(0, src)
+        b_i = from_dst.index_select(0, dst)
+        pre = (pre.add_(b_i) if not torch.is_grad_enabled() else pre + b_i).addmm_(offset, w_offset.T)
+        hidden = self.eta.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
         # eta's last hidden layer is summed per destination; its output layer runs once per node
-        hidden_sum = self.propagate(edge_index, a=from_src, b=from_dst, x=pos, w_offset=w_offset,
-                                    edge_batch=edge_batch, mask=mask, size=(n, n))
-        return self.eta.output_of_sum(hidden_sum, in_degree(edge_index, n))
-
-    def message(
-        self,
-        a_j: Tensor,
-        b_i: Tensor,
-        x_i: Tensor,
-        x_j: Tensor,
-        w_offset: Tensor,
-        edge_batch: Tensor | None,
-        mask: Tensor | None,
-    ) -> Tensor:
-        # eta([s_j, s_i, e_j, x_j - x_i (, rest offset)]) with its first layer split by input blocks;
-        # a_j is gathered for this call alone, so without autograd it takes the sum in place
-        pre = (a_j.add_(b_i) if not torch.is_grad_enabled() else a_j + b_i).addmm_(x_j - x_i, w_offset.T)
-        return self.eta.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
+        hidden_sum = sum_by_index(hidden, dst, n)
+        return self.eta.output_of_sum(hidden_sum, in_degree(edge_index, n) if degree is None else degree)
 
     def __repr__(self) -> str:
         tag = f"{self.name}, " if self.name else ""
@@ -113,3 +114,11 @@ class PropagationModule(MessagePassing):
             f"{self.__class__.__name__}({tag}state_dim={self.state_dim}, "
             f"effect_dim={self.effect_dim}, rest_offsets={self.rest_offsets}, eta={self.eta})"
         )
+
+
+def edge_offsets(x: Tensor, edge_index: Tensor) -> Tensor:
+    r"""Every edge's offset :math:`x_j - x_i` from its destination :math:`i` to its source :math:`j`.
+
+    **Shapes:** x ``(N, F)``, edge_index ``(2, E)``; returns ``(E, F)``.
+    """
+    return x.index_select(0, edge_index[0]) - x.index_select(0, edge_index[1])

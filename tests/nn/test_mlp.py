@@ -83,3 +83,16 @@ def test_in_degree_counts_and_weighs_incoming_edges():
     weighted = in_degree(edges, 5, torch.tensor([1.0, 0.0, 1.0, 1.0]))
     assert torch.equal(weighted, torch.tensor([1.0, 1.0, 0.0, 1.0, 0.0]))
     assert torch.equal(in_degree(torch.zeros(2, 0, dtype=torch.long), 3), torch.zeros(3, dtype=torch.long))
+
+
+def test_sum_by_index_is_pyg_add_aggregation_bit_for_bit():
+    from torch_geometric.utils import scatter
+
+    from hrn_pyg.nn.mlp import sum_by_index
+
+    gen = torch.Generator().manual_seed(3)
+    values = torch.randn(40, 7, generator=gen)
+    index = torch.randint(0, 9, (40,), generator=gen)
+    out = sum_by_index(values, index, 11)
+    assert torch.equal(out, scatter(values, index, dim=0, dim_size=11, reduce="sum"))
+    assert torch.equal(out[9:], torch.zeros(2, 7))
