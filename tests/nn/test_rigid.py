@@ -169,3 +169,37 @@ def test_build_structure_stores_the_rest_shape():
     with pytest.raises(ValueError, match="rest_pos"):
         build_structure(PARENT, mass, LEAF_OBJECT, MATERIAL, STIFFNESS, rest_pos=rest[:5])
     set_state(s, rest, rest, rest, radius=0.08)  # a state can be set on it as before
+
+
+def _hard_matrices(gen: torch.Generator) -> torch.Tensor:
+    """Covariances as rigid fits see them: random, rotations times SPD factors of condition 1 to
+    1e6, isotropic (a cube), rank one (collinear leaves), zero (no weight) and tiny ones."""
+    out = [torch.randn(64, 3, 3, generator=gen, dtype=torch.float64)]
+    for cond in (1.0, 1e2, 1e6):
+        q, _ = torch.linalg.qr(torch.randn(64, 3, 3, generator=gen, dtype=torch.float64))
+        u, _ = torch.linalg.qr(torch.randn(64, 3, 3, generator=gen, dtype=torch.float64))
+        s = torch.exp(torch.rand(64, 3, generator=gen, dtype=torch.float64) * math.log(cond))
+        out.append(q @ u @ torch.diag_embed(s) @ u.transpose(1, 2))
+    v = torch.randn(8, 3, 1, generator=gen, dtype=torch.float64)
+    out += [v @ v.transpose(1, 2), torch.zeros(2, 3, 3, dtype=torch.float64),
+            1e-30 * torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)]
+    return torch.cat(out).float()
+
+
+def test_the_numpy_polar_rotation_is_the_torch_one_bit_for_bit():
+    from hrn_pyg.nn.rigid import polar_rotation_numpy, polar_rotation_torch
+
+    m = _hard_matrices(torch.Generator().manual_seed(5))
+    fast = polar_rotation_numpy(m)
+    assert fast.dtype == torch.float32
+    assert torch.equal(fast, polar_rotation_torch(m))
+    with torch.no_grad():
+        assert torch.equal(polar_rotation(m), fast)
+    nan = torch.full((1, 3, 3), float("nan"))
+    assert torch.isnan(polar_rotation_numpy(nan)).all() and torch.isnan(polar_rotation_torch(nan)).all()
+
+
+def test_polar_rotation_takes_the_torch_path_for_a_gradient():
+    m = _hard_matrices(torch.Generator().manual_seed(6))[:8].requires_grad_(True)
+    polar_rotation(m).sum().backward()
+    assert m.grad is not None and torch.isfinite(m.grad).all()
