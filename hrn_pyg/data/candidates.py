@@ -115,3 +115,40 @@ def largest_move(candidates: CollisionCandidates, pos: Tensor) -> Tensor:
 def move_limit(skin: float) -> float:
     """How far a node may move before a list with this skin is stale (:data:`STALE_FRACTION`)."""
     return STALE_FRACTION * skin
+
+
+def collisions_of(candidates: CollisionCandidates, pos: Tensor) -> Tensor:
+    """``[2, E_C]``: the candidates closer than the radius at ``pos`` ``[N, 3]``, in their order:
+    the collision edges of ``pos``, as a search gives them, while the list is not stale
+    (:func:`largest_move` at most :func:`move_limit`)."""
+    near = active_collisions(candidates, pos).bool()
+    return candidates.edge_index[:, near]
+
+
+class VerletSearch:
+    """The collision edges of a rollout's steps from a Verlet list, searched again only when stale.
+
+    Each call gives :func:`~hrn_pyg.data.graph.leaf_collision_edges` of the graph's leaves at
+    ``pos``, the same edges in the same order (see the module docstring): the pairs of the list
+    closer than the radius, while no node has moved more than :func:`move_limit` since the list
+    was searched (one host read a call, to find out), else a new list searched at ``pos``. So a
+    step costs a gather and a comparison over the list's pairs instead of a search.
+
+    The graphs it is called with must share the start graph's leaves, objects and batch (the
+    graphs of one rollout). ``radius`` is one number (metres, > 0); ``skin`` the list's skin
+    (metres, > 0).
+    """
+
+    def __init__(self, radius: float, skin: float) -> None:
+        if not radius > 0 or not skin > 0:
+            raise ValueError(f"radius and skin must be > 0, got radius={radius}, skin={skin}")
+        self.radius, self.skin = float(radius), float(skin)
+        self.candidates: CollisionCandidates | None = None
+        self.searches = 0
+
+    def __call__(self, graph: HeteroData, pos: Tensor) -> Tensor:
+        """``[2, E_C]`` collision edges (node indices) of ``graph``'s leaves at ``pos`` ``[N, 3]``."""
+        if self.candidates is None or float(largest_move(self.candidates, pos)) > move_limit(self.skin):
+            self.candidates = build_candidates(graph, pos, self.radius, self.skin)
+            self.searches += 1
+        return collisions_of(self.candidates, pos)

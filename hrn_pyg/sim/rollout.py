@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
+from hrn_pyg.data.candidates import VerletSearch
 from hrn_pyg.data.effects import EffectPlan, SceneEffects, plan_effects
 from hrn_pyg.data.graph import NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
@@ -26,6 +27,10 @@ from hrn_pyg.sim import sleeping
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 from hrn_pyg.sim.step import MasksFn, Step, object_of, require_state, step
 from hrn_pyg.utils.checks import check_finite
+
+#: the skin of a rollout's collision list (:func:`verlet_search`), in collision radii: a leaf may
+#: move a quarter radius before the list is searched again
+VERLET_SKIN = 0.5
 
 
 def check_forces(graph: HeteroData, steps: int, forces: Tensor | None) -> None:
@@ -79,13 +84,25 @@ def iterate(
         objects = object_of(graph) if model.config.rigid_fit else None
     # what every step is told rather than finds out: inputs checked here, the objects, the plan
     options = StepOptions(check=False, objects=objects, collisions=plan.collisions)
-    return _steps(model, graph, steps, forces, masks_fn, plan, sleeper, options)
+    search = verlet_search(radius) if sleeper is None else None
+    return _steps(model, graph, steps, forces, masks_fn, plan, sleeper, options, search)
+
+
+def verlet_search(radius: float | Tensor | None, skin: float = VERLET_SKIN) -> VerletSearch | None:
+    """The collision search of a rollout's steps: a :class:`~hrn_pyg.data.candidates.VerletSearch`
+    with a skin of ``skin`` radii, which gives each step the edges of a search; None (every step
+    searches) without collisions or with one radius per graph of a batch."""
+    if radius is None or isinstance(radius, Tensor) or not radius > 0:
+        return None
+    return VerletSearch(radius, skin * radius)
 
 
 def _steps(model: HRN, graph: HeteroData, steps: int, forces: Tensor | None, masks_fn: MasksFn | None,
-           plan: EffectPlan, sleeper: sleeping.Sleeper | None, options: StepOptions) -> Iterator[Step]:
+           plan: EffectPlan, sleeper: sleeping.Sleeper | None, options: StepOptions,
+           search: VerletSearch | None = None) -> Iterator[Step]:
     """The loop of :func:`iterate`, from its prepared start; ``options`` are every step's, less
-    the plan's ``force_active`` of the step."""
+    the plan's ``force_active`` of the step; ``search`` finds the collision edges of a step
+    without sleeping (None: each step searches)."""
     no_force = torch.zeros_like(graph[NODE].pos) if forces is None else None
     for t in range(steps):  # time steps; each step is vectorised over particles
         force = forces[t] if forces is not None else no_force
@@ -94,7 +111,7 @@ def _steps(model: HRN, graph: HeteroData, steps: int, forces: Tensor | None, mas
         if sleeper is not None:
             result = sleeper.step(model, graph, force, masks, step_options)
         else:
-            result = step(model, graph, force, masks, step_options)
+            result = step(model, graph, force, masks, step_options, search=search)
         yield result
         graph = result.graph
 

@@ -54,6 +54,8 @@ from hrn_pyg.utils.checks import check_finite
 
 #: ``masks_fn(step_index, graph) -> {module: [B, H] mask} | None``, called once per step
 MasksFn = Callable[[int, HeteroData], Mapping[str, Tensor] | None]
+#: ``search(graph, pos) -> [2, E_C]``: the collision edges of ``graph``'s leaves at ``pos``
+CollisionSearch = Callable[[HeteroData, Tensor], Tensor]
 
 
 class Prediction(NamedTuple):
@@ -368,17 +370,26 @@ def step(
     force: Tensor | None = None,
     masks: Mapping[str, Tensor] | None = None,
     options: StepOptions = StepOptions(),
+    *,
+    search: CollisionSearch | None = None,
     **legacy: Any,
 ) -> Step:
     """One model step: :func:`predict`, then :func:`advance` the graph to ``t+1``.
 
     The arguments are those of :func:`predict`; ``options.collisions`` (the step's part of an
     :class:`~hrn_pyg.data.effects.EffectPlan`) says whether the next graph gets a collision
-    search (False: no collision edges). The new positions are always checked for NaN / inf.
+    search (False: no collision edges). ``search(graph, pos)`` (optional) gives the collision
+    edges of the graph's leaves at ``pos``, as :func:`~hrn_pyg.data.graph.leaf_collision_edges`
+    at the model's radius does (a rollout's :class:`~hrn_pyg.data.candidates.VerletSearch`);
+    None searches. The new positions are always checked for NaN / inf.
     """
     options = _with_legacy(options, legacy, "step")
     pos, local, velocity = predict(model, graph, force, masks, options)
-    nxt = advance(graph, pos, collision_radius_of(model.config, graph) if options.collisions else None)
+    if options.collisions and search is not None:
+        check_next_pos(pos)
+        nxt = advance(graph, pos, None, edges=search(graph, pos), check=False)
+    else:
+        nxt = advance(graph, pos, collision_radius_of(model.config, graph) if options.collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
 
 
