@@ -3,7 +3,7 @@ through each object hierarchy, decoded into next velocities in the parent's fram
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -13,10 +13,10 @@ from torch import Tensor, nn
 from hrn_pyg.nn.collision import CollisionModule
 from hrn_pyg.nn.force import ForceModule
 from hrn_pyg.nn.history import HistoryModule
-from hrn_pyg.nn.mlp import NetworkConfig, dropout_mask
+from hrn_pyg.nn.mlp import NetworkConfig, dropout_mask, in_degree
 from hrn_pyg.nn.normalizer import Normalizer
 from hrn_pyg.nn.pitch import PITCH_DIM
-from hrn_pyg.nn.propagation import PropagationModule
+from hrn_pyg.nn.propagation import PropagationModule, edge_offsets
 from hrn_pyg.nn.state import NextStateModule
 
 #: the learned sub-modules, by the name a dropout mask or ``HRNConfig.dropout_modules`` uses
@@ -147,6 +147,22 @@ class HRNConfig(NetworkConfig):
 
 
 
+class HierarchyConstants(NamedTuple):
+    r"""What the three propagation phases (L2A, WS, A2D, in that order) read of the hierarchy that
+    no step changes: each phase's in-degree and, with ``HRNConfig.rest_offsets``, its edges'
+    rest offsets :math:`\bar x_j - \bar x_i` as the network reads them (normalised; a
+    pitch-aware model's divided by the pitch scale). A rollout computes them once
+    (:func:`hierarchy_constants`), and each pass takes them instead of recomputing them; the
+    numbers are the same, bit for bit.
+
+    **Shapes:** ``degree``: three ``[N]`` float; ``rest_offset``: three ``[E_k, 3]``, or None
+    (no rest offsets, or a graph whose rest shape is its current shape).
+    """
+
+    degree: tuple[Tensor, Tensor, Tensor]
+    rest_offset: tuple[Tensor, Tensor, Tensor] | None = None
+
+
 @dataclass(frozen=True)
 class StepOptions:
     r"""How one model step is run: what its caller knows ahead, so that the step need not find out.
@@ -183,6 +199,10 @@ class StepOptions:
         collisions: whether the next graph gets a collision search at :math:`x_{t+1}`
             (:func:`hrn_pyg.sim.step.step`; a rollout's ``EffectPlan.collisions``); False: nothing
             in the scene can touch, so the next graph has no collision edges and no search is made.
+        hierarchy: the :class:`HierarchyConstants` of the graph the step runs on
+            (:func:`hrn_pyg.sim.step.hierarchy_constants`: the same for every graph of a rollout
+            without sleeping), which the pass then reads instead of recomputing them; None:
+            recomputed in the pass.
     """
 
     force_active: bool | None = None
@@ -191,6 +211,7 @@ class StepOptions:
     collision_weight: Tensor | None = None
     fixed_shape: bool = False
     collisions: bool = True
+    hierarchy: HierarchyConstants | None = None
 
 
 class HRNInputs(NamedTuple):
@@ -204,7 +225,8 @@ class HRNInputs(NamedTuple):
     the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided as
     ``pos``, or None (models without ``rest_offsets``). ``options``: the step's
     :class:`StepOptions`; the pass reads ``force_active``, ``collision_weight`` (``[E_C]``, one
-    per edge of ``collision``) and ``fixed_shape``.
+    per edge of ``collision``) and ``fixed_shape``. ``hierarchy``: the
+    :class:`HierarchyConstants` of these inputs' edges, or None (computed in the pass).
     """
 
     state: Tensor
@@ -220,6 +242,33 @@ class HRNInputs(NamedTuple):
     ancestor_to_descendant: Tensor
     rest_pos: Tensor | None = None
     options: StepOptions = StepOptions()
+    hierarchy: HierarchyConstants | None = None
+
+
+def hierarchy_constants(inputs: HRNInputs, rest_offsets: bool) -> HierarchyConstants:
+    """The :class:`HierarchyConstants` of ``inputs``' three hierarchy edge sets: in-degrees
+    (float, in the positions' dtype) and, with ``rest_offsets`` and a rest shape, the rest
+    offsets (:func:`~hrn_pyg.nn.propagation.edge_offsets` of ``inputs.rest_pos``)."""
+    n, dtype = inputs.pos.size(0), inputs.pos.dtype
+    edges = (inputs.leaf_to_ancestor, inputs.within_siblings, inputs.ancestor_to_descendant)
+    degree = tuple(in_degree(e, n).to(dtype) for e in edges)
+    rest = None
+    if rest_offsets and inputs.rest_pos is not None:
+        rest = tuple(edge_offsets(inputs.rest_pos, e) for e in edges)
+    return HierarchyConstants(degree, rest)
+
+
+def check_hierarchy(hierarchy: HierarchyConstants, inputs: HRNInputs) -> None:
+    """Raise ValueError unless ``hierarchy`` has a degree per node and a rest offset per edge of
+    ``inputs`` (constants of another graph)."""
+    n = inputs.pos.size(0)
+    edges = (inputs.leaf_to_ancestor, inputs.within_siblings, inputs.ancestor_to_descendant)
+    bad = any(d.shape != (n,) for d in hierarchy.degree)
+    if hierarchy.rest_offset is not None:
+        bad |= any(r.shape != (e.size(1), 3) for r, e in zip(hierarchy.rest_offset, edges))
+    if bad:
+        raise ValueError("StepOptions.hierarchy: the constants are of another graph (a degree per node and a "
+                         "rest offset per hierarchy edge expected)")
 
 
 def state_features(
@@ -383,9 +432,15 @@ class HRN(nn.Module):
         if not (skip and inputs.collision.size(1) == 0):
             effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b,
                                              edge_weight=options.collision_weight)
-        effect = effect + self.l2a(s, effect, x, inputs.leaf_to_ancestor, masks.get("l2a"), b, rest)
-        effect = effect + self.ws(s, effect, x, inputs.within_siblings, masks.get("ws"), b, rest)
-        effect = effect + self.a2d(s, effect, x, inputs.ancestor_to_descendant, masks.get("a2d"), b, rest)
+        hierarchy = inputs.hierarchy
+        degree = (None, None, None) if hierarchy is None else hierarchy.degree
+        rest_offset = (None, None, None) if hierarchy is None or hierarchy.rest_offset is None \
+            else hierarchy.rest_offset
+        phases = (("l2a", inputs.leaf_to_ancestor), ("ws", inputs.within_siblings),
+                  ("a2d", inputs.ancestor_to_descendant))
+        for (name, edges), d, r in zip(phases, degree, rest_offset):
+            phase = getattr(self, name)
+            effect = effect + phase(s, effect, x, edges, masks.get(name), b, rest, degree=d, rest_offset=r)
         return self.state(s, effect, inputs.is_static, masks.get("state"), b)
 
     def __repr__(self) -> str:
@@ -448,7 +503,17 @@ def transformed_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor, 
         pos=move(inputs.pos),
         force=transform_normalised(inputs.force, 0.0, normalizer.force_std, flip, swap),
         rest_pos=None if inputs.rest_pos is None else move(inputs.rest_pos),
+        hierarchy=None if inputs.hierarchy is None else moved_hierarchy(inputs.hierarchy, move),
     )
+
+
+def moved_hierarchy(hierarchy: HierarchyConstants, move: Callable[[Tensor], Tensor]) -> HierarchyConstants:
+    """``hierarchy`` of a scene mapped by ``move`` (a signed permutation of the axes, exact in
+    floats): the degrees as they are, each rest offset moved (the offset of the moved rest
+    positions, bit for bit)."""
+    if hierarchy.rest_offset is None:
+        return hierarchy
+    return hierarchy._replace(rest_offset=tuple(move(r) for r in hierarchy.rest_offset))
 
 
 def split_mirror_masks(masks: Mapping[str, Tensor], passes: int = 2) -> list[dict[str, Tensor]]:

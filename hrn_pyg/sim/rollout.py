@@ -25,7 +25,7 @@ from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim import sleeping
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
-from hrn_pyg.sim.step import MasksFn, Step, object_of, require_state, step
+from hrn_pyg.sim.step import MasksFn, Step, hierarchy_constants, object_of, require_state, step
 from hrn_pyg.utils.checks import check_finite
 
 #: the skin of a rollout's collision list (:func:`verlet_search`), in collision radii: a leaf may
@@ -84,7 +84,10 @@ def iterate(
         objects = object_of(graph) if model.config.rigid_fit else None
     # what every step is told rather than finds out: inputs checked here, the objects, the plan
     options = StepOptions(check=False, objects=objects, collisions=plan.collisions)
-    search = verlet_search(radius) if sleeper is None else None
+    search = None
+    if sleeper is None:  # every step runs on the whole graph: its hierarchy's constants are found once
+        options = replace(options, hierarchy=hierarchy_constants(model, graph))
+        search = verlet_search(radius)
     return _steps(model, graph, steps, forces, masks_fn, plan, sleeper, options, search)
 
 

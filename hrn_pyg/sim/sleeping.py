@@ -364,7 +364,7 @@ def predict_held(
     prev_pos, prev_prev_pos = freeze(graph, held)
     sub, index, awake_rows = subgraph(graph, held, prev_pos, prev_prev_pos)
     sub_pos, sub_local, sub_velocity = predict(model, sub, force.index_select(0, index), masks,
-                                               replace(options, objects=None))
+                                               replace(options, objects=None, hierarchy=None))
     keep = awake_rows.unsqueeze(-1)
     pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
     local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))

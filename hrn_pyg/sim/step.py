@@ -45,7 +45,8 @@ from hrn_pyg.data.graph import (
     leaf_to_ancestor_mean,
 )
 from hrn_pyg.nn.gns import GNS
-from hrn_pyg.nn.hrn import HRN, HRNInputs, StepOptions, state_features
+from hrn_pyg.nn.hrn import HRN, HierarchyConstants, HRNInputs, StepOptions, check_hierarchy, state_features
+from hrn_pyg.nn.hrn import hierarchy_constants as nn_hierarchy_constants
 from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware, node_radius, pitch_column, pitch_scale
 from hrn_pyg.nn.rigid import fit_rigid_motion
 from hrn_pyg.nn.state import to_global_velocity, to_local_velocity
@@ -191,7 +192,7 @@ def build_inputs(
     batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)
     empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
     collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
-    return HRNInputs(
+    inputs = HRNInputs(
         state=state,
         prev_state=prev_state,
         pos=geometric(pos),
@@ -206,6 +207,22 @@ def build_inputs(
         rest_pos=rest_pos,
         options=options,
     )
+    if options.hierarchy is not None:
+        check_hierarchy(options.hierarchy, inputs)
+        inputs = inputs._replace(hierarchy=options.hierarchy)
+    return inputs
+
+
+def hierarchy_constants(model: HRN, graph: HeteroData) -> HierarchyConstants | None:
+    """The :class:`~hrn_pyg.nn.hrn.HierarchyConstants` of ``graph`` for ``model`` (None for a
+    network other than the HRN): what ``StepOptions.hierarchy`` takes for every graph that
+    shares ``graph``'s hierarchy and rest shape (the graphs of a rollout without sleeping).
+    A graph without a recorded rest shape reads its current shape as the rest shape, which
+    changes, so its constants hold the degrees only."""
+    if not isinstance(model, HRN):
+        return None
+    inputs = build_inputs(model, graph, options=StepOptions(check=False, force_active=False))
+    return nn_hierarchy_constants(inputs, model.config.rest_offsets and "rest_pos" in graph[NODE])
 
 
 def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:

@@ -23,7 +23,7 @@ from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
 from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.sim.sleeping import objects as sleeping_objects
 from hrn_pyg.sim.sleeping import predict_held
-from hrn_pyg.sim.step import build_inputs, object_of, predict, step
+from hrn_pyg.sim.step import build_inputs, hierarchy_constants, object_of, predict, step
 
 STEPS = 6
 N = 19
@@ -54,6 +54,7 @@ def every_option_set(graph) -> StepOptions:
         collision_weight=torch.ones(graph[COLLISION].edge_index.size(1)),
         fixed_shape=True,
         collisions=False,
+        hierarchy=hierarchy_constants(fitted_model(), graph),
     )
     default = StepOptions()
     unset = [f.name for f in dataclasses.fields(StepOptions) if getattr(options, f.name) is getattr(default, f.name)]
@@ -72,6 +73,7 @@ def test_every_option_reaches_the_network_pass(passes, config):
         step(model, graph, None, None, options)
     assert len(passes) == len(model.config.mirror_group)
     assert all(seen is options for seen, _ in passes)
+    assert passes[0][1].hierarchy is options.hierarchy
 
 
 def test_the_options_read_outside_the_pass_are_read(monkeypatch):
@@ -108,7 +110,7 @@ def test_a_held_step_runs_the_sub_graph_with_the_same_options(passes):
             predict_held(model, graph, store.force, None, held, every_option_set(graph))
     (seen, inputs), = passes
     assert inputs.state.size(0) < N  # the sub-graph
-    assert seen == dataclasses.replace(options, objects=None)
+    assert seen == dataclasses.replace(options, objects=None, hierarchy=None)
 
 
 @pytest.mark.parametrize("sleep", [None, "default"])
