@@ -30,6 +30,7 @@ SCENE_OF = {
     "cube_collision_hrn": "cube_collision", "cube_push": "cube_push", "multi_material": "multi_material",
     "soft_bounce": "soft_bounce", "soft_bounce_fine": "soft_bounce", "soft_bounce_hrn": "soft_bounce",
     "tower": "tower", "wedge": "wedge", "shapes": "data/shapes/shapes_drop.toml",
+    "gns_cube_collision": "cube_collision", "gns_soft_bounce": "soft_bounce",
 }
 #: shipped files that are not dynamics models (they have no rollout to keep)
 NOT_MODELS = ("cube_push_policy",)
@@ -93,7 +94,8 @@ def compute(episode_arrays: dict[str, dict[str, np.ndarray]], names: tuple[str, 
                 key = f"{name}/start{start}"
                 out[f"{key}/plain"] = hrn_pyg.rollout(model, state, STEPS, forces, sleep=None).numpy()
                 out[f"{key}/sleep"] = hrn_pyg.rollout(model, state, STEPS, forces).numpy()
-                out[f"{key}/fixed"] = fixed_shape_rollout(model, state, STEPS, forces).pos.numpy()
+                if getattr(model.config, "network", "hrn") != "gns":  # the GNS has no fixed-shape step
+                    out[f"{key}/fixed"] = fixed_shape_rollout(model, state, STEPS, forces).pos.numpy()
                 rate = float(model.config.dropout_rate) or 0.1
                 if model.config.dropout_modules:
                     g = torch.Generator().manual_seed(3)
