@@ -49,6 +49,7 @@ MODULES = (
     "hrn_pyg.nn.rigid",
     "hrn_pyg.nn.hrn",
     "hrn_pyg.nn.pitch",
+    "hrn_pyg.nn.widen",
     "hrn_pyg.checkpoints",
     "hrn_pyg.checkpoints.domain",
     "hrn_pyg.sim.step",

@@ -69,6 +69,7 @@ from hrn_pyg.nn.networks import Network, NetworkConfig, build_network, network_f
 from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware
 from hrn_pyg.nn.state import to_local_velocity
+from hrn_pyg.nn.widen import widen_to_pitch_aware
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.step import root_of
 from hrn_pyg.utils.checkpoint import (
@@ -587,12 +588,19 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
     Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
     that differs from both the defaults and the checkpoint) is an error, not silently ignored;
     except the options of :data:`APPLIED_OPTIONS`, which change how the same weights are applied
-    (``mirror_average``, ``mirror_planes``): set, they hold from this fine-tuning on.
+    (``mirror_average``, ``mirror_planes``): set, they hold from this fine-tuning on. A
+    ``model_config`` with ``pitch_aware`` from a plain checkpoint starts a pitch-aware model from
+    its weights (:func:`hrn_pyg.nn.widen.widen_to_pitch_aware`, the new column's weights zero);
+    that new model takes the applied options of ``model_config`` as given (e.g. one pass, where
+    the checkpoint averaged over mirrors).
     """
     model = load_model(path)
     if type(model.config) is not type(model_config):
         raise ValueError(f"init_from={path!r} is a {type(model).__name__}, this preset trains a "
                          f"{type(model_config).__name__.removesuffix('Config')}")
+    if getattr(model_config, "pitch_aware", False) and not model.config.pitch_aware:
+        applied = {k: getattr(model_config, k) for k in APPLIED_OPTIONS}
+        model = widen_to_pitch_aware(model, reference_pitch=model_config.reference_pitch, **applied)
     saved, given, default = model.config.to_dict(), model_config.to_dict(), type(model_config)().to_dict()
     changed = {k: given[k] for k in given if given[k] != default.get(k) and given[k] != saved.get(k)}
     clashes = sorted(k for k in changed if k not in APPLIED_OPTIONS)
