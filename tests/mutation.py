@@ -26,7 +26,7 @@ MODULES: dict[str, tuple[str, tuple[str, ...], str]] = {
     # the scene file's draws: every function or method with "draw" in its name
     "scene_file": ("hrn_pyg/data/scene_file.py",
                    ("tests/data/test_scene_file.py", "tests/data/test_scene_file_bounds.py",
-                    "tests/data/test_scene_file_pushes.py"),
+                    "tests/data/test_scene_file_pushes.py", "tests/data/test_scene_file_draws.py"),
                    "hrn_pyg.data.scene_file.*draw*"),
     "expressions": ("hrn_pyg/data/expressions.py", ("tests/data/test_expressions.py",), "hrn_pyg.data.expressions.*"),
 }
