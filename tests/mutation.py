@@ -60,6 +60,11 @@ EQUIVALENT: dict[str, str] = {
     "hrn_pyg.data.expressions.x__shape__mutmut_12":
         "every array an expression builds is numeric (no string, bool or None literal parses)",
     "hrn_pyg.data.expressions.x__zeros__mutmut_3": "zeros() reads the empty shape as () either way",
+    "hrn_pyg.data.scene_file.x__draw__mutmut_17":
+        "the message of a TypeError or OverflowError from float64 conversion, which no evaluated "
+        "value raises: evaluate returns numbers only, whole numbers of at most 1023 bits (< 2^1024)",
+    "hrn_pyg.data.scene_file.x__draw__mutmut_36":
+        "the message of a non-finite drawn value, which evaluate has already refused as not finite",
 }
 
 CONFIG = """[mutmut]
