@@ -32,6 +32,27 @@ Run (the reduced sweep of docs/performance.md)::
 
 Prints a markdown table, writes ``benchmarks/results/accuracy_vs_time.json`` and the Pareto plot
 ``benchmarks/results/accuracy_vs_time.png`` (time against error, Pareto front drawn).
+
+**One model across pitches** (``--model``, a shipped name or a checkpoint path). Nothing is
+trained: the one model is scored on the same scenes made at each pitch of ``--pitches`` (default
+0.025, 0.035, 0.05, 0.08 m). The scenes are ``--episodes`` seeds (from ``--first-seed``) of one
+scene file (``--scene-file``, default the generalist's validation drop of two unseen meshes,
+``data/shapes/unseen/validation_rigid.toml``), simulated by pybullet at each pitch and kept under
+``--work`` (an episode file there is reused: ``benchmarks/episode_cache.py``). At each pitch:
+the position and shape MSE at each of ``--horizons`` (default 15 and 50), mean and standard error
+over windows from step 2 and then every ``--stride`` steps
+(:func:`hrn_pyg.evaluate.evaluate_model`, the network alone); the model's time per step (median
+over ``--repeats`` rollouts of the first window, ``max(--horizons)`` steps, sleeping off,
+``--threads`` torch threads); pybullet's time per model step on the first episode, simulated again
+in the same process; and each error over the one at pitch 0.05 when 0.05 is swept. A model reads
+the pitch from every graph (a pitch-aware model uses it; a plain one does not), and the model's
+domain check runs at each pitch: a pitch it was not trained at is warned about and recorded. Run::
+
+    python benchmarks/accuracy_vs_time.py --model shapes --pitches 0.025,0.035,0.05,0.08 \\
+        --out benchmarks/results/accuracy_vs_pitch_shapes.json
+
+prints its own table (pitch, leaves, pybullet and model ms per step, errors, ratios to pitch
+0.05) and writes its JSON (default ``benchmarks/results/accuracy_vs_pitch.json``) atomically.
 """
 
 from __future__ import annotations
@@ -42,6 +63,7 @@ import os
 import platform
 import shutil
 import statistics
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,7 +78,8 @@ from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy
 from hrn_pyg.data.io import load_episode, save_episode
-from hrn_pyg.data.scene_file import builtin_scene, make_scene
+from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
+from hrn_pyg.data.scene_file import builtin_scene, make_scene, read_scene_file
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise
 from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sampling.sample import sample
@@ -64,6 +87,9 @@ from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.train import TrainConfig, train
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.viz import save_figure
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from episode_cache import cached_episodes, episode_leaves, scene_digest, windows_of  # noqa: E402
 
 SCENES = ("soft_bounce", "cube_collision")
 HORIZONS = (5, 15)
@@ -76,6 +102,13 @@ HIDDENS = (32, 64, 128)
 KS = (1, 4, 16)
 #: window starts this many steps apart in a test episode (evaluate's default)
 STRIDE = 10
+#: the one-model mode's defaults: scene file, pitches, horizons, episodes and first seed (the seeds
+#: the scene file's own comment generates its validation folder with)
+PITCH_SCENE = "data/shapes/unseen/validation_rigid.toml"
+PITCH_PITCHES = (0.025, 0.035, 0.05, 0.08)
+PITCH_HORIZONS = (15, 50)
+PITCH_EPISODES = 6
+PITCH_FIRST_SEED = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -315,21 +348,146 @@ def plot(rows: list[dict], pybullet: list[dict], path: Path) -> None:
     save_figure(fig, path, dpi=110)
 
 
+# ---------------------------------------------------------------------------------------------
+# one model across pitches
+
+
+def pitch_point(model, spec, pitch: float, args) -> dict:
+    """Errors and times of ``model`` on the scenes of ``spec`` made at ``pitch``."""
+    at = spec.with_settings(pitch=pitch, steps=args.episode_steps)
+    folder = Path(args.work) / "pitch" / f"{spec.name}_p{pitch:g}_{scene_digest(at)}"
+    seeds = list(range(args.first_seed, args.first_seed + args.episodes))
+    made = cached_episodes(at, folder, seeds)
+    outside = report_outside(model, dataset_domain(folder), prefix=f"accuracy_vs_time (pitch {pitch:g}): warning: ")
+    steps = max(args.horizons)
+    windows = windows_of(folder, made["seeds"], steps, args.stride, args.limit)
+    errors = summarise(evaluate_model(model, windows, args.horizons))
+    first = Batch.from_data_list([windows[0]])  # the first kept episode from step 2
+    forces = first[NODE].force_seq[:, :steps].transpose(0, 1).contiguous()
+    with torch.no_grad():
+        rollout(model, first, 2, forces[:2], sleep=None)  # warm-up
+        times = []
+        for _ in range(args.repeats):
+            start = time.perf_counter()
+            rollout(model, first, steps, forces, sleep=None)
+            times.append((time.perf_counter() - start) / steps)
+    seconds = statistics.median(times)
+    leaves = [episode_leaves(folder / f"episode_{s:06d}.npz") for s in made["seeds"]]
+    return {"pitch": pitch, "leaves": int(made["timed_episode"]["positions"].shape[1]),
+            "leaves_mean": float(np.mean(leaves)), "episodes": len(made["seeds"]), "seeds": made["seeds"],
+            "rejected": made["rejected"], "made": made["made"], "windows": len(windows), "folder": str(folder),
+            "pybullet_ms": 1e3 * made["pybullet_s_per_step"], "model_ms": 1e3 * seconds,
+            "model_ms_runs": [1e3 * t for t in times], "x_pybullet": seconds / made["pybullet_s_per_step"],
+            "outside": outside, "errors": errors}
+
+
+def pitch_table(rows: list[dict], horizons: tuple[int, ...]) -> str:
+    """One row per pitch: leaves, times, errors and their ratio to pitch 0.05 (when swept)."""
+    head = ["pitch (m)", "leaves", "pybullet ms/step", "model ms/step", "model / pybullet"]
+    head += [f"{m} MSE t+{h}" for m in ("position", "shape") for h in horizons]
+    ratios = any(r["pitch"] == BASE_PITCH for r in rows)
+    if ratios:
+        head += [f"{m} t+{h} x pitch {BASE_PITCH:g}" for m in ("position", "shape") for h in horizons]
+    head += ["diverged", "in the model's domain"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [f"{r['pitch']:g}", str(r["leaves"]), f"{r['pybullet_ms']:.2f}", f"{r['model_ms']:.2f}",
+                 f"{r['x_pybullet']:.2f}x"]
+        for m in ("position", "shape"):
+            for h in horizons:
+                s = r["errors"][m][f"t+{h}"]
+                cells.append(f"{s['mean']:.3g}" + (f" ± {s['sem']:.2g}" if np.isfinite(s["sem"]) else ""))
+        if ratios:
+            cells += [f"{r[f'ratio_{m}@{h}']:.2f}x" for m in ("position", "shape") for h in horizons]
+        cells += [str(r["errors"]["position"][f"t+{max(horizons)}"]["diverged"]), "no" if r["outside"] else "yes"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def one_model(args) -> dict:
+    """The one-model mode: ``args.model`` scored and timed at each pitch of ``args.pitches``."""
+    if args.repeats < 1 or args.episodes < 1 or args.stride < 1:
+        raise SystemExit("--repeats, --episodes and --stride must be >= 1")
+    args.horizons = tuple(int(h) for h in args.horizons.split(",") if h)
+    if not args.horizons or min(args.horizons) < 1:
+        raise SystemExit(f"--horizons must be positive integers, got {args.horizons}")
+    torch.set_num_threads(args.threads)
+    pitches = [float(p) for p in args.pitches.split(",") if p]
+    model = load_model(args.model)
+    spec = read_scene_file(args.scene_file)
+    started = time.perf_counter()
+    rows = []
+    for pitch in pitches:
+        row = pitch_point(model, spec, pitch, args)
+        rows.append(row)
+        print(f"pitch {pitch:g}: {row['leaves']} leaves, {row['windows']} windows ({row['made']} episodes made); "
+              f"pybullet {row['pybullet_ms']:.2f} ms, model {row['model_ms']:.2f} ms per step; position MSE "
+              + ", ".join(f"t+{h} {row['errors']['position'][f't+{h}']['mean']:.3g}" for h in args.horizons),
+              flush=True)
+    base = next((r for r in rows if r["pitch"] == BASE_PITCH), None)
+    if base is not None:
+        for r in rows:
+            for m in ("position", "shape"):
+                for h in args.horizons:
+                    r[f"ratio_{m}@{h}"] = r["errors"][m][f"t+{h}"]["mean"] / base["errors"][m][f"t+{h}"]["mean"]
+    table = pitch_table(rows, args.horizons)
+    print()
+    print(table, end="")
+    result = {
+        "what": "one model on the same scenes made at each pitch: time per step and error, pybullet's time beside",
+        "model": args.model, "scene_file": args.scene_file, "episodes": args.episodes,
+        "first_seed": args.first_seed, "episode_steps": args.episode_steps, "horizons": list(args.horizons),
+        "stride": args.stride, "limit": args.limit, "repeats": args.repeats, "threads": args.threads,
+        "statistics": "errors: mean and standard error over windows (from step 2, then every --stride steps), "
+                      "the network alone; model_ms: median over --repeats of a max(--horizons)-step rollout "
+                      "of the first window, sleeping off; pybullet_ms: median over the model steps of the "
+                      "first episode, simulated again in this run",
+        "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                    "torch_threads": args.threads, "load_average_1m_at_end": os.getloadavg()[0]},
+        "seconds": round(time.perf_counter() - started, 1), "rows": rows, "table": table,
+    }
+    atomic_write_json(args.out, result)
+    print(f"wrote {args.out} ({result['seconds']:.0f} s)")
+    return result
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=",".join(SCENES))
     parser.add_argument("--sweeps", default="pitch,hierarchy,hidden,k,dtype")
-    parser.add_argument("--pitches", default="0.1,0.0333", help="voxel pitches (m) of the pitch sweep")
+    parser.add_argument("--pitches", default=None,
+                        help="voxel pitches (m): of the pitch sweep (default 0.1,0.0333), or with --model "
+                             "the pitches the one model is scored at (default 0.025,0.035,0.05,0.08)")
     parser.add_argument("--budget", type=int, default=300, help="training steps per sweep point")
-    parser.add_argument("--episodes", type=int, default=40, help="episodes per generated dataset")
-    parser.add_argument("--episode-steps", type=int, default=50, help="model steps per episode")
+    parser.add_argument("--episodes", type=int, default=None,
+                        help="episodes per generated dataset (default 40), or with --model per pitch (default 6)")
+    parser.add_argument("--episode-steps", type=int, default=None,
+                        help="model steps per episode (default 50; with --model the scene file's own)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--k-rate", type=float, default=0.05, help="dropout rate of the k sweep")
     parser.add_argument("--work", default="runs/accuracy_vs_time")
-    parser.add_argument("--out", default="benchmarks/results/accuracy_vs_time.json")
-    parser.add_argument("--plot", default="benchmarks/results/accuracy_vs_time.png")
+    parser.add_argument("--out", default=None, help="JSON (default benchmarks/results/accuracy_vs_time.json, "
+                        "with --model benchmarks/results/accuracy_vs_pitch.json)")
+    parser.add_argument("--plot", default="benchmarks/results/accuracy_vs_time.png", help="the sweep's plot")
+    one = parser.add_argument_group("one model across pitches (--model)")
+    one.add_argument("--model", default=None, help="score this one model (a shipped name or a path) at each "
+                     "pitch instead of training a model per sweep point")
+    one.add_argument("--scene-file", default=PITCH_SCENE)
+    one.add_argument("--first-seed", type=int, default=PITCH_FIRST_SEED)
+    one.add_argument("--horizons", default=",".join(map(str, PITCH_HORIZONS)))
+    one.add_argument("--stride", type=int, default=STRIDE, help="steps between window starts in an episode")
+    one.add_argument("--limit", type=int, default=None, help="at most this many windows per pitch")
     args = parser.parse_args(argv)
+    if args.model is not None:
+        args.pitches = args.pitches or ",".join(map(str, PITCH_PITCHES))
+        args.episodes = PITCH_EPISODES if args.episodes is None else args.episodes
+        args.out = args.out or "benchmarks/results/accuracy_vs_pitch.json"
+        return one_model(args)
+    args.pitches = args.pitches or "0.1,0.0333"
+    args.episodes = 40 if args.episodes is None else args.episodes
+    args.episode_steps = 50 if args.episode_steps is None else args.episode_steps
+    args.out = args.out or "benchmarks/results/accuracy_vs_time.json"
     if args.repeats < 5:
         raise SystemExit("--repeats must be >= 5 (median of at least 5 runs)")
     if args.episodes < 20:

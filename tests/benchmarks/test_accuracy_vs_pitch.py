@@ -1,0 +1,64 @@
+"""The one-model mode of ``benchmarks/accuracy_vs_time.py`` end to end on a tiny case: two
+pitches of the generalist's validation scene, one short episode each, scored and timed with the
+plain ``shapes`` model (warned about the pitch it never saw) and with the same model widened into
+a pitch-aware one (the same errors at the reference pitch, others where the pitch differs)."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.nn.widen import widen_to_pitch_aware
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _benchmark(monkeypatch):
+    spec = importlib.util.spec_from_file_location("accuracy_vs_time", ROOT / "benchmarks" / "accuracy_vs_time.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "accuracy_vs_time", module)  # its dataclasses look themselves up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _argv(tmp_path: Path, out: str) -> list[str]:
+    return ["--model", "shapes", "--pitches", "0.05,0.08", "--episodes", "1", "--episode-steps", "8",
+            "--horizons", "2,5", "--stride", "1", "--repeats", "1", "--work", str(tmp_path / "work"),
+            "--out", str(tmp_path / out)]
+
+
+def test_one_model_across_pitches_plain_then_pitch_aware(tmp_path, monkeypatch, capsys):
+    bench = _benchmark(monkeypatch)
+    plain = bench.main(_argv(tmp_path, "plain.json"))
+    rows = {r["pitch"]: r for r in plain["rows"]}
+    assert list(rows) == [0.05, 0.08]
+    assert rows[0.08]["leaves"] < rows[0.05]["leaves"]                    # the same scene, coarser
+    for row in rows.values():
+        assert row["made"] == 1 and row["windows"] == 8 - 5 - 2 + 1
+        assert row["pybullet_ms"] > 0 and row["model_ms"] > 0
+        for m in ("position", "shape"):
+            for h in (2, 5):
+                assert row["errors"][m][f"t+{h}"]["n"] == row["windows"]
+                assert row[f"ratio_{m}@{h}"] == pytest.approx(
+                    row["errors"][m][f"t+{h}"]["mean"] / rows[0.05]["errors"][m][f"t+{h}"]["mean"])
+    assert rows[0.05]["outside"] is None and "pitch is 0.08 m" in rows[0.08]["outside"]
+    captured = capsys.readouterr()
+    assert "pitch is 0.08 m" in captured.err                              # the warning is not silenced
+    assert "| pitch (m) | leaves | pybullet ms/step | model ms/step |" in captured.out
+
+    shapes = load_model("shapes")
+    wide = widen_to_pitch_aware(shapes).eval()
+    wide.domain = dataclasses.replace(shapes.domain, pitch_range=(0.025, 0.08))
+    wide.checkpoint_name = "shapes widened"
+    monkeypatch.setattr(bench, "load_model", lambda name: wide)
+    aware = bench.main(_argv(tmp_path, "aware.json"))
+    again = {r["pitch"]: r for r in aware["rows"]}
+    assert [r["made"] for r in again.values()] == [0, 0]                  # the episodes were kept
+    assert all(r["outside"] is None for r in again.values())              # inside its pitch range
+    assert again[0.05]["errors"] == rows[0.05]["errors"]                  # zero pitch column at 0.05
+    assert again[0.08]["errors"]["position"] != rows[0.08]["errors"]["position"]  # it reads the pitch
