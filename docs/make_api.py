@@ -56,6 +56,7 @@ MODULES = (
     "hrn_pyg.sim.rollout",
     "hrn_pyg.sim.sleeping",
     "hrn_pyg.sim.fixed_shape",
+    "hrn_pyg.sim.penetration",
     "hrn_pyg.losses",
     "hrn_pyg.train",
     "hrn_pyg.evaluate",
