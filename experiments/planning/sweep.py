@@ -92,29 +92,15 @@ def read_episodes(path: Path) -> list[dict]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hrn_pyg.rl.planning import PlannerConfig
+    from hrn_pyg.rl.planning import add_search_arguments
 
-    d = PlannerConfig()
     parser.add_argument("--task", required=True, choices=sorted(TASKS), help="an RL task's name")
     parser.add_argument("--model", required=True, help="a model checkpoint: a path or a shipped model's name")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="planners to run")
     parser.add_argument("--num-scenes", type=int, default=32, help="fixed evaluation scenes (the first N of 32)")
     parser.add_argument("--num-seeds", type=int, default=5, help="planner seeds per mode and scene")
     parser.add_argument("--first-seed", type=int, default=0, help="the first planner seed")
-    parser.add_argument("--candidates", type=int, default=d.candidates, help="CEM candidates N")
-    parser.add_argument("--elites", type=int, default=d.elites, help="CEM elites E")
-    parser.add_argument("--iterations", type=int, default=d.iterations, help="CEM iterations per control step")
-    parser.add_argument("--horizon", type=int, default=d.horizon, help="model steps predicted from a start")
-    parser.add_argument("--k", type=int, default=d.futures, help="sampled futures per start")
-    parser.add_argument("--refine-steps", type=int, default=3, help="Adam steps of the refined mode")
-    parser.add_argument("--action-repeat", type=int, default=d.action_repeat,
-                        help="model steps each planned action is held")
-    parser.add_argument("--reach-weight", type=float, default=d.reach_weight,
-                        help="weight of the pushed object's route length")
-    parser.add_argument("--horizontal", action="store_true",
-                        help="forces in the ground plane, at most the task's bound in magnitude")
-    parser.add_argument("--route-proposal", action="store_true",
-                        help="add the full-force push along the reach route to the first CEM draw")
+    add_search_arguments(parser)
     parser.add_argument("--validation", action="store_true",
                         help="play the validation scenes (pybullet seeds 20000+), not the 32 evaluation scenes")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")

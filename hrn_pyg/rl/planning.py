@@ -596,22 +596,15 @@ def episode_figure(result: dict, task: TaskConfig, path: str | Path, title: str 
     save_figure(fig, path)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_search_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the planner's search, shared by ``hrn-pyg plan`` and the planning sweep."""
     defaults = PlannerConfig()
-    parser.add_argument("--task", required=True, choices=sorted(TASKS), help="an RL task's name")
-    parser.add_argument("--model", required=True,
-                        help="a model checkpoint: a path or a shipped model's name")
-    parser.add_argument("--score", choices=SCORES, default=defaults.score, help="how a candidate is scored")
-    parser.add_argument("--refine", action="store_true", help="gradient refinement of each plan")
-    parser.add_argument("--refine-steps", type=int, default=3, help="Adam steps of --refine")
+    parser.add_argument("--refine-steps", type=int, default=3, help="Adam steps of a gradient refinement")
     parser.add_argument("--candidates", type=int, default=defaults.candidates, help="CEM candidates N")
     parser.add_argument("--elites", type=int, default=defaults.elites, help="CEM elites E")
     parser.add_argument("--iterations", type=int, default=defaults.iterations, help="CEM iterations")
     parser.add_argument("--horizon", type=int, default=defaults.horizon, help="model steps predicted from a start")
     parser.add_argument("--k", type=int, default=defaults.futures, help="sampled futures per start")
-    parser.add_argument("--rate", type=float, default=None,
-                        help="dropout rate of the futures (default: the model's calibrated rate, else the task's)")
-    parser.add_argument("--risk-std", type=float, default=defaults.risk_std, help="c of the risk score")
     parser.add_argument("--action-repeat", type=int, default=defaults.action_repeat,
                         help="model steps each planned action is held (the plan is redone as often)")
     parser.add_argument("--reach-weight", type=float, default=defaults.reach_weight,
@@ -620,6 +613,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="forces in the ground plane, at most the task's bound in magnitude")
     parser.add_argument("--route-proposal", action="store_true",
                         help="add the full-force push along the reach route to the first CEM draw")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    defaults = PlannerConfig()
+    parser.add_argument("--task", required=True, choices=sorted(TASKS), help="an RL task's name")
+    parser.add_argument("--model", required=True,
+                        help="a model checkpoint: a path or a shipped model's name")
+    parser.add_argument("--score", choices=SCORES, default=defaults.score, help="how a candidate is scored")
+    parser.add_argument("--refine", action="store_true", help="gradient refinement of each plan")
+    add_search_arguments(parser)
+    parser.add_argument("--rate", type=float, default=None,
+                        help="dropout rate of the futures (default: the model's calibrated rate, else the task's)")
+    parser.add_argument("--risk-std", type=float, default=defaults.risk_std, help="c of the risk score")
     parser.add_argument("--control-steps", type=int, default=None,
                         help="stop after this many control steps (default: the task's limit)")
     parser.add_argument("--episode-seed", type=int, default=10_000, help="the pybullet episode simulated")
