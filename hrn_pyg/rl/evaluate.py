@@ -10,7 +10,9 @@ same actions replayed in pybullet.
   started from and judges the task's goal there.
 - :func:`closed_loop_in_pybullet` runs the policy itself in that pybullet scene: every step it
   sees pybullet's own object roots, so it is judged by what it does in physics, apart from the
-  drift between the learned model and pybullet that an open-loop replay accumulates.
+  drift between the learned model and pybullet that an open-loop replay accumulates. Its loop,
+  :func:`control_in_pybullet`, takes any acting function of pybullet's frames (the planners'
+  too).
 - :func:`ground_truth_success` puts them side by side (the check ``hrn-pyg rl --model`` runs
   after training).
 
@@ -20,6 +22,7 @@ Training lives in :mod:`hrn_pyg.rl.ppo`, the learning curve's metrics in
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import torch
@@ -136,18 +139,24 @@ def deterministic_actions(policy: TensorDictModule) -> ActionFn:
     return act
 
 
-@torch.no_grad()
-def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, goal: Tensor,
-                            history_steps: int = HISTORY) -> dict:
-    """Run a policy closed loop in the pybullet scene ``seed`` against ``goal`` ``(2,)``.
+#: an acting function of :func:`control_in_pybullet`: pybullet's frames of leaf positions so far
+#: (each ``(L, 3)``) and the objects' roots now ``(O, 6)`` -> the action ``(A,)``
+FrameActionFn = Callable[[list[Tensor], Tensor], Tensor]
+
+
+def control_in_pybullet(act: FrameActionFn, task: str | TaskConfig, seed: int, goal: Tensor,
+                        history_steps: int = HISTORY) -> dict:
+    """Control the pybullet scene ``seed`` of ``task`` closed loop against ``goal`` ``(2,)``.
 
     After the scene's reset and ``history_steps`` zero-force steps (as the learned episodes
-    start), every step the policy ``act`` sees the observation built from pybullet's own roots
-    (mass-weighted leaf means and their per-step displacement, then the goal: the layout of
-    :class:`~hrn_pyg.rl.env.HRNEnv`), its action ``(1, A)`` is clipped to the force bound and
-    applied, and the goal is judged as in :func:`replay_in_pybullet`, for up to
-    ``task.max_steps`` steps. Returns ``{"success": bool, "steps": int}`` (``max_steps`` when
-    the goal was never reached).
+    start), every control step ``act`` sees pybullet's frames of leaves so far and the objects'
+    roots (mass-weighted leaf means and their last displacement), its action is clipped to the
+    force bound and applied, and the goal is judged on pybullet's roots, for up to
+    ``task.max_steps`` steps or until the goal is held.
+
+    Returns ``success``, ``steps`` (``max_steps`` when the goal was never held), ``actions``
+    ``(T, A)``, ``roots`` ``(T + 1, O, 6)``, and per control step the seconds ``act`` took
+    (``act_seconds``) and the seconds of pybullet's step (``physics_seconds``).
     """
     task = get_task(task)
     if history_steps < 0:
@@ -157,28 +166,57 @@ def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, go
     goal = torch.as_tensor(goal, dtype=torch.float32).cpu().reshape(2)
     scene = make_scene(task.scene_name, seed)
     try:
-        first = torch.as_tensor(scene.reset(), dtype=torch.float32)  # the objects exist from here on
+        frames = [torch.as_tensor(scene.reset(), dtype=torch.float32)]  # the objects exist from here on
         obj = torch.as_tensor(scene.leaf_object)
         mass = torch.as_tensor(scene.leaf_mass, dtype=torch.float32)
-
-        def centres(x) -> Tensor:  # (L, 3) -> (O, 3)
-            return object_centres(torch.as_tensor(x, dtype=torch.float32), obj, task.num_objects, mass)
-
-        prev = now = centres(first)
         for _ in range(history_steps):  # a loop over time steps
-            prev, now = now, centres(scene.step(scene.zero_action()))
-        held = 0  # goal-reaching steps in a row
-        for t in range(task.max_steps):  # a loop over time steps
-            roots = torch.cat([now, now - prev], -1)
-            action = act(torch.cat([roots.flatten(), goal])[None]).clamp(-task.max_force, task.max_force)
-            forces = action_to_forces(task, action)[0]
-            prev, now = now, centres(scene.step(forces.double().numpy()))
-            held = goal_streak(held, bool(goal_reached(task, torch.cat([now, now - prev], -1), goal)))
+            frames.append(torch.as_tensor(scene.step(scene.zero_action()), dtype=torch.float32))
+
+        def roots_now() -> Tensor:  # (O, 6) from the last two frames (one at the start)
+            c = object_centres(torch.stack(frames[-2:]), obj, task.num_objects, mass)
+            return torch.cat([c[-1], c[-1] - c[0]], -1)
+
+        roots, actions, act_s, physics_s = [roots_now()], [], [], []
+        held, success = 0, False  # goal-reaching steps in a row
+        for _ in range(task.max_steps):  # a loop over control steps
+            start = time.perf_counter()
+            action = act(frames, roots[-1]).reshape(task.action_dim).clamp(-task.max_force, task.max_force)
+            act_s.append(time.perf_counter() - start)
+            forces = action_to_forces(task, action.unsqueeze(0))[0]
+            start = time.perf_counter()
+            leaves = scene.step(forces.double().numpy())
+            physics_s.append(time.perf_counter() - start)
+            frames.append(torch.as_tensor(leaves, dtype=torch.float32))
+            actions.append(action)
+            roots.append(roots_now())
+            held = goal_streak(held, bool(goal_reached(task, roots[-1], goal)))
             if goal_held(task, held):
-                return {"success": True, "steps": t + 1}
+                success = True
+                break
     finally:
         scene.close()
-    return {"success": False, "steps": task.max_steps}
+    return {"success": success, "steps": len(actions) if success else task.max_steps,
+            "actions": torch.stack(actions), "roots": torch.stack(roots),
+            "act_seconds": act_s, "physics_seconds": physics_s}
+
+
+@torch.no_grad()
+def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, goal: Tensor,
+                            history_steps: int = HISTORY) -> dict:
+    """Run a policy closed loop in the pybullet scene ``seed`` against ``goal`` ``(2,)``.
+
+    The loop of :func:`control_in_pybullet`: every step the policy ``act`` sees the observation
+    built from pybullet's own roots and the goal (the layout of :class:`~hrn_pyg.rl.env.HRNEnv`)
+    and returns an action ``(1, A)``; the goal is judged as in :func:`replay_in_pybullet`.
+    Returns ``{"success": bool, "steps": int}`` (``max_steps`` when the goal was never reached).
+    """
+    goal = torch.as_tensor(goal, dtype=torch.float32).cpu().reshape(2)
+
+    def act_on_roots(_frames: list[Tensor], roots: Tensor) -> Tensor:
+        return act(torch.cat([roots.flatten(), goal])[None])[0]
+
+    out = control_in_pybullet(act_on_roots, task, seed, goal, history_steps)
+    return {"success": out["success"], "steps": out["steps"]}
 
 
 @torch.no_grad()

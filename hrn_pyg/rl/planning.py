@@ -510,7 +510,8 @@ class MPCPlanner:
 def plan_episode(planner: MPCPlanner, seed: int, goal: Tensor, pool_index: int = 0) -> dict:
     """One closed-loop episode in the pybullet scene ``seed`` against ``goal`` ``(2,)``.
 
-    After the reset and ``HISTORY`` zero-force steps (as the learned episodes start), every control step rebuilds the
+    The loop of :func:`~hrn_pyg.rl.evaluate.control_in_pybullet`: after the reset and
+    ``HISTORY`` zero-force steps (as the learned episodes start), every control step rebuilds the
     learned state from pybullet's last three frames of leaves (masses of pool entry
     ``pool_index``, which must be scene ``seed``), plans, applies the first action in pybullet
     and judges the goal there, for up to ``task.max_steps`` steps.
@@ -518,47 +519,22 @@ def plan_episode(planner: MPCPlanner, seed: int, goal: Tensor, pool_index: int =
     Returns ``success``, ``steps``, ``plan_seconds`` and ``physics_seconds`` (one per control
     step), ``actions`` ``(T, A)``, ``roots`` ``(T + 1, O, 6)`` and the ``goal``.
     """
-    from hrn_pyg.data.scene_file import make_scene
+    from hrn_pyg.rl.evaluate import control_in_pybullet
 
-    task, dyn = planner.task, planner.dynamics
+    dyn = planner.dynamics
     if int(dyn.pool_seeds[pool_index]) != seed:
         raise ValueError(f"pool entry {pool_index} is not pybullet scene {seed}")
     goal = torch.as_tensor(goal, dtype=torch.float32).reshape(2)
     planner.reset()
-    scene = make_scene(task.scene_name, seed)
     index = torch.tensor(pool_index)
-    mass = dyn.leaf_mass[pool_index]
-    try:
-        frames = [torch.as_tensor(scene.reset(), dtype=torch.float32)]
-        for _ in range(HISTORY):  # a loop over time steps
-            frames.append(torch.as_tensor(scene.step(scene.zero_action()), dtype=torch.float32))
 
-        def roots_now() -> Tensor:  # (O, 6) from the last two frames
-            c = object_centres(torch.stack(frames[-2:]), dyn.leaf_object, task.num_objects, mass)
-            return torch.cat([c[1], c[1] - c[0]], -1)
+    def act(frames: list[Tensor], _roots: Tensor) -> Tensor:
+        return planner.act(dyn.state_of(torch.stack(frames[-3:]), index), goal)
 
-        roots, actions, plan_s, physics_s = [roots_now()], [], [], []
-        held, success = 0, False
-        for _ in range(task.max_steps):  # a loop over control steps
-            state = dyn.state_of(torch.stack(frames[-3:]), index)
-            start = time.perf_counter()
-            action = planner.act(state, goal).clamp(-task.max_force, task.max_force)
-            plan_s.append(time.perf_counter() - start)
-            forces = action_to_forces(task, action.unsqueeze(0))[0]
-            start = time.perf_counter()
-            leaves = scene.step(forces.double().numpy())
-            physics_s.append(time.perf_counter() - start)
-            frames.append(torch.as_tensor(leaves, dtype=torch.float32))
-            actions.append(action)
-            roots.append(roots_now())
-            held = goal_streak(held, bool(goal_reached(task, roots[-1], goal)))
-            if goal_held(task, held):
-                success = True
-                break
-    finally:
-        scene.close()
-    return {"success": success, "steps": len(actions), "plan_seconds": plan_s, "physics_seconds": physics_s,
-            "actions": torch.stack(actions), "roots": torch.stack(roots), "goal": goal}
+    out = control_in_pybullet(act, planner.task, seed, goal, HISTORY)
+    out["plan_seconds"] = out.pop("act_seconds")
+    out["steps"] = len(out["actions"])
+    return {**out, "goal": goal}
 
 
 def episode_goal(task: TaskConfig, dynamics: HRNDynamics, pool_index: int, seed: int) -> Tensor:
