@@ -10,6 +10,8 @@ task's step limit for a failed episode (the convention of :mod:`hrn_pyg.rl.evalu
 ::
 
     python -m experiments.planning.summary --task cube_push_stop --runs runs/planning/cube_push_stop
+
+A sweep split over several folders by ``--modes`` is summarised by naming them all (``--runs A B``).
 """
 
 from __future__ import annotations
@@ -79,17 +81,37 @@ def summarise(episodes: list[dict], task_name: str, ppo_summary: Path | None = N
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", required=True, choices=sorted(TASKS), help="the task of the sweep")
-    parser.add_argument("--runs", required=True, help="the sweep's folder (episodes.jsonl)")
+    parser.add_argument("--runs", required=True, nargs="+",
+                        help="the sweep's folders (episodes.jsonl; several when --modes split it)")
     parser.add_argument("--ppo", default=None,
                         help="the PPO summary of the same scenes (default: docs/results/rl_<task>_summary.json)")
     parser.add_argument("--out", default=None, help="the summary (default: docs/results/planning_<task>.json)")
 
 
+def read_sweeps(folders: list[Path]) -> list[dict]:
+    """The episodes of one sweep kept in several folders (a sweep split by ``--modes``): their
+    ``sweep.json`` settings must agree and no (mode, scene, seed) may appear twice."""
+    settings, episodes, seen = None, [], set()
+    for folder in folders:
+        path = folder / "episodes.jsonl"
+        if not path.exists():
+            raise FileNotFoundError(f"no episodes at {path}")
+        record = folder / "sweep.json"
+        these = json.loads(record.read_text()) if record.exists() else None
+        if settings is not None and these != settings:
+            raise ValueError(f"{record} holds other settings than {folders[0] / 'sweep.json'}")
+        settings = these
+        for e in read_episodes(path):
+            key = (e["mode"], e["scene"], e["seed"])
+            if key in seen:
+                raise ValueError(f"{path}: {key[0]} scene {key[1]} seed {key[2]} appears twice")
+            seen.add(key)
+            episodes.append(e)
+    return episodes
+
+
 def run(args: argparse.Namespace) -> int:
-    path = Path(args.runs) / "episodes.jsonl"
-    if not path.exists():
-        raise FileNotFoundError(f"no episodes at {path}")
-    episodes = [e for e in read_episodes(path)]
+    episodes = read_sweeps([Path(r) for r in args.runs])
     ppo = Path(args.ppo) if args.ppo else Path("docs/results") / f"rl_{args.task}_summary.json"
     out = Path(args.out) if args.out else Path("docs/results") / f"planning_{args.task}.json"
     summary = summarise(episodes, args.task, ppo)

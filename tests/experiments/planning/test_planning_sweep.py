@@ -74,3 +74,24 @@ def test_validation_scenes_are_other_pybullet_scenes_with_their_own_goals(tmp_pa
     assert [s["scene_seed"] for s in scenes] == [20_000, 20_001] and scenes[0]["goal"] != scenes[1]["goal"]
     with pytest.raises(ValueError, match="num-scenes"):
         sweep.validation_scenes(sweep.get_task("cube_push_stop"), dynamics, 3)
+def _write_sweep(folder, settings, episodes):
+    folder.mkdir()
+    (folder / "sweep.json").write_text(json.dumps(settings))
+    (folder / "episodes.jsonl").write_text("".join(json.dumps(e) + "\n" for e in episodes))
+
+
+def test_a_sweep_split_by_modes_is_read_from_its_folders(tmp_path):
+    settings = {"task": "cube_push_stop", "planner": {"k": 2}}
+    one = {"mode": "deterministic", "seed": 0, "scene": 0, "success": True, "steps": 3}
+    other = {**one, "mode": "mean"}
+    _write_sweep(tmp_path / "a", settings, [one])
+    _write_sweep(tmp_path / "b", settings, [other])
+    assert summary_mod.read_sweeps([tmp_path / "a", tmp_path / "b"]) == [one, other]
+    _write_sweep(tmp_path / "twice", settings, [one])
+    with pytest.raises(ValueError, match="appears twice"):
+        summary_mod.read_sweeps([tmp_path / "a", tmp_path / "twice"])
+    _write_sweep(tmp_path / "other", {**settings, "planner": {"k": 3}}, [other])
+    with pytest.raises(ValueError, match="other settings"):
+        summary_mod.read_sweeps([tmp_path / "a", tmp_path / "other"])
+    with pytest.raises(FileNotFoundError):
+        summary_mod.read_sweeps([tmp_path / "missing"])
