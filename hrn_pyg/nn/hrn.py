@@ -94,6 +94,11 @@ class HRNConfig(NetworkConfig):
             serves scenes of several pitches. False: the pitch is not read.
         reference_pitch: :math:`p_{ref}` (m), the pitch at which a pitch-aware model reads a
             scene as a plain model with the same ``collision_radius`` does.
+        ground_projection: after the rigid fit, keep every moving leaf on or above the ground
+            plane :math:`z = 0` (:func:`hrn_pyg.sim.step.ground_projected_positions`): a rigid
+            object is lifted as a whole by the depth of its lowest leaf, a leaf of a soft body
+            or a cloth alone. A rule of the decoder, like ``rigid_fit``: a point inside a body
+            cannot be under the ground, whatever the network predicts.
     """
 
     hidden: int = 64
@@ -111,6 +116,7 @@ class HRNConfig(NetworkConfig):
     mirror_planes: str = "x"
     pitch_aware: bool = False
     reference_pitch: float = 0.05
+    ground_projection: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -450,6 +456,7 @@ class HRN(nn.Module):
             f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
+            + (", ground_projection=True" if c.ground_projection else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 

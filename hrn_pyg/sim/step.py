@@ -256,8 +256,10 @@ def decode(
     (:func:`integrate_acceleration`). With ``model.config.rigid_fit`` the leaves of every rigid
     object then move by the one rigid transform that fits their predicted motion best
     (:func:`rigid_leaf_positions`), and that
-    object's velocities are the fitted ones; ``objects`` is :func:`object_of` of ``graph`` when
-    the caller has it (a rollout computes it once), else it is computed here (one host read).
+    object's velocities are the fitted ones; with ``ground_projection`` no moving leaf ends
+    under the ground (:func:`ground_projected_positions`). ``objects`` is :func:`object_of` of
+    ``graph`` when the caller has it (a rollout computes it once), else it is computed here (one
+    host read).
     """
     store = graph[NODE]
     c2p = graph[CHILD_TO_PARENT].edge_index
@@ -274,7 +276,39 @@ def decode(
         rigid = store.material[:, RIGID].bool().unsqueeze(-1)
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
+    if getattr(model.config, "ground_projection", False):
+        group, count = object_of(graph) if objects is None else objects
+        lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count)), graph)
+        moved = (lifted != pos).any(-1)
+        # a lifted node's velocity is its whole move; the local velocities of its object follow
+        touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
+        velocity = torch.where(moved.unsqueeze(-1), lifted - store.pos, velocity)
+        local = torch.where(touched[group].unsqueeze(-1), to_local_velocity(velocity, c2p), local)
+        pos = lifted
     return pos, local, velocity
+
+
+def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None) -> Tensor:
+    r"""``pos`` ``[N, 3]`` with every moving leaf on or above the ground plane :math:`z = 0`.
+
+    .. math::
+        d_i = \max(0, -z_i), \qquad
+        z_i \leftarrow z_i + \begin{cases} \max_{j \in o(i)} d_j & i \text{ a leaf of a rigid object } o(i) \\
+                                         d_i & i \text{ a leaf of a soft body or cloth} \end{cases}
+
+    so a rigid object is lifted as a whole (it stays rigid) and a deformable leaf alone; static
+    rows, ancestors and leaves above the ground are returned unchanged, bit for bit (ancestor rows
+    need re-deriving). ``objects``: :func:`object_of` of ``graph``, if the caller has it.
+    """
+    store = graph[NODE]
+    moving_leaf = store.is_leaf & ~store.is_static
+    rigid_leaf = moving_leaf & store.material[:, RIGID].bool()
+    depth = torch.where(moving_leaf, (-pos[:, 2]).clamp_min(0.0), torch.zeros_like(pos[:, 2]))
+    group, count = object_of(graph) if objects is None else objects
+    deepest = torch.zeros(count, dtype=pos.dtype, device=pos.device).scatter_reduce(
+        0, group, torch.where(rigid_leaf, depth, torch.zeros_like(depth)), "amax")
+    lift = torch.where(rigid_leaf, deepest[group], depth)
+    return torch.where((lift > 0).unsqueeze(-1), pos + lift.unsqueeze(-1) * pos.new_tensor([0.0, 0.0, 1.0]), pos)
 
 
 def integrate_acceleration(model: GNS, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:

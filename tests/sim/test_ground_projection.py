@@ -1,0 +1,87 @@
+"""``HRNConfig.ground_projection``: no moving leaf ends under the ground; a rigid object is
+lifted whole, a deformable leaf alone, static rows and leaves above the ground untouched; off,
+or with nothing under the ground, the step is the same bit for bit."""
+
+import dataclasses
+
+import torch
+from toy_scene import toy_scene, toy_window
+
+from hrn_pyg.checkpoints import with_applied_options
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.sim.step import ground_projected_positions, leaf_to_ancestor_mean, predict, step
+
+SOFT, RIGID, STATIC = slice(0, 8), slice(8, 12), slice(12, 14)
+
+
+def _sunk(graph):
+    """The toy scene's leaves with the rigid square 7 cm under the ground at its lowest leaf, soft
+    leaf 0 at z = -0.02 and a static leaf at z = -0.1."""
+    pos = graph[NODE].pos.clone()
+    pos[RIGID, 2] -= 0.35
+    pos[0, 2] = -0.02
+    pos[12, 2] = -0.1
+    return leaf_to_ancestor_mean(pos, graph)
+
+
+def test_a_rigid_object_is_lifted_whole_and_a_soft_leaf_alone():
+    graph = toy_scene()
+    pos = _sunk(graph)
+    out = ground_projected_positions(graph, pos)
+    lift = -pos[RIGID, 2].min()
+    torch.testing.assert_close(out[RIGID], pos[RIGID] + torch.tensor([0.0, 0.0, 1.0]) * lift)
+    assert out[RIGID, 2].min() == 0.0
+    assert torch.equal(torch.cdist(out[RIGID], out[RIGID]), torch.cdist(pos[RIGID], pos[RIGID]))
+    assert out[0, 2] == 0.0 and torch.equal(out[0, :2], pos[0, :2])
+    assert torch.equal(out[1:8], pos[1:8])               # the soft leaves above the ground
+    assert torch.equal(out[STATIC], pos[STATIC])         # static rows stay, even under the ground
+    assert torch.equal(out[14:], pos[14:])               # ancestors are left to re-derive
+
+
+def test_nothing_under_the_ground_is_returned_bit_for_bit():
+    graph = toy_scene()
+    pos = graph[NODE].pos
+    assert torch.equal(ground_projected_positions(graph, pos), pos)
+
+
+def _model(**kw):
+    torch.manual_seed(0)
+    model = HRN(HRNConfig(hidden=16, depth=2, effect_dim=8, rigid_fit=True, **kw))
+    fit_normalizer([toy_window(4, seed=s) for s in range(3)], model.normalizer)
+    return model.eval()
+
+
+def test_the_step_keeps_moving_leaves_above_the_ground_and_derives_velocities():
+    plain = _model()
+    projected = with_applied_options(plain, ground_projection=True)
+    assert projected.config.ground_projection and "ground_projection=True" in repr(projected)
+    graph = toy_scene()
+    store = graph[NODE]
+    low = torch.tensor([0.0, 0.0, -0.35])
+    for name in ("pos", "prev_pos", "prev_prev_pos"):  # the rigid square falls into the ground
+        value = store[name].clone()
+        value[RIGID] += low
+        store[name] = leaf_to_ancestor_mean(value, graph)
+    with torch.no_grad():
+        before = predict(plain, graph)
+        after = predict(projected, graph)
+    assert before.pos[RIGID, 2].min() < 0
+    assert after.pos[:14][~store.is_static[:14], 2].min() >= 0
+    lifted = [8, 9, 10, 11, 17]  # the square's leaves and root: the velocity is the whole move
+    torch.testing.assert_close(after.velocity[lifted], after.pos[lifted] - store.pos[lifted])
+    assert (after.velocity[lifted, 2] > before.velocity[lifted, 2]).all()
+    torch.testing.assert_close(after.pos[SOFT], before.pos[SOFT])  # the soft cube is above the ground
+
+
+def test_off_or_above_the_ground_the_step_is_unchanged():
+    plain = _model()
+    projected = with_applied_options(plain, ground_projection=True)
+    graph = toy_scene()
+    with torch.no_grad():
+        a, b = step(plain, graph), step(projected, graph)
+    assert torch.equal(a.pos, b.pos) and torch.equal(a.velocity, b.velocity)
+    assert torch.equal(a.local_velocity, b.local_velocity)
+    assert HRNConfig().ground_projection is False
+    assert dataclasses.replace(HRNConfig(), ground_projection=True).to_dict()["ground_projection"] is True
