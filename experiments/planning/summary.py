@@ -11,7 +11,7 @@ task's step limit for a failed episode (the convention of :mod:`hrn_pyg.rl.evalu
 
     python -m experiments.planning.summary --task cube_push_stop --runs runs/planning/cube_push_stop
 
-A sweep split over several folders by ``--modes`` is summarised by naming them all (``--runs A B``).
+A sweep split over several folders by ``--modes`` is summarised by naming each (``--runs A --runs B``).
 """
 
 from __future__ import annotations
@@ -81,8 +81,8 @@ def summarise(episodes: list[dict], task_name: str, ppo_summary: Path | None = N
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", required=True, choices=sorted(TASKS), help="the task of the sweep")
-    parser.add_argument("--runs", required=True, nargs="+",
-                        help="the sweep's folders (episodes.jsonl; several when --modes split it)")
+    parser.add_argument("--runs", required=True, action="append",
+                        help="the sweep's folder (episodes.jsonl); repeat it for a sweep split by --modes")
     parser.add_argument("--ppo", default=None,
                         help="the PPO summary of the same scenes (default: docs/results/rl_<task>_summary.json)")
     parser.add_argument("--out", default=None, help="the summary (default: docs/results/planning_<task>.json)")
