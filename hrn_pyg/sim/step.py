@@ -277,15 +277,21 @@ def decode(
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     if getattr(model.config, "ground_projection", False):
-        group, count = object_of(graph) if objects is None else objects
-        lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count)), graph)
-        moved = (lifted != pos).any(-1)
-        # a lifted node's velocity is its whole move; the local velocities of its object follow
-        touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
-        velocity = torch.where(moved.unsqueeze(-1), lifted - store.pos, velocity)
-        local = torch.where(touched[group].unsqueeze(-1), to_local_velocity(velocity, c2p), local)
-        pos = lifted
+        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects)
     return pos, local, velocity
+
+
+def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity: Tensor,
+                         objects: tuple[Tensor, int] | None) -> tuple[Tensor, Tensor, Tensor]:
+    """``decode``'s ``(pos, local, velocity)`` after :func:`ground_projected_positions`: a lifted
+    node's velocity is its whole move, and the local velocities of its object are derived anew."""
+    group, count = object_of(graph) if objects is None else objects
+    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count)), graph)
+    moved = (lifted != pos).any(-1)
+    touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
+    velocity = torch.where(moved.unsqueeze(-1), lifted - graph[NODE].pos, velocity)
+    local = torch.where(touched[group].unsqueeze(-1), to_local_velocity(velocity, graph[CHILD_TO_PARENT].edge_index), local)
+    return lifted, local, velocity
 
 
 def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None) -> Tensor:
