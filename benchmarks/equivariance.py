@@ -30,17 +30,16 @@ Prints a markdown table and writes JSON atomically.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
 import torch
 
-from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.dataset import read_episode, split_of_seed
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.symmetry import apply_vertical_symmetry
-from hrn_pyg.nn.hrn import MIRROR_GROUPS, SWAP_XY
+from hrn_pyg.nn.hrn import MIRROR_GROUPS, SWAP_XY, reflection_signs
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.utils.files import atomic_write_json
@@ -50,16 +49,14 @@ HISTORY_START = 2
 
 def lattice_symmetries() -> list[tuple[str, torch.Tensor]]:
     """The eight maps of ``d4`` as ``(name, [3, 3] matrix)``: x and y exchanged where the element
-    holds :data:`SWAP_XY`, then the listed axes negated."""
+    holds :data:`SWAP_XY`, then the axes of :func:`~hrn_pyg.nn.hrn.reflection_signs` negated."""
+    group = MIRROR_GROUPS["d4"]
     out = []
-    for element in MIRROR_GROUPS["d4"]:
-        swap = torch.eye(3)[[1, 0, 2]] if SWAP_XY in element else torch.eye(3)
-        signs = torch.ones(3)
-        for axis in element:
-            if axis != SWAP_XY:
-                signs[axis] = -1.0
-        name = ("swap " if SWAP_XY in element else "") + " ".join(f"-{'xyz'[a]}" for a in element if a != SWAP_XY)
-        out.append((name.strip() or "identity", torch.diag(signs) @ swap))
+    for element, signs in zip(group, reflection_signs(group)):
+        swap = SWAP_XY in element
+        matrix = torch.diag(signs) @ (torch.eye(3)[[1, 0, 2]] if swap else torch.eye(3))
+        name = " ".join((["swap"] if swap else []) + [f"-{'xyz'[a]}" for a in element if a != SWAP_XY])
+        out.append((name or "identity", matrix))
     return out
 
 
@@ -95,13 +92,12 @@ def episode_files(folder: Path, split: str, limit: int | None) -> list[Path]:
     return files[:limit] if limit else files
 
 
-def variants_of(name: str):
+def variants_of(name: str) -> dict:
+    """The model as loaded and, when it averages over mirrors, its weights in one pass."""
     model = load_model(name).eval()
     out = {"as loaded": model}
     if getattr(model.config, "mirror_average", False):
-        one = type(model)(dataclasses.replace(model.config, mirror_average=False))
-        one.load_state_dict(model.state_dict())
-        out["one pass"] = one.eval()
+        out["one pass"] = with_applied_options(model, mirror_average=False)
     return out
 
 

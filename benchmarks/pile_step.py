@@ -22,7 +22,6 @@ atomically. Time only on a quiet machine.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import statistics
 import tempfile
@@ -32,7 +31,7 @@ from pathlib import Path
 import torch
 
 import hrn_pyg
-from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.scene_file import read_scene_file
 from hrn_pyg.sampling.ensemble import episode_state
@@ -128,9 +127,7 @@ def main() -> None:
             for name, model in models.items():
                 variants = {"as loaded": model}
                 if getattr(model.config, "mirror_average", False):
-                    one = type(model)(dataclasses.replace(model.config, mirror_average=False))
-                    one.load_state_dict(model.state_dict())
-                    variants["one pass"] = one.eval()
+                    variants["one pass"] = with_applied_options(model, mirror_average=False).eval()
                 results, last = {}, {}
                 for label, variant in variants.items():
                     seconds, pos = time_rollout(variant.eval(), state, args.steps - 2, args.repeats)

@@ -55,7 +55,6 @@ judges a policy.
 from __future__ import annotations
 
 import argparse
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -63,7 +62,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from hrn_pyg.data.graph import HISTORY, object_centres
+from hrn_pyg.data.graph import HISTORY
 from hrn_pyg.rl.hrn_dynamics import HRNDynamics
 from hrn_pyg.rl.tasks import (
     TASKS,
@@ -71,9 +70,6 @@ from hrn_pyg.rl.tasks import (
     action_to_forces,
     get_task,
     goal_clearance,
-    goal_held,
-    goal_reached,
-    goal_streak,
     sample_goal,
 )
 from hrn_pyg.sampling.sample import draw_masks
@@ -533,7 +529,6 @@ def plan_episode(planner: MPCPlanner, seed: int, goal: Tensor, pool_index: int =
 
     out = control_in_pybullet(act, planner.task, seed, goal, HISTORY)
     out["plan_seconds"] = out.pop("act_seconds")
-    out["steps"] = len(out["actions"])
     return {**out, "goal": goal}
 
 
