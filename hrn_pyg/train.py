@@ -151,7 +151,8 @@ class TrainConfig:
             (fine-tuning); "" : a fresh network. Ignored when a run resumes.
         extra_data: more episode folders, comma-separated, whose episodes join ``data``'s in
             every split (e.g. a fine-tuning on a mix of the scene's data and a dataset of one
-            situation it must learn); "" : ``data`` alone. Seeds must not repeat across them.
+            situation it must learn); "" : ``data`` alone. A seed repeats across them only
+            between different scenes (``meta.json``).
     """
 
     preset: str = "ours"

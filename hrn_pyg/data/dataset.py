@@ -17,9 +17,10 @@ memory. Splits are disjoint by seed: ``seed % 10 == 9`` test, ``== 8`` val, the 
 
 from __future__ import annotations
 
+import json
 import re
 import zipfile
-from collections import Counter, OrderedDict
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -46,6 +47,8 @@ VAL_RESIDUE = 8
 TEST_RESIDUE = 9
 #: Episode file names, as written by ``hrn-pyg generate``.
 EPISODE_PATTERN = re.compile(r"^episode_(\d+)\.npz$")
+#: a folder's ``meta.json`` larger than this (bytes) is not read for its scene
+MAX_META_BYTES = 1 << 20
 #: The episode keys this dataset reads.
 EPISODE_KEYS = (
     "positions",
@@ -106,7 +109,9 @@ class EpisodeWindows(Dataset):
 
     Args:
         root: folder of ``episode_<seed:06d>.npz`` files, or several such folders whose
-            episodes are pooled (a fine-tuning on a mix of datasets); a seed may occur once.
+            episodes are pooled (a fine-tuning on a mix of datasets). A seed may occur in two
+            folders only when their ``meta.json`` name different scenes (the same seed of the
+            same scene is the same episode twice).
         split: ``train``, ``val`` or ``test`` (disjoint by seed, see :func:`split_of_seed`), or
             ``all`` (every episode, for scoring a dataset that is not split by seed).
         horizon: ``T``, the number of predicted steps per window (1 for one-step training,
@@ -165,10 +170,12 @@ class EpisodeWindows(Dataset):
                 raise ValueError(f"no episode_<seed>.npz files in {folder}")
             found += here
         found.sort()
-        twice = sorted(seed for seed, n in Counter(seed for seed, _ in found).items() if n > 1)
+        scenes = {folder: scene_of(folder) for folder in folders}
+        twice = repeated_episodes([(seed, scenes[path.parent]) for seed, path in found])
         if twice:
             raise ValueError(f"episode seed(s) {twice[:5]} occur in more than one of the folders "
-                             f"{[str(f) for f in folders]}: give each dataset its own seed range")
+                             f"{[str(f) for f in folders]} of the same (or an unrecorded) scene: give "
+                             "each dataset of a scene its own seed range")
         chosen = [(seed, path) for seed, path in found if split == ALL or split_of_seed(seed) == split]
         if not chosen:
             raise ValueError(f"no episodes of split {split!r} among the {len(found)} in "
@@ -273,6 +280,34 @@ class EpisodeWindows(Dataset):
         window.episode_seed = torch.tensor([self.seeds[index]], dtype=torch.long)
         window.start_step = torch.tensor([t], dtype=torch.long)
         return window
+
+
+def scene_of(folder: Path) -> str | None:
+    """What made the episodes of ``folder``: its ``meta.json``'s scene file text, else its
+    built-in scene name; None when the folder records neither."""
+    meta = folder / "meta.json"
+    if not meta.is_file() or meta.stat().st_size > MAX_META_BYTES:
+        return None
+    try:
+        record = json.loads(meta.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not isinstance(record, dict):
+        return None
+    for key in ("scene_text", "scene"):
+        if isinstance(record.get(key), str) and record[key]:
+            return f"{key}:{record[key]}"
+    return None
+
+
+def repeated_episodes(found: Sequence[tuple[int, str | None]]) -> list[int]:
+    """The seeds of ``(seed, scene)`` pairs that name one episode twice: a seed listed again
+    with the same scene, or with a scene that is unknown (None) either time."""
+    scenes_of: dict[int, list[str | None]] = {}
+    for seed, scene in found:
+        scenes_of.setdefault(seed, []).append(scene)
+    return sorted(seed for seed, scenes in scenes_of.items()
+                  if len(scenes) > 1 and (None in scenes or len(set(scenes)) < len(scenes)))
 
 
 def _listdir(folder: Path) -> list[str]:

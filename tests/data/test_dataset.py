@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch_geometric.loader import DataLoader
 
-from hrn_pyg.data.dataset import EpisodeWindows, split_of_seed
+from hrn_pyg.data.dataset import EpisodeWindows, repeated_episodes, split_of_seed
 from hrn_pyg.data.graph import COLLISION, NODE
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.data.io import save_episode
@@ -194,3 +194,21 @@ def test_several_folders_pool_their_episodes_and_a_repeated_seed_is_refused(tmp_
         EpisodeWindows([folder, extra], "train")
     with pytest.raises(ValueError, match="no episode folder"):
         EpisodeWindows([], "train")
+
+
+def test_a_seed_may_repeat_across_folders_of_different_scenes(tmp_path: Path) -> None:
+    """Seed 3 of two scenes is two episodes and both are pooled; seed 3 twice of one scene, or of
+    a folder whose ``meta.json`` names no scene, is refused."""
+    folders = {}
+    for name, scene in (("a", "cube_collision"), ("b", "multi_material"), ("c", "cube_collision"), ("d", None)):
+        folders[name] = tmp_path / name
+        folders[name].mkdir()
+        write_episode(folders[name], 3)
+        if scene is not None:
+            (folders[name] / "meta.json").write_text(json.dumps({"scene": scene, "episodes": 1}))
+    both = EpisodeWindows([folders["a"], folders["b"]], "train", horizon=2)
+    assert both.seeds == [3, 3] and len(both) == 2 * len(EpisodeWindows(folders["a"], "train", horizon=2))
+    for other in ("c", "d"):
+        with pytest.raises(ValueError, match=r"seed\(s\) \[3\] occur in more than one"):
+            EpisodeWindows([folders["a"], folders[other]], "train")
+    assert repeated_episodes([(1, "x"), (1, "y"), (2, "x"), (2, "x"), (4, None), (4, "x"), (5, None)]) == [2, 4]
