@@ -99,6 +99,12 @@ class HRNConfig(NetworkConfig):
             object is lifted as a whole by the depth of its lowest leaf, a leaf of a soft body
             or a cloth alone. A rule of the decoder, like ``rigid_fit``: a point inside a body
             cannot be under the ground, whatever the network predicts.
+        rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
+            of rigid objects. False drops them (:func:`within_siblings_of`): a rigid body's
+            leaves keep their places relative to each other, so what one leaf says to its
+            sibling leaves is not needed to move it; its effects still reach them through their
+            ancestors (L2A, the ancestors' siblings, A2D). On a pile of rigid meshes at pitch
+            0.05 these are about two thirds of the within-siblings edges.
     """
 
     hidden: int = 64
@@ -117,6 +123,7 @@ class HRNConfig(NetworkConfig):
     pitch_aware: bool = False
     reference_pitch: float = 0.05
     ground_projection: bool = False
+    rigid_leaf_siblings: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -249,6 +256,12 @@ class HRNInputs(NamedTuple):
     rest_pos: Tensor | None = None
     options: StepOptions = StepOptions()
     hierarchy: HierarchyConstants | None = None
+
+
+def within_siblings_of(edge_index: Tensor, rigid_leaf: Tensor) -> Tensor:
+    r"""The within-siblings edges ``[2, E]`` without those whose destination is a rigid leaf
+    (``rigid_leaf`` ``[N]`` bool), in their order (:attr:`HRNConfig.rigid_leaf_siblings`)."""
+    return edge_index[:, ~rigid_leaf.index_select(0, edge_index[1])]
 
 
 def hierarchy_constants(inputs: HRNInputs, rest_offsets: bool) -> HierarchyConstants:

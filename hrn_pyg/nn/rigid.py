@@ -32,7 +32,7 @@ COVARIANCE_EPS = 1e-6
 
 
 def _cofactor_indices() -> tuple[np.ndarray, ...]:
-    """Index arrays ``(p, q, r, s)`` into a row-major flattened 3x3 matrix :math:`m` with
+    r"""Index arrays ``(p, q, r, s)`` into a row-major flattened 3x3 matrix :math:`m` with
     :math:`\mathrm{cof}(M)_k = m_{p_k} m_{q_k} - m_{r_k} m_{s_k}`: row :math:`k` of the cofactor
     matrix is the cross product of rows :math:`k+1` and :math:`k+2` (mod 3), written out as
     :func:`torch.linalg.cross` computes it."""

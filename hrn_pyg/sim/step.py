@@ -45,7 +45,15 @@ from hrn_pyg.data.graph import (
     leaf_to_ancestor_mean,
 )
 from hrn_pyg.nn.gns import GNS
-from hrn_pyg.nn.hrn import HRN, HierarchyConstants, HRNInputs, StepOptions, check_hierarchy, state_features
+from hrn_pyg.nn.hrn import (
+    HRN,
+    HierarchyConstants,
+    HRNInputs,
+    StepOptions,
+    check_hierarchy,
+    state_features,
+    within_siblings_of,
+)
 from hrn_pyg.nn.hrn import hierarchy_constants as nn_hierarchy_constants
 from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware, node_radius, pitch_column, pitch_scale
 from hrn_pyg.nn.rigid import fit_rigid_motion
@@ -192,6 +200,9 @@ def build_inputs(
     batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)
     empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
     collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
+    within_siblings = graph[WITHIN_SIBLINGS].edge_index
+    if not getattr(config, "rigid_leaf_siblings", True):
+        within_siblings = within_siblings_of(within_siblings, store.is_leaf & store.material[:, RIGID].bool())
     inputs = HRNInputs(
         state=state,
         prev_state=prev_state,
@@ -202,7 +213,7 @@ def build_inputs(
         batch=batch,
         collision=collision,
         leaf_to_ancestor=graph[LEAF_TO_ANCESTOR].edge_index,
-        within_siblings=graph[WITHIN_SIBLINGS].edge_index,
+        within_siblings=within_siblings,
         ancestor_to_descendant=graph[ANCESTOR_TO_DESCENDANT].edge_index,
         rest_pos=rest_pos,
         options=options,
