@@ -12,10 +12,14 @@ back). The model rolls out the same episode from step 2 for ``--steps - 2`` step
 it is loaded and, when it averages over the lattice's symmetries (``mirror_average``), also as
 one pass (the same weights, ``mirror_average`` off), so the cost of the average is read off one
 run. The position MSE of the one-pass rollout against the averaged one at the last step says
-how far apart they are on this scene.
+how far apart they are on this scene. With ``--compile`` each model is also timed in one pass
+as fixed-shape steps compiled by ``torch.compile``
+(:class:`hrn_pyg.sim.fixed_shape.FixedShapeSimulator`, ``compile=True``): the seconds of its
+first rollout (the compilation) are reported beside its median time per step, and its largest
+difference from the eager one-pass rollout says it computes the same positions.
 
 Run: ``python benchmarks/pile_step.py [--counts 2,5,10,20,40] [--material rigid] [--model shapes]
-[--out benchmarks/results/pile_step_rigid.json]``. Prints a markdown table and writes JSON
+[--compile] [--out benchmarks/results/pile_step_rigid.json]``. Prints a markdown table and writes JSON
 atomically. Time only on a quiet machine.
 """
 
@@ -35,6 +39,7 @@ from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.scene_file import read_scene_file
 from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
 from hrn_pyg.utils.files import atomic_write_json
 
 DEFAULT_MESHES = ("pybullet_data:duck_vhacd.obj", "pybullet_data:torus/torus_textured.obj")
@@ -95,6 +100,22 @@ def time_rollout(model, state, steps: int, repeats: int) -> tuple[float, torch.T
     return statistics.median(seconds), pos
 
 
+def time_compiled(model, state, steps: int, repeats: int) -> tuple[float, float, torch.Tensor]:
+    """Seconds of the first compiled fixed-shape rollout, the median seconds per step of
+    ``repeats`` more, and their positions."""
+    simulator = FixedShapeSimulator(model, state, FixedShapeConfig(compile=True))
+    with torch.no_grad():
+        start = time.perf_counter()
+        simulator.rollout(steps)
+        first = time.perf_counter() - start
+        seconds = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            pos = simulator.rollout(steps).pos
+            seconds.append((time.perf_counter() - start) / steps)
+    return first, statistics.median(seconds), pos
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", default="2,5,10,20,40", help="object counts, comma-separated")
@@ -106,6 +127,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--compile", action="store_true",
+                        help="also time one pass as compiled fixed-shape steps (a minute or so to compile per count)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if args.repeats < 1 or args.steps < 4:
@@ -136,6 +159,13 @@ def main() -> None:
                 if "one pass" in last:
                     results["one pass"]["mse_to_averaged_last_step"] = float(
                         ((last["one pass"] - last["as loaded"]) ** 2).sum(-1).mean())
+                if args.compile:
+                    one_pass = variants.get("one pass", model).eval()
+                    _, eager = time_rollout(one_pass, state, args.steps - 2, 1)
+                    first, seconds, pos = time_compiled(one_pass, state, args.steps - 2, args.repeats)
+                    results["compiled"] = {"ms": 1e3 * seconds, "x_pybullet": seconds / bullet_s,
+                                           "compile_s": first,
+                                           "max_abs_diff_to_eager_m": float((pos - eager).abs().max())}
                 row["models"][name] = results
             rows.append(row)
             print(f"{count} objects, {leaves} leaves: pybullet {row['pybullet_ms']:.2f} ms; "

@@ -168,12 +168,18 @@ class HierarchyConstants(NamedTuple):
     (:func:`hierarchy_constants`), and each pass takes them instead of recomputing them; the
     numbers are the same, bit for bit.
 
+    ``within_siblings`` is the WS phase's edge set when it is not the graph's (a model without
+    ``rigid_leaf_siblings``: :func:`within_siblings_of`, whose size depends on the data), so a
+    step need not select it again.
+
     **Shapes:** ``degree``: three ``[N]`` float; ``rest_offset``: three ``[E_k, 3]``, or None
-    (no rest offsets, or a graph whose rest shape is its current shape).
+    (no rest offsets, or a graph whose rest shape is its current shape); ``within_siblings``
+    ``[2, E_WS]`` or None (the graph's own).
     """
 
     degree: tuple[Tensor, Tensor, Tensor]
     rest_offset: tuple[Tensor, Tensor, Tensor] | None = None
+    within_siblings: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -274,7 +280,7 @@ def hierarchy_constants(inputs: HRNInputs, rest_offsets: bool) -> HierarchyConst
     rest = None
     if rest_offsets and inputs.rest_pos is not None:
         rest = tuple(edge_offsets(inputs.rest_pos, e) for e in edges)
-    return HierarchyConstants(degree, rest)
+    return HierarchyConstants(degree, rest, inputs.within_siblings)
 
 
 def check_hierarchy(hierarchy: HierarchyConstants, inputs: HRNInputs) -> None:
@@ -283,6 +289,8 @@ def check_hierarchy(hierarchy: HierarchyConstants, inputs: HRNInputs) -> None:
     n = inputs.pos.size(0)
     edges = (inputs.leaf_to_ancestor, inputs.within_siblings, inputs.ancestor_to_descendant)
     bad = any(d.shape != (n,) for d in hierarchy.degree)
+    if hierarchy.within_siblings is not None:
+        bad |= hierarchy.within_siblings.shape != inputs.within_siblings.shape
     if hierarchy.rest_offset is not None:
         bad |= any(r.shape != (e.size(1), 3) for r, e in zip(hierarchy.rest_offset, edges))
     if bad:

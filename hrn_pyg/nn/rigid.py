@@ -72,13 +72,14 @@ def polar_rotation(matrix: Tensor, iterations: int = POLAR_ITERATIONS) -> Tensor
     positive semi-definite), by the scaled Newton iteration.
 
     float32 CPU matrices that need no gradient take :func:`polar_rotation_numpy` (the same
-    numbers, at less cost), the others :func:`polar_rotation_torch`.
+    numbers, at less cost), the others :func:`polar_rotation_torch`, as does a step being
+    compiled (``torch.compile`` traces torch ops, not NumPy).
 
     **Shapes:** matrix ``(G, 3, 3)``; returns ``(G, 3, 3)``.
     """
     if matrix.dim() != 3 or matrix.shape[-2:] != (3, 3):
         raise ValueError(f"polar_rotation: matrix must be [G, 3, 3], got {tuple(matrix.shape)}")
-    if (matrix.device.type == "cpu" and matrix.dtype == torch.float32
+    if (matrix.device.type == "cpu" and matrix.dtype == torch.float32 and not torch.compiler.is_compiling()
             and not (torch.is_grad_enabled() and matrix.requires_grad)):
         return polar_rotation_numpy(matrix, iterations)
     return polar_rotation_torch(matrix, iterations)

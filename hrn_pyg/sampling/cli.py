@@ -149,7 +149,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --fixed-shape on CUDA: record each kind of step as a CUDA graph")
     parser.add_argument("--compile", action="store_true",
                         help="run the network through torch.compile (Module.compile): a compile of "
-                             "tens of seconds first, then fused steps while the graph's shapes hold")
+                             "tens of seconds first, then fused steps while the graph's shapes hold; with "
+                             "--fixed-shape each kind of whole step is compiled (FixedShapeConfig.compile)")
     add_no_progress(parser)
     add_renamed(parser, "--steps", "--horizon")
     add_renamed(parser, "--seed", "--episode-seed")
@@ -174,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
     name = args.scene or source.name
     model_path = resolve_model(name, args.model)
     model = load_model(model_path, device)
-    if args.compile:
+    if args.compile and not args.fixed_shape:
         model.compile()  # same numbers; shapes that change (new contacts) compile once more
     if args.rate is None:
         from hrn_pyg.sampling.calibrate import calibration_record
@@ -190,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
     sleep = None if (args.no_sleep or args.fixed_shape) else DEFAULT_SLEEP
-    fixed = FixedShapeConfig(cuda_graph=args.cuda_graph) if args.fixed_shape else None
+    fixed = FixedShapeConfig(cuda_graph=args.cuda_graph, compile=args.compile) if args.fixed_shape else None
     bar = progress_bar(3, "sample", "stage", enabled=not getattr(args, "no_progress", False))
     bar.set_postfix_str(f"{args.k} futures of {steps} steps")
     samples = sample(model, graph, args.k, steps, rate, forces=forces, generator=generator,

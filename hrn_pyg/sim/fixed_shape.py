@@ -26,6 +26,11 @@ spare), and the list is searched before a step that would be predicted stale.
 
 With ``cuda_graph=True`` (CUDA only) each kind of step (with or without force, each padded list
 size) is recorded once as a CUDA graph and replayed: one launch per step instead of hundreds.
+With ``compile=True`` (any device) each kind of step is compiled once by ``torch.compile``:
+on a CPU the step's few hundred small operations become a few fused kernels, so a step costs
+its arithmetic rather than its dispatches. The first step of each kind pays the compilation
+(about a minute on a CPU); the positions are those of the eager step up to the rounding of
+reordered float arithmetic.
 """
 
 from __future__ import annotations
@@ -53,7 +58,7 @@ from hrn_pyg.data.graph import COLLISION, NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim.rollout import check_forces
-from hrn_pyg.sim.step import NEXT_POS, MasksFn, object_of, predict, require_state
+from hrn_pyg.sim.step import NEXT_POS, MasksFn, hierarchy_constants, object_of, predict, require_state
 from hrn_pyg.utils.checks import non_finite_error
 
 
@@ -66,11 +71,14 @@ class FixedShapeConfig:
             means rarer searches and more candidate pairs per step.
         check_every: most steps run before the flags are read (one host read per read).
         cuda_graph: record each kind of step as a CUDA graph and replay it (CUDA only).
+        compile: compile each kind of step with ``torch.compile`` (shapes fixed, candidate
+            lists padded to a power of two so that few sizes are compiled).
     """
 
     skin: float = 0.5
     check_every: int = 8
     cuda_graph: bool = False
+    compile: bool = False
 
     def __post_init__(self) -> None:
         if not self.skin > 0:
@@ -118,10 +126,7 @@ def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float
 
     def fixed_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
                    edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
-        current = copy.copy(graph)
-        store = current[NODE]
-        store.pos, store.prev_pos, store.prev_prev_pos = pos, prev, prev2
-        current[COLLISION].edge_index = edge_index
+        current = graph_at(graph, pos, prev, prev2, edge_index)
         weight, moved = None, pos.new_zeros(())
         if collisions:
             candidates = CollisionCandidates(edge_index, valid, reference, radius, skin, -1)
@@ -134,6 +139,18 @@ def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float
         return next_pos, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
 
     return fixed_step
+
+
+@torch.compiler.disable
+def graph_at(graph: HeteroData, pos: Tensor, prev: Tensor, prev2: Tensor, edge_index: Tensor) -> HeteroData:
+    """A shallow copy of ``graph`` at the state ``x_t, x_{t-1}, x_{t-2}`` with collision
+    candidates ``edge_index`` (left to Python when the step is compiled: a graph object is
+    copied, no tensor is computed)."""
+    current = copy.copy(graph)
+    store = current[NODE]
+    store.pos, store.prev_pos, store.prev_prev_pos = pos, prev, prev2
+    current[COLLISION].edge_index = edge_index
+    return current
 
 
 class RecordedStep:
@@ -191,13 +208,16 @@ class FixedShapeSimulator:
         self.model, self.config = model, config
         self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
         self.objects = object_of(self.graph) if model.config.rigid_fit else None
+        self.hierarchy = hierarchy_constants(model, self.graph)
         self._steps: dict[tuple, StepFn] = {}
 
     def _step_fn(self, force_active: bool, names: tuple[str, ...], radius: float, size: int, example: tuple) -> StepFn:
         key = (force_active, names, radius, size)
         if key not in self._steps:
-            options = StepOptions(force_active=force_active, objects=self.objects)
+            options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy)
             fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
+            if self.config.compile:
+                fn = torch.compile(fn, dynamic=False)
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 
@@ -242,7 +262,7 @@ class FixedShapeSimulator:
                 fresh = radius > 0 and candidates is None
                 if fresh:
                     candidates = build_candidates(graph, state[2], radius, skin)
-                    if config.cuda_graph:  # pad to a size that rarely changes, so recordings are reused
+                    if config.cuda_graph or config.compile:  # pad to a size that rarely changes: reused steps
                         candidates = pad_candidates(candidates, padded_size(candidates.pairs))
                     searches += 1
                     ahead = _steps_within(limit, 0.0, speed, config.check_every) + 1  # its first step moved 0

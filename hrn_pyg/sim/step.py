@@ -202,7 +202,11 @@ def build_inputs(
     collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
     within_siblings = graph[WITHIN_SIBLINGS].edge_index
     if not getattr(config, "rigid_leaf_siblings", True):
-        within_siblings = within_siblings_of(within_siblings, store.is_leaf & store.material[:, RIGID].bool())
+        known = options.hierarchy
+        if known is not None and known.within_siblings is not None:
+            within_siblings = known.within_siblings  # selected once for the rollout
+        else:
+            within_siblings = within_siblings_of(within_siblings, store.is_leaf & store.material[:, RIGID].bool())
     inputs = HRNInputs(
         state=state,
         prev_state=prev_state,

@@ -210,3 +210,32 @@ def test_on_cuda_the_step_never_syncs_and_a_cuda_graph_rollout_equals_the_plain_
     forces = pushes(graph[NODE].num_nodes, (2, 3)).cuda()
     recorded = fixed_shape_rollout(model, graph, STEPS, forces, config=FixedShapeConfig(cuda_graph=True))
     assert torch.allclose(recorded.pos, plain(model, graph, forces), atol=1e-6, rtol=0)
+
+
+def test_pruned_rigid_leaf_siblings_equal_the_plain_rollout_bit_for_bit():
+    """A model without the rigid leaves' within-sibling edges: the rollout selects them once
+    (``HierarchyConstants.within_siblings``), the fixed-shape steps read the same edges."""
+    from hrn_pyg.checkpoints import with_applied_options
+
+    model = with_applied_options(fitted_model(rigid_fit=True), rigid_leaf_siblings=False)
+    graph = toy_scene()
+    forces = pushes(graph[NODE].num_nodes, (2, 3))
+    result = fixed_shape_rollout(model, graph, STEPS, forces)
+    assert torch.equal(result.pos, plain(model, graph, forces))
+
+
+def test_compiled_steps_equal_the_plain_rollout_to_rounding():
+    """``compile=True``: each kind of step compiled once (here with and without a push, and
+    the numpy polar rotation swapped for the torch one under the compiler); the positions are
+    the plain rollout's up to float32 rounding, and a second rollout reuses the compiled steps."""
+    model = fitted_model(rigid_fit=True)
+    graph = toy_scene()
+    forces = pushes(graph[NODE].num_nodes, (2,))
+    expected = plain(model, graph, forces)
+    sim = fixed_shape.FixedShapeSimulator(model, graph, FixedShapeConfig(compile=True))
+    with torch.no_grad():
+        first = sim.rollout(STEPS, forces)
+        kinds = len(sim._steps)
+        again = sim.rollout(STEPS, forces)
+    torch.testing.assert_close(first.pos, expected, rtol=0, atol=1e-5)
+    assert torch.equal(again.pos, first.pos) and len(sim._steps) == kinds == 2
