@@ -24,6 +24,13 @@ median of ``--repeats`` rollouts after a warm-up, on ``--threads`` torch threads
 The model's domain check runs on each count's episodes; its warning (e.g. more objects than it
 was trained with) is printed and kept in the JSON.
 
+**Rest.** With ``--rest-steps N`` (0: off) every episode of a count that ends with every object at
+rest (:func:`hrn_pyg.metrics_rest.objects_at_rest` of pybullet's positions) is rolled out ``N``
+steps from its last state, the network alone, and judged by the package's stability check
+(:func:`hrn_pyg.sim.stability.stability_report`: finite, within 50 m, no leaf more than one pitch
+under the ground, rigid shapes within 1 %, drift under 5 cm). An episode that has not come to
+rest by its end is counted as such (give a longer ``--steps``, e.g. 240, for a pile to settle).
+
 Run (validation meshes; time on a quiet machine)::
 
     python benchmarks/many_objects.py --model shapes --counts 2,10,20,40 --episodes 4 \\
@@ -50,9 +57,14 @@ from pile_step import DEFAULT_MESHES, pile_scene_text, time_rollout  # noqa: E40
 
 from hrn_pyg.checkpoints import load_model  # noqa: E402
 from hrn_pyg.checkpoints.domain import dataset_domain, report_outside  # noqa: E402
+from hrn_pyg.data.graph import NODE  # noqa: E402
+from hrn_pyg.data.io import load_episode  # noqa: E402
 from hrn_pyg.data.scene_file import read_scene_file  # noqa: E402
 from hrn_pyg.evaluate import evaluate_model, summarise  # noqa: E402
+from hrn_pyg.metrics_rest import objects_at_rest  # noqa: E402
 from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402
+from hrn_pyg.sim.rollout import rollout  # noqa: E402
+from hrn_pyg.sim.stability import stability_report  # noqa: E402
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text  # noqa: E402
 
 ERRORS = ("position", "shape")
@@ -80,11 +92,45 @@ def run_count(model, count: int, args, meshes: tuple[str, ...]) -> dict:
     steps = int(episode["forces"].shape[0]) - 2
     seconds, _ = time_rollout(model, episode_state(episode, start=2, steps=steps), steps, args.repeats)
     leaves = [episode_leaves(folder / f"episode_{s:06d}.npz") for s in made["seeds"]]
-    return {"objects": count, "leaves": int(episode["positions"].shape[1]), "leaves_mean": float(np.mean(leaves)),
+    rest = rest_rows(model, folder, made["seeds"], args.rest_steps) if args.rest_steps else None
+    return {"rest": rest, "objects": count, "leaves": int(episode["positions"].shape[1]), "leaves_mean": float(np.mean(leaves)),
             "episodes": len(made["seeds"]), "seeds": made["seeds"], "rejected": made["rejected"],
             "made": made["made"], "windows": len(windows), "folder": str(folder),
             "pybullet_ms": 1e3 * made["pybullet_s_per_step"], "model_ms": 1e3 * seconds,
             "x_pybullet": seconds / made["pybullet_s_per_step"], "outside": outside, "errors": errors}
+
+
+def rest_rows(model, folder: Path, seeds: list[int], steps: int) -> list[dict]:
+    """The stability check of ``steps`` steps from the resting end of each episode of ``seeds``
+    (an episode not at rest at its end: a row saying so)."""
+    rows = []
+    for seed in seeds:
+        episode = load_episode(folder / f"episode_{seed:06d}.npz")
+        truth = torch.from_numpy(np.asarray(episode["positions"], dtype=np.float32))
+        obj = torch.as_tensor(np.asarray(episode["leaf_object"]), dtype=torch.long)
+        count = int(obj.max()) + 1
+        if not bool(objects_at_rest(truth, obj, torch.ones_like(obj, dtype=torch.bool), count).all()):
+            rows.append({"seed": seed, "at_rest": False})
+            continue
+        graph = episode_state(episode, start=truth.shape[0] - 2, steps=1)
+        del graph[NODE].pos_seq, graph[NODE].force_seq
+        with torch.no_grad():
+            try:
+                report = stability_report(rollout(model, graph, steps, sleep=None), graph, settle=0)
+            except ValueError as exc:  # left the finite numbers
+                report = {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
+        rows.append({"seed": seed, "at_rest": True, **report})
+        print(f"  rest, {count} objects, seed {seed}: holds {report['holds']}, "
+              f"drift {report.get('rest_drift', float('nan')):.3g} m", flush=True)
+    return rows
+
+
+def rest_summary(rows: list[dict]) -> str:
+    """``held / at rest (not at rest)`` and the largest drift of the episodes at rest."""
+    at_rest = [r for r in rows if r["at_rest"]]
+    passed = sum(bool(r.get("holds")) for r in at_rest)
+    drift = max((r.get("rest_drift", float("nan")) for r in at_rest), default=float("nan"))
+    return f"{passed} / {len(at_rest)} ({len(rows) - len(at_rest)} not at rest), drift <= {drift:.3g} m"
 
 
 def add_ratios(rows: list[dict], horizons: tuple[int, ...]) -> None:
@@ -104,6 +150,8 @@ def markdown(rows: list[dict], horizons: tuple[int, ...]) -> str:
     for h in horizons:
         head += [f"position MSE t+{h}", f"x {first} objects"]
     head.append("diverged")
+    if any(row.get("rest") is not None for row in rows):
+        head.append("rest: holds / at rest, largest drift")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [str(r["objects"]), str(r["leaves"]), f"{r['pybullet_ms']:.2f}", f"{r['model_ms']:.2f}",
@@ -113,6 +161,8 @@ def markdown(rows: list[dict], horizons: tuple[int, ...]) -> str:
             sem = f" ± {s['sem']:.2g}" if np.isfinite(s["sem"]) else ""
             cells += [f"{s['mean']:.3g}{sem}", f"{r[f'ratio_position@{h}']:.2f}x"]
         cells.append(str(r["errors"]["position"][f"t+{max(horizons)}"]["diverged"]))
+        if any(row.get("rest") is not None for row in rows):
+            cells.append(rest_summary(r["rest"]) if r.get("rest") is not None else "")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -135,6 +185,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--repeats", type=int, default=5, help="timed rollouts per count (median)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--work", default="runs/many_objects", help="where the episodes are kept")
+    parser.add_argument("--rest-steps", type=int, default=0,
+                        help="steps of the stability check from each episode's resting end (0: no rest section)")
     parser.add_argument("--out", default="benchmarks/results/many_objects.json")
     args = parser.parse_args(argv)
     args.horizons = tuple(int(h) for h in args.horizons.split(",") if h)
@@ -146,6 +198,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--steps must be at least the longest horizon + 2 (got {args.steps}, horizons {args.horizons})")
     if args.episodes < 1 or args.repeats < 1 or args.stride < 1:
         parser.error("--episodes, --repeats and --stride must be >= 1")
+    if args.rest_steps < 0:
+        parser.error("--rest-steps must be >= 0")
     torch.set_num_threads(args.threads)
     model = load_model(args.model)
     started = time.perf_counter()
@@ -164,6 +218,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"model": args.model, "meshes": list(meshes), "material": args.material, "pitch": args.pitch,
               "steps": args.steps, "episodes": args.episodes, "seed": args.seed, "horizons": list(args.horizons),
               "stride": args.stride, "repeats": args.repeats, "threads": args.threads,
+              "rest_steps": args.rest_steps,
               "statistics": "errors: mean and standard error over windows (from step 2, then every --stride "
                             "steps), the network alone; model_ms: median over --repeats of one rollout from "
                             "step 2 to the first episode's end, sleeping off; pybullet_ms: median over the "
