@@ -103,6 +103,7 @@ def time_rollout(model, state, steps: int, repeats: int) -> tuple[float, torch.T
 def time_compiled(model, state, steps: int, repeats: int) -> tuple[float, float, torch.Tensor]:
     """Seconds of the first compiled fixed-shape rollout, the median seconds per step of
     ``repeats`` more, and their positions."""
+    torch._dynamo.reset()  # each count compiles afresh, as in a new process (not past the recompile limit)
     simulator = FixedShapeSimulator(model, state, FixedShapeConfig(compile=True))
     with torch.no_grad():
         start = time.perf_counter()

@@ -36,6 +36,7 @@ reordered float arithmetic.
 from __future__ import annotations
 
 import copy
+import types
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import NamedTuple
@@ -141,6 +142,14 @@ def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float
     return fixed_step
 
 
+def own_code(fn: StepFn) -> StepFn:
+    """``fn`` with a code object of its own. ``torch.compile`` keeps its compiled graphs on the
+    code object and stops compiling one past ``torch._dynamo.config.recompile_limit`` graphs
+    (then it runs eagerly); every step function is the same closure code, so without this the
+    kinds of step of all simulators of a process would share that limit."""
+    return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+
+
 @torch.compiler.disable
 def graph_at(graph: HeteroData, pos: Tensor, prev: Tensor, prev2: Tensor, edge_index: Tensor) -> HeteroData:
     """A shallow copy of ``graph`` at the state ``x_t, x_{t-1}, x_{t-2}`` with collision
@@ -217,7 +226,7 @@ class FixedShapeSimulator:
             options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy)
             fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
             if self.config.compile:
-                fn = torch.compile(fn, dynamic=False)
+                fn = torch.compile(own_code(fn), dynamic=False)
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 
