@@ -239,3 +239,13 @@ def test_compiled_steps_equal_the_plain_rollout_to_rounding():
         again = sim.rollout(STEPS, forces)
     torch.testing.assert_close(first.pos, expected, rtol=0, atol=1e-5)
     assert torch.equal(again.pos, first.pos) and len(sim._steps) == kinds == 2
+
+
+def test_own_code_is_the_same_function_on_a_code_object_of_its_own():
+    scale = 3.0
+
+    def triple(x):
+        return scale * x
+
+    copy = fixed_shape.own_code(triple)
+    assert copy.__code__ is not triple.__code__ and copy(torch.ones(2)).tolist() == [3.0, 3.0]
