@@ -26,11 +26,12 @@ spare), and the list is searched before a step that would be predicted stale.
 
 With ``cuda_graph=True`` (CUDA only) each kind of step (with or without force, each padded list
 size) is recorded once as a CUDA graph and replayed: one launch per step instead of hundreds.
-With ``compile=True`` (any device) each kind of step is compiled once by ``torch.compile``:
-on a CPU the step's few hundred small operations become a few fused kernels, so a step costs
-its arithmetic rather than its dispatches. The first step of each kind pays the compilation
-(about a minute on a CPU); the positions are those of the eager step up to the rounding of
-reordered float arithmetic.
+With ``compile=True`` (any device) each kind of step (with or without force, masks or not) is
+compiled by ``torch.compile``, the candidate list's length left dynamic (after the first list
+of another length, one graph serves every length, so lists are not padded): on a CPU the step's
+few hundred small operations become a few fused kernels, so a step costs its arithmetic rather
+than its dispatches. The first steps pay the compilation (seconds to a minute on a CPU); the
+positions are those of the eager step up to the rounding of reordered float arithmetic.
 """
 
 from __future__ import annotations
@@ -72,8 +73,8 @@ class FixedShapeConfig:
             means rarer searches and more candidate pairs per step.
         check_every: most steps run before the flags are read (one host read per read).
         cuda_graph: record each kind of step as a CUDA graph and replay it (CUDA only).
-        compile: compile each kind of step with ``torch.compile`` (shapes fixed, candidate
-            lists padded to a power of two so that few sizes are compiled).
+        compile: compile each kind of step with ``torch.compile`` (the node count fixed, the
+            candidate list's length dynamic).
     """
 
     skin: float = 0.5
@@ -221,12 +222,13 @@ class FixedShapeSimulator:
         self._steps: dict[tuple, StepFn] = {}
 
     def _step_fn(self, force_active: bool, names: tuple[str, ...], radius: float, size: int, example: tuple) -> StepFn:
-        key = (force_active, names, radius, size)
+        # a recorded CUDA graph has the sizes it was recorded with; a compiled step takes any list size
+        key = (force_active, names, radius, size if self.config.cuda_graph else None)
         if key not in self._steps:
             options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy)
             fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
             if self.config.compile:
-                fn = torch.compile(own_code(fn), dynamic=False)
+                fn = torch.compile(own_code(fn), dynamic=None)
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 
@@ -271,7 +273,7 @@ class FixedShapeSimulator:
                 fresh = radius > 0 and candidates is None
                 if fresh:
                     candidates = build_candidates(graph, state[2], radius, skin)
-                    if config.cuda_graph or config.compile:  # pad to a size that rarely changes: reused steps
+                    if config.cuda_graph:  # pad to a size that rarely changes, so recordings are reused
                         candidates = pad_candidates(candidates, padded_size(candidates.pairs))
                     searches += 1
                     ahead = _steps_within(limit, 0.0, speed, config.check_every) + 1  # its first step moved 0
