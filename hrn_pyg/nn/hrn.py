@@ -100,11 +100,12 @@ class HRNConfig(NetworkConfig):
             or a cloth alone. A rule of the decoder, like ``rigid_fit``: a point inside a body
             cannot be under the ground, whatever the network predicts.
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
-            of rigid objects. False drops them (:func:`within_siblings_of`): a rigid body's
-            leaves keep their places relative to each other, so what one leaf says to its
-            sibling leaves is not needed to move it; its effects still reach them through their
-            ancestors (L2A, the ancestors' siblings, A2D). On a pile of rigid meshes at pitch
-            0.05 these are about two thirds of the within-siblings edges.
+            of rigid objects. False drops them (:func:`within_siblings_of`; on a pile of rigid
+            meshes at pitch 0.05 about two thirds of the within-siblings edges): a rigid body's
+            leaves keep their places relative to each other, and effects still reach them
+            through their ancestors (L2A, the ancestors' siblings, A2D). Dropped from weights
+            trained with them, short rollouts barely change but resting bodies creep, so it is
+            a setting to train with, not one to switch at inference.
     """
 
     hidden: int = 64
