@@ -49,3 +49,25 @@ def test_many_objects_scores_and_times_tiny_piles(tmp_path, capsys):
     assert [r["made"] for r in again["rows"]] == [0, 0]
     for first, second in zip(rows, again["rows"]):
         assert second["errors"] == first["errors"]
+
+
+def test_the_rest_section_checks_piles_that_end_at_rest(tmp_path, capsys, monkeypatch):
+    """``--rest-steps``: an episode whose objects are still falling at its end is counted as not at
+    rest; one whose end is at rest (here: the rest test made to say so) gets the stability check
+    of that many steps, and the table gains the column."""
+    bench = _benchmark()
+    meshes = f"{MESHES / 'random_hull_000.obj'}"
+    argv = ["--model", str(ROOT / "hrn_pyg/checkpoints/shapes.pt"), "--counts", "2", "--meshes", meshes,
+            "--episodes", "1", "--steps", "8", "--horizons", "2,5", "--stride", "1", "--repeats", "1",
+            "--rest-steps", "3", "--work", str(tmp_path / "work"), "--out", str(tmp_path / "r.json")]
+    falling = bench.main(argv)["rows"][0]["rest"]
+    assert falling == [{"seed": 0, "at_rest": False}]
+    monkeypatch.setattr(bench, "objects_at_rest", lambda truth, obj, mask, count: mask[:count])
+    rows = bench.main(argv)["rows"][0]["rest"]
+    assert len(rows) == 1 and rows[0]["at_rest"] and rows[0]["finite"] and isinstance(rows[0]["holds"], bool)
+    assert "rest: holds / at rest, largest drift" in capsys.readouterr().out
+    assert bench.rest_summary([{"at_rest": True, "holds": True, "rest_drift": 0.01},
+                               {"at_rest": True, "holds": False, "rest_drift": 0.07},
+                               {"at_rest": False}]) == "1 / 2 (1 not at rest), drift <= 0.07 m"
+    with pytest.raises(SystemExit):
+        bench.main(argv[:-4] + ["--rest-steps", "-1"] + argv[-4:])
