@@ -152,18 +152,17 @@ def main() -> None:
                 variants = {"as loaded": model}
                 if getattr(model.config, "mirror_average", False):
                     variants["one pass"] = with_applied_options(model, mirror_average=False).eval()
-                results, last = {}, {}
+                results, positions = {}, {}
                 for label, variant in variants.items():
-                    seconds, pos = time_rollout(variant.eval(), state, args.steps - 2, args.repeats)
+                    seconds, positions[label] = time_rollout(variant.eval(), state, args.steps - 2, args.repeats)
                     results[label] = {"ms": 1e3 * seconds, "x_pybullet": seconds / bullet_s}
-                    last[label] = pos[-1]
-                if "one pass" in last:
+                one_pass = "one pass" if "one pass" in variants else "as loaded"
+                if one_pass == "one pass":
                     results["one pass"]["mse_to_averaged_last_step"] = float(
-                        ((last["one pass"] - last["as loaded"]) ** 2).sum(-1).mean())
+                        ((positions["one pass"][-1] - positions["as loaded"][-1]) ** 2).sum(-1).mean())
                 if args.compile:
-                    one_pass = variants.get("one pass", model).eval()
-                    _, eager = time_rollout(one_pass, state, args.steps - 2, 1)
-                    first, seconds, pos = time_compiled(one_pass, state, args.steps - 2, args.repeats)
+                    eager = positions[one_pass]
+                    first, seconds, pos = time_compiled(variants[one_pass].eval(), state, args.steps - 2, args.repeats)
                     results["compiled"] = {"ms": 1e3 * seconds, "x_pybullet": seconds / bullet_s,
                                            "compile_s": first,
                                            "max_abs_diff_to_eager_m": float((pos - eager).abs().max())}

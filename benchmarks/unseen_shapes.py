@@ -18,7 +18,7 @@ time is measured:
 3. **Rest.** For every mesh and material of the unseen folders, the first ``--rest-episodes``
    episodes whose ground truth ends with every object at rest: the model started from the last
    three states and run ``--rest-steps`` steps with no force, scored by the package's stability
-   check (:func:`hrn_pyg.sim.stability.stability_report`; objects should rest from step 0).
+   check (:func:`hrn_pyg.sim.stability.rest_check`; objects should rest from step 0).
 4. **Time.** For one episode per unseen folder: the model's seconds per step over the whole
    episode (the default rollout, objects at rest sleeping; and all awake) and pybullet's seconds
    per step for the same episode (simulated again here), one torch thread, in one process.
@@ -65,11 +65,10 @@ from hrn_pyg.evaluate import (
     select_windows,
     summarise,
 )
-from hrn_pyg.metrics_rest import objects_at_rest
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.sim.rollout import iterate, rollout
+from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
-from hrn_pyg.sim.stability import stability_report
+from hrn_pyg.sim.stability import rest_check
 from hrn_pyg.utils.files import atomic_write_json
 
 ERRORS = ("position", "shape")
@@ -214,21 +213,10 @@ def rest_section(model, folders: list[Path], args) -> list[dict]:
             if all(wanted[n] >= args.rest_episodes for n in names):
                 continue
             episode = load_episode(path)
-            truth = torch.from_numpy(np.asarray(episode["positions"], dtype=np.float32))
-            obj = torch.as_tensor(np.asarray(episode["leaf_object"]), dtype=torch.long)
-            rest = objects_at_rest(truth, obj, torch.ones_like(obj, dtype=torch.bool), len(labels))
-            if not bool(rest.all()):
-                continue
-            total = truth.shape[0] - 1
-            graph = episode_state(episode, start=total - 1, steps=1)
-            del graph[NODE].pos_seq, graph[NODE].force_seq
             t0 = time.perf_counter()
-            with torch.no_grad():
-                try:
-                    traj = rollout(model, graph, args.rest_steps, sleep=None)
-                    report = stability_report(traj, graph, settle=0)
-                except ValueError as exc:  # left the finite numbers
-                    report = {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
+            report = rest_check(model, episode, args.rest_steps)
+            if report is None:  # not at rest at the episode's end
+                continue
             for n in names:
                 wanted[n] += 1
             rows.append({"folder": folder.name, "seed": int(episode["seed"]), "objects": names, **report,
