@@ -27,7 +27,7 @@ was trained with) is printed and kept in the JSON.
 **Rest.** With ``--rest-steps N`` (0: off) every episode of a count that ends with every object at
 rest (:func:`hrn_pyg.metrics_rest.objects_at_rest` of pybullet's positions) is rolled out ``N``
 steps from its last state, the network alone, and judged by the package's stability check
-(:func:`hrn_pyg.sim.stability.rest_check`: finite, within 50 m, no leaf more than one pitch
+(:func:`hrn_pyg.evaluate.rest_check`: finite, within 50 m, no leaf more than one pitch
 under the ground, rigid shapes within 1 %, drift under 5 cm). An episode that has not come to
 rest by its end is counted as such (give a longer ``--steps``, e.g. 240, for a pile to settle).
 
@@ -59,9 +59,8 @@ from hrn_pyg.checkpoints import load_model  # noqa: E402
 from hrn_pyg.checkpoints.domain import dataset_domain, report_outside  # noqa: E402
 from hrn_pyg.data.io import load_episode  # noqa: E402
 from hrn_pyg.data.scene_file import read_scene_file  # noqa: E402
-from hrn_pyg.evaluate import evaluate_model, summarise  # noqa: E402
+from hrn_pyg.evaluate import evaluate_model, rest_check, summarise  # noqa: E402
 from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402
-from hrn_pyg.sim.stability import rest_check  # noqa: E402
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text  # noqa: E402
 
 ERRORS = ("position", "shape")
@@ -99,7 +98,7 @@ def run_count(model, count: int, args, meshes: tuple[str, ...]) -> dict:
 
 def rest_rows(model, folder: Path, seeds: list[int], steps: int) -> list[dict]:
     """The stability check of ``steps`` steps from the resting end of each episode of ``seeds``
-    (:func:`hrn_pyg.sim.stability.rest_check`; an episode not at rest at its end: a row saying so)."""
+    (:func:`hrn_pyg.evaluate.rest_check`; an episode not at rest at its end: a row saying so)."""
     rows = []
     for seed in seeds:
         report = rest_check(model, load_episode(folder / f"episode_{seed:06d}.npz"), steps)

@@ -18,7 +18,7 @@ time is measured:
 3. **Rest.** For every mesh and material of the unseen folders, the first ``--rest-episodes``
    episodes whose ground truth ends with every object at rest: the model started from the last
    three states and run ``--rest-steps`` steps with no force, scored by the package's stability
-   check (:func:`hrn_pyg.sim.stability.rest_check`; objects should rest from step 0).
+   check (:func:`hrn_pyg.evaluate.rest_check`; objects should rest from step 0).
 4. **Time.** For one episode per unseen folder: the model's seconds per step over the whole
    episode (the default rollout, objects at rest sleeping; and all awake) and pybullet's seconds
    per step for the same episode (simulated again here), one torch thread, in one process.
@@ -62,13 +62,13 @@ from hrn_pyg.evaluate import (
     evaluate_model,
     guarded_rollout,
     per_object_errors,
+    rest_check,
     select_windows,
     summarise,
 )
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
-from hrn_pyg.sim.stability import rest_check
 from hrn_pyg.utils.files import atomic_write_json
 
 ERRORS = ("position", "shape")

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -49,8 +50,10 @@ from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
 from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
-from hrn_pyg.metrics_rest import REST_SPEED, REST_STEPS, rest_metrics
+from hrn_pyg.metrics_rest import REST_SPEED, REST_STEPS, objects_at_rest, rest_metrics
+from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import iterate, rollout
+from hrn_pyg.sim.stability import StabilityLimits, stability_report
 from hrn_pyg.sim.step import NEXT_POS
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
@@ -401,6 +404,27 @@ def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 1
     rollout_grid(rows, list(times), object_colors(store.object[leaves].cpu().numpy()), path)
 
 
+def rest_check(model, episode: Mapping[str, Any], steps: int,
+               limits: StabilityLimits = StabilityLimits()) -> dict[str, float | bool] | None:
+    """:func:`hrn_pyg.sim.stability.stability_report` of ``steps`` steps of ``model`` alone (no
+    object sleeps, no force) from the last state of ``episode`` (an episode file's arrays,
+    :func:`hrn_pyg.data.io.load_episode`); None when pybullet's objects are not all at rest
+    there (:func:`hrn_pyg.metrics_rest.objects_at_rest`). A rollout that leaves the finite numbers
+    is reported as not finite and not holding, with its ``error``."""
+    truth = torch.as_tensor(episode["positions"], dtype=torch.float32)
+    obj = torch.as_tensor(episode["leaf_object"], dtype=torch.long)
+    count = int(obj.max()) + 1
+    if not bool(objects_at_rest(truth, obj, torch.ones_like(obj, dtype=torch.bool), count).all()):
+        return None
+    graph = episode_state(episode, start=truth.shape[0] - 2, steps=1)
+    del graph[NODE].pos_seq, graph[NODE].force_seq
+    with torch.no_grad():
+        try:
+            return stability_report(rollout(model, graph, steps, sleep=None), graph, settle=0, limits=limits)
+        except ValueError as exc:  # left the finite numbers
+            return {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="episode folder; its test split is used")
     parser.add_argument("--model", action="append", required=True, metavar="NAME=PATH",
@@ -507,3 +531,4 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(windows)} held-out trajectories and {len(starts)} whole episode{'s' if len(starts) != 1 else ''} "
           f"({args.split} split, {device}); written to {out}")
     return 0
+

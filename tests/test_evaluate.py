@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,11 +9,15 @@ from torch_geometric.data import Batch
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main
 from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.evaluate import per_trajectory_errors, summarise
+from hrn_pyg.data.scene_file import read_scene_file
+from hrn_pyg.evaluate import per_trajectory_errors, rest_check, summarise
 from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.train import TrainConfig, train
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_errors_are_zero_for_the_truth_and_match_a_hand_case(tiny_episodes):
@@ -125,3 +130,13 @@ def test_per_object_errors_split_the_trajectory_error_by_object(tiny_episodes):
                           for o in range(objects)]).float()
     weighted = (per_object["position"][objects:] * leaves).sum() / leaves.sum()
     assert torch.allclose(weighted, per_copy["position"][1])
+
+def test_rest_check_runs_from_a_resting_end_and_skips_a_moving_one():
+    """A scene of objects set down at rest: the shipped generalist holds five steps from its end;
+    pushed cubes still sliding at their episode's end: None (nothing to check)."""
+    model = load_model("shapes")
+    resting = simulate_episode(read_scene_file(ROOT / "data" / "shapes" / "shapes_rest.toml"), 1000, steps=20)
+    report = rest_check(model, resting, 5)
+    assert report is not None and report["finite"] and report["holds"] and report["rest_drift"] < 0.01
+    assert rest_check(model, simulate_episode("cube_collision", 0, steps=10), 5) is None
+

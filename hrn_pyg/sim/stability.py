@@ -17,24 +17,19 @@ there. :func:`stability_report` scores one such rollout ``x_1 .. x_S`` of a scen
   (``max z - min z`` of the object's leaves) at the end to the start (reported, no limit).
 
 ``passes_check`` is the first three (what every shipped model is held to over 1000 steps);
-``holds`` asks all five limits. :func:`rest_check` runs the check from the resting end of a
-pybullet episode.
+``holds`` asks all five limits. :func:`hrn_pyg.evaluate.rest_check` runs the check from the
+resting end of a pybullet episode.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import MATERIALS, NODE
-from hrn_pyg.metrics_rest import objects_at_rest
-from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.sim.rollout import rollout
 
 RIGID, SOFT, CLOTH = (MATERIALS.index(m) for m in ("rigid", "soft", "cloth"))
 
@@ -97,25 +92,3 @@ def stability_report(traj: Tensor, graph: HeteroData, settle: int,
     out["holds"] = (out["passes_check"] and out["rigid_shape"] <= limits.rigid_change
                     and out["rest_drift"] < limits.drift)
     return out
-
-
-def rest_check(model, episode: Mapping[str, Any], steps: int,
-               limits: StabilityLimits = StabilityLimits()) -> dict[str, float | bool] | None:
-    """:func:`stability_report` of ``steps`` steps of ``model`` alone (no object sleeps, no force)
-    from the last state of ``episode`` (an episode file's arrays, :func:`hrn_pyg.data.io.load_episode`);
-    None when pybullet's objects are not all at rest there
-    (:func:`hrn_pyg.metrics_rest.objects_at_rest`). A rollout that leaves the finite numbers
-    is reported as not finite and not holding, with its ``error``."""
-    truth = torch.as_tensor(episode["positions"], dtype=torch.float32)
-    obj = torch.as_tensor(episode["leaf_object"], dtype=torch.long)
-    count = int(obj.max()) + 1
-    if not bool(objects_at_rest(truth, obj, torch.ones_like(obj, dtype=torch.bool), count).all()):
-        return None
-    graph = episode_state(episode, start=truth.shape[0] - 2, steps=1)
-    del graph[NODE].pos_seq, graph[NODE].force_seq
-    with torch.no_grad():
-        try:
-            return stability_report(rollout(model, graph, steps, sleep=None), graph, settle=0, limits=limits)
-        except ValueError as exc:  # left the finite numbers
-            return {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
-
