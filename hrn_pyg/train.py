@@ -38,6 +38,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -153,6 +154,12 @@ class TrainConfig:
             every split (e.g. a fine-tuning on a mix of the scene's data and a dataset of one
             situation it must learn); "" : ``data`` alone. A seed repeats across them only
             between different scenes (``meta.json``).
+        data_weights: ``name=weight`` pairs, comma-separated, ``name`` a folder of ``data`` or
+            ``extra_data`` by its last path component: each window of that folder is drawn
+            ``weight`` times as often as a window of a folder not named (weight 1). Windows are
+            otherwise drawn uniformly, so a folder's share of the batches is its share of the
+            windows; a weight corrects that (a small dataset of one situation the model must
+            learn, a large one it knows). "" : every window equally likely.
     """
 
     preset: str = "ours"
@@ -189,15 +196,22 @@ class TrainConfig:
     rest_threshold: float = 1e-3
     init_from: str = ""
     extra_data: str = ""
+    data_weights: str = ""
 
     @property
     def data_folders(self) -> list[str]:
         """``data`` and the folders of ``extra_data``."""
         return [self.data, *(f for f in self.extra_data.split(",") if f)]
 
+    @property
+    def folder_weights(self) -> list[float]:
+        """The draw weight of each folder of :attr:`data_folders` (see ``data_weights``)."""
+        return parse_data_weights(self.data_weights, self.data_folders)
+
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {PRESETS}, got {self.preset!r}")
+        self.folder_weights  # noqa: B018 -- a bad data_weights fails here, before any work
         if self.shape_loss not in SHAPE_LOSSES:
             raise ValueError(f"shape_loss must be one of {SHAPE_LOSSES}, got {self.shape_loss!r}")
         for name in ("steps", "batch_size", "seq_start", "seq_end", "shape_chunk", "checkpoint_every", "eval_every"):
@@ -470,23 +484,74 @@ def _average_gradients(model: torch.nn.Module) -> None:
         p.grad /= world
 
 
-def _draw_windows(n: int, batch_size: int, seed: int, step: int, rank: int) -> list[int]:
+def parse_data_weights(text: str, folders: Sequence[str]) -> list[float]:
+    """The draw weight of each of ``folders`` from ``name=weight`` pairs (comma-separated,
+    ``name`` a folder's last path component; folders not named weigh 1). A name that is no
+    folder's, a name given twice, a name shared by two folders, or a weight that is not a
+    finite number > 0 is a one-line ``ValueError``."""
+    names = [Path(f).name for f in folders]
+    weights = [1.0] * len(folders)
+    given: set[str] = set()
+    for pair in (p.strip() for p in text.split(",")):
+        if not pair:
+            continue
+        name, sep, value = pair.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise ValueError(f"data_weights: expected name=weight, got {pair!r}")
+        if name in given:
+            raise ValueError(f"data_weights: {name!r} is given twice")
+        if names.count(name) != 1:
+            why = "is not a folder" if name not in names else "names more than one folder"
+            raise ValueError(f"data_weights: {name!r} {why} of the training data ({', '.join(names)})")
+        try:
+            weight = float(value)
+        except ValueError:
+            raise ValueError(f"data_weights: the weight of {name!r} must be a number, got {value!r}") from None
+        if not 0 < weight < math.inf:
+            raise ValueError(f"data_weights: the weight of {name!r} must be a finite number > 0, got {value!r}")
+        given.add(name)
+        weights[names.index(name)] = weight
+    return weights
+
+
+def window_draw_weights(train_set: EpisodeWindows, folders: Sequence[str],
+                        folder_weights: Sequence[float]) -> Tensor | None:
+    """The cumulative draw weight of ``train_set``'s windows, each window weighted by its
+    folder's entry of ``folder_weights`` (``(W,)`` float64, for :func:`_draw_windows`); None when
+    every weight is 1 (uniform draws)."""
+    if all(w == 1.0 for w in folder_weights):
+        return None
+    by_folder = {Path(f).resolve(): w for f, w in zip(folders, folder_weights)}
+    per_episode = torch.tensor([by_folder[Path(p).parent.resolve()] for p in train_set.paths], dtype=torch.float64)
+    return torch.cumsum(per_episode[torch.as_tensor(train_set.window_episodes)], 0)
+
+
+def _draw_windows(n: int, batch_size: int, seed: int, step: int, rank: int,
+                  cumulative: Tensor | None = None) -> list[int]:
     """The window indices of one step: a pure function of (seed, step, rank), so a resumed run
-    draws exactly what the uninterrupted one would have."""
+    draws exactly what the uninterrupted one would have. Uniform over the ``n`` windows, or, with
+    ``cumulative`` (the windows' cumulative weights, :func:`window_draw_weights`), each window
+    with probability proportional to its weight."""
     g = torch.Generator().manual_seed(seed * 1_000_003 + step * 7919 + rank * 104_729 + 1)
-    return torch.randint(n, (batch_size,), generator=g).tolist()
+    if cumulative is None:
+        return torch.randint(n, (batch_size,), generator=g).tolist()
+    u = torch.rand(batch_size, generator=g, dtype=torch.float64) * cumulative[-1]
+    return torch.searchsorted(cumulative, u, right=True).clamp_(max=n - 1).tolist()
 
 
 class StepWindows:
     """Batch sampler of a run: the window indices of steps ``start .. end-1`` (see
     :func:`_draw_windows`), so a ``DataLoader`` with workers yields what the loop would draw."""
 
-    def __init__(self, n: int, batch_size: int, seed: int, rank: int, start: int, end: int) -> None:
+    def __init__(self, n: int, batch_size: int, seed: int, rank: int, start: int, end: int,
+                 cumulative: Tensor | None = None) -> None:
         self.n, self.batch_size, self.seed, self.rank, self.start, self.end = n, batch_size, seed, rank, start, end
+        self.cumulative = cumulative
 
     def __iter__(self):
         for step in range(self.start, self.end):
-            yield _draw_windows(self.n, self.batch_size, self.seed, step, self.rank)
+            yield _draw_windows(self.n, self.batch_size, self.seed, step, self.rank, self.cumulative)
 
     def __len__(self) -> int:
         return max(self.end - self.start, 0)
@@ -670,8 +735,9 @@ def _open_run_folder(out: Path, config: TrainConfig, model: HRN, place: _Place,
 def _step_batches(train_set: EpisodeWindows, config: TrainConfig, place: _Place, start: int, end: int) -> DataLoader:
     """The batches of steps ``start .. end-1`` (windows drawn by :class:`StepWindows`), collated by
     ``config.workers`` background processes (0: in this one)."""
+    cumulative = window_draw_weights(train_set, config.data_folders, config.folder_weights)
     return DataLoader(train_set, batch_sampler=StepWindows(len(train_set), config.batch_size, config.seed,
-                                                           place.rank, start, end),
+                                                           place.rank, start, end, cumulative),
                       collate_fn=_collate, num_workers=config.workers, pin_memory=place.device.type == "cuda",
                       # its own generator: the loader's seed draw must not shift the global
                       # random stream that dropout masks use (resume would then diverge)

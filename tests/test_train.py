@@ -11,7 +11,7 @@ import torch
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.train import TrainConfig, train
+from hrn_pyg.train import TrainConfig, _draw_windows, parse_data_weights, train, window_draw_weights
 
 SMALL = HRNConfig(hidden=16, depth=1, effect_dim=16)
 
@@ -80,6 +80,11 @@ def test_cli_errors_are_one_line(tiny_episodes, tmp_path, capsys):
     assert "lr" in capsys.readouterr().err
     assert main(["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(tmp_path / "o2"),
                  "--resume"]) == 2
+    capsys.readouterr()
+    assert main(["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(tmp_path / "o3"),
+                 "--data-weights", "elsewhere=2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'elsewhere' is not a folder" in err[0]
 
 
 #: Run under torchrun: ``hrn-pyg train`` with the rest of argv, recording on every rank the
@@ -423,3 +428,48 @@ def test_snapshots_keep_the_model_every_n_steps(tiny_episodes, tmp_path):
     assert torch.load(out / "snapshots" / "step_00003.pt", weights_only=True)["step"] == 3
     with pytest.raises(ValueError, match="snapshot_every"):
         TrainConfig.for_preset("ours", snapshot_every=-1)
+
+
+def test_data_weights_parse_by_folder_name_and_refuse_bad_pairs():
+    folders = ["data/a", "more/b", "c"]
+    assert parse_data_weights("", folders) == [1.0, 1.0, 1.0]
+    assert parse_data_weights("b=3, c=0.5", folders) == [1.0, 3.0, 0.5]
+    for text, words in [("z=2", "is not a folder"), ("a=2,a=3", "twice"), ("a=0", "> 0"), ("a=inf", "> 0"),
+                        ("a=x", "number"), ("a", "name=weight"), ("=2", "name=weight")]:
+        with pytest.raises(ValueError, match=words):
+            parse_data_weights(text, folders)
+    with pytest.raises(ValueError, match="more than one folder"):
+        parse_data_weights("a=2", ["x/a", "y/a"])
+    with pytest.raises(ValueError, match="data_weights"):  # refused when the config is made
+        TrainConfig(data="data/a", data_weights="b=2")
+
+
+def test_data_weights_draw_a_folder_in_proportion_and_uniform_draws_stay_as_they_were(tiny_episodes, tmp_path):
+    import shutil
+
+    from hrn_pyg.data.dataset import EpisodeWindows, split_of_seed
+
+    seeds = sorted(int(p.stem.removeprefix("episode_")) for p in tiny_episodes.glob("episode_*.npz"))
+    train_seeds = [s for s in seeds if split_of_seed(s) == "train"]
+    small, large = tmp_path / "small", tmp_path / "large"
+    for folder, seeds in ((small, train_seeds[:1]), (large, train_seeds[1:])):
+        folder.mkdir()
+        for s in seeds:
+            shutil.copy(tiny_episodes / f"episode_{s:06d}.npz", folder / f"episode_{s:06d}.npz")
+    folders = [str(large), str(small)]
+    windows = EpisodeWindows(folders, "train", horizon=1)
+    from_small = torch.as_tensor([windows.paths[e].parent == small for e in windows.window_episodes])
+    share = float(from_small.double().mean())  # uniform draws: the small folder's share of windows
+
+    assert window_draw_weights(windows, folders, [1.0, 1.0]) is None
+    n = len(windows)
+    assert _draw_windows(n, 8, 0, 3, 0) == _draw_windows(n, 8, 0, 3, 0, None)  # runs without weights unchanged
+
+    weight = 4.0
+    cumulative = window_draw_weights(windows, folders, [1.0, weight])
+    drawn = torch.as_tensor([i for step in range(500) for i in _draw_windows(n, 8, 0, step, 0, cumulative)])
+    assert int(drawn.min()) >= 0 and int(drawn.max()) < n
+    expected = weight * share / (weight * share + 1 - share)
+    observed = float(from_small[drawn].double().mean())
+    assert abs(observed - expected) < 0.03, (observed, expected, share)  # 4000 draws: 3 sigma < 0.025
+    assert _draw_windows(n, 8, 0, 7, 0, cumulative) == _draw_windows(n, 8, 0, 7, 0, cumulative)  # seeded

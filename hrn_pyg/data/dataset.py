@@ -207,6 +207,11 @@ class EpisodeWindows(Dataset):
     def len(self) -> int:
         return int(self._window_episode.shape[0])
 
+    @property
+    def window_episodes(self) -> np.ndarray:
+        """``(W,)`` the episode (index into :attr:`paths`) of each window."""
+        return self._window_episode
+
     def _episode(self, index: int) -> dict[str, Tensor]:
         """Decoded arrays of episode ``index`` (a small least-recently-used cache)."""
         if index in self._episodes:
