@@ -74,7 +74,10 @@ class FixedShapeConfig:
         check_every: most steps run before the flags are read (one host read per read).
         cuda_graph: record each kind of step as a CUDA graph and replay it (CUDA only).
         compile: compile each kind of step with ``torch.compile`` (the node count fixed, the
-            candidate list's length dynamic).
+            candidate list's length dynamic). The compiled steps check only their inputs and
+            torch's global state before they run (:func:`step_input_guards`): the model and the
+            scene's static graph must stay as they were when the simulator was made (their
+            weights' values may change; a changed model or graph needs a new simulator).
     """
 
     skin: float = 0.5
@@ -141,6 +144,23 @@ def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float
         return next_pos, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
 
     return fixed_step
+
+
+#: the arguments of a step function (:func:`make_step`): what changes from one call to the next
+STEP_INPUTS = frozenset({"pos", "prev", "prev2", "force", "masks", "edge_index", "valid", "reference"})
+#: guards on torch's global state (grad mode, default device, ...) and on symbolic sizes
+GLOBAL_GUARDS = frozenset({"GRAD_MODE", "GLOBAL_STATE", "DEFAULT_DEVICE", "DETERMINISTIC_ALGORITHMS",
+                           "TORCH_FUNCTION_STATE", "AUTOGRAD_SAVED_TENSORS_HOOKS", "SHAPE_ENV"})
+
+
+def step_input_guards(entries: list) -> list[bool]:
+    """The ``guard_filter_fn`` of a compiled step: keep the guards on the step's arguments
+    (:data:`STEP_INPUTS`: a new candidate count recompiles with a dynamic size, a new dtype or
+    device afresh) and on torch's global state (:data:`GLOBAL_GUARDS`); drop those on the model,
+    the scene's static graph and the package's functions, which the simulator holds fixed. The
+    step's graph is read through about a thousand guards otherwise, checked at every step: on
+    a pile of 10 objects they cost about 5 % of the step (``benchmarks/pile_step.py --compile``)."""
+    return [e.guard_type in GLOBAL_GUARDS or e.name.split("[")[0].split(".")[0] in STEP_INPUTS for e in entries]
 
 
 def own_code(fn: StepFn) -> StepFn:
@@ -228,7 +248,7 @@ class FixedShapeSimulator:
             options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy)
             fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
             if self.config.compile:
-                fn = torch.compile(own_code(fn), dynamic=None)
+                fn = torch.compile(own_code(fn), dynamic=None, options={"guard_filter_fn": step_input_guards})
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 

@@ -249,3 +249,37 @@ def test_own_code_is_the_same_function_on_a_code_object_of_its_own():
 
     copy = fixed_shape.own_code(triple)
     assert copy.__code__ is not triple.__code__ and copy(torch.ones(2)).tolist() == [3.0, 3.0]
+
+
+def test_compiled_steps_keep_guards_on_their_inputs_and_follow_a_changing_candidate_count():
+    """The compiled steps drop the guards on the model and the static graph
+    (:func:`~hrn_pyg.sim.fixed_shape.step_input_guards`) but keep those on their arguments: with
+    frequent searches the candidate list changes length from step to step, and every step
+    still gives the plain rollout's positions."""
+    from types import SimpleNamespace as Guard
+
+    kept = fixed_shape.step_input_guards([
+        Guard(guard_type="TENSOR_MATCH", name="pos"), Guard(guard_type="TENSOR_MATCH", name="masks[0]"),
+        Guard(guard_type="TENSOR_MATCH", name="edge_index"), Guard(guard_type="GRAD_MODE", name=""),
+        Guard(guard_type="SHAPE_ENV", name=""), Guard(guard_type="TENSOR_MATCH", name="model._modules['ws']"),
+        Guard(guard_type="NOT_PRESENT_IN_GENERIC_DICT", name="___stack0._node_store_dict['particle']"),
+        Guard(guard_type="CLOSURE_MATCH", name="G['__import_hrn_pyg']"),
+    ])
+    assert kept == [True, True, True, True, True, False, False, False]
+
+    model = fitted_model(rigid_fit=True)
+    graph = toy_scene()
+    forces = pushes(graph[NODE].num_nodes, (2, 6))
+    expected = plain(model, graph, forces)
+    sim = fixed_shape.FixedShapeSimulator(model, graph, FixedShapeConfig(compile=True, skin=0.05, check_every=1))
+    with torch.no_grad():
+        sim.rollout(STEPS, forces)
+        counts = []
+        for key, step in list(sim._steps.items()):
+            def recording(*args, step=step):
+                counts.append(args[5].size(1))
+                return step(*args)
+            sim._steps[key] = recording
+        again = sim.rollout(STEPS, forces)
+    assert len(set(counts)) > 1, counts
+    torch.testing.assert_close(again.pos, expected, rtol=0, atol=1e-5)
