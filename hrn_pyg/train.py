@@ -52,10 +52,11 @@ from tqdm import tqdm
 
 from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, training_domain, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
-from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, RIGID, WITHIN_SIBLINGS, set_state
+from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, RIGID, WITHIN_SIBLINGS, set_state
 from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries
 from hrn_pyg.losses import (
     DEFAULT_CHUNK_SIZE,
+    contact_loss,
     fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
@@ -93,10 +94,10 @@ NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
 #: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2,
-#: ``rest`` unless ``w_rest`` > 0; ``acceleration`` is the ``gns`` preset's loss, the HRN terms
+#: ``rest`` unless ``w_rest`` > 0, ``contact`` unless ``w_contact`` > 0; ``acceleration`` is the ``gns`` preset's loss, the HRN terms
 #: are empty there)
 LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds",
-              "acceleration"]
+              "acceleration", "contact"]
 
 
 @dataclass(frozen=True)
@@ -147,6 +148,8 @@ class TrainConfig:
         w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
             of the objects the ground truth has at rest (0: off, the seed paper's loss).
         rest_threshold: metres per step under which a root's true velocity counts as rest.
+        w_contact: weight of :func:`~hrn_pyg.losses.contact_loss`, how much closer than the truth
+            the model brings the touching leaf pairs of different objects (0: off).
         init_from: a model checkpoint (``model.pt``) to start from instead of a fresh network:
             its weights, normaliser and model settings are kept, the optimiser starts anew
             (fine-tuning); "" : a fresh network. Ignored when a run resumes.
@@ -194,6 +197,7 @@ class TrainConfig:
     w_energy: float = 1.0
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
+    w_contact: float = 0.0
     init_from: str = ""
     extra_data: str = ""
     data_weights: str = ""
@@ -225,9 +229,9 @@ class TrainConfig:
             raise ValueError(f"input_noise must be a finite number >= 0, got {self.input_noise}")
         if not 0.0 <= self.input_noise_ratio < math.inf:
             raise ValueError(f"input_noise_ratio must be a finite number >= 0, got {self.input_noise_ratio}")
-        if self.preset == "gns" and (self.sample_copies or self.w_rest or self.seq_end != 1):
-            raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest "
-                             "and seq_end > 1 are options of the HRN presets")
+        if self.preset == "gns" and (self.sample_copies or self.w_rest or self.w_contact or self.seq_end != 1):
+            raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest, "
+                             "w_contact and seq_end > 1 are options of the HRN presets")
         if not 0.0 <= self.time_limit < math.inf:
             raise ValueError(f"time_limit must be a finite number of minutes >= 0, got {self.time_limit}")
         if self.workers < 0:
@@ -246,6 +250,8 @@ class TrainConfig:
             raise ValueError(f"w_energy must be a finite number >= 0, got {self.w_energy}")
         if not 0.0 <= self.w_rest < math.inf:
             raise ValueError(f"w_rest must be a finite number >= 0, got {self.w_rest}")
+        if not 0.0 <= self.w_contact < math.inf:
+            raise ValueError(f"w_contact must be a finite number >= 0, got {self.w_contact}")
         if not 0.0 < self.rest_threshold < math.inf:
             raise ValueError(f"rest_threshold must be a finite number > 0 (metres per step), got {self.rest_threshold}")
 
@@ -282,7 +288,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     .. math::
         \mathcal{L} = \sum_{k=1}^{T} w_{loc}\mathcal{L}_{loc}^{(k)} + w_{glob}\mathcal{L}_{glob}^{(k)}
             + w_{shape}\mathcal{L}_{shape}^{(k)} \; [+\, w_{energy}\mathcal{L}_{ES}^{(k)}]
-            \; [+\, w_{rest}\mathcal{L}_{rest}^{(k)}]
+            \; [+\, w_{rest}\mathcal{L}_{rest}^{(k)}] \; [+\, w_{contact}\mathcal{L}_{contact}^{(k)}]
 
     Step ``k`` starts from the model's own prediction of step ``k-1`` (ground truth for
     ``k = 1``). The local term compares velocities in the parent's frame, the global term the
@@ -291,7 +297,9 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     pairwise-distance error. With ``seq_len = 1`` this is the baseline HRN's one-step loss.
     With ``config.w_rest > 0``, :func:`~hrn_pyg.losses.rest_velocity_loss` adds the absolute
     velocity error of the objects at rest in the truth (step ``k``'s own prediction against the
-    true displacement ``x_{k+1} - x_k``).
+    true displacement ``x_{k+1} - x_k``). With ``config.w_contact > 0``,
+    :func:`~hrn_pyg.losses.contact_loss` adds how much closer than the truth step ``k`` brings
+    the touching leaf pairs of its predicted state (its collision edges).
 
     With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
     :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
@@ -335,6 +343,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["energy"] = seq.new_zeros(())
     if config.w_rest > 0:
         parts["rest"] = seq.new_zeros(())
+    if config.w_contact > 0:
+        parts["contact"] = seq.new_zeros(())
     total = seq.new_zeros(())
     masks_fn = None
     if config.train_dropout > 0:  # one mask per copy per step, drawn as the step starts
@@ -361,6 +371,10 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
                                            store.is_static, config.rest_threshold, vel_scale)
             total = total + config.w_rest * loss_rest
             parts["rest"] = parts["rest"] + loss_rest.detach()
+        if config.w_contact > 0:  # touching pairs of the predicted state, no closer than the truth
+            loss_contact = contact_loss(result.pos, true_next, result.graph[COLLISION].edge_index, shape_scale)
+            total = total + config.w_contact * loss_contact
+            parts["contact"] = parts["contact"] + loss_contact.detach()
         if n_samples >= 2 and moving_leaves.numel():
             # copy c of window b holds rows c N + (b's rows): one [K, L', 3] block of samples
             samples = result.pos.reshape(n_samples, one_window_nodes, 3)[:, moving_leaves]
@@ -931,7 +945,8 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
     model.eval()
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
-    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0))
+    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0,
+                                                         w_contact=0.0))
     model.train(was_training)
     return float(loss) / seq_len
 

@@ -3,6 +3,7 @@ import torch
 from toy_scene import toy_scene
 
 from hrn_pyg.losses import (
+    contact_loss,
     fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
@@ -182,3 +183,21 @@ def test_rest_velocity_loss_counts_only_the_objects_at_rest():
     assert small.grad[1:].abs().sum() == 0
     nothing_rests = rest_velocity_loss(pred, true + 1.0, is_root, is_static, 1e-3, 0.01)
     assert nothing_rests.item() == 0.0
+
+
+def test_contact_loss_is_the_shortfall_of_touching_pairs_and_pushes_them_apart():
+    true = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.2, 0.0]])
+    edges = torch.tensor([[0, 1, 0], [1, 0, 2]])  # both directions of pair (0, 1), one of (0, 2)
+    assert contact_loss(true, true, edges).item() == 0.0
+    apart = true * 1.5  # every pair farther than the truth: nothing to pay
+    assert contact_loss(apart, true, edges).item() == 0.0
+    pred = true.clone()
+    pred[1, 0] = 0.04  # pair (0, 1) 0.06 closer than the truth, pair (0, 2) as true
+    pred.requires_grad_(True)
+    loss = contact_loss(pred, true, edges, scale=0.5)
+    assert loss.item() == pytest.approx((0.06 + 0.06 + 0.0) / 3 / 0.5, rel=1e-5)
+    loss.backward()
+    assert pred.grad[1, 0] < 0 and pred.grad[0, 0] > 0  # descent moves leaf 1 away from leaf 0
+    assert pred.grad[2].abs().sum() == 0
+    nothing = contact_loss(pred, true, torch.zeros(2, 0, dtype=torch.long))
+    assert nothing.item() == 0.0 and nothing.requires_grad

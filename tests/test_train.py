@@ -364,6 +364,47 @@ def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
         TrainConfig(rest_threshold=0.0)
 
 
+def test_contact_term_is_logged_and_adds_its_weight_times_the_shortfall(tiny_episodes, tmp_path):
+    """``w_contact``: the logged ``contact`` part of a one-step loss is the shortfall of the
+    predicted state's touching pairs, recomputed by hand; the total grows by exactly ``w_contact``
+    times it; a short run logs the column; bad settings are refused."""
+    from torch_geometric.data import Batch
+
+    from hrn_pyg.data.dataset import EpisodeWindows
+    from hrn_pyg.data.graph import COLLISION, NODE, set_state
+    from hrn_pyg.losses import contact_loss
+    from hrn_pyg.nn.hrn import HRN
+    from hrn_pyg.nn.normalizer import fit_normalizer
+    from hrn_pyg.sim.rollout import iterate
+    from hrn_pyg.train import window_loss
+
+    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
+    torch.manual_seed(0)
+    model = HRN(SMALL)
+    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
+    batch = Batch.from_data_list([windows[i] for i in range(len(windows))])
+    seq = batch[NODE].pos_seq
+    plain, _ = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused"))
+    total, parts = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_contact=3.0))
+    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
+    result = next(iterate(model, graph, 1, batch[NODE].force_seq.transpose(0, 1), None, sleep=None))
+    touching = result.graph[COLLISION].edge_index
+    assert touching.size(1) > 0
+    by_hand = contact_loss(result.pos, seq[:, 3], touching, model.normalizer.velocity_std.mean())
+    assert by_hand.item() > 0  # an untrained model brings some pairs closer than the truth
+    assert parts["contact"] == pytest.approx(by_hand.item(), rel=1e-5)
+    assert total.item() == pytest.approx(plain.item() + 3.0 * by_hand.item(), rel=1e-5)
+
+    out = tmp_path / "contact"
+    train(_config(tiny_episodes, out, steps=2, w_contact=1.0), SMALL)
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert rows and all(float(r["contact"]) >= 0 for r in rows)
+    with pytest.raises(ValueError, match="w_contact must be a finite number >= 0"):
+        TrainConfig(w_contact=-1.0)
+    with pytest.raises(ValueError, match="w_contact"):
+        TrainConfig.for_preset("gns", w_contact=1.0)
+
+
 def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes, tmp_path):
     train(_config(tiny_episodes, tmp_path / "base", steps=4), SMALL, progress=False)
     base = tmp_path / "base" / "model.pt"
