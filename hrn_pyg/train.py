@@ -94,8 +94,8 @@ NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
 #: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2,
-#: ``rest`` unless ``w_rest`` > 0, ``contact`` unless ``w_contact`` > 0; ``acceleration`` is the ``gns`` preset's loss, the HRN terms
-#: are empty there)
+#: ``rest`` unless ``w_rest`` > 0, ``contact`` unless ``w_contact`` > 0; ``acceleration`` is the
+#: ``gns`` preset's loss, the HRN terms are empty there)
 LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds",
               "acceleration", "contact"]
 
@@ -215,7 +215,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {PRESETS}, got {self.preset!r}")
-        self.folder_weights  # noqa: B018 -- a bad data_weights fails here, before any work
+        parse_data_weights(self.data_weights, self.data_folders)  # a bad data_weights fails here, before any work
         if self.shape_loss not in SHAPE_LOSSES:
             raise ValueError(f"shape_loss must be one of {SHAPE_LOSSES}, got {self.shape_loss!r}")
         for name in ("steps", "batch_size", "seq_start", "seq_end", "shape_chunk", "checkpoint_every", "eval_every"):
