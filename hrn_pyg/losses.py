@@ -110,28 +110,35 @@ Vert < 	au\}
 
 
 def contact_loss(pred_pos: Tensor, true_pos: Tensor, collision_edges: Tensor,
-                 scale: Tensor | float = 1.0) -> Tensor:
+                 scale: Tensor | float = 1.0, floor: Tensor | float | None = None) -> Tensor:
     r"""Mean shortfall of the predicted distance of touching leaf pairs under the true distance.
 
     .. math::
         \mathcal{L}_{contact} = \frac{1}{|\mathcal{C}|} \sum_{(i, j) \in \mathcal{C}}
-            \frac{\max\bigl(0,\ \lVert x_i - x_j \rVert - \lVert \hat x_i - \hat x_j \rVert\bigr)}{\sigma}
+            \frac{\max\bigl(0,\ \min(\lVert x_i - x_j \rVert, f_{ij}) - \lVert \hat x_i - \hat x_j \rVert\bigr)}{\sigma}
 
     over :math:`\mathcal{C}`, the collision pairs (leaves of different objects within the
     collision radius) of the predicted state. A pair the model brings closer than the truth has it
     is one leaf on its way into the other's object, which is how a cloth ends up inside what it
     falls on; the squared position errors see a shortfall of a fraction of a pitch hardly at all,
     and see it no differently from the same error sideways. The term is zero for pairs the model
-    keeps at least as far apart as the truth, and zero when nothing touches.
+    keeps at least as far apart as the truth, and zero when nothing touches. Without a floor
+    (:math:`f = \infty`) every touching pair is held to its true distance, which pushes pairs
+    apart on average (the term is one-sided); a ``floor`` :math:`f_{ij}` (metres, per pair or one
+    number) asks only that a pair be no closer than its true distance or :math:`f_{ij}`,
+    whichever is smaller, so pairs the model keeps farther than the floor cost nothing.
 
-    **Shapes:** pred_pos, true_pos :math:`(N, 3)`; collision_edges :math:`(2, E)`; returns a scalar.
+    **Shapes:** pred_pos, true_pos :math:`(N, 3)`; collision_edges :math:`(2, E)`; floor a
+    number or :math:`(E,)`; returns a scalar.
     """
     if collision_edges.numel() == 0:
         return _zero(pred_pos)
     i, j = collision_edges
     pred_distance = safe_norm(pred_pos[i] - pred_pos[j], keepdim=False)
-    true_distance = (true_pos[i] - true_pos[j]).norm(dim=-1)
-    return (torch.relu(true_distance - pred_distance) / scale).mean()
+    target = (true_pos[i] - true_pos[j]).norm(dim=-1)
+    if floor is not None:
+        target = torch.minimum(target, torch.as_tensor(floor, dtype=target.dtype, device=target.device))
+    return (torch.relu(target - pred_distance) / scale).mean()
 
 
 def group_shape_loss(

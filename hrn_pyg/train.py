@@ -52,7 +52,7 @@ from tqdm import tqdm
 
 from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, training_domain, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
-from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, RIGID, WITHIN_SIBLINGS, set_state
+from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, RIGID, WITHIN_SIBLINGS, node_pitch, set_state
 from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries
 from hrn_pyg.losses import (
     DEFAULT_CHUNK_SIZE,
@@ -150,6 +150,9 @@ class TrainConfig:
         rest_threshold: metres per step under which a root's true velocity counts as rest.
         w_contact: weight of :func:`~hrn_pyg.losses.contact_loss`, how much closer than the truth
             the model brings the touching leaf pairs of different objects (0: off).
+        contact_floor: the contact term's floor in voxel pitches (a pair need be no farther apart
+            than its true distance or this many pitches of its scene, whichever is smaller; the
+            episodes must record their pitch); 0: no floor (every pair held to its true distance).
         init_from: a model checkpoint (``model.pt``) to start from instead of a fresh network:
             its weights, normaliser and model settings are kept, the optimiser starts anew
             (fine-tuning); "" : a fresh network. Ignored when a run resumes.
@@ -198,6 +201,7 @@ class TrainConfig:
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
     w_contact: float = 0.0
+    contact_floor: float = 0.0
     init_from: str = ""
     extra_data: str = ""
     data_weights: str = ""
@@ -252,6 +256,8 @@ class TrainConfig:
             raise ValueError(f"w_rest must be a finite number >= 0, got {self.w_rest}")
         if not 0.0 <= self.w_contact < math.inf:
             raise ValueError(f"w_contact must be a finite number >= 0, got {self.w_contact}")
+        if not 0.0 <= self.contact_floor < math.inf:
+            raise ValueError(f"contact_floor must be a finite number >= 0 (voxel pitches), got {self.contact_floor}")
         if not 0.0 < self.rest_threshold < math.inf:
             raise ValueError(f"rest_threshold must be a finite number > 0 (metres per step), got {self.rest_threshold}")
 
@@ -299,7 +305,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     velocity error of the objects at rest in the truth (step ``k``'s own prediction against the
     true displacement ``x_{k+1} - x_k``). With ``config.w_contact > 0``,
     :func:`~hrn_pyg.losses.contact_loss` adds how much closer than the truth step ``k`` brings
-    the touching leaf pairs of its predicted state (its collision edges).
+    the touching leaf pairs of its predicted state (its collision edges), with
+    ``config.contact_floor`` times each scene's pitch as the floor when it is set.
 
     With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
     :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
@@ -372,7 +379,9 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
             total = total + config.w_rest * loss_rest
             parts["rest"] = parts["rest"] + loss_rest.detach()
         if config.w_contact > 0:  # touching pairs of the predicted state, no closer than the truth
-            loss_contact = contact_loss(result.pos, true_next, result.graph[COLLISION].edge_index, shape_scale)
+            touching = result.graph[COLLISION].edge_index
+            floor = None if config.contact_floor == 0 else config.contact_floor * node_pitch(window)[touching[0]]
+            loss_contact = contact_loss(result.pos, true_next, touching, shape_scale, floor)
             total = total + config.w_contact * loss_contact
             parts["contact"] = parts["contact"] + loss_contact.detach()
         if n_samples >= 2 and moving_leaves.numel():

@@ -201,3 +201,8 @@ def test_contact_loss_is_the_shortfall_of_touching_pairs_and_pushes_them_apart()
     assert pred.grad[2].abs().sum() == 0
     nothing = contact_loss(pred, true, torch.zeros(2, 0, dtype=torch.long))
     assert nothing.item() == 0.0 and nothing.requires_grad
+    # a floor of 0.05: pair (0, 1) at 0.04 is 0.01 short of it, pair (0, 2) is past it
+    floored = contact_loss(pred.detach(), true, edges, scale=0.5, floor=0.05)
+    assert floored.item() == pytest.approx((0.01 + 0.01 + 0.0) / 3 / 0.5, rel=1e-4)
+    per_pair = contact_loss(pred.detach(), true, edges, floor=torch.tensor([0.02, 0.02, 1.0]))
+    assert per_pair.item() == pytest.approx(0.0, abs=1e-7)  # both pairs kept past their floors

@@ -394,6 +394,14 @@ def test_contact_term_is_logged_and_adds_its_weight_times_the_shortfall(tiny_epi
     assert by_hand.item() > 0  # an untrained model brings some pairs closer than the truth
     assert parts["contact"] == pytest.approx(by_hand.item(), rel=1e-5)
     assert total.item() == pytest.approx(plain.item() + 3.0 * by_hand.item(), rel=1e-5)
+    # a floor of a tenth of a pitch: only pairs the model brings under it (or under the truth) count
+    from hrn_pyg.data.graph import node_pitch
+    _, floored = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_contact=3.0,
+                                                          contact_floor=0.1))
+    floor = 0.1 * node_pitch(batch)[touching[0]]
+    by_hand_floored = contact_loss(result.pos, seq[:, 3], touching, model.normalizer.velocity_std.mean(), floor)
+    assert floored["contact"] == pytest.approx(by_hand_floored.item(), rel=1e-5, abs=1e-9)
+    assert floored["contact"] <= parts["contact"]
 
     out = tmp_path / "contact"
     train(_config(tiny_episodes, out, steps=2, w_contact=1.0), SMALL)
@@ -401,6 +409,8 @@ def test_contact_term_is_logged_and_adds_its_weight_times_the_shortfall(tiny_epi
     assert rows and all(float(r["contact"]) >= 0 for r in rows)
     with pytest.raises(ValueError, match="w_contact must be a finite number >= 0"):
         TrainConfig(w_contact=-1.0)
+    with pytest.raises(ValueError, match="contact_floor must be a finite number >= 0"):
+        TrainConfig(contact_floor=-0.5)
     with pytest.raises(ValueError, match="w_contact"):
         TrainConfig.for_preset("gns", w_contact=1.0)
 
