@@ -531,4 +531,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(windows)} held-out trajectories and {len(starts)} whole episode{'s' if len(starts) != 1 else ''} "
           f"({args.split} split, {device}); written to {out}")
     return 0
-

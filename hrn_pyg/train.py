@@ -352,6 +352,10 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["rest"] = seq.new_zeros(())
     if config.w_contact > 0:
         parts["contact"] = seq.new_zeros(())
+    # the contact term's floor at each node, in metres (its scene's pitches)
+    floor_by_node = None
+    if config.w_contact > 0 and config.contact_floor > 0:
+        floor_by_node = config.contact_floor * node_pitch(window)
     total = seq.new_zeros(())
     masks_fn = None
     if config.train_dropout > 0:  # one mask per copy per step, drawn as the step starts
@@ -380,7 +384,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
             parts["rest"] = parts["rest"] + loss_rest.detach()
         if config.w_contact > 0:  # touching pairs of the predicted state, no closer than the truth
             touching = result.graph[COLLISION].edge_index
-            floor = None if config.contact_floor == 0 else config.contact_floor * node_pitch(window)[touching[0]]
+            floor = None if floor_by_node is None else floor_by_node[touching[0]]
             loss_contact = contact_loss(result.pos, true_next, touching, shape_scale, floor)
             total = total + config.w_contact * loss_contact
             parts["contact"] = parts["contact"] + loss_contact.detach()
@@ -954,8 +958,8 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
     model.eval()
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
-    loss, _ = window_loss(model, batch, seq_len, replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0,
-                                                         w_contact=0.0))
+    scored = replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0, w_contact=0.0)
+    loss, _ = window_loss(model, batch, seq_len, scored)
     model.train(was_training)
     return float(loss) / seq_len
 
