@@ -82,29 +82,29 @@ def global_velocity_loss(
 def rest_velocity_loss(
     pred_velocity: Tensor,
     true_velocity: Tensor,
-    is_root: Tensor,
+    scored: Tensor,
     is_static: Tensor,
     threshold: float,
     scale: Tensor | float = 1.0,
 ) -> Tensor:
-    r"""Mean absolute velocity error of the objects that are at rest in the ground truth.
+    r"""Mean absolute velocity error of the objects (or nodes) that are at rest in the ground truth.
 
     .. math::
-        \mathcal{L}_{rest} = rac{1}{3|\mathcal{R}|} \sum_{i \in \mathcal{R}}
-            \Bigl\lVert rac{\hat v_i - v_i}{\sigma} \Bigr
-Vert_1, \qquad
-        \mathcal{R} = \{i : \mathrm{root}_i \land \lnot \mathrm{static}_i \land \lVert v_i 
-Vert < 	au\}
+        \mathcal{L}_{rest} = \frac{1}{3|\mathcal{R}|} \sum_{i \in \mathcal{R}}
+            \Bigl\lVert \frac{\hat v_i - v_i}{\sigma} \Bigr\rVert_1, \qquad
+        \mathcal{R} = \{i : \mathrm{scored}_i \land \lnot \mathrm{static}_i \land \lVert v_i \rVert < \tau\}
 
     The squared errors of :func:`global_velocity_loss` hardly see a resting object's creep of
     a tenth of a millimetre per step (about 1 % of a typical velocity scale, so 1e-4 of the loss),
     yet over a thousand steps it slides it by decimetres. An absolute error keeps a constant pull
     towards zero error however small the creep is, and only for objects that should be still.
-    Zero when no object rests.
+    ``scored`` picks the nodes the term looks at: the roots (``is_root``, one per object), or
+    roots and leaves, which also holds still the resting leaves of a soft body (whose shape
+    creeps although its centre stays). Zero when nothing rests.
 
     **Shapes:** pred_velocity, true_velocity :math:`(N, 3)`; masks :math:`(N,)`; returns a scalar.
     """
-    resting = is_root & ~is_static & (true_velocity.norm(dim=-1) < threshold)
+    resting = scored & ~is_static & (true_velocity.norm(dim=-1) < threshold)
     err = ((pred_velocity - true_velocity) / scale)[resting]
     return err.abs().mean() if err.numel() else _zero(pred_velocity)
 
@@ -139,6 +139,37 @@ def contact_loss(pred_pos: Tensor, true_pos: Tensor, collision_edges: Tensor,
     if floor is not None:
         target = torch.minimum(target, torch.as_tensor(floor, dtype=target.dtype, device=target.device))
     return (torch.relu(target - pred_distance) / scale).mean()
+
+
+def ground_loss(pred_pos: Tensor, true_pos: Tensor, moving_leaf: Tensor, floor: Tensor | float,
+                scale: Tensor | float = 1.0) -> Tensor:
+    r"""Mean depth by which the predicted leaves sink under their true height near the ground.
+
+    .. math::
+        \mathcal{L}_{ground} = \frac{1}{\max(1, |\mathcal{G}|)} \sum_{i \in \mathcal{M}}
+            \frac{\max\bigl(0,\ \min(z_i, f_i) - \hat z_i\bigr)}{\sigma}, \qquad
+        \mathcal{G} = \{i \in \mathcal{M} : z_i < f_i\}
+
+    over :math:`\mathcal{M}`, the moving leaves, with :math:`z` the true and :math:`\hat z` the
+    predicted height above the ground plane :math:`z = 0` and :math:`f_i` the floor (metres, per
+    leaf or one number). A leaf the truth has within the floor of the ground is held from below
+    to its true height, a leaf higher up only to the floor, so the term is zero for every leaf
+    the model keeps at least that high. It is one-sided and absolute: a soft body at rest whose
+    leaves creep into the ground by a tenth of a millimetre a step (a squared error hardly sees
+    it) feels a constant pull, while the model stays free to lift a leaf. The mean is over the
+    leaves near the ground, :math:`\mathcal{G}`, so a scene's height does not dilute it; zero
+    when no leaf sinks.
+
+    **Shapes:** pred_pos, true_pos :math:`(N, 3)`; moving_leaf :math:`(N,)` bool; floor a number
+    or :math:`(N,)`; returns a scalar.
+    """
+    floor = torch.as_tensor(floor, dtype=true_pos.dtype, device=true_pos.device).expand(true_pos.size(0))
+    true_z, pred_z, floor = true_pos[moving_leaf, 2], pred_pos[moving_leaf, 2], floor[moving_leaf]
+    if true_z.numel() == 0:
+        return _zero(pred_pos)
+    depth = torch.relu(torch.minimum(true_z, floor) - pred_z) / scale
+    near = (true_z < floor).sum().clamp(min=1)
+    return depth.sum() / near
 
 
 def group_shape_loss(

@@ -60,6 +60,7 @@ from hrn_pyg.losses import (
     fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
+    ground_loss,
     group_shape_loss,
     local_velocity_loss,
     rest_velocity_loss,
@@ -94,10 +95,10 @@ NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
 #: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2,
-#: ``rest`` unless ``w_rest`` > 0, ``contact`` unless ``w_contact`` > 0; ``acceleration`` is the
-#: ``gns`` preset's loss, the HRN terms are empty there)
+#: ``rest`` unless ``w_rest`` > 0, ``contact`` unless ``w_contact`` > 0, ``ground`` unless ``w_ground`` > 0;
+#: ``acceleration`` is the ``gns`` preset's loss, the HRN terms are empty there)
 LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds",
-              "acceleration", "contact"]
+              "acceleration", "contact", "ground"]
 
 
 @dataclass(frozen=True)
@@ -148,6 +149,13 @@ class TrainConfig:
         w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
             of the objects the ground truth has at rest (0: off, the seed paper's loss).
         rest_threshold: metres per step under which a root's true velocity counts as rest.
+        rest_leaves: the rest term also scores the leaves the truth has still, not only the
+            objects' roots (a soft body at rest keeps its centre yet its shape creeps).
+        w_ground: weight of :func:`~hrn_pyg.losses.ground_loss`, how deep the moving leaves sink
+            under their true height near the ground (0: off).
+        ground_floor: the ground term's floor in voxel pitches: a leaf the truth has lower than
+            this is held from below to its true height, a higher one to this height (the episodes
+            must record their pitch).
         w_contact: weight of :func:`~hrn_pyg.losses.contact_loss`, how much closer than the truth
             the model brings the touching leaf pairs of different objects (0: off).
         contact_floor: the contact term's floor in voxel pitches (a pair need be no farther apart
@@ -200,6 +208,9 @@ class TrainConfig:
     w_energy: float = 1.0
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
+    rest_leaves: bool = False
+    w_ground: float = 0.0
+    ground_floor: float = 1.0
     w_contact: float = 0.0
     contact_floor: float = 0.0
     init_from: str = ""
@@ -233,9 +244,10 @@ class TrainConfig:
             raise ValueError(f"input_noise must be a finite number >= 0, got {self.input_noise}")
         if not 0.0 <= self.input_noise_ratio < math.inf:
             raise ValueError(f"input_noise_ratio must be a finite number >= 0, got {self.input_noise_ratio}")
-        if self.preset == "gns" and (self.sample_copies or self.w_rest or self.w_contact or self.seq_end != 1):
+        if self.preset == "gns" and (self.sample_copies or self.w_rest or self.w_contact or self.w_ground
+                                     or self.seq_end != 1):
             raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest, "
-                             "w_contact and seq_end > 1 are options of the HRN presets")
+                             "w_contact, w_ground and seq_end > 1 are options of the HRN presets")
         if not 0.0 <= self.time_limit < math.inf:
             raise ValueError(f"time_limit must be a finite number of minutes >= 0, got {self.time_limit}")
         if self.workers < 0:
@@ -258,6 +270,10 @@ class TrainConfig:
             raise ValueError(f"w_contact must be a finite number >= 0, got {self.w_contact}")
         if not 0.0 <= self.contact_floor < math.inf:
             raise ValueError(f"contact_floor must be a finite number >= 0 (voxel pitches), got {self.contact_floor}")
+        if not 0.0 <= self.w_ground < math.inf:
+            raise ValueError(f"w_ground must be a finite number >= 0, got {self.w_ground}")
+        if not 0.0 < self.ground_floor < math.inf:
+            raise ValueError(f"ground_floor must be a finite number > 0 (voxel pitches), got {self.ground_floor}")
         if not 0.0 < self.rest_threshold < math.inf:
             raise ValueError(f"rest_threshold must be a finite number > 0 (metres per step), got {self.rest_threshold}")
 
@@ -306,7 +322,10 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     true displacement ``x_{k+1} - x_k``). With ``config.w_contact > 0``,
     :func:`~hrn_pyg.losses.contact_loss` adds how much closer than the truth step ``k`` brings
     the touching leaf pairs of its predicted state (its collision edges), with
-    ``config.contact_floor`` times each scene's pitch as the floor when it is set.
+    ``config.contact_floor`` times each scene's pitch as the floor when it is set. With
+    ``config.w_ground > 0``, :func:`~hrn_pyg.losses.ground_loss` adds how deep step ``k`` sinks
+    the moving leaves under their true height near the ground (floor ``config.ground_floor``
+    pitches). ``config.rest_leaves`` makes the rest term score the resting leaves too.
 
     With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
     :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
@@ -352,6 +371,11 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["rest"] = seq.new_zeros(())
     if config.w_contact > 0:
         parts["contact"] = seq.new_zeros(())
+    if config.w_ground > 0:
+        parts["ground"] = seq.new_zeros(())
+        ground_floor = config.ground_floor * node_pitch(window)
+        moving_leaf = store.is_leaf & ~store.is_static
+    rest_scored = (store.is_root | store.is_leaf) if config.rest_leaves else store.is_root
     # the contact term's floor at each node, in metres (its scene's pitches)
     floor_by_node = None
     if config.w_contact > 0 and config.contact_floor > 0:
@@ -378,7 +402,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["global"] = parts["global"] + loss_global.detach()
         parts["shape"] = parts["shape"] + loss_shape.detach()
         if config.w_rest > 0:  # objects the truth has still: their own velocity error, absolute
-            loss_rest = rest_velocity_loss(result.pos - graph[NODE].pos, true_next - seq[:, k + 2], store.is_root,
+            loss_rest = rest_velocity_loss(result.pos - graph[NODE].pos, true_next - seq[:, k + 2], rest_scored,
                                            store.is_static, config.rest_threshold, vel_scale)
             total = total + config.w_rest * loss_rest
             parts["rest"] = parts["rest"] + loss_rest.detach()
@@ -388,6 +412,10 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
             loss_contact = contact_loss(result.pos, true_next, touching, shape_scale, floor)
             total = total + config.w_contact * loss_contact
             parts["contact"] = parts["contact"] + loss_contact.detach()
+        if config.w_ground > 0:  # moving leaves no lower than their true height near the ground
+            loss_ground = ground_loss(result.pos, true_next, moving_leaf, ground_floor, shape_scale)
+            total = total + config.w_ground * loss_ground
+            parts["ground"] = parts["ground"] + loss_ground.detach()
         if n_samples >= 2 and moving_leaves.numel():
             # copy c of window b holds rows c N + (b's rows): one [K, L', 3] block of samples
             samples = result.pos.reshape(n_samples, one_window_nodes, 3)[:, moving_leaves]
@@ -958,7 +986,8 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
     model.eval()
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
-    scored = replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0, w_contact=0.0)
+    scored = replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0, w_contact=0.0,
+                     w_ground=0.0)
     loss, _ = window_loss(model, batch, seq_len, scored)
     model.train(was_training)
     return float(loss) / seq_len

@@ -7,6 +7,7 @@ from hrn_pyg.losses import (
     fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
+    ground_loss,
     group_shape_loss,
     local_velocity_loss,
     shape_groups,
@@ -206,3 +207,30 @@ def test_contact_loss_is_the_shortfall_of_touching_pairs_and_pushes_them_apart()
     assert floored.item() == pytest.approx((0.01 + 0.01 + 0.0) / 3 / 0.5, rel=1e-4)
     per_pair = contact_loss(pred.detach(), true, edges, floor=torch.tensor([0.02, 0.02, 1.0]))
     assert per_pair.item() == pytest.approx(0.0, abs=1e-7)  # both pairs kept past their floors
+
+
+def test_ground_loss_is_the_depth_under_the_true_height_near_the_ground():
+    # leaf 0 truly at 0.01 (near the ground), leaf 1 at 0.5 (high), leaf 2 static, leaf 3 not a moving leaf
+    true = torch.tensor([[0.0, 0.0, 0.01], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    moving_leaf = torch.tensor([True, True, False, False])
+    assert ground_loss(true, true, moving_leaf, 0.05).item() == 0.0
+    lifted = true.clone()
+    lifted[:, 2] += 0.3  # lifting a leaf costs nothing: the term is one-sided
+    assert ground_loss(lifted, true, moving_leaf, 0.05).item() == 0.0
+    pred = true.clone()
+    pred[0, 2] = -0.02  # 0.03 under its true height
+    pred[1, 2] = 0.04  # 0.01 under the floor of 0.05 (its true height does not matter up there)
+    pred[2, 2] = -1.0  # static: ignored
+    pred[3, 2] = -1.0  # not a moving leaf: ignored
+    pred.requires_grad_(True)
+    loss = ground_loss(pred, true, moving_leaf, 0.05, scale=0.5)
+    # summed over the moving leaves, divided by the one leaf the truth has under the floor
+    assert loss.item() == pytest.approx((0.03 + 0.01) / 1 / 0.5, rel=1e-5)
+    loss.backward()
+    assert pred.grad[0, 2] < 0 and pred.grad[1, 2] < 0  # descent lifts both leaves
+    assert pred.grad[:, :2].abs().sum() == 0 and pred.grad[2:].abs().sum() == 0
+    # per-leaf floors: a floor of 0.03 for leaf 1 makes its 0.04 free
+    per_leaf = ground_loss(pred.detach(), true, moving_leaf, torch.tensor([0.05, 0.03, 0.05, 0.05]))
+    assert per_leaf.item() == pytest.approx(0.03, rel=1e-5)
+    nothing = ground_loss(pred, true, torch.zeros(4, dtype=torch.bool), 0.05)
+    assert nothing.item() == 0.0 and nothing.requires_grad

@@ -415,6 +415,66 @@ def test_contact_term_is_logged_and_adds_its_weight_times_the_shortfall(tiny_epi
         TrainConfig.for_preset("gns", w_contact=1.0)
 
 
+def test_ground_term_and_resting_leaves_are_logged_and_add_what_they_say(tiny_episodes, tmp_path):
+    """``w_ground``: the logged ``ground`` part of a one-step loss equals the depth of the predicted
+    leaves under their true height, recomputed by hand, and the total grows by ``w_ground`` times
+    it; ``rest_leaves`` makes the rest term score the resting leaves too (by hand); a short run logs
+    the column; bad settings are refused."""
+    from torch_geometric.data import Batch
+
+    from hrn_pyg.data.dataset import EpisodeWindows
+    from hrn_pyg.data.graph import NODE, node_pitch, set_state
+    from hrn_pyg.losses import ground_loss
+    from hrn_pyg.nn.hrn import HRN
+    from hrn_pyg.nn.normalizer import fit_normalizer
+    from hrn_pyg.sim.step import step as model_step
+    from hrn_pyg.train import window_loss
+
+    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
+    torch.manual_seed(0)
+    model = HRN(SMALL)
+    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
+    batch = Batch.from_data_list([windows[i] for i in range(len(windows))])
+    store = batch[NODE]
+    seq = store.pos_seq
+    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
+    pred = model_step(model, graph, store.force_seq[:, 0], None).pos
+    moving_leaf = store.is_leaf & ~store.is_static
+    floor = 2.0 * node_pitch(batch)
+    assert bool((seq[:, 3, 2][moving_leaf] < floor[moving_leaf]).any())  # some leaves are near the ground
+    scale = model.normalizer.velocity_std.mean()
+    by_hand = ground_loss(pred, seq[:, 3], moving_leaf, floor, scale)
+    assert by_hand.item() > 0  # an untrained model sinks some leaf under its true height
+    plain, _ = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused"))
+    total, parts = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_ground=4.0,
+                                                            ground_floor=2.0))
+    assert parts["ground"] == pytest.approx(by_hand.item(), rel=1e-5)
+    assert total.item() == pytest.approx(plain.item() + 4.0 * by_hand.item(), rel=1e-5)
+
+    true_v, pred_v = seq[:, 3] - seq[:, 2], pred - seq[:, 2]
+    threshold = float(true_v[moving_leaf].norm(dim=-1).median())  # half the leaves rest
+    roots_only = TrainConfig(data="unused", out="unused", w_rest=1.0, rest_threshold=threshold)
+    with_leaves = dataclasses.replace(roots_only, rest_leaves=True)
+    _, rest_roots = window_loss(model, batch, 1, roots_only)
+    _, rest_all = window_loss(model, batch, 1, with_leaves)
+    resting = (store.is_root | store.is_leaf) & ~store.is_static & (true_v.norm(dim=-1) < threshold)
+    assert bool((resting & store.is_leaf).any())
+    by_hand_rest = ((pred_v - true_v) / model.normalizer.velocity_std)[resting].abs().mean()
+    assert rest_all["rest"] == pytest.approx(by_hand_rest.item(), rel=1e-5)
+    assert rest_all["rest"] != pytest.approx(rest_roots["rest"], rel=1e-3)
+
+    out = tmp_path / "ground"
+    train(_config(tiny_episodes, out, steps=2, w_ground=1.0, rest_leaves=True, w_rest=1.0), SMALL)
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert rows and all(float(r["ground"]) >= 0 for r in rows)
+    with pytest.raises(ValueError, match="w_ground must be a finite number >= 0"):
+        TrainConfig(w_ground=-1.0)
+    with pytest.raises(ValueError, match="ground_floor must be a finite number > 0"):
+        TrainConfig(ground_floor=0.0)
+    with pytest.raises(ValueError, match="w_ground"):
+        TrainConfig.for_preset("gns", w_ground=1.0)
+
+
 def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes, tmp_path):
     train(_config(tiny_episodes, tmp_path / "base", steps=4), SMALL, progress=False)
     base = tmp_path / "base" / "model.pt"
