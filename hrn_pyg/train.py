@@ -136,6 +136,9 @@ class TrainConfig:
             ``config.json`` records. 0: off.
         device: where the model and batches live ("" : CUDA when available, else CPU).
         workers: background processes assembling batches (0: in the training process).
+        stop_at: end the training after this many of its ``steps`` (the learning-rate schedule
+            still spans ``steps``) and write ``model.pt`` of that step: a stage that keeps an
+            early point of a longer schedule; 0: train all ``steps``.
         time_limit: minutes after which this call stops as if interrupted (checkpoint written,
             ``--resume`` continues); 0: no limit. For fixed-length sittings and lent machines.
         augment_symmetry: map every training window by a random turn about the vertical axis
@@ -202,6 +205,7 @@ class TrainConfig:
     input_noise_ratio: float = 0.0
     device: str = ""
     workers: int = 0
+    stop_at: int = 0
     time_limit: float = 0.0
     augment_symmetry: bool = False
     sample_copies: int = 0
@@ -248,6 +252,8 @@ class TrainConfig:
                                      or self.seq_end != 1):
             raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest, "
                              "w_contact, w_ground and seq_end > 1 are options of the HRN presets")
+        if not 0 <= self.stop_at <= self.steps:
+            raise ValueError(f"stop_at must be between 0 (off) and steps={self.steps}, got {self.stop_at}")
         if not 0.0 <= self.time_limit < math.inf:
             raise ValueError(f"time_limit must be a finite number of minutes >= 0, got {self.time_limit}")
         if self.workers < 0:
@@ -945,7 +951,8 @@ def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume
 
     ``stop_after`` ends this call after that many more steps (with a checkpoint), as if it had
     been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
-    normaliser, no optimiser) is written when the last step is done.
+    normaliser, no optimiser) is written when the last step is done (step ``config.stop_at``
+    when it is set).
     """
     model_config = preset_model_config(config.preset, model_config)
     place = _place_process(config)
@@ -959,11 +966,12 @@ def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume
     start = 0 if ckpt is None else _restore_training_state(ckpt, optimizer, scheduler)
     log = _open_run_folder(out, config, model, place, resumed_at=None if ckpt is None else start)
     run = _Run(config, out, place, model, optimizer, scheduler, log, val_set)
-    end = config.steps if stop_after is None else min(config.steps, start + int(stop_after))
+    last = config.stop_at or config.steps
+    end = last if stop_after is None else min(last, start + int(stop_after))
     noise, turns = _augmentation_streams(config, place.rank, start)
     done = run.take_steps(_step_batches(train_set, config, place, start, end), start, end, noise, turns, progress)
-    if place.rank == 0 and done == config.steps:
-        save_checkpoint(out / "model.pt", model_payload(model, config, config.steps))
+    if place.rank == 0 and done == last:
+        save_checkpoint(out / "model.pt", model_payload(model, config, last))
     return run.summary
 
 

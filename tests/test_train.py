@@ -173,6 +173,23 @@ def test_time_limit_stops_like_an_interruption(tiny_episodes, tmp_path):
     assert [s for s, _ in _losses(out)] == list(range(50)) and (out / "model.pt").exists()
 
 
+def test_stop_at_keeps_an_early_point_of_the_longer_schedule(tiny_episodes, tmp_path):
+    """``stop_at``: the run ends after that many steps of the ``steps``-long schedule, and its
+    model.pt equals the full run's model at that step (same losses, same learning rates)."""
+    full, early = tmp_path / "full", tmp_path / "early"
+    train(_config(tiny_episodes, full, steps=6, snapshot_every=3), SMALL, progress=False)
+    train(_config(tiny_episodes, early, steps=6, stop_at=3), SMALL, progress=False)
+    assert _losses(early) == _losses(full)[:3]
+    lrs = [[float(r["lr"]) for r in csv.DictReader(open(out / "metrics.csv"))] for out in (full, early)]
+    assert lrs[1] == lrs[0][:3] and lrs[0][2] != lrs[0][5]
+    kept = load_model(early / "model.pt").state_dict()
+    at_three = load_model(full / "snapshots" / "step_00003.pt").state_dict()
+    assert kept.keys() == at_three.keys() and all(torch.equal(kept[k], at_three[k]) for k in kept)
+    assert torch.load(early / "model.pt", weights_only=True)["step"] == 3
+    with pytest.raises(ValueError, match="stop_at must be between 0"):
+        TrainConfig(steps=10, stop_at=11)
+
+
 def test_input_noise_is_a_random_walk_rigid_per_object_and_zero_on_static():
     from toy_scene import toy_window
 
