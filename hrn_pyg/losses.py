@@ -143,22 +143,22 @@ def contact_loss(pred_pos: Tensor, true_pos: Tensor, collision_edges: Tensor,
 
 def ground_loss(pred_pos: Tensor, true_pos: Tensor, moving_leaf: Tensor, floor: Tensor | float,
                 scale: Tensor | float = 1.0) -> Tensor:
-    r"""Mean depth by which the predicted leaves sink under their true height near the ground.
+    r"""Mean depth by which the predicted leaves sink under a floor near the ground plane.
 
     .. math::
-        \mathcal{L}_{ground} = \frac{1}{\max(1, |\mathcal{G}|)} \sum_{i \in \mathcal{M}}
-            \frac{\max\bigl(0,\ \min(z_i, f_i) - \hat z_i\bigr)}{\sigma}, \qquad
-        \mathcal{G} = \{i \in \mathcal{M} : z_i < f_i\}
+        \mathcal{L}_{ground} = \frac{1}{|\mathcal{M}|} \sum_{i \in \mathcal{M}}
+            \frac{\max\bigl(0,\ \min(z_i, f_i) - \hat z_i\bigr)}{\sigma}
 
     over :math:`\mathcal{M}`, the moving leaves, with :math:`z` the true and :math:`\hat z` the
     predicted height above the ground plane :math:`z = 0` and :math:`f_i` the floor (metres, per
-    leaf or one number). A leaf the truth has within the floor of the ground is held from below
-    to its true height, a leaf higher up only to the floor, so the term is zero for every leaf
-    the model keeps at least that high. It is one-sided and absolute: a soft body at rest whose
-    leaves creep into the ground by a tenth of a millimetre a step (a squared error hardly sees
-    it) feels a constant pull, while the model stays free to lift a leaf. The mean is over the
-    leaves near the ground, :math:`\mathcal{G}`, so a scene's height does not dilute it; zero
-    when no leaf sinks.
+    leaf or one number; 0 is the plane itself, a negative floor lies under it). A leaf is held from
+    below to its true height or the floor, whichever is lower, so the term is zero for every leaf
+    the model keeps at least that high, and a leaf well above the floor is free to move down to
+    it. It is one-sided and absolute: a soft body at rest whose leaves creep into the ground by a
+    tenth of a millimetre a step (a squared error hardly sees it) feels a constant pull up. A
+    floor above the resting leaves' true heights holds every one of them from below and lifts
+    resting objects on average (their small errors count on one side only); a floor at or under
+    the plane asks only that no leaf end in the ground. Zero when no leaf sinks.
 
     **Shapes:** pred_pos, true_pos :math:`(N, 3)`; moving_leaf :math:`(N,)` bool; floor a number
     or :math:`(N,)`; returns a scalar.
@@ -167,9 +167,7 @@ def ground_loss(pred_pos: Tensor, true_pos: Tensor, moving_leaf: Tensor, floor: 
     true_z, pred_z, floor = true_pos[moving_leaf, 2], pred_pos[moving_leaf, 2], floor[moving_leaf]
     if true_z.numel() == 0:
         return _zero(pred_pos)
-    depth = torch.relu(torch.minimum(true_z, floor) - pred_z) / scale
-    near = (true_z < floor).sum().clamp(min=1)
-    return depth.sum() / near
+    return (torch.relu(torch.minimum(true_z, floor) - pred_z) / scale).mean()
 
 
 def group_shape_loss(

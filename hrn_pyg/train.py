@@ -155,10 +155,10 @@ class TrainConfig:
         rest_leaves: the rest term also scores the leaves the truth has still, not only the
             objects' roots (a soft body at rest keeps its centre yet its shape creeps).
         w_ground: weight of :func:`~hrn_pyg.losses.ground_loss`, how deep the moving leaves sink
-            under their true height near the ground (0: off).
-        ground_floor: the ground term's floor in voxel pitches: a leaf the truth has lower than
-            this is held from below to its true height, a higher one to this height (the episodes
-            must record their pitch).
+            under their true height or the floor, whichever is lower (0: off).
+        ground_floor: the ground term's floor in voxel pitches above the ground plane (0: the
+            plane; negative: under it; the episodes must record their pitch). A floor above the
+            resting leaves lifts resting objects.
         w_contact: weight of :func:`~hrn_pyg.losses.contact_loss`, how much closer than the truth
             the model brings the touching leaf pairs of different objects (0: off).
         contact_floor: the contact term's floor in voxel pitches (a pair need be no farther apart
@@ -214,7 +214,7 @@ class TrainConfig:
     rest_threshold: float = 1e-3
     rest_leaves: bool = False
     w_ground: float = 0.0
-    ground_floor: float = 1.0
+    ground_floor: float = 0.0
     w_contact: float = 0.0
     contact_floor: float = 0.0
     init_from: str = ""
@@ -278,8 +278,8 @@ class TrainConfig:
             raise ValueError(f"contact_floor must be a finite number >= 0 (voxel pitches), got {self.contact_floor}")
         if not 0.0 <= self.w_ground < math.inf:
             raise ValueError(f"w_ground must be a finite number >= 0, got {self.w_ground}")
-        if not 0.0 < self.ground_floor < math.inf:
-            raise ValueError(f"ground_floor must be a finite number > 0 (voxel pitches), got {self.ground_floor}")
+        if not math.isfinite(self.ground_floor):
+            raise ValueError(f"ground_floor must be a finite number (voxel pitches), got {self.ground_floor}")
         if not 0.0 < self.rest_threshold < math.inf:
             raise ValueError(f"rest_threshold must be a finite number > 0 (metres per step), got {self.rest_threshold}")
 
@@ -330,8 +330,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     the touching leaf pairs of its predicted state (its collision edges), with
     ``config.contact_floor`` times each scene's pitch as the floor when it is set. With
     ``config.w_ground > 0``, :func:`~hrn_pyg.losses.ground_loss` adds how deep step ``k`` sinks
-    the moving leaves under their true height near the ground (floor ``config.ground_floor``
-    pitches). ``config.rest_leaves`` makes the rest term score the resting leaves too.
+    the moving leaves under their true height or the floor (``config.ground_floor`` pitches),
+    whichever is lower. ``config.rest_leaves`` makes the rest term score the resting leaves too.
 
     With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
     :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
@@ -418,7 +418,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
             loss_contact = contact_loss(result.pos, true_next, touching, shape_scale, floor)
             total = total + config.w_contact * loss_contact
             parts["contact"] = parts["contact"] + loss_contact.detach()
-        if config.w_ground > 0:  # moving leaves no lower than their true height near the ground
+        if config.w_ground > 0:  # moving leaves no lower than their true height or the floor
             loss_ground = ground_loss(result.pos, true_next, moving_leaf, ground_floor, shape_scale)
             total = total + config.w_ground * loss_ground
             parts["ground"] = parts["ground"] + loss_ground.detach()

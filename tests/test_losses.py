@@ -209,7 +209,7 @@ def test_contact_loss_is_the_shortfall_of_touching_pairs_and_pushes_them_apart()
     assert per_pair.item() == pytest.approx(0.0, abs=1e-7)  # both pairs kept past their floors
 
 
-def test_ground_loss_is_the_depth_under_the_true_height_near_the_ground():
+def test_ground_loss_is_the_depth_under_the_true_height_or_the_floor():
     # leaf 0 truly at 0.01 (near the ground), leaf 1 at 0.5 (high), leaf 2 static, leaf 3 not a moving leaf
     true = torch.tensor([[0.0, 0.0, 0.01], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     moving_leaf = torch.tensor([True, True, False, False])
@@ -224,13 +224,15 @@ def test_ground_loss_is_the_depth_under_the_true_height_near_the_ground():
     pred[3, 2] = -1.0  # not a moving leaf: ignored
     pred.requires_grad_(True)
     loss = ground_loss(pred, true, moving_leaf, 0.05, scale=0.5)
-    # summed over the moving leaves, divided by the one leaf the truth has under the floor
-    assert loss.item() == pytest.approx((0.03 + 0.01) / 1 / 0.5, rel=1e-5)
+    assert loss.item() == pytest.approx((0.03 + 0.01) / 2 / 0.5, rel=1e-5)  # mean over the moving leaves
     loss.backward()
     assert pred.grad[0, 2] < 0 and pred.grad[1, 2] < 0  # descent lifts both leaves
     assert pred.grad[:, :2].abs().sum() == 0 and pred.grad[2:].abs().sum() == 0
     # per-leaf floors: a floor of 0.03 for leaf 1 makes its 0.04 free
     per_leaf = ground_loss(pred.detach(), true, moving_leaf, torch.tensor([0.05, 0.03, 0.05, 0.05]))
-    assert per_leaf.item() == pytest.approx(0.03, rel=1e-5)
+    assert per_leaf.item() == pytest.approx(0.03 / 2, rel=1e-5)
+    # a floor under the plane: only the depth past it counts (leaf 0 is 0.01 past -0.01)
+    under = ground_loss(pred.detach(), true, moving_leaf, -0.01)
+    assert under.item() == pytest.approx(0.01 / 2, rel=1e-4)
     nothing = ground_loss(pred, true, torch.zeros(4, dtype=torch.bool), 0.05)
     assert nothing.item() == 0.0 and nothing.requires_grad
