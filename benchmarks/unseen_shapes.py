@@ -326,8 +326,9 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--mirror-average", choices=("x", "xy", "d4"), default=None,
                         help="apply the model averaged over these mirrors (HRNConfig.mirror_planes) everywhere")
-    parser.add_argument("--ground-projection", choices=("on", "off"), default=None,
-                        help="apply the model with HRNConfig.ground_projection set so everywhere")
+    parser.add_argument("--ground-projection", choices=("on", "off", "deformable"), default=None,
+                        help="apply the model with HRNConfig.ground_projection set so everywhere "
+                             "(deformable: on for soft bodies and cloth only, ground_projection_rigid off)")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
     args = parser.parse_args()
@@ -345,7 +346,8 @@ def main() -> int:
     if args.mirror_average:
         model = with_applied_options(model, mirror_average=True, mirror_planes=args.mirror_average)
     if args.ground_projection:
-        model = with_applied_options(model, ground_projection=args.ground_projection == "on")
+        model = with_applied_options(model, ground_projection=args.ground_projection != "off",
+                                     ground_projection_rigid=args.ground_projection == "on")
     unseen = [Path(f) for f in args.unseen]
     own = [Path(f) for f in args.own]
     started = time.perf_counter()
@@ -353,6 +355,7 @@ def main() -> int:
                     "own_split": args.own_split, "horizons": list(args.horizons), "stride": args.stride,
                     "limit": args.limit, "mirror_average": args.mirror_average,
                     "ground_projection": bool(getattr(model.config, "ground_projection", False)),
+                    "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
     print("errors on unseen meshes and the own test split", flush=True)
     result["unseen"] = unseen_section(model, unseen, own, args)

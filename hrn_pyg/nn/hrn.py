@@ -99,6 +99,11 @@ class HRNConfig(NetworkConfig):
             object is lifted as a whole by the depth of its lowest leaf, a leaf of a soft body
             or a cloth alone. A rule of the decoder, like ``rigid_fit``: a point inside a body
             cannot be under the ground, whatever the network predicts.
+        ground_projection_rigid: the ground projection also lifts rigid objects. False lifts
+            only the leaves of soft bodies and cloth, which are the engine's own nodes and rest
+            on the plane; a rigid object's leaves are the centres of its voxels, and where its
+            surface rests on the ground the lowest of them may lie up to a pitch under it, so
+            lifting them to the plane raises a resting body off the ground.
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
             of rigid objects. False drops them (:func:`within_siblings_of`; on a pile of rigid
             meshes at pitch 0.05 about two thirds of the within-siblings edges): a rigid body's
@@ -124,6 +129,7 @@ class HRNConfig(NetworkConfig):
     pitch_aware: bool = False
     reference_pitch: float = 0.05
     ground_projection: bool = False
+    ground_projection_rigid: bool = True
     rigid_leaf_siblings: bool = True
 
     def __post_init__(self) -> None:
@@ -479,6 +485,7 @@ class HRN(nn.Module):
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (", ground_projection=True" if c.ground_projection else "")
+            + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 

@@ -292,16 +292,17 @@ def decode(
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     if getattr(model.config, "ground_projection", False):
-        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects)
+        rigid_too = getattr(model.config, "ground_projection_rigid", True)
+        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects, rigid_too)
     return pos, local, velocity
 
 
 def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity: Tensor,
-                         objects: tuple[Tensor, int] | None) -> tuple[Tensor, Tensor, Tensor]:
+                         objects: tuple[Tensor, int] | None, rigid: bool = True) -> tuple[Tensor, Tensor, Tensor]:
     """``decode``'s ``(pos, local, velocity)`` after :func:`ground_projected_positions`: a lifted
     node's velocity is its whole move, and the local velocities of its object are derived anew."""
     group, count = object_of(graph) if objects is None else objects
-    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count)), graph)
+    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid), graph)
     moved = (lifted != pos).any(-1)
     touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
     velocity = torch.where(moved.unsqueeze(-1), lifted - graph[NODE].pos, velocity)
@@ -309,7 +310,8 @@ def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity
     return lifted, local, velocity
 
 
-def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None) -> Tensor:
+def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None,
+                               rigid: bool = True) -> Tensor:
     r"""``pos`` ``[N, 3]`` with every moving leaf on or above the ground plane :math:`z = 0`.
 
     .. math::
@@ -319,7 +321,9 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
 
     so a rigid object is lifted as a whole (it stays rigid) and a deformable leaf alone; static
     rows, ancestors and leaves above the ground are returned unchanged, bit for bit (ancestor rows
-    need re-deriving). ``objects``: :func:`object_of` of ``graph``, if the caller has it.
+    need re-deriving). With ``rigid=False`` rigid objects are left where they are too, and only
+    the leaves of soft bodies and cloth are lifted. ``objects``: :func:`object_of` of ``graph``,
+    if the caller has it.
     """
     store = graph[NODE]
     moving_leaf = store.is_leaf & ~store.is_static
@@ -328,7 +332,7 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
     group, count = object_of(graph) if objects is None else objects
     deepest = torch.zeros(count, dtype=pos.dtype, device=pos.device).scatter_reduce(
         0, group, torch.where(rigid_leaf, depth, torch.zeros_like(depth)), "amax")
-    lift = torch.where(rigid_leaf, deepest[group], depth)
+    lift = torch.where(rigid_leaf, deepest[group] if rigid else torch.zeros_like(depth), depth)
     return torch.where((lift > 0).unsqueeze(-1), pos + lift.unsqueeze(-1) * pos.new_tensor([0.0, 0.0, 1.0]), pos)
 
 

@@ -40,6 +40,15 @@ def test_a_rigid_object_is_lifted_whole_and_a_soft_leaf_alone():
     assert torch.equal(out[14:], pos[14:])               # ancestors are left to re-derive
 
 
+def test_without_rigid_objects_only_the_deformable_leaves_are_lifted():
+    graph = toy_scene()
+    pos = _sunk(graph)
+    out = ground_projected_positions(graph, pos, rigid=False)
+    assert torch.equal(out[RIGID], pos[RIGID])           # the sunk rigid square stays where it is
+    assert out[0, 2] == 0.0 and torch.equal(out[0, :2], pos[0, :2])
+    assert torch.equal(out[1:8], pos[1:8]) and torch.equal(out[STATIC], pos[STATIC])
+
+
 def test_nothing_under_the_ground_is_returned_bit_for_bit():
     graph = toy_scene()
     pos = graph[NODE].pos
@@ -73,6 +82,26 @@ def test_the_step_keeps_moving_leaves_above_the_ground_and_derives_velocities():
     torch.testing.assert_close(after.velocity[lifted], after.pos[lifted] - store.pos[lifted])
     assert (after.velocity[lifted, 2] > before.velocity[lifted, 2]).all()
     torch.testing.assert_close(after.pos[SOFT], before.pos[SOFT])  # the soft cube is above the ground
+
+
+def test_the_step_without_rigid_objects_leaves_a_sunk_rigid_body_and_lifts_soft_leaves():
+    plain = _model()
+    projected = with_applied_options(plain, ground_projection=True, ground_projection_rigid=False)
+    assert "ground_projection_rigid=False" in repr(projected)
+    graph = toy_scene()
+    store = graph[NODE]
+    for name in ("pos", "prev_pos", "prev_prev_pos"):  # the rigid square and the soft cube in the ground
+        value = store[name].clone()
+        value[:12, 2] -= 0.35
+        store[name] = leaf_to_ancestor_mean(value, graph)
+    with torch.no_grad():
+        before = predict(plain, graph)
+        after = predict(projected, graph)
+    assert before.pos[SOFT, 2].min() < 0 and before.pos[RIGID, 2].min() < 0
+    torch.testing.assert_close(after.pos[RIGID], before.pos[RIGID])  # left where the network put it
+    assert after.pos[SOFT, 2].min() >= 0
+    sunk = before.pos[SOFT, 2] < 0
+    torch.testing.assert_close(after.pos[SOFT][sunk, 2], torch.zeros(int(sunk.sum())))
 
 
 def test_off_or_above_the_ground_the_step_is_unchanged():
