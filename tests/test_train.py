@@ -344,23 +344,30 @@ def test_sample_copies_need_two_copies_and_dropout(tiny_episodes, tmp_path, caps
     assert (config.sample_copies, config.train_dropout, config.w_energy) == (4, 0.1, 0.5)
 
 
-def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
-    """``w_rest``: the logged ``rest`` part of a one-step loss, recomputed by hand from the step,
-    and the total grows by exactly ``w_rest`` times it; bad settings are refused."""
+def _untrained_model_and_batch(tiny_episodes):
+    """A seeded small HRN with its normaliser fitted, and every one-step training window of the
+    tiny episodes in one batch (the loss-term tests recompute their parts from these by hand)."""
     from torch_geometric.data import Batch
 
     from hrn_pyg.data.dataset import EpisodeWindows
-    from hrn_pyg.data.graph import NODE, set_state
     from hrn_pyg.nn.hrn import HRN
     from hrn_pyg.nn.normalizer import fit_normalizer
-    from hrn_pyg.sim.step import step as model_step
-    from hrn_pyg.train import window_loss
 
     windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
     torch.manual_seed(0)
     model = HRN(SMALL)
     fit_normalizer((windows[i] for i in range(16)), model.normalizer)
-    batch = Batch.from_data_list([windows[i] for i in range(len(windows))])
+    return model, Batch.from_data_list([windows[i] for i in range(len(windows))])
+
+
+def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
+    """``w_rest``: the logged ``rest`` part of a one-step loss, recomputed by hand from the step,
+    and the total grows by exactly ``w_rest`` times it; bad settings are refused."""
+    from hrn_pyg.data.graph import NODE, set_state
+    from hrn_pyg.sim.step import step as model_step
+    from hrn_pyg.train import window_loss
+
+    model, batch = _untrained_model_and_batch(tiny_episodes)
     store = batch[NODE]
     seq = store.pos_seq
     true_v = seq[:, 3] - seq[:, 2]
@@ -385,21 +392,12 @@ def test_contact_term_is_logged_and_adds_its_weight_times_the_shortfall(tiny_epi
     """``w_contact``: the logged ``contact`` part of a one-step loss is the shortfall of the
     predicted state's touching pairs, recomputed by hand; the total grows by exactly ``w_contact``
     times it; a short run logs the column; bad settings are refused."""
-    from torch_geometric.data import Batch
-
-    from hrn_pyg.data.dataset import EpisodeWindows
     from hrn_pyg.data.graph import COLLISION, NODE, set_state
     from hrn_pyg.losses import contact_loss
-    from hrn_pyg.nn.hrn import HRN
-    from hrn_pyg.nn.normalizer import fit_normalizer
     from hrn_pyg.sim.rollout import iterate
     from hrn_pyg.train import window_loss
 
-    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
-    torch.manual_seed(0)
-    model = HRN(SMALL)
-    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
-    batch = Batch.from_data_list([windows[i] for i in range(len(windows))])
+    model, batch = _untrained_model_and_batch(tiny_episodes)
     seq = batch[NODE].pos_seq
     plain, _ = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused"))
     total, parts = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_contact=3.0))
@@ -437,21 +435,12 @@ def test_ground_term_and_resting_leaves_are_logged_and_add_what_they_say(tiny_ep
     leaves under their true height, recomputed by hand, and the total grows by ``w_ground`` times
     it; ``rest_leaves`` makes the rest term score the resting leaves too (by hand); a short run logs
     the column; bad settings are refused."""
-    from torch_geometric.data import Batch
-
-    from hrn_pyg.data.dataset import EpisodeWindows
     from hrn_pyg.data.graph import NODE, node_pitch, set_state
     from hrn_pyg.losses import ground_loss
-    from hrn_pyg.nn.hrn import HRN
-    from hrn_pyg.nn.normalizer import fit_normalizer
     from hrn_pyg.sim.step import step as model_step
     from hrn_pyg.train import window_loss
 
-    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=1)
-    torch.manual_seed(0)
-    model = HRN(SMALL)
-    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
-    batch = Batch.from_data_list([windows[i] for i in range(len(windows))])
+    model, batch = _untrained_model_and_batch(tiny_episodes)
     store = batch[NODE]
     seq = store.pos_seq
     graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
