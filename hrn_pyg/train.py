@@ -151,7 +151,8 @@ class TrainConfig:
             leaves, in positions divided by the velocity scale); used when ``sample_copies`` >= 2.
         w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
             of the objects the ground truth has at rest (0: off, the seed paper's loss).
-        rest_threshold: metres per step under which a root's true velocity counts as rest.
+        rest_threshold: metres per step under which a root's (with ``rest_leaves``, a node's) true
+            velocity counts as rest.
         rest_leaves: the rest term also scores the leaves the truth has still, not only the
             objects' roots (a soft body at rest keeps its centre yet its shape creeps).
         w_ground: weight of :func:`~hrn_pyg.losses.ground_loss`, how deep the moving leaves sink
