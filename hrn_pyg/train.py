@@ -378,15 +378,16 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["rest"] = seq.new_zeros(())
     if config.w_contact > 0:
         parts["contact"] = seq.new_zeros(())
+    # the ground and contact terms' floors at each node, in metres (its scene's pitches)
+    pitch = node_pitch(window) if config.w_ground > 0 or (config.w_contact > 0 and config.contact_floor > 0) else None
     if config.w_ground > 0:
         parts["ground"] = seq.new_zeros(())
-        ground_floor = config.ground_floor * node_pitch(window)
+        ground_floor = config.ground_floor * pitch
         moving_leaf = store.is_leaf & ~store.is_static
     rest_scored = (store.is_root | store.is_leaf) if config.rest_leaves else store.is_root
-    # the contact term's floor at each node, in metres (its scene's pitches)
     floor_by_node = None
     if config.w_contact > 0 and config.contact_floor > 0:
-        floor_by_node = config.contact_floor * node_pitch(window)
+        floor_by_node = config.contact_floor * pitch
     total = seq.new_zeros(())
     masks_fn = None
     if config.train_dropout > 0:  # one mask per copy per step, drawn as the step starts
@@ -907,7 +908,8 @@ class _Run:
         config = self.config
         row = {"step": step_index, "seq_len": seq_len, "lr": self.scheduler.get_last_lr()[0],
                "loss": float(loss.detach()), **parts, "seconds": round(time.perf_counter() - self.t0, 3)}
-        if self.val_ids and ((step_index + 1) % config.eval_every == 0 or step_index + 1 == config.steps):
+        last_step = config.stop_at or config.steps  # the kept model is scored whatever eval_every is
+        if self.val_ids and ((step_index + 1) % config.eval_every == 0 or step_index + 1 == last_step):
             row["val_loss"] = validation_loss(self.model, self.val_set, self.val_ids, config.seq_end, config)
         if self.log is not None:
             self.log.append(row)

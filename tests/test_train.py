@@ -186,6 +186,12 @@ def test_stop_at_keeps_an_early_point_of_the_longer_schedule(tiny_episodes, tmp_
     at_three = load_model(full / "snapshots" / "step_00003.pt").state_dict()
     assert kept.keys() == at_three.keys() and all(torch.equal(kept[k], at_three[k]) for k in kept)
     assert torch.load(early / "model.pt", weights_only=True)["step"] == 3
+    rows = list(csv.DictReader(open(early / "metrics.csv")))
+    assert rows[-1]["val_loss"] != ""  # the kept step is scored on validation; here eval_every=3 would
+    # score it anyway, so a stop off the evaluation grid is checked too
+    off_grid = tmp_path / "off_grid"
+    train(_config(tiny_episodes, off_grid, steps=6, stop_at=2, eval_every=5), SMALL, progress=False)
+    assert list(csv.DictReader(open(off_grid / "metrics.csv")))[-1]["val_loss"] != ""
     with pytest.raises(ValueError, match="stop_at must be between 0"):
         TrainConfig(steps=10, stop_at=11)
 
