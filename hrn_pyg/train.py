@@ -155,6 +155,10 @@ class TrainConfig:
             velocity counts as rest.
         rest_leaves: the rest term also scores the leaves the truth has still, not only the
             objects' roots (a soft body at rest keeps its centre yet its shape creeps).
+        rest_rollout: R >= 1 starts every window whose scene is at rest from the model's own
+            rollout of 1 to R steps (drawn per batch, no gradient) and trains it to hold the state
+            it reached (:func:`held_rest_sequence`), so the slow creep of a long rollout from rest
+            is seen where it happens, away from the true rest state; 0: off.
         w_ground: weight of :func:`~hrn_pyg.losses.ground_loss`, how deep the moving leaves sink
             under their true height or the floor, whichever is lower (0: off).
         ground_floor: the ground term's floor in voxel pitches above the ground plane (0: the
@@ -214,6 +218,7 @@ class TrainConfig:
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
     rest_leaves: bool = False
+    rest_rollout: int = 0
     w_ground: float = 0.0
     ground_floor: float = 0.0
     w_contact: float = 0.0
@@ -250,9 +255,11 @@ class TrainConfig:
         if not 0.0 <= self.input_noise_ratio < math.inf:
             raise ValueError(f"input_noise_ratio must be a finite number >= 0, got {self.input_noise_ratio}")
         if self.preset == "gns" and (self.sample_copies or self.w_rest or self.w_contact or self.w_ground
-                                     or self.seq_end != 1):
+                                     or self.rest_rollout or self.seq_end != 1):
             raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest, "
-                             "w_contact, w_ground and seq_end > 1 are options of the HRN presets")
+                             "w_contact, w_ground, rest_rollout and seq_end > 1 are options of the HRN presets")
+        if self.rest_rollout < 0:
+            raise ValueError(f"rest_rollout must be >= 0 (0: off), got {self.rest_rollout}")
         if not 0 <= self.stop_at <= self.steps:
             raise ValueError(f"stop_at must be between 0 (off) and steps={self.steps}, got {self.stop_at}")
         if not 0.0 <= self.time_limit < math.inf:
@@ -351,6 +358,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         have = store.pos_seq.size(1) - 3 if "pos_seq" in store else 0
         raise ValueError(f"window holds {have} future steps, the unroll needs {seq_len}")
     seq, forces = store.pos_seq, store.force_seq
+    if config.rest_rollout > 0:
+        seq = held_rest_sequence(model, window, seq_len, config.rest_rollout, config.rest_threshold, noise_generator)
     inputs = seq[:, :3]
     if config.input_noise > 0:
         inputs = inputs + input_noise(window, config.input_noise, noise_generator)
@@ -434,6 +443,58 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     # one host transfer for the logged parts
     values = torch.stack(list(parts.values())).tolist()
     return total, dict(zip(parts, values))
+
+
+def resting_windows(window: HeteroData, seq_len: int, threshold: float) -> Tensor:
+    r"""``[B]`` bool: the windows of a batch whose scene is at rest over the frames an unroll of
+    ``seq_len`` steps reads, every moving leaf within ``threshold`` metres of where it starts:
+
+    .. math::
+        \max_{i \text{ moving leaf of } b} \ \max_{0 \le t \le T + 2} \lVert x_i(t) - x_i(0) \rVert < \tau
+    """
+    store = window[NODE]
+    frames = store.pos_seq[:, : seq_len + 3]
+    moved = (frames - frames[:, :1]).norm(dim=-1).amax(dim=1)  # [N]
+    moved = torch.where(store.is_leaf & ~store.is_static, moved, torch.zeros_like(moved))
+    batch = store.batch if "batch" in store else torch.zeros_like(moved, dtype=torch.long)
+    count = _batch_size_of(window)
+    farthest = moved.new_zeros(count).scatter_reduce(0, batch, moved, "amax")
+    return farthest < threshold
+
+
+def held_rest_sequence(model: HRN, window: HeteroData, seq_len: int, max_steps: int, threshold: float,
+                       generator: torch.Generator | None = None) -> Tensor:
+    r"""The window's ``pos_seq`` ``[N, T+3, 3]`` with each scene at rest (:func:`resting_windows`)
+    replaced by the model's own rollout from it and the order to hold still there.
+
+    From the window's first three true frames the model runs :math:`R` steps on its own (no
+    gradient, no dropout, no sleeping, no external force), :math:`R` drawn uniformly from
+    ``1..max_steps`` once per batch; a resting scene's frames become
+
+    .. math::
+        \bigl(\hat x(R-2),\ \hat x(R-1),\ \hat x(R),\ \hat x(R),\ \dots,\ \hat x(R)\bigr)
+
+    so its inputs carry whatever the model's own rollout did to it (a soft body sinking, a cloth
+    creeping sideways) and every target is to stop there. Training only from the true rest state
+    never shows the model the states its slow drift leads to; this does, at the cost of
+    :math:`R` forward passes per batch. Windows not at rest keep their frames; a batch with
+    none at rest costs nothing.
+    """
+    store = window[NODE]
+    seq = store.pos_seq
+    resting = resting_windows(window, seq_len, threshold)
+    if not bool(resting.any()):
+        return seq
+    steps = int(torch.randint(1, max_steps + 1, (1,), generator=generator))
+    radius = collision_radius_of(model.config, window)
+    with torch.no_grad():
+        graph = set_state(window, seq[:, 0], seq[:, 1], seq[:, 2], radius=radius)
+        frames = [seq[:, 0], seq[:, 1], seq[:, 2]]
+        for result in iterate(model, graph, steps, None, None, sleep=None):
+            frames = [frames[1], frames[2], result.pos]
+    held = torch.stack(frames + [frames[-1]] * (seq.size(1) - 3), dim=1)  # [N, T+3, 3]
+    batch = store.batch if "batch" in store else torch.zeros(seq.size(0), dtype=torch.long, device=seq.device)
+    return torch.where(resting[batch].view(-1, 1, 1), held, seq)
 
 
 def acceleration_loss(model: GNS, window: HeteroData, config: TrainConfig,
@@ -809,12 +870,14 @@ def _step_batches(train_set: EpisodeWindows, config: TrainConfig, place: _Place,
 
 def _augmentation_streams(config: TrainConfig, rank: int,
                           start: int) -> tuple[torch.Generator | None, torch.Generator | None]:
-    """This rank's generators of the input noise and of the symmetry draws (None where off).
+    """This rank's generators of the input noise (and the rest rollout's lengths) and of the symmetry
+    draws (None where off).
 
     Both are streams of their own, apart from the global one that the dropout masks use, and
     both are seeded with the first step, so a resumed run draws fresh noise and symmetries.
     """
-    noise = torch.Generator().manual_seed(config.seed * 7 + rank + 3 + start) if config.input_noise > 0 else None
+    noise = (torch.Generator().manual_seed(config.seed * 7 + rank + 3 + start)
+             if config.input_noise > 0 or config.rest_rollout > 0 else None)
     turns = torch.Generator().manual_seed(config.seed * 11 + rank + 5 + start) if config.augment_symmetry else None
     return noise, turns
 
@@ -998,7 +1061,7 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
     scored = replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0, w_contact=0.0,
-                     w_ground=0.0)
+                     w_ground=0.0, rest_rollout=0)
     loss, _ = window_loss(model, batch, seq_len, scored)
     model.train(was_training)
     return float(loss) / seq_len

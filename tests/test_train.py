@@ -487,6 +487,57 @@ def test_ground_term_and_resting_leaves_are_logged_and_add_what_they_say(tiny_ep
         TrainConfig.for_preset("gns", w_ground=1.0)
 
 
+def test_rest_rollout_starts_resting_scenes_from_the_models_own_rollout(tiny_episodes, tmp_path):
+    """``rest_rollout``: a window at rest gets the last three frames of the model's own R-step
+    rollout as its inputs and the last of them as every target; a moving window keeps its frames;
+    the draw of R is the generator's; a short run trains with it; bad settings are refused."""
+    from hrn_pyg.data.graph import NODE, set_state
+    from hrn_pyg.sim.rollout import iterate
+    from hrn_pyg.train import held_rest_sequence, resting_windows, window_loss
+
+    model, batch = _untrained_model_and_batch(tiny_episodes)
+    store = batch[NODE]
+    seq = store.pos_seq.clone()
+    window0 = store.batch == 0
+    seq[window0] = seq[window0, :1].expand(-1, seq.size(1), -1)  # window 0 still: its first frame throughout
+    store.pos_seq = seq
+    resting = resting_windows(batch, 1, 1e-3)
+    leaf = store.is_leaf & ~store.is_static
+    moved = (seq[:, :4] - seq[:, :1]).norm(dim=-1).amax(dim=1)
+    for b in range(len(resting)):  # by hand: every moving leaf of the window within 1 mm of its start
+        assert bool(resting[b]) == bool((moved[leaf & (store.batch == b)] < 1e-3).all())
+    assert bool(resting[0]) and not bool(resting.all())
+    held_rows = resting[store.batch]  # the rows of every window at rest
+
+    held = held_rest_sequence(model, batch, 1, 5, 1e-3, torch.Generator().manual_seed(3))
+    steps = int(torch.randint(1, 6, (1,), generator=torch.Generator().manual_seed(3)))
+    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
+    frames = [seq[:, 2]] + [r.pos for r in iterate(model, graph, steps, None, None, sleep=None)]
+    frames = ([seq[:, 0], seq[:, 1]] + frames)[-3:]
+    assert torch.equal(held[~held_rows], seq[~held_rows])
+    for t in range(3):
+        assert torch.allclose(held[held_rows, t], frames[t][held_rows], atol=1e-6)
+    assert torch.equal(held[held_rows, 3:], held[held_rows, 2:3].expand(-1, seq.size(1) - 3, -1))
+    moved = (held[held_rows, 2] - seq[held_rows, 2]).norm(dim=-1)
+    assert float(moved.max()) > 0  # the untrained model does not hold still: the inputs changed
+
+    config = TrainConfig(data="unused", out="unused", w_rest=1.0, rest_rollout=5)
+    loss, parts = window_loss(model, batch, 1, config, noise_generator=torch.Generator().manual_seed(3))
+    assert torch.isfinite(loss) and parts["rest"] > 0
+    still = seq[:, :1].expand(-1, seq.size(1), -1).clone()
+    store.pos_seq = still  # every window at rest: none keeps its frames
+    assert bool(resting_windows(batch, 1, 1e-3).all())
+    assert not torch.equal(held_rest_sequence(model, batch, 1, 5, 1e-3, torch.Generator().manual_seed(3)), still)
+
+    out = tmp_path / "rest_rollout"
+    train(_config(tiny_episodes, out, steps=2, rest_rollout=3, w_rest=1.0), SMALL)
+    assert (out / "model.pt").exists()
+    with pytest.raises(ValueError, match="rest_rollout must be >= 0"):
+        TrainConfig(rest_rollout=-1)
+    with pytest.raises(ValueError, match="rest_rollout"):
+        TrainConfig.for_preset("gns", rest_rollout=4)
+
+
 def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes, tmp_path):
     train(_config(tiny_episodes, tmp_path / "base", steps=4), SMALL, progress=False)
     base = tmp_path / "base" / "model.pt"
