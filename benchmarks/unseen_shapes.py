@@ -329,6 +329,9 @@ def main() -> int:
     parser.add_argument("--ground-projection", choices=("on", "off", "deformable"), default=None,
                         help="apply the model with HRNConfig.ground_projection set so everywhere "
                              "(deformable: on for soft bodies and cloth only, ground_projection_rigid off)")
+    parser.add_argument("--corotated-rest", choices=("on", "off"), default=None,
+                        help="apply the model with HRNConfig.corotated_rest set so (the rest shape of soft "
+                             "bodies and cloth turned onto their current leaves)")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
     args = parser.parse_args()
@@ -348,6 +351,8 @@ def main() -> int:
     if args.ground_projection:
         model = with_applied_options(model, ground_projection=args.ground_projection != "off",
                                      ground_projection_rigid=args.ground_projection == "on")
+    if args.corotated_rest:
+        model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
     unseen = [Path(f) for f in args.unseen]
     own = [Path(f) for f in args.own]
     started = time.perf_counter()
@@ -356,6 +361,7 @@ def main() -> int:
                     "limit": args.limit, "mirror_average": args.mirror_average,
                     "ground_projection": bool(getattr(model.config, "ground_projection", False)),
                     "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
+                    "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
     print("errors on unseen meshes and the own test split", flush=True)
     result["unseen"] = unseen_section(model, unseen, own, args)

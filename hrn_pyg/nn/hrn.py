@@ -111,6 +111,13 @@ class HRNConfig(NetworkConfig):
             through their ancestors (L2A, the ancestors' siblings, A2D). Dropped from weights
             trained with them, short rollouts barely change but resting bodies creep, so it is
             a setting to train with, not one to switch at inference.
+        corotated_rest: with ``rest_offsets``, the rest shape of every soft body and cloth is
+            turned each step by the rotation that maps it best onto the body's current leaves
+            (mass-weighted, :func:`hrn_pyg.sim.step.corotated_rest_positions`), so its rest
+            offsets say how the body is deformed and not how it is turned: a soft body that
+            fell over reads as lying at rest, not as bent away from its upright rest shape.
+            Rigid bodies keep the recorded rest shape (their leaves move rigidly in any case).
+            It changes what the network reads, so it is a setting to train with.
     """
 
     hidden: int = 64
@@ -131,6 +138,7 @@ class HRNConfig(NetworkConfig):
     ground_projection: bool = False
     ground_projection_rigid: bool = True
     rigid_leaf_siblings: bool = True
+    corotated_rest: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -149,6 +157,8 @@ class HRNConfig(NetworkConfig):
         if self.mirror_planes not in MIRROR_GROUPS:
             raise ValueError(f"HRNConfig.mirror_planes must be one of {sorted(MIRROR_GROUPS)}, "
                              f"got {self.mirror_planes!r}")
+        if self.corotated_rest and not self.rest_offsets:
+            raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
         if not 0.0 < self.reference_pitch < float("inf"):
             raise ValueError(f"HRNConfig.reference_pitch must be a finite number > 0, got {self.reference_pitch}")
 
@@ -484,6 +494,7 @@ class HRN(nn.Module):
             f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
+            + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")

@@ -196,7 +196,12 @@ def build_inputs(
     rest_pos = None
     if config.rest_offsets:
         # a graph without a recorded rest shape takes its current shape as the rest shape
-        rest_pos = geometric(store.rest_pos if "rest_pos" in store else pos)
+        rest = store.rest_pos if "rest_pos" in store else pos
+        known = options.hierarchy
+        if (getattr(config, "corotated_rest", False) and "rest_pos" in store
+                and (known is None or known.rest_offset is None)):  # constants given: nothing turns
+            rest = corotated_rest_positions(graph, rest, pos, options.objects)
+        rest_pos = geometric(rest)
     batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)
     empty = torch.empty(2, 0, dtype=torch.long, device=pos.device)
     collision = graph[COLLISION].edge_index if COLLISION in graph.edge_types else empty
@@ -233,11 +238,45 @@ def hierarchy_constants(model: HRN, graph: HeteroData) -> HierarchyConstants | N
     network other than the HRN): what ``StepOptions.hierarchy`` takes for every graph that
     shares ``graph``'s hierarchy and rest shape (the graphs of a rollout without sleeping).
     A graph without a recorded rest shape reads its current shape as the rest shape, which
-    changes, so its constants hold the degrees only."""
+    changes, so its constants hold the degrees only; so does a graph with a moving soft body or
+    cloth under ``corotated_rest``, whose rest shape turns with it (one host read to find out)."""
     if not isinstance(model, HRN):
         return None
     inputs = build_inputs(model, graph, options=StepOptions(check=False, force_active=False))
-    return nn_hierarchy_constants(inputs, model.config.rest_offsets and "rest_pos" in graph[NODE])
+    constant_rest = model.config.rest_offsets and "rest_pos" in graph[NODE]
+    if constant_rest and getattr(model.config, "corotated_rest", False):
+        constant_rest = not bool(_deformable_leaves(graph).any())
+    return nn_hierarchy_constants(inputs, constant_rest)
+
+
+def _deformable_leaves(graph: HeteroData) -> Tensor:
+    """``[N]`` bool: the moving leaves of soft bodies and cloth."""
+    store = graph[NODE]
+    return store.is_leaf & ~store.is_static & ~store.material[:, RIGID].bool()
+
+
+def corotated_rest_positions(graph: HeteroData, rest: Tensor, pos: Tensor,
+                             objects: tuple[Tensor, int] | None = None) -> Tensor:
+    r"""The rest shape ``rest`` ``[N, 3]`` with every soft body and cloth turned onto its
+    current leaves ``pos`` ``[N, 3]`` (:attr:`~hrn_pyg.nn.hrn.HRNConfig.corotated_rest`).
+
+    .. math::
+        \bar x'_i = R_o (\bar x_i - \bar c_o) + c_o, \qquad
+        R_o = \arg\min_{R \in SO(3)} \sum_{l \in o} m_l \lVert R (\bar x_l - \bar c_o) - (x_l - c_o) \rVert^2
+
+    for every leaf :math:`i` of a soft or cloth object :math:`o` (:math:`\bar c_o, c_o` its
+    mass-weighted rest and current centres; :func:`~hrn_pyg.nn.rigid.fit_rigid_motion`, the
+    rigid fit's Kabsch solution); the ancestors are re-derived from the leaves. Rigid and
+    static objects keep their rows: the rest offsets of a rigid body are those recorded. The
+    network reads only offsets, so the translation to :math:`c_o` changes nothing it sees.
+    ``objects``: :func:`object_of` of ``graph``, if the caller has it.
+    """
+    store = graph[NODE]
+    deformable = _deformable_leaves(graph)
+    weight = torch.where(deformable, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
+    group, count = object_of(graph) if objects is None else objects
+    turned = fit_rigid_motion(rest, pos, weight, group, count)
+    return leaf_to_ancestor_mean(torch.where(deformable.unsqueeze(-1), turned, rest), graph)
 
 
 def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:

@@ -56,9 +56,11 @@ def test_unseen_shapes_scores_a_tiny_scene(tmp_path, tiny_episodes, monkeypatch,
     monkeypatch.setattr(sys, "argv", [
         "unseen_shapes.py", "--model", str(ROOT / "hrn_pyg/checkpoints/shapes.pt"), "--unseen", str(unseen),
         "--own", str(tiny_episodes), "--specialist", f"{tiny_episodes}={ROOT / 'hrn_pyg/checkpoints/cube_collision.pt'}",
-        "--horizons", "2,4", "--stride", "3", "--rest-episodes", "1", "--rest-steps", "3", "--out", str(out)])
+        "--horizons", "2,4", "--stride", "3", "--rest-episodes", "1", "--rest-steps", "3", "--corotated-rest", "on",
+        "--out", str(out)])
     assert bench.main() == 0
     result = json.loads(out.read_text())
+    assert result["corotated_rest"] is True
     assert capsys.readouterr().out.strip().endswith(f"({result['seconds']:.0f} s)")
 
     # one group per mesh the seeds drew, named after its file; all of them pooled by material
