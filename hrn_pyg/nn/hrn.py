@@ -114,7 +114,7 @@ class HRNConfig(NetworkConfig):
         corotated_rest: with ``rest_offsets``, the rest shape of every soft body and cloth is
             turned each step by the rotation that maps it best onto the body's current leaves
             (mass-weighted, :func:`hrn_pyg.sim.step.corotated_rest_positions`), so its rest
-            offsets say how the body is deformed and not how it is turned: a soft body that
+            offsets say how the body is deformed and not how it is turned; a soft body that
             fell over reads as lying at rest, not as bent away from its upright rest shape.
             Rigid bodies keep the recorded rest shape (their leaves move rigidly in any case).
             It changes what the network reads, so it is a setting to train with.
