@@ -133,7 +133,7 @@ def attribute_help(cls: type) -> dict[str, str]:
     for line in section.splitlines():
         if not line.strip():
             continue
-        match = re.match(r"^ {4}([\w, ]+):\s*(.*)$", line)
+        match = re.match(r"^ {4}(\w[\w, ]*):\s*(.*)$", line)  # a name at the indent of 4, not deeper
         if match:
             names = [n.strip() for n in match.group(1).split(",")]
             for name in names:
