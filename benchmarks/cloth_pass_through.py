@@ -11,7 +11,11 @@ positions at the same steps (the ground truth in the same folder) stands beside 
 Per folder, pooled over its episodes' steps: ``mean`` leaves inside a step, ``max`` in any
 step, ``share`` the mean over the cloth's leaves, ``steps with any`` the share of steps with at
 least one leaf inside; a rollout that leaves the finite numbers is counted (``diverged``), not
-averaged. Run::
+averaged; ``ms/step`` the median over the episodes of the rollout's seconds per step (one
+torch thread unless told). ``--cloth-clearance 0,0.1,0.25`` scores the same weights with
+:attr:`~hrn_pyg.nn.hrn.HRNConfig.cloth_clearance` set to each value in turn (the rule of
+:mod:`hrn_pyg.sim.cloth_contact`; 0: off), one row each, so what the rule buys and what it costs
+are read off one run. Run::
 
     python benchmarks/cloth_pass_through.py --model multi_material \\
         --episodes data/unseen_val_cloth --out benchmarks/results/cloth_pass_through_val.json
@@ -29,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.io import load_episode
 from hrn_pyg.sampling.ensemble import episode_state
@@ -53,10 +57,13 @@ def episode_counts(model, episode, awake: bool = False) -> dict:
     graph = episode_state(episode, start=HISTORY)
     forces = graph[NODE].force_seq.transpose(0, 1)
     steps = forces.shape[0]
-    row = {"seed": int(episode["seed"]), "steps": steps, "cloth_leaves": solids.cloth_leaves, "error": None}
+    row = {"seed": int(episode["seed"]), "steps": steps, "cloth_leaves": solids.cloth_leaves, "error": None,
+           "seconds_per_step": None}
     with torch.no_grad():
         try:
+            start = time.perf_counter()
             pred = rollout(model, graph, steps, forces, sleep=None if awake else DEFAULT_SLEEP)[:, :solids.leaves]
+            row["seconds_per_step"] = (time.perf_counter() - start) / steps
             counts = cloth_inside_counts(pred, solids)
         except ValueError as exc:  # left the finite numbers
             counts, row["error"] = None, str(exc)
@@ -72,6 +79,8 @@ def pooled(rows: list[dict]) -> dict:
     """One folder's summary of both sources over every step of its episodes (model: of the
     rollouts that stayed finite)."""
     out = {"episodes": len(rows), "diverged": sum(r["model_counts"] is None for r in rows)}
+    timed = [r["seconds_per_step"] for r in rows if r.get("seconds_per_step") is not None]
+    out["model_ms_per_step"] = 1e3 * float(np.median(timed)) if timed else None
     for source in SOURCES:
         kept = [r for r in rows if r[f"{source}_counts"] is not None]
         if not kept:
@@ -104,16 +113,21 @@ def score_folders(model, folders: list[Path], limit: int | None = None, awake: b
 
 
 def markdown(result: dict) -> str:
-    lines = ["| folder | episodes | model: mean inside (share) | max | steps with any | pybullet: mean inside (share) "
-             "| max | steps with any | diverged |", "|---|---|---|---|---|---|---|---|---|"]
-    for name, folder in result["folders"].items():
-        s = folder["summary"]
-        cells = []
-        for source in SOURCES:
-            v = s[source]
-            cells += ["-", "-", "-"] if v is None else [
-                f"{v['mean']:.2f} ({100 * v['mean_share']:.2f} %)", str(v["max"]), f"{100 * v['steps_with_any']:.0f} %"]
-        lines.append(f"| {name} | {s['episodes']} | {' | '.join(cells)} | {s['diverged']} |")
+    lines = ["| folder | clearance | episodes | model: mean inside (share) | max | steps with any "
+             "| pybullet: mean inside (share) | max | steps with any | diverged | model ms/step |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for run in result["runs"]:
+        for name, folder in run["folders"].items():
+            s = folder["summary"]
+            cells = []
+            for source in SOURCES:
+                v = s[source]
+                cells += ["-", "-", "-"] if v is None else [
+                    f"{v['mean']:.2f} ({100 * v['mean_share']:.2f} %)", str(v["max"]),
+                    f"{100 * v['steps_with_any']:.0f} %"]
+            ms = "-" if s.get("model_ms_per_step") is None else f"{s['model_ms_per_step']:.1f}"
+            lines.append(f"| {name} | {run['cloth_clearance']:g} | {s['episodes']} | {' | '.join(cells)} "
+                         f"| {s['diverged']} | {ms} |")
     return "\n".join(lines) + "\n"
 
 
@@ -124,14 +138,27 @@ def main(argv: list[str] | None = None) -> int:
                         help="a folder of episodes with cloth (repeatable)")
     parser.add_argument("--limit", type=int, default=None, help="the first N episodes of each folder")
     parser.add_argument("--awake", action="store_true", help="no object sleeps (the network alone)")
+    parser.add_argument("--cloth-clearance", default=None,
+                        help="comma-separated values of HRNConfig.cloth_clearance (pitches; 0: the rule off) to "
+                             "score the model with, one row each (default: the model's own)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     model = load_model(args.model)
-    folders = score_folders(model, args.episodes, args.limit, args.awake)
-    result = {"model": str(args.model), "awake": args.awake, "threads": args.threads, "folders": folders,
+    try:
+        clearances = ([float(getattr(model.config, "cloth_clearance", 0.0))] if args.cloth_clearance is None
+                      else [float(v) for v in args.cloth_clearance.split(",")])
+    except ValueError:
+        parser.error(f"--cloth-clearance expects numbers separated by commas, got {args.cloth_clearance!r}")
+    runs = []
+    for clearance in clearances:
+        print(f"cloth_clearance {clearance:g}", flush=True)
+        applied = model if args.cloth_clearance is None else with_applied_options(model, cloth_clearance=clearance)
+        folders = score_folders(applied, args.episodes, args.limit, args.awake)
+        runs.append({"cloth_clearance": clearance, "folders": folders})
+    result = {"model": str(args.model), "awake": args.awake, "threads": args.threads, "runs": runs,
               "machine": platform.platform(), "seconds": time.perf_counter() - t0}
     atomic_write_json(args.out, result)
     print(markdown(result), end="")

@@ -332,6 +332,9 @@ def main() -> int:
     parser.add_argument("--corotated-rest", choices=("on", "off"), default=None,
                         help="apply the model with HRNConfig.corotated_rest set so (the rest shape of soft "
                              "bodies and cloth turned onto their current leaves)")
+    parser.add_argument("--cloth-clearance", type=float, default=None,
+                        help="apply the model with HRNConfig.cloth_clearance set to this many pitches (cloth "
+                             "leaves kept out of other objects; 0: off)")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
     args = parser.parse_args()
@@ -353,6 +356,8 @@ def main() -> int:
                                      ground_projection_rigid=args.ground_projection == "on")
     if args.corotated_rest:
         model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
+    if args.cloth_clearance is not None:
+        model = with_applied_options(model, cloth_clearance=args.cloth_clearance)
     unseen = [Path(f) for f in args.unseen]
     own = [Path(f) for f in args.own]
     started = time.perf_counter()
@@ -362,6 +367,7 @@ def main() -> int:
                     "ground_projection": bool(getattr(model.config, "ground_projection", False)),
                     "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
                     "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
+                    "cloth_clearance": float(getattr(model.config, "cloth_clearance", 0.0)),
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
     print("errors on unseen meshes and the own test split", flush=True)
     result["unseen"] = unseen_section(model, unseen, own, args)

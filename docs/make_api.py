@@ -57,6 +57,7 @@ MODULES = (
     "hrn_pyg.sim.sleeping",
     "hrn_pyg.sim.fixed_shape",
     "hrn_pyg.sim.penetration",
+    "hrn_pyg.sim.cloth_contact",
     "hrn_pyg.losses",
     "hrn_pyg.train",
     "hrn_pyg.evaluate",

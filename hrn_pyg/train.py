@@ -90,6 +90,8 @@ from hrn_pyg.viz import plot_curves
 
 PRESETS = ("hrn", "ours", "gns")
 SHAPE_LOSSES = ("group", "full")
+#: how :func:`held_rest_sequence` draws its rollout length R from 1..R_max
+REST_ROLLOUT_DRAWS = ("uniform", "log")
 #: windows used to fit the normaliser (the statistics converge long before this)
 NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
@@ -159,6 +161,9 @@ class TrainConfig:
             rollout of 1 to R steps (drawn per batch, no gradient) and trains it to hold the state
             it reached (:func:`held_rest_sequence`), so the slow creep of a long rollout from rest
             is seen where it happens, away from the true rest state; 0: off.
+        rest_rollout_draw: how R is drawn from 1..rest_rollout each batch: uniform, or log
+            (log-uniform, as many draws in 1-16 as in 16-256, so long rollouts are seen without
+            paying for one every batch).
         w_ground: weight of :func:`~hrn_pyg.losses.ground_loss`, how deep the moving leaves sink
             under their true height or the floor, whichever is lower (0: off).
         ground_floor: the ground term's floor in voxel pitches above the ground plane (0: the
@@ -219,6 +224,7 @@ class TrainConfig:
     rest_threshold: float = 1e-3
     rest_leaves: bool = False
     rest_rollout: int = 0
+    rest_rollout_draw: str = "uniform"
     w_ground: float = 0.0
     ground_floor: float = 0.0
     w_contact: float = 0.0
@@ -260,6 +266,8 @@ class TrainConfig:
                              "w_contact, w_ground, rest_rollout and seq_end > 1 are options of the HRN presets")
         if self.rest_rollout < 0:
             raise ValueError(f"rest_rollout must be >= 0 (0: off), got {self.rest_rollout}")
+        if self.rest_rollout_draw not in REST_ROLLOUT_DRAWS:
+            raise ValueError(f"rest_rollout_draw must be one of {REST_ROLLOUT_DRAWS}, got {self.rest_rollout_draw!r}")
         if not 0 <= self.stop_at <= self.steps:
             raise ValueError(f"stop_at must be between 0 (off) and steps={self.steps}, got {self.stop_at}")
         if not 0.0 <= self.time_limit < math.inf:
@@ -359,7 +367,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         raise ValueError(f"window holds {have} future steps, the unroll needs {seq_len}")
     seq, forces = store.pos_seq, store.force_seq
     if config.rest_rollout > 0:
-        seq = held_rest_sequence(model, window, seq_len, config.rest_rollout, config.rest_threshold, noise_generator)
+        seq = held_rest_sequence(model, window, seq_len, config.rest_rollout, config.rest_threshold, noise_generator,
+                                 draw=config.rest_rollout_draw)
     inputs = seq[:, :3]
     if config.input_noise > 0:
         inputs = inputs + input_noise(window, config.input_noise, noise_generator)
@@ -462,14 +471,29 @@ def resting_windows(window: HeteroData, seq_len: int, threshold: float) -> Tenso
     return farthest < threshold
 
 
+def rest_rollout_length(max_steps: int, draw: str = "uniform", generator: torch.Generator | None = None) -> int:
+    r"""One rollout length :math:`R \in \{1, \dots, R_{max}\}` of :func:`held_rest_sequence`:
+    ``uniform``, or ``log``: :math:`R = \lfloor (R_{max} + 1)^u \rfloor`, :math:`u \sim U[0, 1)`, so
+    :math:`P(R = k) = \ln\frac{k + 1}{k} / \ln(R_{max} + 1)` and every doubling of R is about as
+    likely as the last (mean :math:`\approx R_{max} / \ln R_{max}` rather than :math:`R_{max} / 2`)."""
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if draw == "uniform":
+        return int(torch.randint(1, max_steps + 1, (1,), generator=generator))
+    if draw == "log":
+        u = float(torch.rand((), generator=generator, dtype=torch.float64))
+        return min(max(int(math.floor((max_steps + 1) ** u)), 1), max_steps)
+    raise ValueError(f"draw must be one of {REST_ROLLOUT_DRAWS}, got {draw!r}")
+
+
 def held_rest_sequence(model: HRN, window: HeteroData, seq_len: int, max_steps: int, threshold: float,
-                       generator: torch.Generator | None = None) -> Tensor:
+                       generator: torch.Generator | None = None, draw: str = "uniform") -> Tensor:
     r"""The window's ``pos_seq`` ``[N, T+3, 3]`` with each scene at rest (:func:`resting_windows`)
     replaced by the model's own rollout from it and the order to hold still there.
 
     From the window's first three true frames the model runs :math:`R` steps on its own (no
-    gradient, no dropout, no sleeping, no external force), :math:`R` drawn uniformly from
-    ``1..max_steps`` once per batch; a resting scene's frames become
+    gradient, no dropout, no sleeping, no external force), :math:`R` drawn from ``1..max_steps``
+    once per batch (:func:`rest_rollout_length`, by ``draw``); a resting scene's frames become
 
     .. math::
         \bigl(\hat x(R-2),\ \hat x(R-1),\ \hat x(R),\ \hat x(R),\ \dots,\ \hat x(R)\bigr)
@@ -477,24 +501,34 @@ def held_rest_sequence(model: HRN, window: HeteroData, seq_len: int, max_steps: 
     so its inputs carry whatever the model's own rollout did to it (a soft body sinking, a cloth
     creeping sideways) and every target is to stop there. Training only from the true rest state
     never shows the model the states its slow drift leads to; this does, at the cost of
-    :math:`R` forward passes per batch. Windows not at rest keep their frames; a batch with
-    none at rest costs nothing.
+    :math:`R` forward passes of the resting windows per batch (a batched window rolls only its
+    resting graphs). Windows not at rest keep their frames; a batch with none at rest costs
+    nothing.
     """
     store = window[NODE]
     seq = store.pos_seq
     resting = resting_windows(window, seq_len, threshold)
     if not bool(resting.any()):
         return seq
-    steps = int(torch.randint(1, max_steps + 1, (1,), generator=generator))
-    radius = collision_radius_of(model.config, window)
+    steps = rest_rollout_length(max_steps, draw, generator)
+    batch = store.batch if "batch" in store else torch.zeros(seq.size(0), dtype=torch.long, device=seq.device)
+    rows = resting[batch]  # [N]: the nodes of the resting windows
+    still = window
+    if isinstance(window, Batch) and not bool(resting.all()):  # roll the resting graphs alone
+        still = Batch.from_data_list(window.index_select(torch.nonzero(resting).flatten()))
+    start = still[NODE].pos_seq
+    radius = collision_radius_of(model.config, still)
     with torch.no_grad():
-        graph = set_state(window, seq[:, 0], seq[:, 1], seq[:, 2], radius=radius)
-        frames = [seq[:, 0], seq[:, 1], seq[:, 2]]
+        graph = set_state(still, start[:, 0], start[:, 1], start[:, 2], radius=radius)
+        frames = [start[:, 0], start[:, 1], start[:, 2]]
         for result in iterate(model, graph, steps, None, None, sleep=None):
             frames = [frames[1], frames[2], result.pos]
-    held = torch.stack(frames + [frames[-1]] * (seq.size(1) - 3), dim=1)  # [N, T+3, 3]
-    batch = store.batch if "batch" in store else torch.zeros(seq.size(0), dtype=torch.long, device=seq.device)
-    return torch.where(resting[batch].view(-1, 1, 1), held, seq)
+    held = torch.stack(frames + [frames[-1]] * (seq.size(1) - 3), dim=1)  # [N', T+3, 3]
+    if still is window:
+        return torch.where(rows.view(-1, 1, 1), held, seq)
+    out = seq.clone()
+    out[rows] = held
+    return out
 
 
 def acceleration_loss(model: GNS, window: HeteroData, config: TrainConfig,

@@ -1,6 +1,7 @@
 import csv
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -489,7 +490,8 @@ def test_ground_term_and_resting_leaves_are_logged_and_add_what_they_say(tiny_ep
 
 def test_rest_rollout_starts_resting_scenes_from_the_models_own_rollout(tiny_episodes, tmp_path):
     """``rest_rollout``: a window at rest gets the last three frames of the model's own R-step
-    rollout as its inputs and the last of them as every target; a moving window keeps its frames;
+    rollout as its inputs and the last of them as every target (its graph rolled alone equals the
+    whole batch rolled, by hand below); a moving window keeps its frames;
     the draw of R is the generator's; a short run trains with it; bad settings are refused."""
     from hrn_pyg.data.graph import NODE, set_state
     from hrn_pyg.sim.rollout import iterate
@@ -536,6 +538,32 @@ def test_rest_rollout_starts_resting_scenes_from_the_models_own_rollout(tiny_epi
         TrainConfig(rest_rollout=-1)
     with pytest.raises(ValueError, match="rest_rollout"):
         TrainConfig.for_preset("gns", rest_rollout=4)
+
+
+def test_rest_rollout_length_draws_uniform_or_log_uniform():
+    """``rest_rollout_length``: uniform is ``randint(1, R_max)`` of the generator; log keeps to
+    1..R_max, is seeded, and draws as often under 16 as from 16 to 256 (the law
+    ``ln((k+1)/k) / ln(R_max+1)``), with a mean far below uniform's; bad settings are refused."""
+    from hrn_pyg.train import rest_rollout_length
+
+    g = torch.Generator().manual_seed(5)
+    same = int(torch.randint(1, 33, (1,), generator=torch.Generator().manual_seed(5)))
+    assert rest_rollout_length(32, "uniform", g) == same
+    draws = torch.tensor([rest_rollout_length(255, "log", g) for _ in range(4000)])
+    assert int(draws.min()) >= 1 and int(draws.max()) <= 255
+    below = float((draws < 16).double().mean())  # law: ln 16 / ln 256 = 0.5
+    assert abs(below - 0.5) < 0.04
+    assert float((draws == 1).double().mean()) == pytest.approx(math.log(2) / math.log(256), abs=0.03)
+    assert 30 < float(draws.double().mean()) < 70  # law: about 45; uniform's would be 128
+    again = [rest_rollout_length(255, "log", torch.Generator().manual_seed(9)) for _ in range(2)]
+    assert again[0] == again[1]
+    assert rest_rollout_length(1, "log", g) == 1
+    with pytest.raises(ValueError, match="draw must be one of"):
+        rest_rollout_length(8, "normal", g)
+    with pytest.raises(ValueError, match="max_steps"):
+        rest_rollout_length(0, "log", g)
+    with pytest.raises(ValueError, match="rest_rollout_draw"):
+        TrainConfig(rest_rollout=8, rest_rollout_draw="normal")
 
 
 def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes, tmp_path):

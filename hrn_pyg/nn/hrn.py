@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
+from torch_geometric.data import HeteroData
 
 from hrn_pyg.nn.collision import CollisionModule
 from hrn_pyg.nn.force import ForceModule
@@ -118,6 +119,10 @@ class HRNConfig(NetworkConfig):
             fell over reads as lying at rest, not as bent away from its upright rest shape.
             Rigid bodies keep the recorded rest shape (their leaves move rigidly in any case).
             It changes what the network reads, so it is a setting to train with.
+        cloth_clearance: a cloth leaf that a step leaves inside another object is moved back out
+            to this many pitches in front of the object's surface leaves
+            (:mod:`hrn_pyg.sim.cloth_contact`; 0: off). A rule applied after the network in a
+            rollout, like ``ground_projection``: the cloth's own model does not change.
     """
 
     hidden: int = 64
@@ -139,6 +144,7 @@ class HRNConfig(NetworkConfig):
     ground_projection_rigid: bool = True
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
+    cloth_clearance: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -159,6 +165,8 @@ class HRNConfig(NetworkConfig):
                              f"got {self.mirror_planes!r}")
         if self.corotated_rest and not self.rest_offsets:
             raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
+        if not 0.0 <= self.cloth_clearance < 1.0:
+            raise ValueError(f"HRNConfig.cloth_clearance must be in [0, 1) pitches, got {self.cloth_clearance}")
         if not 0.0 < self.reference_pitch < float("inf"):
             raise ValueError(f"HRNConfig.reference_pitch must be a finite number > 0, got {self.reference_pitch}")
 
@@ -235,6 +243,11 @@ class StepOptions:
         collisions: whether the next graph gets a collision search at :math:`x_{t+1}`
             (:func:`hrn_pyg.sim.step.step`; a rollout's ``EffectPlan.collisions``); False: nothing
             in the scene can touch, so the next graph has no collision edges and no search is made.
+        position_projection: ``(graph, (pos, local_velocity, velocity), movable) -> (...)``, a
+            rule applied to the step's prediction before the graph advances (a rollout's
+            :class:`~hrn_pyg.sim.cloth_contact.ClothContact` under ``HRNConfig.cloth_clearance``),
+            on the whole graph also when objects sleep (``movable``: the awake rows, else None);
+            None: none.
         hierarchy: the :class:`HierarchyConstants` of the graph the step runs on
             (:func:`hrn_pyg.sim.step.hierarchy_constants`: the same for every graph of a rollout
             without sleeping), which the pass then reads instead of recomputing them; None:
@@ -248,6 +261,8 @@ class StepOptions:
     fixed_shape: bool = False
     collisions: bool = True
     hierarchy: HierarchyConstants | None = None
+    position_projection: Callable[[HeteroData, tuple[Tensor, Tensor, Tensor], Tensor | None],
+                                  tuple[Tensor, Tensor, Tensor]] | None = None
 
 
 class HRNInputs(NamedTuple):
@@ -495,6 +510,7 @@ class HRN(nn.Module):
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
+            + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")
             + (", ground_projection=True" if c.ground_projection else "")
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")

@@ -155,6 +155,15 @@ def fit_rigid_motion(
     if mass.shape != current.shape[:1] or group.shape != current.shape[:1]:
         raise ValueError(f"fit_rigid_motion: mass and group must be [{current.size(0)}], got "
                          f"{tuple(mass.shape)} and {tuple(group.shape)}")
+    centre, centre_hat, rotation = rigid_motion(current, predicted, mass, group, num_groups)
+    return centre_hat[group] + torch.einsum("lij,lj->li", rotation[group], current - centre[group])
+
+
+def rigid_motion(current: Tensor, predicted: Tensor, mass: Tensor, group: Tensor,
+                 num_groups: int) -> tuple[Tensor, Tensor, Tensor]:
+    r"""The parts of :func:`fit_rigid_motion`'s fit: each group's centres :math:`c_g`,
+    :math:`\hat c_g` ``(G, 3)`` and rotation :math:`R_g` ``(G, 3, 3)`` (a group without weight:
+    zero centres, and the rotation of a zero matrix). Inputs are not checked here."""
     m = mass.to(current.dtype)[:, None]
     # a group without weight (no rigid leaf in it) gets a zero centre rather than 0 / 0
     total = current.new_zeros(num_groups, 1).index_add(0, group, m).clamp_min(torch.finfo(current.dtype).tiny)
@@ -164,5 +173,4 @@ def fit_rigid_motion(
     arm_hat = predicted - centre_hat[group]
     cross = (m[:, :, None] * arm_hat[:, :, None] * arm[:, None, :])  # [L, 3, 3]
     covariance = current.new_zeros(num_groups, 3, 3).index_add(0, group, cross)
-    rotation = polar_rotation(covariance)
-    return centre_hat[group] + torch.einsum("lij,lj->li", rotation[group], arm)
+    return centre, centre_hat, polar_rotation(covariance)

@@ -24,6 +24,7 @@ from hrn_pyg.data.graph import NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim import sleeping
+from hrn_pyg.sim.cloth_contact import cloth_contact
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 from hrn_pyg.sim.step import MasksFn, Step, hierarchy_constants, object_of, require_state, step
 from hrn_pyg.utils.checks import check_finite
@@ -67,7 +68,9 @@ def iterate(
     every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
     ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.data.effects.SceneEffects`;
     None: what the data show): a scene in which nothing can touch gets no collision search at
-    all. The arguments are checked, and the plan, the start graph and the objects made, when
+    all. A model with ``cloth_clearance`` keeps the scene's cloth out of the other objects
+    (:mod:`hrn_pyg.sim.cloth_contact`, set up here once). The arguments are checked, and the
+    plan, the start graph and the objects made, when
     this is called; the steps run as they are taken from the iterator.
     """
     check_forces(graph, steps, forces)
@@ -84,6 +87,9 @@ def iterate(
         objects = object_of(graph) if model.config.rigid_fit else None
     # what every step is told rather than finds out: inputs checked here, the objects, the plan
     options = StepOptions(check=False, objects=objects, collisions=plan.collisions)
+    clearance = float(getattr(model.config, "cloth_clearance", 0.0))
+    if clearance > 0 and plan.collisions:  # cloth kept out of the objects it falls on
+        options = replace(options, position_projection=cloth_contact(graph, clearance))
     search = None
     if sleeper is None:  # every step runs on the whole graph: its hierarchy's constants are found once
         options = replace(options, hierarchy=hierarchy_constants(model, graph))

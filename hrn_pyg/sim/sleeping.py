@@ -331,6 +331,8 @@ def sleeping_step(
         result = step(model, graph, force, masks, options)
         return result._replace(asleep=graph[NODE].is_static), state
     pos, local, velocity = predict_held(model, graph, force, masks, asleep_node, options)
+    if options.position_projection is not None:
+        pos, local, velocity = options.position_projection(graph, (pos, local, velocity), ~asleep_node)
     nxt = advance(graph, asleep_node, pos, collision_radius_of(model.config, graph) if options.collisions else None)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 

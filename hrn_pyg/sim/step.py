@@ -496,10 +496,13 @@ def step(
     search (False: no collision edges). ``search(graph, pos)`` (optional) gives the collision
     edges of the graph's leaves at ``pos``, as :func:`~hrn_pyg.data.graph.leaf_collision_edges`
     at the model's radius does (a rollout's :class:`~hrn_pyg.data.candidates.VerletSearch`);
-    None searches. The new positions are always checked for NaN / inf.
+    None searches; ``options.position_projection`` (optional) is applied to the prediction
+    before the graph advances. The new positions are always checked for NaN / inf.
     """
     options = _with_legacy(options, legacy, "step")
     pos, local, velocity = predict(model, graph, force, masks, options)
+    if options.position_projection is not None:
+        pos, local, velocity = options.position_projection(graph, (pos, local, velocity), None)
     if options.collisions and search is not None:
         check_next_pos(pos)
         nxt = advance(graph, pos, None, edges=search(graph, pos), check=False)

@@ -72,8 +72,11 @@ def test_the_core_counts_the_model_and_pybullet_at_the_same_steps(episodes):
         for source in bench.SOURCES:
             counts = row[f"{source}_counts"]
             assert row[source]["mean"] == pytest.approx(sum(counts) / 6) and row[source]["max"] == max(counts)
+        assert row["seconds_per_step"] > 0
     summary = folder["summary"]
     assert summary["episodes"] == 2 and summary["diverged"] == 0
+    timed = [r["seconds_per_step"] for r in folder["episodes"]]
+    assert summary["model_ms_per_step"] == pytest.approx(1e3 * np.median(timed))
     every = [c for r in folder["episodes"] for c in r["pybullet_counts"]]
     assert summary["pybullet"]["mean"] == pytest.approx(np.mean(every))
     assert summary["pybullet"]["steps_with_any"] == pytest.approx(np.mean([c > 0 for c in every]))
@@ -94,10 +97,19 @@ def test_a_diverged_rollout_is_counted_not_averaged():
 def test_the_command_writes_json_and_a_table(episodes, tmp_path, capsys):
     bench = _benchmark()
     out = tmp_path / "result.json"
-    assert bench.main(["--model", "multi_material", "--episodes", str(episodes), "--limit", "1", "--out", str(out)]) == 0
+    assert bench.main(["--model", "multi_material", "--episodes", str(episodes), "--limit", "1", "--out", str(out),
+                       "--cloth-clearance", "0,0.25"]) == 0
     result = json.loads(out.read_text())
-    assert result["folders"][episodes.name]["summary"]["episodes"] == 1
+    assert [run["cloth_clearance"] for run in result["runs"]] == [0.0, 0.25]
+    off, kept = (run["folders"][episodes.name] for run in result["runs"])
+    assert off["summary"]["episodes"] == kept["summary"]["episodes"] == 1
+    assert off["episodes"][0]["pybullet_counts"] == kept["episodes"][0]["pybullet_counts"]
+    assert sum(kept["episodes"][0]["model_counts"]) <= sum(off["episodes"][0]["model_counts"])
     printed = capsys.readouterr().out
-    assert f"| {episodes.name} | 1 |" in printed and printed.strip().endswith(f"({result['seconds']:.0f} s)")
+    assert f"| {episodes.name} | 0 | 1 |" in printed and f"| {episodes.name} | 0.25 | 1 |" in printed
+    assert printed.strip().endswith(f"({result['seconds']:.0f} s)")
+    with pytest.raises(SystemExit):
+        bench.main(["--model", "multi_material", "--episodes", str(episodes), "--out", str(out),
+                    "--cloth-clearance", "a"])
     with pytest.raises(FileNotFoundError, match="no episode"):
         bench.score_folders(load_model("multi_material"), [tmp_path])

@@ -44,6 +44,11 @@ def passes(monkeypatch):
     return seen
 
 
+def unchanged_prediction(graph, prediction, movable):
+    """A position projection that moves nothing."""
+    return prediction
+
+
 def every_option_set(graph) -> StepOptions:
     """Options of ``graph`` with every field away from its default (none changes the physics
     of this step except ``collisions``, which only drops the next graph's collision edges)."""
@@ -55,11 +60,33 @@ def every_option_set(graph) -> StepOptions:
         fixed_shape=True,
         collisions=False,
         hierarchy=hierarchy_constants(fitted_model(), graph),
+        position_projection=unchanged_prediction,
     )
     default = StepOptions()
     unset = [f.name for f in dataclasses.fields(StepOptions) if getattr(options, f.name) is getattr(default, f.name)]
     assert not unset, f"give these StepOptions fields a value other than the default here: {unset}"
     return options
+
+
+def test_a_position_projection_moves_the_step_before_the_graph_advances():
+    """``position_projection`` gets the graph at t and the prediction (no ``movable`` in a plain
+    step); what it returns is the step's result and the next graph's state."""
+    model = fitted_model(rigid_fit=True)
+    graph = toy_scene()
+    calls = []
+    lift = torch.tensor([0.0, 0.0, 0.01])
+
+    def lifted(g, prediction, movable):
+        calls.append((g, movable))
+        pos, local, velocity = prediction
+        return pos + lift, local, velocity + lift
+
+    with torch.no_grad():
+        plain = step(model, graph)
+        moved = step(model, graph, options=StepOptions(position_projection=lifted))
+    assert len(calls) == 1 and calls[0][0] is graph and calls[0][1] is None
+    assert torch.allclose(moved.pos, plain.pos + lift) and torch.equal(moved.graph[NODE].pos, moved.pos)
+    assert torch.allclose(moved.velocity, plain.velocity + lift)
 
 
 @pytest.mark.parametrize("config", [dict(rigid_fit=True), dict(mirror_average=True, mirror_planes="xy")])

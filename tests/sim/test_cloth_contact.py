@@ -1,0 +1,203 @@
+"""``HRNConfig.cloth_clearance`` (:mod:`hrn_pyg.sim.cloth_contact`): the surface normals of a
+lattice at rest, a cloth leaf inside a box moved out along the face it entered (turned with the
+box), leaves outside, beside a convex edge or held by sleeping kept where they are, and a
+rollout with the rule: no leaf ends inside, the rule off is the plain rollout bit for bit, and
+the count of :mod:`hrn_pyg.sim.penetration` agrees."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from toy_scene import toy_window
+
+from hrn_pyg.checkpoints import with_applied_options
+from hrn_pyg.data.graph import NODE, build_structure, set_pitch, set_state
+from hrn_pyg.data.kinds import CLOTH, RIGID, STATIC
+from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.sim.cloth_contact import cloth_contact, surface_normals
+from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
+from hrn_pyg.sim.rollout import rollout
+
+PITCH = 0.1
+BOX_SIDE = 4  # leaves a side: 64 leaves, 0..0.3 m from the box's corner leaf
+
+
+def lattice(n: int, origin=(0.0, 0.0, 0.0)) -> torch.Tensor:
+    ticks = torch.arange(n, dtype=torch.float32) * PITCH
+    grid = torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), dim=-1).reshape(-1, 3)
+    return grid + torch.tensor(origin)
+
+
+def turn(degrees: float) -> torch.Tensor:
+    """A turn by ``degrees`` about z after half as much about x."""
+    a, b = math.radians(degrees), math.radians(degrees / 2)
+    about_z = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    about_x = torch.tensor([[1.0, 0.0, 0.0], [0.0, math.cos(b), -math.sin(b)], [0.0, math.sin(b), math.cos(b)]])
+    return about_z @ about_x
+
+
+def box_and_cloth(cloth: torch.Tensor, box_pose: torch.Tensor | None = None, material: int = RIGID,
+                  far_cube: bool = False):
+    """A box of 4x4x4 leaves at rest with its corner leaf at the origin (object 0, rigid unless
+    told) and a cloth of the given leaves (object 1), the box placed by ``box_pose`` (a rotation
+    about its centre); with ``far_cube`` a rigid cube of 2x2x2 leaves 3 m away (object 2, out of
+    everyone's reach). The graph at rest, its pitch set, collision edges at radius 1.6 pitches."""
+    box = lattice(BOX_SIDE)
+    n_box, n_cloth = len(box), len(cloth)
+    far = lattice(2, (3.0, 0.0, 0.0)) if far_cube else torch.zeros(0, 3)
+    n = n_box + n_cloth + len(far)
+    parent = torch.tensor([n] * n_box + [n + 1] * n_cloth + [n + 2] * len(far) + [-1] * (3 if far_cube else 2))
+    mass = torch.cat([torch.full((n_box,), 0.1), torch.full((n_cloth,), 0.01), torch.full((len(far),), 0.1)])
+    obj = torch.cat([torch.zeros(n_box, dtype=torch.long), torch.ones(n_cloth, dtype=torch.long),
+                     torch.full((len(far),), 2, dtype=torch.long)])
+    rest = torch.cat([box, cloth, far])
+    materials = [material, CLOTH] + ([RIGID] if far_cube else [])
+    graph = build_structure(parent, mass, obj, torch.tensor(materials), torch.tensor([1.0, 0.5, 1.0][:len(materials)]),
+                            rest_pos=rest, pitch=PITCH)
+    now = rest.clone()
+    if box_pose is not None:
+        centre = box.mean(dim=0)
+        now[:n_box] = (box - centre) @ box_pose.T + centre
+    graph = set_state(graph, now, now, now, radius=1.6 * PITCH)
+    return graph, n_box
+
+
+def test_surface_normals_point_out_of_a_lattice_and_vanish_inside():
+    box = lattice(3).numpy()  # 27 leaves: the centre one is interior
+    normals = surface_normals(box, PITCH)
+    centre = 13
+    assert np.allclose(normals[centre], 0.0)
+    face = int(np.flatnonzero(np.all(np.isclose(box, [0.1, 0.1, 0.2]), axis=1))[0])  # top face's centre
+    assert np.allclose(normals[face], [0.0, 0.0, 1.0], atol=1e-9)
+    corner = int(np.flatnonzero(np.all(np.isclose(box, [0.0, 0.0, 0.0]), axis=1))[0])
+    assert np.allclose(normals[corner], -np.ones(3) / math.sqrt(3.0), atol=1e-9)
+    rotation = turn(35.0).double().numpy()
+    assert np.allclose(surface_normals(box @ rotation.T, PITCH), normals @ rotation.T, atol=1e-9)
+    slab = lattice(3).numpy()[:9]  # one leaf thick (x = 0): its middle leaf has no side to face
+    assert np.allclose(surface_normals(slab, PITCH)[4], 0.0)
+
+
+def test_a_cloth_leaf_inside_is_moved_out_along_the_face_it_entered():
+    top = PITCH * (BOX_SIDE - 1)  # the top leaves' height
+    cloth = torch.tensor([[0.15, 0.15, top + 0.5], [0.25, 0.15, top + 0.5]])
+    graph, n_box = box_and_cloth(cloth)
+    contact = cloth_contact(graph, clearance=0.2)
+    pos = graph[NODE].pos.clone()
+    pos[n_box] = torch.tensor([0.15, 0.15, top - 0.03])  # 3 cm under the top face's plane
+    pos[n_box + 1] = torch.tensor([0.15, 0.25, top + 0.04])  # above it: left alone
+    graph = set_state(graph, pos, pos, pos, radius=1.6 * PITCH)
+    moved = contact.project(graph, pos)
+    assert torch.allclose(moved[n_box], torch.tensor([0.15, 0.15, top + 0.2 * PITCH]), atol=1e-6)
+    assert torch.equal(moved[n_box + 1], pos[n_box + 1]) and torch.equal(moved[:n_box], pos[:n_box])
+    parents = graph[NODE].is_root
+    assert not torch.equal(moved[parents], pos[parents])  # the cloth's root re-derived from its leaves
+    held = torch.ones(graph[NODE].num_nodes, dtype=torch.bool)
+    held[n_box] = False
+    assert contact.project(graph, pos, movable=held) is pos  # a leaf held still stays
+
+
+def test_the_normals_turn_with_the_box():
+    rotation = turn(40.0)
+    graph, n_box = box_and_cloth(torch.tensor([[0.15, 0.15, 0.9], [0.0, 0.0, 1.2]]), box_pose=rotation)
+    contact = cloth_contact(graph, clearance=0.1)
+    store = graph[NODE]
+    centre = store.pos[:n_box].mean(dim=0)
+    up = rotation @ torch.tensor([0.0, 0.0, 1.0])
+    top_centre = centre + 0.15 * up  # the turned top face's middle, at its leaves' plane
+    pos = store.pos.clone()
+    pos[n_box] = top_centre - 0.02 * up
+    graph = set_state(graph, pos, pos, pos, radius=1.6 * PITCH)
+    moved = contact.project(graph, pos)
+    assert torch.allclose(moved[n_box], top_centre + 0.1 * PITCH * up, atol=1e-5)
+
+
+def test_a_leaf_beside_a_convex_edge_is_not_pushed():
+    """Outside the box beside its side face, below the top plane and behind the top edge's
+    diagonal plane: in front of the side face's plane, so not inside."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_cloth(torch.tensor([[0.33, 0.15, top - 0.02], [0.15, 0.15, 1.0]]))
+    contact = cloth_contact(graph, clearance=0.0)
+    pos = graph[NODE].pos
+    assert contact.project(graph, pos) is pos
+
+
+def test_nothing_to_do_gives_no_contact_and_bad_settings_are_refused():
+    graph, _ = box_and_cloth(torch.tensor([[0.1, 0.1, 1.0]]))
+    assert cloth_contact(graph, 0.1) is not None
+    toy = toy_window(2)  # soft, rigid and static: no cloth
+    assert cloth_contact(set_pitch(toy, 0.05), 0.1) is None
+    with pytest.raises(ValueError, match="clearance"):
+        cloth_contact(graph, -0.1)
+    with pytest.raises(ValueError, match="cloth_clearance"):
+        HRNConfig(cloth_clearance=1.5)
+
+
+def _model() -> HRN:
+    torch.manual_seed(0)
+    model = HRN(HRNConfig(hidden=16, depth=2, effect_dim=8, collision_radius=1.6 * PITCH, rigid_fit=True,
+                          rest_offsets=True))
+    fit_normalizer([toy_window(4, seed=s) for s in range(3)], model.normalizer)
+    return model.eval()
+
+
+@pytest.mark.parametrize("sleep", [None, "default"])
+def test_a_rollout_with_the_rule_keeps_the_falling_cloth_out_and_off_is_unchanged(sleep):
+    """A sheet falling onto a static box, 2 cm a step from 3 cm above its top leaves, stepped by
+    an untrained network: without the rule its leaves end steps inside the box (by
+    :mod:`hrn_pyg.sim.penetration`'s count); with it, every leaf over the top face ends every
+    step at least the clearance above the top leaves' plane, and the count falls to none. The
+    rule at 0 is the plain rollout, bit for bit."""
+    top = PITCH * (BOX_SIDE - 1)
+    ticks = torch.arange(5, dtype=torch.float32) * 0.075
+    x, y = torch.meshgrid(ticks, ticks, indexing="ij")
+    sheet = torch.stack([x.flatten(), y.flatten(), torch.full((25,), top + 0.03)], dim=1)
+    graph, n_box = box_and_cloth(sheet, material=STATIC)
+    store = graph[NODE]
+    fall = torch.tensor([0.0, 0.0, 0.02]) * (torch.arange(store.num_nodes) >= n_box).unsqueeze(-1)
+    graph = set_state(graph, store.pos + 2 * fall, store.pos + fall, store.pos, radius=1.6 * PITCH)
+    plain = _model()
+    kept = with_applied_options(plain, cloth_clearance=0.1)
+    off = with_applied_options(plain, cloth_clearance=0.0)
+    kw = {} if sleep == "default" else {"sleep": None}
+    with torch.no_grad():
+        free = rollout(plain, graph, 8, **kw)
+        held = rollout(kept, graph, 8, **kw)
+        assert torch.equal(rollout(off, graph, 8, **kw), free)
+    leaves = store.is_leaf.nonzero().flatten()
+    solids = object_solids(store.rest_pos[leaves], torch.cat([torch.zeros(n_box), torch.ones(25)]).long(),
+                           torch.tensor([STATIC, CLOTH]), PITCH)
+    assert int(cloth_inside_counts(free[:, leaves], solids).sum()) > 0  # the untrained network lets it in
+    assert int(cloth_inside_counts(held[:, leaves], solids).sum()) == 0
+    assert torch.isfinite(held).all() and torch.equal(held[:, :n_box], free[:, :n_box])  # the box as it was
+    xy = held[:, n_box:n_box + 25, :2]
+    over_box = ((xy > 0.02) & (xy < top - 0.02)).all(-1)  # over the top face, off its edges
+    assert int(over_box.sum()) > 25
+    assert bool((held[:, n_box:n_box + 25, 2][over_box] >= top + 0.1 * PITCH - 1e-5).all())
+
+
+def test_objects_asleep_elsewhere_change_nothing_for_the_rule():
+    """With a rigid cube asleep out of reach, the sleeping rollout runs the held step (the cube
+    held, the rest on a sub-graph) and applies the rule there: the sheet and box move as in the
+    rollout with every object awake, and the cube stays where it was."""
+    top = PITCH * (BOX_SIDE - 1)
+    ticks = torch.arange(5, dtype=torch.float32) * 0.075
+    x, y = torch.meshgrid(ticks, ticks, indexing="ij")
+    sheet = torch.stack([x.flatten(), y.flatten(), torch.full((25,), top + 0.03)], dim=1)
+    graph, n_box = box_and_cloth(sheet, material=STATIC, far_cube=True)
+    store = graph[NODE]
+    moving = ((torch.arange(store.num_nodes) >= n_box) & (torch.arange(store.num_nodes) < n_box + 25)).unsqueeze(-1)
+    fall = torch.tensor([0.0, 0.0, 0.02]) * moving
+    graph = set_state(graph, store.pos + 2 * fall, store.pos + fall, store.pos, radius=1.6 * PITCH)
+    kept = with_applied_options(_model(), cloth_clearance=0.1)
+    with torch.no_grad():
+        awake = rollout(kept, graph, 6, sleep=None)
+        asleep = rollout(kept, graph, 6)
+    sheet_rows = slice(n_box, n_box + 25)
+    assert torch.allclose(asleep[:, sheet_rows], awake[:, sheet_rows], atol=1e-5)
+    assert not torch.allclose(awake[:, sheet_rows], rollout(_model(), graph, 6, sleep=None)[:, sheet_rows], atol=1e-3)
+    far = slice(n_box + 25, n_box + 33)
+    assert torch.equal(asleep[:, far], store.pos[far].expand(6, -1, -1))
