@@ -199,7 +199,8 @@ def build_inputs(
         rest = store.rest_pos if "rest_pos" in store else pos
         known = options.hierarchy
         if (getattr(config, "corotated_rest", False) and "rest_pos" in store
-                and (known is None or known.rest_offset is None)):  # constants given: nothing turns
+                and (known is None or known.rest_offset is None)  # constants given: nothing turns
+                and bool(_deformable_leaves(graph).any())):  # a rigid-only (sub-)graph: nothing to turn
             rest = corotated_rest_positions(graph, rest, pos, options.objects)
         rest_pos = geometric(rest)
     batch = store.batch if "batch" in store else torch.zeros(pos.size(0), dtype=torch.long, device=pos.device)

@@ -107,6 +107,28 @@ def test_the_rest_offsets_are_cached_only_when_nothing_turns():
         assert torch.allclose(a, b, atol=1e-6)
 
 
+def test_a_rigid_only_graph_runs_no_fit_and_steps_as_without_the_option(monkeypatch):
+    """A graph without moving soft or cloth leaves (a rigid scene, or the sub-graph of a sleeping
+    step) turns nothing: the step runs no fit and equals the step without the option."""
+    from hrn_pyg.sim import step as step_module
+
+    rigid = toy_scene()
+    material = rigid[NODE].material.clone()
+    material[:, RIGID] += material[:, SOFT]
+    material[:, SOFT] = 0.0
+    rigid[NODE].material = material
+    rigid = _with_rest(rigid, _turned_away(rigid))
+    plain = _model()
+    corotated = with_applied_options(plain, corotated_rest=True)
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a rigid-only graph ran the co-rotation fit")
+
+    monkeypatch.setattr(step_module, "corotated_rest_positions", no_fit)
+    with torch.no_grad():
+        assert torch.equal(step(corotated, rigid).pos, step(plain, rigid).pos)
+
+
 def test_corotated_rest_needs_rest_offsets():
     with pytest.raises(ValueError, match="corotated_rest"):
         HRNConfig(corotated_rest=True)
