@@ -72,7 +72,7 @@ from hrn_pyg.nn.networks import Network, NetworkConfig, build_network, network_f
 from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.nn.widen import widen_to_pitch_aware
+from hrn_pyg.nn.widen import widen_to_pitch_aware, with_material_heads
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.step import root_of
 from hrn_pyg.utils.checkpoint import (
@@ -816,7 +816,9 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
     ``model_config`` with ``pitch_aware`` from a plain checkpoint starts a pitch-aware model from
     its weights (:func:`hrn_pyg.nn.widen.widen_to_pitch_aware`, the new column's weights zero);
     that new model takes the applied options of ``model_config`` as given (e.g. one pass, where
-    the checkpoint averaged over mirrors).
+    the checkpoint averaged over mirrors). One with ``material_heads`` from a checkpoint without
+    them starts every material's head as a copy of the checkpoint's one head
+    (:func:`hrn_pyg.nn.widen.with_material_heads`).
     """
     model = load_model(path)
     if type(model.config) is not type(model_config):
@@ -825,6 +827,8 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
     if getattr(model_config, "pitch_aware", False) and not model.config.pitch_aware:
         applied = {k: getattr(model_config, k) for k in APPLIED_OPTIONS}
         model = widen_to_pitch_aware(model, reference_pitch=model_config.reference_pitch, **applied)
+    if getattr(model_config, "material_heads", False) and not model.config.material_heads:
+        model = with_material_heads(model)
     saved, given, default = model.config.to_dict(), model_config.to_dict(), type(model_config)().to_dict()
     changed = {k: given[k] for k in given if given[k] != default.get(k) and given[k] != saved.get(k)}
     clashes = sorted(k for k in changed if k not in APPLIED_OPTIONS)

@@ -36,6 +36,8 @@ STATE_LAYOUT = (
     ("gravity", 3),    # unit gravity direction on roots, zero elsewhere (HRN: gravity enters the root)
 )
 STATE_DIM = sum(d for _, d in STATE_LAYOUT)
+#: the columns ``(start, stop)`` of the material's one-hot code in the state vector
+MATERIAL_COLUMNS = (sum(d for _, d in STATE_LAYOUT[:3]), sum(d for _, d in STATE_LAYOUT[:4]))
 #: the extra state column of ``HRNConfig.ground_contact``: height clipped at the collision radius
 GROUND_CONTACT_DIM = 1
 
@@ -123,6 +125,10 @@ class HRNConfig(NetworkConfig):
             to this many pitches in front of the object's surface leaves
             (:mod:`hrn_pyg.sim.cloth_contact`; 0: off). A rule applied after the network in a
             rollout, like ``ground_projection``: the cloth's own model does not change.
+        material_heads: the next-state module has one output network per material (rigid,
+            soft, cloth) instead of one for all (:class:`~hrn_pyg.nn.state.NextStateModule`); a
+            model without them starts one with them from its weights, every head a copy of its
+            one head (:func:`hrn_pyg.nn.widen.with_material_heads`).
     """
 
     hidden: int = 64
@@ -145,6 +151,7 @@ class HRNConfig(NetworkConfig):
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
+    material_heads: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -414,7 +421,7 @@ class HRN(nn.Module):
         self.l2a = PropagationModule(s, d, mlp, name="l2a", rest_offsets=rest)
         self.ws = PropagationModule(s, d, mlp, name="ws", rest_offsets=rest)
         self.a2d = PropagationModule(s, d, mlp, name="a2d", rest_offsets=rest)
-        self.state = NextStateModule(s, d, mlp)
+        self.state = NextStateModule(s, d, mlp, MATERIAL_COLUMNS if config.material_heads else None)
         self.normalizer = Normalizer()
         # [G, 3] signs of the mirror group's reflections: made once, moved with the module, so a
         # step builds no tensor from host data (none to copy, nothing a CUDA graph cannot hold)
@@ -500,7 +507,7 @@ class HRN(nn.Module):
         for (name, edges), d, r in zip(phases, degree, rest_offset):
             phase = getattr(self, name)
             effect = effect + phase(s, effect, x, edges, masks.get(name), b, rest, degree=d, rest_offset=r)
-        return self.state(s, effect, inputs.is_static, masks.get("state"), b)
+        return self.state(s, effect, inputs.is_static, masks.get("state"), b, dense=options.fixed_shape)
 
     def __repr__(self) -> str:
         c = self.config
@@ -511,6 +518,7 @@ class HRN(nn.Module):
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
             + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")
+            + (", material_heads=True" if getattr(c, "material_heads", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")

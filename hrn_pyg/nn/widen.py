@@ -1,6 +1,8 @@
-r"""A plain model's weights as the start of a pitch-aware one.
+r"""A trained model's weights as the start of a larger one: a pitch-aware model from a plain
+one (:func:`widen_to_pitch_aware`), or one with a next-state head per material from one with a
+single head (:func:`with_material_heads`).
 
-A pitch-aware HRN (``HRNConfig.pitch_aware``, :mod:`hrn_pyg.nn.pitch`) reads one more state
+**Pitch-aware.** A pitch-aware HRN (``HRNConfig.pitch_aware``, :mod:`hrn_pyg.nn.pitch`) reads one more state
 column than the plain model it may start from: :math:`\log_2(p / p_{ref})`, appended to the
 state vector :math:`s_i` of every particle. Every learned module takes its state vectors as the
 first blocks of its input (force :math:`[s_i, f_i]`, collision :math:`[s_i, s_j, \dots]`,
@@ -70,3 +72,25 @@ def widen_to_pitch_aware(model: HRN, **changes: Any) -> HRN:
         weights[key] = widen_state_blocks(weights[key], grown // (new_state - old_state), old_state, new_state)
     wide.load_state_dict(weights)  # strict: any other size that changed is an error here
     return wide.train(model.training)
+
+
+def with_material_heads(model: HRN, **changes: Any) -> HRN:
+    """An :class:`HRN` with ``HRNConfig.material_heads`` holding ``model``'s weights: every
+    material's head a copy of ``model``'s one next-state head, so it predicts what ``model`` does,
+    bit for bit, until training makes the heads differ. ``changes``: other fields of the new
+    config that keep every layer's size. The result is in ``model``'s training mode."""
+    if not isinstance(model, HRN):
+        raise ValueError(f"with_material_heads: an HRN is needed, got {type(model).__name__}")
+    if model.config.material_heads:
+        raise ValueError("with_material_heads: the model has material heads already")
+    config = dataclasses.replace(model.config, **{**changes, "material_heads": True})
+    grown = HRN(config)
+    weights = {}
+    for key, value in model.state_dict().items():
+        if key.startswith("state.psi."):
+            for head in range(len(grown.state.heads)):
+                weights[key.replace("state.psi.", f"state.heads.{head}.", 1)] = value.clone()
+        else:
+            weights[key] = value
+    grown.load_state_dict(weights)  # strict: every other weight as it was
+    return grown.train(model.training)
