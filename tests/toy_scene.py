@@ -75,3 +75,15 @@ def toy_window(steps: int, seed: int = 0, separate: bool = False) -> HeteroData:
     graph[NODE].pos_seq = leaf_to_ancestor_mean(full, graph).transpose(0, 1).contiguous()
     graph[NODE].force_seq = torch.zeros(n, steps, 3)
     return graph
+
+
+def toy_model(**config):
+    """A small seeded HRN (hidden 16, effect 8, the rigid fit, plus ``config``) with its
+    normaliser fitted on toy windows, in eval mode."""
+    from hrn_pyg.nn.hrn import HRN, HRNConfig
+    from hrn_pyg.nn.normalizer import fit_normalizer
+
+    torch.manual_seed(0)
+    model = HRN(HRNConfig(**{"hidden": 16, "depth": 2, "effect_dim": 8, "rigid_fit": True, **config}))
+    fit_normalizer([toy_window(4, seed=s) for s in range(3)], model.normalizer)
+    return model.eval()

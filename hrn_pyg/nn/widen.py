@@ -53,11 +53,7 @@ def widen_to_pitch_aware(model: HRN, **changes: Any) -> HRN:
     ``changes``: other fields of the new config (e.g. ``mirror_average=False``); they must keep
     every layer's size. The result is in ``model``'s training mode.
     """
-    if not isinstance(model, HRN):
-        raise ValueError(f"widen_to_pitch_aware: an HRN is needed, got {type(model).__name__}")
-    if model.config.pitch_aware:
-        raise ValueError("widen_to_pitch_aware: the model is pitch-aware already")
-    config = dataclasses.replace(model.config, **{**changes, "pitch_aware": True})
+    config = _grown_config(model, "widen_to_pitch_aware", "pitch_aware", "is pitch-aware already", changes)
     wide = HRN(config)
     old_state, new_state = model.config.state_dim, config.state_dim
     weights = dict(model.state_dict())
@@ -79,11 +75,7 @@ def with_material_heads(model: HRN, **changes: Any) -> HRN:
     material's head a copy of ``model``'s one next-state head, so it predicts what ``model`` does,
     bit for bit, until training makes the heads differ. ``changes``: other fields of the new
     config that keep every layer's size. The result is in ``model``'s training mode."""
-    if not isinstance(model, HRN):
-        raise ValueError(f"with_material_heads: an HRN is needed, got {type(model).__name__}")
-    if model.config.material_heads:
-        raise ValueError("with_material_heads: the model has material heads already")
-    config = dataclasses.replace(model.config, **{**changes, "material_heads": True})
+    config = _grown_config(model, "with_material_heads", "material_heads", "has material heads already", changes)
     grown = HRN(config)
     weights = {}
     for key, value in model.state_dict().items():
@@ -94,3 +86,13 @@ def with_material_heads(model: HRN, **changes: Any) -> HRN:
             weights[key] = value
     grown.load_state_dict(weights)  # strict: every other weight as it was
     return grown.train(model.training)
+
+
+def _grown_config(model: HRN, caller: str, option: str, already: str, changes: dict[str, Any]) -> Any:
+    """``model``'s config with ``option`` switched on and ``changes`` applied; ValueError naming
+    ``caller`` unless ``model`` is an HRN without the option."""
+    if not isinstance(model, HRN):
+        raise ValueError(f"{caller}: an HRN is needed, got {type(model).__name__}")
+    if getattr(model.config, option):
+        raise ValueError(f"{caller}: the model {already}")
+    return dataclasses.replace(model.config, **{**changes, option: True})

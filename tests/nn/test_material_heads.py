@@ -5,26 +5,18 @@ from a one-head checkpoint makes the heads differ."""
 
 import pytest
 import torch
-from toy_scene import toy_scene, toy_window
+from toy_scene import toy_model, toy_scene
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.nn.hrn import HRN, MATERIAL_COLUMNS, HRNConfig
-from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.nn.hrn import MATERIAL_COLUMNS
 from hrn_pyg.nn.state import NextStateModule
 from hrn_pyg.nn.widen import with_material_heads
 from hrn_pyg.sim.rollout import rollout
 
 
-def _model(**kw) -> HRN:
-    torch.manual_seed(0)
-    model = HRN(HRNConfig(hidden=16, depth=2, effect_dim=8, rigid_fit=True, **kw))
-    fit_normalizer([toy_window(4, seed=s) for s in range(3)], model.normalizer)
-    return model.eval()
-
-
-def test_a_model_with_copied_heads_rolls_out_as_the_one_head_model():
-    plain = _model()
+def test_a_model_with_copied_heads_rolls_out_as_the_one_headtoy_model():
+    plain = toy_model()
     heads = with_material_heads(plain).eval()
     assert heads.config.material_heads and len(heads.state.heads) == 3
     for head in heads.state.heads:
@@ -63,7 +55,7 @@ def test_the_material_columns_are_the_states_one_hot_code():
     graph = toy_scene()
     from hrn_pyg.sim.step import build_inputs
 
-    state = build_inputs(_model(), graph).state
+    state = build_inputs(toy_model(), graph).state
     start, stop = MATERIAL_COLUMNS
     assert torch.equal(state[:, start:stop], graph[NODE].material.to(state.dtype))
 

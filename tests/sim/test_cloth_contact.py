@@ -11,13 +11,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from toy_scene import toy_window
+from toy_scene import toy_model, toy_window
 
 from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import NODE, build_structure, set_pitch, set_state
 from hrn_pyg.data.kinds import CLOTH, RIGID, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sim.cloth_contact import cloth_contact, surface_normals
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
 from hrn_pyg.sim.rollout import rollout
@@ -137,11 +136,7 @@ def test_nothing_to_do_gives_no_contact_and_bad_settings_are_refused():
 
 
 def _model() -> HRN:
-    torch.manual_seed(0)
-    model = HRN(HRNConfig(hidden=16, depth=2, effect_dim=8, collision_radius=1.6 * PITCH, rigid_fit=True,
-                          rest_offsets=True))
-    fit_normalizer([toy_window(4, seed=s) for s in range(3)], model.normalizer)
-    return model.eval()
+    return toy_model(collision_radius=1.6 * PITCH, rest_offsets=True)
 
 
 @pytest.mark.parametrize("sleep", [None, "default"])

@@ -5,12 +5,11 @@ or with nothing under the ground, the step is the same bit for bit."""
 import dataclasses
 
 import torch
-from toy_scene import toy_scene, toy_window
+from toy_scene import toy_model, toy_scene
 
 from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import NODE
-from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sim.step import ground_projected_positions, leaf_to_ancestor_mean, predict, step
 
 SOFT, RIGID, STATIC = slice(0, 8), slice(8, 12), slice(12, 14)
@@ -56,10 +55,7 @@ def test_nothing_under_the_ground_is_returned_bit_for_bit():
 
 
 def _model(**kw):
-    torch.manual_seed(0)
-    model = HRN(HRNConfig(hidden=16, depth=2, effect_dim=8, rigid_fit=True, **kw))
-    fit_normalizer([toy_window(4, seed=s) for s in range(3)], model.normalizer)
-    return model.eval()
+    return toy_model(**kw)
 
 
 def test_the_step_keeps_moving_leaves_above_the_ground_and_derives_velocities():
