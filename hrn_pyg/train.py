@@ -524,10 +524,8 @@ def held_rest_sequence(model: HRN, window: HeteroData, seq_len: int, max_steps: 
         for result in iterate(model, graph, steps, None, None, sleep=None):
             frames = [frames[1], frames[2], result.pos]
     held = torch.stack(frames + [frames[-1]] * (seq.size(1) - 3), dim=1)  # [N', T+3, 3]
-    if still is window:
-        return torch.where(rows.view(-1, 1, 1), held, seq)
     out = seq.clone()
-    out[rows] = held
+    out[rows] = held[rows] if still is window else held
     return out
 
 

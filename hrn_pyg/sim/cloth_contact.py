@@ -150,14 +150,14 @@ class ClothContact:
         highest = height.new_full((pair.numel(),), -torch.inf).scatter_reduce(0, slot, height, "amax")
         inside = highest[slot] < self.clearance[c]
         nearest = distance.new_full((pair.numel(),), torch.inf).scatter_reduce(0, slot, distance, "amin")
-        chosen = inside & (distance == nearest[slot])
-        if not bool(chosen.any()):
+        chosen = torch.nonzero(inside & (distance == nearest[slot])).flatten()
+        if chosen.numel() == 0:
             return pos
-        push = (self.clearance[c] - height).unsqueeze(-1) * normal
-        move = torch.zeros_like(pos).index_reduce_(0, c[chosen], push[chosen], "amax", include_self=False)
-        lower = torch.zeros_like(pos).index_reduce_(0, c[chosen], push[chosen], "amin", include_self=False)
-        move = torch.where(move.abs() >= lower.abs(), move, lower)  # the largest push on each axis
-        return leaf_to_ancestor_mean(pos + move, graph)
+        # one push per cloth leaf: its first chosen pair (a tie in distance, or a leaf inside two objects)
+        first = c.new_full((pos.size(0),), c.numel()).scatter_reduce(0, c[chosen], chosen, "amin")
+        picked = first[first < c.numel()]
+        push = (self.clearance[c[picked]] - height[picked]).unsqueeze(-1) * normal[picked]
+        return leaf_to_ancestor_mean(pos.index_add(0, c[picked], push), graph)
 
     def __call__(self, graph: HeteroData, prediction: tuple[Tensor, Tensor, Tensor],
                  movable: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -176,11 +176,13 @@ class ClothContact:
         return projected, torch.where(touched.unsqueeze(-1), fresh, local), velocity
 
 
-def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0) -> ClothContact | None:
+def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
+                  objects: tuple[Tensor, int] | None = None) -> ClothContact | None:
     """The :class:`ClothContact` of ``graph`` (rest shape: its ``rest_pos``, else its ``pos``),
     with ``clearance`` :math:`\\delta` and ``reach`` :math:`\\rho` in pitches of each node's graph
     (one host pass over the objects); None when the scene has no moving cloth or no other object
-    with a surface, so the rule has nothing to do. Needs the graph's pitch."""
+    with a surface, so the rule has nothing to do. Needs the graph's pitch. ``objects``:
+    :func:`~hrn_pyg.sim.step.object_of` of ``graph``, if the caller has it."""
     if not clearance >= 0 or not reach > 0:
         raise ValueError(f"cloth_contact: clearance must be >= 0 and reach > 0, got {clearance}, {reach}")
     store = graph[NODE]
@@ -191,7 +193,7 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0) -> Cl
         return None
     pitch = node_pitch(graph).to(store.pos.dtype)
     rest = store.rest_pos if "rest_pos" in store else store.pos
-    group, count = object_of(graph)
+    group, count = object_of(graph) if objects is None else objects
     normal = torch.zeros_like(rest)
     solid_leaf = leaf & (material != CLOTH)
     points = rest.detach().double().cpu().numpy()

@@ -89,7 +89,7 @@ def iterate(
     options = StepOptions(check=False, objects=objects, collisions=plan.collisions)
     clearance = float(getattr(model.config, "cloth_clearance", 0.0))
     if clearance > 0 and plan.collisions:  # cloth kept out of the objects it falls on
-        options = replace(options, position_projection=cloth_contact(graph, clearance))
+        options = replace(options, position_projection=cloth_contact(graph, clearance, objects=objects))
     search = None
     if sleeper is None:  # every step runs on the whole graph: its hierarchy's constants are found once
         options = replace(options, hierarchy=hierarchy_constants(model, graph))
