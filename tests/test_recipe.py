@@ -4,6 +4,7 @@ that continues where it stopped without redoing finished work."""
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import os
 import signal
@@ -437,3 +438,85 @@ def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart():
     assert args[:9] == ["calibrate", "--data", "data/shapes_drop", "--data", "data/shapes_push", "--data",
                         "data/soft_bounce_shapes", "--data", "data/cube_collision"]
     assert "--scene" not in args and args[args.index("--starts") + 1] == "2"
+
+
+def test_a_model_can_start_from_a_shipped_checkpoint_and_its_bytes_are_its_identity(monkeypatch, tmp_path):
+    import hrn_pyg.checkpoints as checkpoints
+
+    base = {"datasets": {"d": {"scene": "tower", "episodes": 2, "steps": 3}},
+            "models": {"m": {"dataset": "d", "preset": "ours", "start": "tower", "train": {"steps": 2},
+                             "finetune": [{"steps": 3}]}}}
+    recipe = parse_recipe(base)
+    model = recipe.models[0]
+    args = model.train_args(Path("data"), Path("runs"), 0)
+    assert args[args.index("--init-from") + 1] == "tower"
+    assert model.train_args(Path("data"), Path("runs"), 1).count("--init-from") == 1  # the stage before
+    start = recipe.identity(model, 1)["start"]
+    assert start == {"name": "tower", "sha256": hashlib.sha256((CHECKPOINT_DIR / "tower.pt").read_bytes()).hexdigest()}
+    # another file under the same name is another start
+    (tmp_path / "tower.pt").write_bytes(b"other weights")
+    monkeypatch.setattr(checkpoints, "CHECKPOINT_DIR", tmp_path)
+    assert recipe.identity(model, 0)["start"]["sha256"] != start["sha256"]
+    plain = parse_recipe({**base, "models": {"m": {"dataset": "d", "preset": "ours"}}})
+    assert "start" not in plain.identity(plain.models[0])  # the records of other models stay as they were
+    for value in ("../x.pt", 3, "a b"):
+        bad = json.loads(json.dumps(base))
+        bad["models"]["m"]["start"] = value
+        with pytest.raises(ValueError, match="start must be a shipped checkpoint's name"):
+            parse_recipe(bad)
+
+
+def test_a_recipe_can_borrow_another_recipes_datasets(tmp_path):
+    (tmp_path / "main.toml").write_text(_toml_table("datasets.d", {"scene": "tower", "episodes": 2, "steps": 3})
+                                        + _toml_table("models.x", {"dataset": "d", "preset": "ours"}))
+    text = 'datasets_from = "main.toml"\n' + _toml_table("datasets.e", {"scene": "wedge", "episodes": 2, "steps": 3})
+    (tmp_path / "next.toml").write_text(text + _toml_table("models.y", {"dataset": "d", "preset": "ours"})
+                                        + _toml_table("models.y.train", {"extra-datasets": "e"}))
+    recipe = load_recipe(tmp_path / "next.toml")
+    assert [d.name for d in recipe.datasets] == ["d", "e"] and [m.name for m in recipe.models] == ["y"]
+    assert recipe.dataset("d") == load_recipe(tmp_path / "main.toml").dataset("d")
+    (tmp_path / "twice.toml").write_text('datasets_from = "main.toml"\n'
+                                         + _toml_table("datasets.d", {"scene": "wedge", "episodes": 2, "steps": 3})
+                                         + _toml_table("models.y", {"dataset": "d", "preset": "ours"}))
+    with pytest.raises(ValueError, match=r"defines dataset\(s\) \['d'\] that main.toml defines too"):
+        load_recipe(tmp_path / "twice.toml")
+    (tmp_path / "chain.toml").write_text('datasets_from = "next.toml"\n'
+                                         + _toml_table("models.z", {"dataset": "d", "preset": "ours"}))
+    with pytest.raises(ValueError, match="has datasets_from itself"):
+        load_recipe(tmp_path / "chain.toml")
+    (tmp_path / "gone.toml").write_text('datasets_from = "nope.toml"\n')
+    with pytest.raises(FileNotFoundError, match="nope.toml does not exist"):
+        load_recipe(tmp_path / "gone.toml")
+
+
+def test_skip_generate_checks_each_stage_before_it_trains(tmp_path, capsys):
+    """A stage trains while a later stage's dataset is still missing; that stage fails with one
+    line naming the dataset, and the same command continues it once the episodes are there."""
+    text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
+    text += _toml_table("datasets.more", {"scene": "cube_collision", "episodes": 2, "steps": 12, "seed_offset": 10})
+    text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours"})
+    text += _toml_table("models.b.train", {"steps": 2, "checkpoint-every": 2, **TINY_MODEL})
+    text += "[[models.b.finetune]]\n" + "\n".join(_toml_table("x", {"steps": 2, "threads": 1,
+                                                                     "extra-datasets": "more"}).splitlines()[1:]) + "\n"
+    (tmp_path / "recipes.toml").write_text(text)
+    recipe = load_recipe(tmp_path / "recipes.toml")
+    assert main(recipe.dataset("tiny").generate_args(tmp_path / "data") + ["--no-progress"]) == 0
+    assert main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 1
+    failed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("FAILED")]
+    assert len(failed) == 1 and "dataset 'more' missing" in failed[0] and "b.ft1" in failed[0]
+    runs = tmp_path / "runs"
+    assert (runs / "b" / "model.pt").is_file() and not (runs / "b.ft1").exists()
+    assert main(recipe.dataset("more").generate_args(tmp_path / "data") + ["--no-progress"]) == 0
+    before = _mtimes(runs, "b/model.pt")
+    assert main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 0
+    assert (tmp_path / "ckpt" / "b.pt").read_bytes() == (runs / "b.ft1" / "model.pt").read_bytes()
+    assert _mtimes(runs, "b/model.pt") == before  # the first stage was not trained again
+
+
+def test_the_next_generalists_recipe_starts_from_shapes_on_the_shipped_datasets():
+    shipped = load_recipe(REPO / "data" / "recipes.toml")
+    recipe = load_recipe(REPO / "data" / "generalist.toml")
+    model = recipe.models[0]
+    assert model.start == "shapes" and recipe.identity(model)["start"]["sha256"]
+    for name in (model.dataset, *model.extra_datasets()):
+        assert recipe.dataset(name) == shipped.dataset(name)  # the same seeds: nothing generated twice

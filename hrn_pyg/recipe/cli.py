@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=1,
                         help="trainings at once, each its own process; also generate's --workers")
     parser.add_argument("--skip-generate", action="store_true",
-                        help="the datasets are already there (checked, not generated)")
+                        help="the datasets are already there: not generated; each stage's are checked before it trains")
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run and write nothing")
     parser.add_argument("--time-limit", type=float, default=0.0,
                         help="minutes each training may run in this call, 0 for no limit; a rerun continues it")

@@ -169,11 +169,7 @@ class Runner:
 
     def generate(self, dataset: DatasetRecipe) -> None:
         cfg = self.config
-        if cfg.skip_generate:
-            missing = [f for f in dataset.episode_files(cfg.data_dir) if not f.is_file()]
-            if missing and not cfg.dry_run:
-                raise FileNotFoundError(f"--skip-generate: {len(missing)} of {dataset.episodes} episodes of "
-                                        f"dataset {dataset.name!r} missing in {dataset.folder(cfg.data_dir)}")
+        if cfg.skip_generate:  # checked stage by stage, before each trains (check_datasets)
             self.say(f"dataset {dataset.name}: not generated (--skip-generate)")
             return
         args = dataset.generate_args(cfg.data_dir)
@@ -183,6 +179,19 @@ class Runner:
         rc = self.call([*args, "--workers", str(cfg.jobs)])
         if rc != 0:
             raise RuntimeError(f"dataset {dataset.name}: `{shown(args)}` exited with {rc}")
+
+    def check_datasets(self, model: ModelRecipe, stage: int) -> None:
+        """Under ``--skip-generate``: raise ``FileNotFoundError`` unless every episode of the
+        datasets a stage trains on is here. The run checks each model's next stage up front and
+        every later stage before it trains, so a later stage's datasets may still be generating
+        while an earlier stage trains."""
+        for name in (model.dataset, *model.extra_datasets(stage)):
+            dataset = self.recipe.dataset(name)
+            missing = [f for f in dataset.episode_files(self.config.data_dir) if not f.is_file()]
+            if missing:
+                raise FileNotFoundError(f"--skip-generate: {len(missing)} of {dataset.episodes} episodes of "
+                                        f"dataset {name!r} missing in {dataset.folder(self.config.data_dir)} "
+                                        f"(model {model.run_name(stage)})")
 
     # -- training ------------------------------------------------------------------------------
     def train_command(self, model: ModelRecipe, stage: int = 0) -> list[str]:
@@ -219,6 +228,11 @@ class Runner:
         if plan == "done":
             self.say(f"model {label}: trained already ({run / 'model.pt'})")
             return
+        if cfg.skip_generate and not cfg.dry_run:
+            try:
+                self.check_datasets(model, stage)
+            except FileNotFoundError as exc:
+                raise RuntimeError(str(exc)) from None
         if plan == "replace":
             aside = _free_name(run.with_name(f"{run.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}"))
             verb = "would move" if cfg.dry_run else "moved"
@@ -358,6 +372,11 @@ class Runner:
             except RuntimeError as exc:
                 self.say(f"FAILED: {exc}")
                 return [f"dataset {dataset.name}"]
+        if self.config.skip_generate and not self.config.dry_run:
+            for model in self.models:  # each model's next stage to train; later ones before they train
+                stage = next((s for s in range(model.num_stages) if self.plan(model, s) != "done"), None)
+                if stage is not None:
+                    self.check_datasets(model, stage)
         if not self.config.dry_run:
             self.device_name()  # a bad --device fails here, before any training starts
         failed: list[str] = []

@@ -9,7 +9,10 @@ fine-tuning stages (``[[models.<name>.finetune]]``, each a table of train option
 ``[models.<name>.calibrate]`` table of ``hrn-pyg calibrate`` options (a list of strings
 becomes one flag with several values); a model whose dataset is a scene file is calibrated on
 the validation episodes of all its datasets (``--data`` each) rather than on fresh seeds. The train option ``extra-datasets`` names more recipe
-datasets whose episodes join the model's dataset in a stage.
+datasets whose episodes join the model's dataset in a stage. ``start = "<name>"`` starts a
+model's first training from the shipped checkpoint ``<name>`` (``--init-from``; its file's
+digest is part of the model's identity), and a recipe file's top-level ``datasets_from``
+borrows another recipe's datasets.
 
 :func:`load_recipe` and :func:`parse_recipe` validate everything up front: every problem is a
 one-line ``ValueError``. The dataclasses turn the recipe into ``hrn-pyg`` argument lists
@@ -41,8 +44,10 @@ RESERVED_OPTIONS = frozenset({"preset", "data", "out", "resume", "no-progress", 
 #: the train option naming more recipe datasets (comma-separated) whose episodes join the
 #: model's dataset in a stage; the runner passes their folders as ``--extra-data``
 EXTRA_DATASETS = "extra-datasets"
+#: a recipe's top-level key naming another recipe file (relative to it) whose datasets it uses
+DATASETS_FROM = "datasets_from"
 DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch", "set"})
-MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "train", "calibrate", "finetune"})
+MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "start", "train", "calibrate", "finetune"})
 #: calibrate options the runner sets itself; a recipe may not
 RESERVED_CALIBRATE_OPTIONS = frozenset({"scene", "model", "out", "in-place", "device", "no-progress", "data"})
 #: the calibrated copy of a run's model.pt
@@ -111,6 +116,9 @@ class ModelRecipe:
     calibrate: tuple[tuple[str, OptionValue | tuple[str, ...]], ...] = ()
     #: fine-tuning stages after the first training, each its train options
     finetune: tuple[tuple[tuple[str, OptionValue], ...], ...] = ()
+    #: a shipped checkpoint's name the first training starts from (``--init-from``); "" for a
+    #: fresh network
+    start: str = ""
 
     @property
     def num_stages(self) -> int:
@@ -147,6 +155,8 @@ class ModelRecipe:
         so the records of models without them stay as they were)."""
         identity: dict[str, Any] = {"preset": self.preset, "options": [list(o) for o in self.options],
                                     "dataset": dataset.to_dict()}
+        if self.start:
+            identity["start"] = {"name": self.start}
         if stage > 0:
             identity["finetune"] = [[list(o) for o in opts] for opts in self.finetune[:stage]]
         names = [n for s in range(stage + 1) for n in self.extra_datasets(s)]
@@ -165,7 +175,7 @@ class ModelRecipe:
             del options[EXTRA_DATASETS]
             options["extra-data"] = ",".join(str(data_dir / n) for n in self.extra_datasets(stage))
         if stage == 0:
-            return args + option_flags(options, TRAIN_FLAGS)
+            return args + (["--init-from", self.start] if self.start else []) + option_flags(options, TRAIN_FLAGS)
         return args + ["--init-from", str(runs_dir / self.run_name(stage - 1) / "model.pt"),
                        *option_flags(options, TRAIN_FLAGS)]
 
@@ -193,7 +203,13 @@ class Recipe:
     def identity(self, model: ModelRecipe, stage: int = 0) -> dict[str, Any]:
         """:meth:`ModelRecipe.identity` with the recipes of the model's datasets."""
         extra = {n: self.dataset(n) for n in model.extra_datasets()}
-        return model.identity(self.dataset(model.dataset), stage, extra)
+        identity = model.identity(self.dataset(model.dataset), stage, extra)
+        if model.start:  # the start is part of what was trained: a changed file trains again
+            from hrn_pyg.checkpoints import checkpoint_path
+
+            path = checkpoint_path(model.start)
+            identity["start"]["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+        return identity
 
     def select(self, only: Sequence[str] = ()) -> tuple[ModelRecipe, ...]:
         """The models named in ``only`` (all when empty), in recipe order."""
@@ -321,6 +337,9 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
     aliases = table.get("aliases", [])
     if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
         raise ValueError(f"{where}: aliases must be a list of names")
+    start = table.get("start", "")
+    if not isinstance(start, str) or (start and not NAME_PATTERN.fullmatch(start)):
+        raise ValueError(f"{where}: start must be a shipped checkpoint's name, got {start!r}")
     stages = table.get("finetune", [])
     if not isinstance(stages, list) or ("finetune" in table and not stages):
         raise ValueError(f"{where}: 'finetune' must be a list of tables ([[{where}.finetune]])")
@@ -328,7 +347,7 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
                         _parse_options(table.get("train", {}), where),
                         tuple(_check_name(a, f"{where}.aliases") for a in aliases),
                         _parse_calibrate(table["calibrate"], where) if "calibrate" in table else (),
-                        tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)))
+                        tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)), start)
     unknown = sorted(set(model.extra_datasets()) - datasets)
     if unknown:
         raise ValueError(f"{where}: {EXTRA_DATASETS} {unknown} not in [datasets]")
@@ -353,15 +372,34 @@ def parse_recipe(data: Mapping[str, Any]) -> Recipe:
 
 
 def load_recipe(path: str | Path) -> Recipe:
+    """The recipe in the TOML file ``path``. A top-level ``datasets_from = "other.toml"`` (a path
+    relative to ``path``) adds that recipe's datasets to this one's, so a recipe of models that
+    are not shipped (``data/generalist.toml``) trains on the shipped recipe's datasets by name."""
     path = Path(path)
+    data = _read_toml(path)
+    source = data.pop(DATASETS_FROM, None)
+    if source is not None:  # another recipe's datasets, by name, beside this file's own
+        if not isinstance(source, str) or not source:
+            raise ValueError(f"recipe: {path}: {DATASETS_FROM} must be a recipe file's path, got {source!r}")
+        borrowed = _read_toml(path.parent / source)
+        if DATASETS_FROM in borrowed:
+            raise ValueError(f"recipe: {path.parent / source} has {DATASETS_FROM} itself; name the file it reads")
+        own = data.get("datasets", {})
+        both = sorted(set(own) & set(borrowed.get("datasets", {})))
+        if both:
+            raise ValueError(f"recipe: {path} defines dataset(s) {both} that {source} defines too")
+        data["datasets"] = {**borrowed.get("datasets", {}), **own}
+    return parse_recipe(data)
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise FileNotFoundError(f"recipe: {path} does not exist")
     try:
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            return tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"recipe: {path} is not valid TOML ({exc})") from None
-    return parse_recipe(data)
 
 
 def shown(args: Sequence[str]) -> str:
