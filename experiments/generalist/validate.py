@@ -1,0 +1,121 @@
+"""The validation suite a candidate of the next generalist is chosen by: one table per model.
+
+Three benchmarks, all on validation episodes (model selection; the test files are scored once,
+for the final table), each the network alone, one torch thread:
+
+1. **Rest** (``benchmarks/unseen_shapes.py``): 1000 steps from the resting end of the first
+   ``--rest-episodes`` episodes per mesh and material of the unseen validation folders
+   (``unseen_val_rigid``, ``unseen_val_soft``, ``unseen_val_cloth``), scored by the package's
+   stability check; the table gives the episodes that hold per folder.
+2. **The specialists** (the same script): position and shape error at t+15 and t+50 on the
+   validation splits of cube_collision, soft_bounce and multi_material, as multiples of the
+   shipped specialist's.
+3. **Cloth inside** (``benchmarks/cloth_pass_through.py``): cloth leaves inside another object a
+   step on the first six unseen cloth episodes, against pybullet's own count.
+
+Each benchmark writes its JSON under ``--out``; a rerun skips the ones whose JSON is there, so a
+stopped run continues. Run::
+
+    python -m experiments.generalist.validate --model runs/generalist/shapes_next/model.pt \\
+        --data data --out runs/generalist/validation/shapes_next
+
+``--data`` is the folder holding the datasets of ``data/recipes.toml`` and the unseen validation
+folders (``hrn-pyg generate`` commands in the scene files' headers). About 20 minutes a model on
+a fast core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from experiments.command import script_main
+
+REPO = Path(__file__).resolve().parents[2]
+#: the unseen validation folders, by material
+UNSEEN = ("unseen_val_rigid", "unseen_val_soft", "unseen_val_cloth")
+#: the specialists the generalist is held to: (dataset folder, shipped model)
+SPECIALISTS = (("cube_collision", "cube_collision"), ("soft_bounce", "soft_bounce"),
+               ("multi_material", "multi_material"))
+
+
+def commands(model: str, data: Path, out: Path, rest_episodes: int) -> dict[str, list[str]]:
+    """The benchmark command lines, by the name of the JSON each writes under ``out``."""
+    python = [sys.executable]
+    rest = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
+            *[a for name in UNSEEN for a in ("--unseen", str(data / name))],
+            "--own", str(data / "shapes_drop"), "--own-split", "val", "--limit", "2", "--no-time",
+            "--rest-episodes", str(rest_episodes), "--out", str(out / "rest.json")]
+    parity = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
+              *[a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")],
+              "--own-split", "val", "--no-rest", "--no-time", "--out", str(out / "parity.json")]
+    cloth = [*python, str(REPO / "benchmarks" / "cloth_pass_through.py"), "--model", model,
+             "--episodes", str(data / "unseen_val_cloth"), "--limit", "6", "--awake",
+             "--out", str(out / "cloth.json")]
+    return {"rest.json": rest, "parity.json": parity, "cloth.json": cloth}
+
+
+def summary(out: Path) -> str:
+    """The one-table summary of the JSON files under ``out`` (missing ones are left out)."""
+    lines = ["| measure | value |", "|---|---|"]
+    rest = _read(out / "rest.json")
+    if rest and rest.get("rest"):
+        by_folder: dict[str, list[bool]] = {}
+        for row in rest["rest"]:
+            by_folder.setdefault(row["folder"], []).append(bool(row["holds"]))
+        for folder, holds in by_folder.items():
+            lines.append(f"| rest, {folder} | {sum(holds)} of {len(holds)} hold |")
+    parity = _read(out / "parity.json")
+    for name, cells in (parity or {}).get("specialists", {}).items():
+        ratios = [f"{cells[key]['ratio']:.2f}" for key in ("position@15", "shape@15", "position@50", "shape@50")
+                  if key in cells]
+        lines.append(f"| {name} / specialist (position, shape at t+15; position, shape at t+50) | "
+                     f"{', '.join(ratios)} |")
+    cloth = _read(out / "cloth.json")
+    for run in (cloth or {}).get("runs", []):
+        for name, folder in run["folders"].items():
+            model, truth = folder["summary"]["model"], folder["summary"]["pybullet"]
+            said = "diverged" if model is None else f"{model['mean']:.2f}"
+            lines.append(f"| cloth leaves inside a step, {name} (pybullet) | {said} ({truth['mean']:.2f}) |")
+    return "\n".join(lines)
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, help="a checkpoint path or a shipped model's name")
+    parser.add_argument("--data", type=Path, default=Path("data"), help="folder of the episode folders")
+    parser.add_argument("--out", type=Path, required=True, help="folder for the benchmarks' JSON")
+    parser.add_argument("--rest-episodes", type=int, default=6, help="rest episodes per mesh and material")
+    parser.add_argument("--only", default="", help="rest,parity,cloth: run only these (default: all)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.rest_episodes < 1:
+        raise ValueError("--rest-episodes must be >= 1")
+    wanted = {f"{n}.json" for n in args.only.split(",") if n}
+    unknown = sorted(wanted - set(commands("", args.data, args.out, 1)))
+    if unknown:
+        raise ValueError(f"--only: unknown {', '.join(n.removesuffix('.json') for n in unknown)}; "
+                         "choose from rest, parity, cloth")
+    missing = [name for name in (*UNSEEN, "shapes_drop", *(f for f, _ in SPECIALISTS))
+               if not (args.data / name).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(missing)}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, command in commands(args.model, args.data, args.out, args.rest_episodes).items():
+        if (wanted and name not in wanted) or (args.out / name).is_file():
+            continue
+        print(" ".join(command), flush=True)
+        subprocess.run(command, check=True, cwd=REPO)
+    print(summary(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(script_main("python -m experiments.generalist.validate", __doc__.splitlines()[0], add_arguments, run))

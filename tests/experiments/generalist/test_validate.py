@@ -1,0 +1,69 @@
+"""The generalist's validation suite: its commands, a rerun that skips finished benchmarks, the
+summary of their JSON, and one-line errors for bad input."""
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from experiments.command import script_main
+from experiments.generalist import validate
+
+
+def _data(tmp_path):
+    data = tmp_path / "data"
+    for name in (*validate.UNSEEN, "shapes_drop", *(f for f, _ in validate.SPECIALISTS)):
+        (data / name).mkdir(parents=True)
+    return data
+
+
+def test_the_commands_score_the_model_on_validation_episodes_only():
+    cmds = validate.commands("m.pt", Path("d"), Path("o"), 6)
+    assert sorted(cmds) == ["cloth.json", "parity.json", "rest.json"]
+    for name, cmd in cmds.items():
+        assert cmd[cmd.index("--model") + 1] == "m.pt" and cmd[cmd.index("--out") + 1] == str(Path("o") / name)
+        assert not any("test" in word for word in cmd)
+    rest, parity = cmds["rest.json"], cmds["parity.json"]
+    assert [rest[i + 1] for i, w in enumerate(rest) if w == "--unseen"] == [
+        str(Path("d") / n) for n in validate.UNSEEN]
+    assert rest[rest.index("--own-split") + 1] == "val" and parity[parity.index("--own-split") + 1] == "val"
+    assert [parity[i + 1] for i, w in enumerate(parity) if w == "--specialist"] == [
+        f"{Path('d') / 'cube_collision'}=cube_collision", f"{Path('d') / 'soft_bounce'}=soft_bounce",
+        f"{Path('d') / 'multi_material'}=multi_material"]
+
+
+def test_a_rerun_skips_what_is_done_and_sums_it_up(tmp_path, monkeypatch, capsys):
+    data, out = _data(tmp_path), tmp_path / "out"
+    out.mkdir()
+    (out / "rest.json").write_text(json.dumps({"rest": [
+        {"folder": "unseen_val_rigid", "holds": True}, {"folder": "unseen_val_rigid", "holds": False},
+        {"folder": "unseen_val_soft", "holds": True}]}))
+    (out / "parity.json").write_text(json.dumps({"specialists": {"multi_material": {
+        "position@15": {"ratio": 1.634}, "shape@15": {"ratio": 1.2}, "position@50": {"ratio": 1.4},
+        "shape@50": {"ratio": 1.1}}}}))
+    (out / "cloth.json").write_text(json.dumps({"runs": [{"folders": {"unseen_val_cloth": {"summary": {
+        "model": {"mean": 10.5}, "pybullet": {"mean": 0.12}}}}}]}))
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("a finished benchmark ran again")
+
+    monkeypatch.setattr(subprocess, "run", no_run)
+
+    argv = ["--model", "m.pt", "--data", str(data), "--out", str(out)]
+    assert script_main("v", "v", validate.add_arguments, validate.run, argv) == 0
+    table = capsys.readouterr().out
+    assert "| rest, unseen_val_rigid | 1 of 2 hold |" in table and "| rest, unseen_val_soft | 1 of 1 hold |" in table
+    assert "| 1.63, 1.20, 1.40, 1.10 |" in table and "| 10.50 (0.12) |" in table
+
+
+@pytest.mark.parametrize("extra, words", [
+    ([], "no folder unseen_val_rigid"),
+    (["--only", "rest,nope"], "--only: unknown nope"),
+    (["--rest-episodes", "0"], "--rest-episodes must be >= 1"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, extra, words):
+    argv = ["--model", "m.pt", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "o"), *extra]
+    assert script_main("v", "v", validate.add_arguments, validate.run, argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0]
