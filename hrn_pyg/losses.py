@@ -210,6 +210,7 @@ def full_shape_loss(
     group: Tensor,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     scale: Tensor | float = 1.0,
+    fixed: Tensor | None = None,
 ) -> Tensor:
     r"""Fully-connected shape loss (seed paper, Fig. 3 right): all leaf pairs of each object.
 
@@ -224,8 +225,15 @@ def full_shape_loss(
     ``chunk_size x (largest group)`` block of distances is alive at any time. Exact: every
     pair is counted once per order, as in the formula.
 
+    ``fixed`` marks the rows of groups whose predicted distances the network cannot change: the
+    leaves of a rigid object under the model's rigid fit move by one rigid motion of their
+    current positions, so their distances are those of the step's input. Such a group's pairs
+    still count in :math:`P` but their (constant) errors are not computed: the gradient is the
+    same, the value lower by their constant part, and most of the cost of a scene of rigid
+    bodies is saved.
+
     **Shapes:** pred_pos, true_pos :math:`(L, 3)` (typically leaves); group :math:`(L,)` long;
-    returns a scalar.
+    fixed :math:`(L,)` bool, the same for every row of a group; returns a scalar.
     """
     if chunk_size < 1:
         raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -234,11 +242,16 @@ def full_shape_loss(
             f"full_shape_loss: pred_pos, true_pos [L, 3] and group [L] expected, got "
             f"{tuple(pred_pos.shape)}, {tuple(true_pos.shape)}, {tuple(group.shape)}"
         )
+    if fixed is not None and fixed.shape != group.shape:
+        raise ValueError(f"full_shape_loss: fixed must be [L] like group, got {tuple(fixed.shape)}")
+    _, all_counts = torch.unique(group, return_counts=True)
+    n_pairs = int((all_counts * (all_counts - 1)).sum())
+    if fixed is not None:
+        pred_pos, true_pos, group = pred_pos[~fixed], true_pos[~fixed], group[~fixed]
     order = torch.argsort(group, stable=True)
     g, p, t = group[order], pred_pos[order] / scale, true_pos[order] / scale
     _, counts = torch.unique_consecutive(g, return_counts=True)
-    n_pairs = int((counts * (counts - 1)).sum())
-    if n_pairs == 0:
+    if n_pairs == 0 or int((counts * (counts - 1)).sum()) == 0:
         return _zero(pred_pos)
     ends = torch.cumsum(counts, 0)
     starts = (ends - counts).repeat_interleave(counts).tolist()  # group start of each sorted row

@@ -388,6 +388,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     shape_scale = vel_scale.mean()
     c2p = window[CHILD_TO_PARENT].edge_index
     leaf_index, groups = shape_groups(window)
+    # rigid bodies under the rigid fit keep their input's distances: no gradient to compute
+    fixed_shape = store.material[leaf_index, RIGID].bool() if getattr(model.config, "rigid_fit", False) else None
     copies = _batch_size_of(window)
     parts = {"local": seq.new_zeros(()), "global": seq.new_zeros(()), "shape": seq.new_zeros(())}
     if n_samples >= 2:
@@ -420,7 +422,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         loss_global = global_velocity_loss(result.pos, true_next, store.is_root, store.is_leaf, store.is_static, vel_scale)
         if config.shape_loss == "full":
             loss_shape = full_shape_loss(result.pos[leaf_index], true_next[leaf_index], groups,
-                                         config.shape_chunk, shape_scale)
+                                         config.shape_chunk, shape_scale, fixed_shape)
         else:
             loss_shape = group_shape_loss(result.pos, true_next, window[WITHIN_SIBLINGS].edge_index, shape_scale)
         total = total + config.w_local * loss_local + config.w_global * loss_global + config.w_shape * loss_shape

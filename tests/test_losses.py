@@ -81,6 +81,31 @@ def test_full_shape_loss_chunked_gradient_equals_unchunked():
     torch.testing.assert_close(grads[0], grads[1])
 
 
+def test_full_shape_loss_skips_fixed_groups_but_counts_their_pairs():
+    """Fixed groups (rigid bodies under the rigid fit) add no error but keep the normaliser
+    ``P``; the other groups' gradient is that of the whole loss."""
+    gen = torch.Generator().manual_seed(2)
+    true = torch.randn(30, 3, generator=gen)
+    group = torch.randint(0, 4, (30,), generator=gen)
+    fixed = group >= 2  # whole groups
+    pred = (true + 0.1 * torch.randn(30, 3, generator=gen)).requires_grad_(True)
+    whole = full_shape_loss(pred, true, group, chunk_size=5)
+    whole.backward()
+    grad_whole = pred.grad.clone()
+    pred.grad = None
+    skipped = full_shape_loss(pred, true, group, chunk_size=5, fixed=fixed)
+    skipped.backward()
+    counts = torch.bincount(group)
+    pairs, fixed_pairs = int((counts * (counts - 1)).sum()), int((counts[2:] * (counts[2:] - 1)).sum())
+    fixed_part = full_shape_loss(pred[fixed], true[fixed], group[fixed]) * fixed_pairs / pairs
+    assert skipped.item() == pytest.approx((whole - fixed_part).item(), rel=1e-5)
+    torch.testing.assert_close(pred.grad[~fixed], grad_whole[~fixed])
+    assert pred.grad[fixed].abs().max() == 0
+    assert full_shape_loss(pred, true, group, fixed=torch.ones(30, dtype=torch.bool)).item() == 0.0
+    with pytest.raises(ValueError, match="fixed must be"):
+        full_shape_loss(pred, true, group, fixed=fixed[:3])
+
+
 def test_full_shape_covers_more_pairs_than_group_shape():
     g = toy_scene()
     s = g["particle"]

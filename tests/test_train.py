@@ -675,3 +675,31 @@ def test_data_weights_draw_a_folder_in_proportion_and_uniform_draws_stay_as_they
     observed = float(from_small[drawn].double().mean())
     assert abs(observed - expected) < 0.03, (observed, expected, share)  # 4000 draws: 3 sigma < 0.025
     assert _draw_windows(n, 8, 0, 7, 0, cumulative) == _draw_windows(n, 8, 0, 7, 0, cumulative)  # seeded
+
+
+def test_rigid_bodies_under_the_rigid_fit_leave_the_shape_gradient_as_it_was(monkeypatch):
+    """The full shape loss skips the pairs of rigid bodies when the model fits rigid motions
+    (their distances are the input's): every parameter's gradient is the one of the loss that
+    computes them, and the logged shape part is lower by their constant error."""
+    import hrn_pyg.train as train_module
+    from hrn_pyg.losses import full_shape_loss
+    from hrn_pyg.train import window_loss
+    from toy_scene import toy_model, toy_window
+
+    model = toy_model().train()
+    window = toy_window(3, seed=1)
+    config = TrainConfig(data="unused", out="unused", input_noise=0.01)
+
+    def gradients(loss_fn):
+        monkeypatch.setattr(train_module, "full_shape_loss", loss_fn)
+        model.zero_grad()
+        total, parts = window_loss(model, window, 3, config, noise_generator=torch.Generator().manual_seed(0))
+        total.backward()
+        return [p.grad.clone() for p in model.parameters() if p.grad is not None], parts
+
+    skipping, parts = gradients(full_shape_loss)
+    computing, parts_all = gradients(lambda *args, fixed=None: full_shape_loss(*args[:5]))
+    for a, b in zip(skipping, computing):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
+    assert parts["shape"] < parts_all["shape"]  # the noisy input's rigid distances are off the truth
+    assert any(g.abs().sum() > 0 for g in skipping)
