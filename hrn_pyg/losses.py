@@ -229,8 +229,7 @@ def full_shape_loss(
     leaves of a rigid object under the model's rigid fit move by one rigid motion of their
     current positions, so their distances are those of the step's input. Such a group's pairs
     still count in :math:`P` but their (constant) errors are not computed: the gradient is the
-    same, the value lower by their constant part, and most of the cost of a scene of rigid
-    bodies is saved.
+    same and the value lower by their constant part.
 
     **Shapes:** pred_pos, true_pos :math:`(L, 3)` (typically leaves); group :math:`(L,)` long;
     fixed :math:`(L,)` bool, the same for every row of a group; returns a scalar.
