@@ -155,11 +155,12 @@ def test_dry_run_prints_the_commands_and_writes_nothing(tmp_path):
     # "meta", a device the default never is: a runner that ignored it (or put the default in its
     # place) would print another --device, or none
     config = RunConfig(data_dir=tmp_path / "data", runs_dir=tmp_path / "runs", checkpoints_dir=tmp_path / "ckpt",
-                       device="meta", dry_run=True)
+                       device="meta", dry_run=True, threads=3)
     assert Runner(recipe, config, say=lines.append).run() == []
     assert lines[0].startswith("hrn-pyg generate --scene cube_collision --episodes 3 --out ")
     trains = [line for line in lines if line.startswith("hrn-pyg train")]
-    assert len(trains) == 2 and all(t.endswith("--device meta") for t in trains)
+    assert len(trains) == 2 and all(t.endswith("--device meta --threads 3") for t in trains)
+    assert all(t.count("--threads 1") == 1 for t in trains)  # the recipe's, overridden by the last one
     assert all(t.count("--device") == 1 for t in trains)
     assert "--model-hidden 8" in trains[0] and "--resume" not in trains[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["recipes.toml"]
@@ -221,10 +222,10 @@ def test_killed_run_continues_and_finished_work_is_not_redone(tmp_path):
     assert a["device"] == b["device"] == str(default_device())
     assert b["wall_seconds"] > 0 and b["train_invocations"] == 1
 
-    # a third run has nothing to do
+    # a third run has nothing to do, with other threads too (like the device, not part of a run's identity)
     before = {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
               "calls": {n: len(_record(runs / n)["invocations"]) for n in ("a", "b")}}
-    assert main(_args(tmp_path)) == 0
+    assert main(_args(tmp_path, "--threads", "2")) == 0
     assert before == {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
                       "calls": {n: len(_record(runs / n)["invocations"]) for n in ("a", "b")}}
 

@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="passed to train (default: CUDA when available)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="trainings at once, each its own process; also generate's --workers")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch threads of every training in place of the recipe's (0: the recipe's); "
+                             "not part of what makes a run the same, so a stopped run continues with more")
     parser.add_argument("--skip-generate", action="store_true",
                         help="the datasets are already there: not generated; each stage's are checked before it trains")
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run and write nothing")
@@ -37,7 +40,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     return RunConfig(recipe=Path(args.recipe), data_dir=Path(args.data_dir), runs_dir=Path(args.runs_dir),
                      checkpoints_dir=Path(args.checkpoints_dir), device=args.device or None, jobs=args.jobs,
                      skip_generate=args.skip_generate, dry_run=args.dry_run,
-                     only=tuple(n for n in args.only.split(",") if n), time_limit=args.time_limit)
+                     only=tuple(n for n in args.only.split(",") if n), time_limit=args.time_limit,
+                     threads=args.threads)
 
 
 def run(args: argparse.Namespace) -> int:

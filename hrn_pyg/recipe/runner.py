@@ -80,10 +80,15 @@ class RunConfig:
     dry_run: bool = False
     only: tuple[str, ...] = ()
     time_limit: float = 0.0
+    #: torch threads of every training in place of the recipe's (0: the recipe's); like the
+    #: device, not part of what makes two trainings the same
+    threads: int = 0
 
     def __post_init__(self) -> None:
         if self.jobs < 1:
             raise ValueError(f"jobs: must be >= 1, got {self.jobs}")
+        if self.threads < 0:
+            raise ValueError(f"threads: must be >= 0, got {self.threads}")
         if not 0.0 <= self.time_limit < float("inf"):
             raise ValueError(f"time_limit: must be a finite number of minutes >= 0, got {self.time_limit}")
 
@@ -197,6 +202,7 @@ class Runner:
     def train_command(self, model: ModelRecipe, stage: int = 0) -> list[str]:
         args = model.train_args(self.config.data_dir, self.config.runs_dir, stage)
         args += ["--device", self.config.device] if self.config.device else []
+        args += ["--threads", str(self.config.threads)] if self.config.threads else []  # the last one counts
         # a sitting's time limit is how long this call may run, not part of the training
         return args + (["--time-limit", str(self.config.time_limit)] if self.config.time_limit > 0 else [])
 
