@@ -3,20 +3,17 @@ steps, rolled out by the shipped multi_material model and counted against pybull
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from benchmark_script import load_benchmark
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main as cli
 from hrn_pyg.data.io import load_episode
 from hrn_pyg.sim.penetration import cloth_inside_counts, episode_solids
-
-ROOT = Path(__file__).resolve().parents[2]
 
 #: a small sheet just over a box: a few steps, the sheet's leaves around the box's top
 TINY = """
@@ -41,10 +38,7 @@ position = [0.02, 0.0, 0.26]
 
 
 def _benchmark():
-    spec = importlib.util.spec_from_file_location("cloth_pass_through", ROOT / "benchmarks" / "cloth_pass_through.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("cloth_pass_through")
 
 
 @pytest.fixture(scope="module")

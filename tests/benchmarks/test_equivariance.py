@@ -4,26 +4,20 @@ cube_collision episodes."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 import torch
+from benchmark_script import load_benchmark
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import read_episode
 from hrn_pyg.sampling.ensemble import episode_state
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("equivariance", ROOT / "benchmarks" / "equivariance.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("equivariance")
 
 
 def test_the_eight_maps_are_distinct_orthogonal_keep_z_and_form_a_group(bench):

@@ -3,11 +3,11 @@ one short episode each, scored and timed; a second run reuses the episodes it fi
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from benchmark_script import load_benchmark
 
 from hrn_pyg import evaluate
 
@@ -16,10 +16,7 @@ MESHES = ROOT / "data" / "shapes" / "meshes"
 
 
 def _benchmark():
-    spec = importlib.util.spec_from_file_location("many_objects", ROOT / "benchmarks" / "many_objects.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("many_objects")
 
 
 def test_many_objects_scores_and_times_tiny_piles(tmp_path, capsys):

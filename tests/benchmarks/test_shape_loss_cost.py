@@ -3,22 +3,16 @@ with the same gradients, end to end on tiny cube_collision episodes."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
+from benchmark_script import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("shape_loss_cost", ROOT / "benchmarks" / "shape_loss_cost.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("shape_loss_cost")
 
 
 def test_the_two_ways_agree_and_are_timed(bench, tiny_episodes, tmp_path, monkeypatch, capsys):

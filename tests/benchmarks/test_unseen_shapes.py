@@ -3,13 +3,13 @@ of meshes it never saw, against its own (tiny) test split and a specialist."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import sys
 from pathlib import Path
 
 import pytest
+from benchmark_script import load_benchmark
 
 from hrn_pyg.cli import main as cli
 from hrn_pyg.data.scene_file import FileScene, drawn_mesh, read_scene_file
@@ -40,10 +40,7 @@ position = [0.0, 0.0, 0.2]
 
 
 def _benchmark():
-    spec = importlib.util.spec_from_file_location("unseen_shapes", ROOT / "benchmarks" / "unseen_shapes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("unseen_shapes")
 
 
 def test_unseen_shapes_scores_a_tiny_scene(tmp_path, tiny_episodes, monkeypatch, capsys):
