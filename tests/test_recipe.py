@@ -508,6 +508,9 @@ def test_skip_generate_checks_each_stage_before_it_trains(tmp_path, capsys):
     runs = tmp_path / "runs"
     assert (runs / "b" / "model.pt").is_file() and not (runs / "b.ft1").exists()
     assert main(recipe.dataset("more").generate_args(tmp_path / "data") + ["--no-progress"]) == 0
+    lost = recipe.dataset("more").episode_files(tmp_path / "data")[1]  # a seed pybullet lost counts as made
+    lost.unlink()
+    lost.with_suffix(".rejected").write_text("pybullet lost it\n")
     before = _mtimes(runs, "b/model.pt")
     assert main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 0
     assert (tmp_path / "ckpt" / "b.pt").read_bytes() == (runs / "b.ft1" / "model.pt").read_bytes()

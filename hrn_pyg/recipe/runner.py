@@ -192,7 +192,9 @@ class Runner:
         while an earlier stage trains."""
         for name in (model.dataset, *model.extra_datasets(stage)):
             dataset = self.recipe.dataset(name)
-            missing = [f for f in dataset.episode_files(self.config.data_dir) if not f.is_file()]
+            # a seed pybullet lost is done too: `generate` marks it .rejected and never makes it again
+            missing = [f for f in dataset.episode_files(self.config.data_dir)
+                       if not f.is_file() and not f.with_suffix(".rejected").is_file()]
             if missing:
                 raise FileNotFoundError(f"--skip-generate: {len(missing)} of {dataset.episodes} episodes of "
                                         f"dataset {name!r} missing in {dataset.folder(self.config.data_dir)} "
