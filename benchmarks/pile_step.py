@@ -7,8 +7,12 @@ in layers 0.4 m apart, each turned by a random yaw and scaled to a drawn size, a
 pile. pybullet runs one episode of it (``--steps`` model steps); its time per model step is the
 median over those steps of one ``Scene.step`` (``substeps`` physics steps, the leaves read
 back). The model rolls out the same episode from step 2 for ``--steps - 2`` steps, sleeping off
-(every object awake, the network alone), one torch thread; its time per step is the median over
-``--repeats`` rollouts of the rollout's seconds per step. Each model of ``--model`` is timed as
+(every object awake, the network alone), one torch thread; its time per step is the rollout's
+seconds per step. Both are timed ``--repeats`` times, paired: each repeat runs pybullet's episode
+again and then every model's rollout, so a machine whose speed drifts slows both sides of a pair
+alike (the rounds run model by model, each with pybullet's episode beside it). The table gives
+pybullet's median over all rounds, each model's median and the median of its paired ratios (model
+over pybullet); the JSON keeps every round and the paired ratios' range. Each model of ``--model`` is timed as
 it is loaded and, when it averages over the lattice's symmetries (``mirror_average``), also as
 one pass (the same weights, ``mirror_average`` off), so the cost of the average is read off one
 run. The position MSE of the one-pass rollout against the averaged one at the last step says
@@ -30,6 +34,7 @@ import math
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -88,36 +93,64 @@ def time_pybullet(spec, seed: int) -> tuple[dict, float]:
     return episode, statistics.median(durations)
 
 
-def time_rollout(model, state, steps: int, repeats: int) -> tuple[float, torch.Tensor]:
-    """Median seconds per step of a ``steps``-step rollout (sleeping off) and its positions."""
-    seconds = []
+def rollout_seconds(model, state, steps: int) -> tuple[float, torch.Tensor]:
+    """Seconds per step of one ``steps``-step rollout (sleeping off) and its positions."""
     with torch.no_grad():
-        hrn_pyg.rollout(model, state, 2, sleep=None)  # warm-up
-        for _ in range(repeats):
-            start = time.perf_counter()
-            pos = hrn_pyg.rollout(model, state, steps, sleep=None)
-            seconds.append((time.perf_counter() - start) / steps)
-    return statistics.median(seconds), pos
+        start = time.perf_counter()
+        pos = hrn_pyg.rollout(model, state, steps, sleep=None)
+        return (time.perf_counter() - start) / steps, pos
 
 
-def time_compiled(model, state, steps: int, repeats: int) -> tuple[float, float, torch.Tensor]:
-    """Seconds of the first compiled fixed-shape rollout, the median seconds per step of
-    ``repeats`` more, and their positions."""
+def time_rollout(model, state, steps: int, repeats: int) -> tuple[float, torch.Tensor]:
+    """Median seconds per step of ``repeats`` rollouts of ``steps`` steps (after a warm-up)
+    and the last one's positions."""
+    rollout_seconds(model, state, 2)
+    timed = [rollout_seconds(model, state, steps) for _ in range(repeats)]
+    return statistics.median(s for s, _ in timed), timed[-1][1]
+
+
+def compiled_rollout(model, state, steps: int):
+    """A compiled fixed-shape simulator of ``model`` on ``state``, the seconds of its first
+    (compiling) rollout, and a function that times one more rollout as :func:`rollout_seconds`."""
     torch._dynamo.reset()  # each count compiles afresh, as in a new process (not past the recompile limit)
     simulator = FixedShapeSimulator(model, state, FixedShapeConfig(compile=True))
     with torch.no_grad():
         start = time.perf_counter()
         simulator.rollout(steps)
         first = time.perf_counter() - start
-        seconds = []
-        for _ in range(repeats):
+
+    def timed() -> tuple[float, torch.Tensor]:
+        with torch.no_grad():
             start = time.perf_counter()
             pos = simulator.rollout(steps).pos
-            seconds.append((time.perf_counter() - start) / steps)
-    return first, statistics.median(seconds), pos
+            return (time.perf_counter() - start) / steps, pos
+
+    return first, timed
 
 
-def main() -> None:
+def paired_times(bullet: Callable[[], float], runs: dict[str, Callable[[], tuple[float, torch.Tensor]]],
+                 repeats: int) -> tuple[list[float], dict[str, list[float]], dict[str, torch.Tensor]]:
+    """``repeats`` rounds of pybullet's seconds per step and then each run's: the lists in
+    round order and each run's last positions."""
+    bullet_s: list[float] = []
+    seconds: dict[str, list[float]] = {label: [] for label in runs}
+    positions: dict[str, torch.Tensor] = {}
+    for _ in range(repeats):
+        bullet_s.append(bullet())
+        for label, run in runs.items():
+            s, positions[label] = run()
+            seconds[label].append(s)
+    return bullet_s, seconds, positions
+
+
+def paired_summary(bullet_s: list[float], seconds: list[float]) -> dict:
+    """Median milliseconds, the median of the paired ratios to pybullet and their range."""
+    ratios = [m / b for m, b in zip(seconds, bullet_s)]
+    return {"ms": 1e3 * statistics.median(seconds), "x_pybullet": statistics.median(ratios),
+            "x_pybullet_range": [min(ratios), max(ratios)], "ms_runs": [1e3 * v for v in seconds]}
+
+
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", default="2,5,10,20,40", help="object counts, comma-separated")
     parser.add_argument("--material", choices=("rigid", "soft"), default="rigid")
@@ -131,7 +164,7 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true",
                         help="also time one pass as compiled fixed-shape steps (a minute or so to compile per count)")
     parser.add_argument("--out", default=None)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.repeats < 1 or args.steps < 4:
         raise SystemExit("--repeats must be >= 1 and --steps >= 4")
     torch.set_num_threads(args.threads)
@@ -144,29 +177,37 @@ def main() -> None:
             path = Path(tmp) / f"pile_{count}.toml"
             path.write_text(pile_scene_text(count, args.material, meshes, args.pitch, args.steps))
             spec = read_scene_file(path)
-            episode, bullet_s = time_pybullet(spec, args.seed)
+            episode, _ = time_pybullet(spec, args.seed)  # the episode, and pybullet warmed up
             leaves = int(episode["positions"].shape[1])
             state = episode_state(episode, start=2, steps=args.steps - 2)
-            row = {"objects": count, "leaves": leaves, "pybullet_ms": 1e3 * bullet_s, "models": {}}
+            steps = args.steps - 2
+            row = {"objects": count, "leaves": leaves, "pybullet_ms_runs": [], "models": {}}
             for name, model in models.items():
-                variants = {"as loaded": model}
+                # a model's variants share its rounds; a compiled model is timed before the next
+                # compiles (the compiled steps hold no guards on the model)
+                variants = {"as loaded": model.eval()}
                 if getattr(model.config, "mirror_average", False):
                     variants["one pass"] = with_applied_options(model, mirror_average=False).eval()
-                results, positions = {}, {}
-                for label, variant in variants.items():
-                    seconds, positions[label] = time_rollout(variant.eval(), state, args.steps - 2, args.repeats)
-                    results[label] = {"ms": 1e3 * seconds, "x_pybullet": seconds / bullet_s}
                 one_pass = "one pass" if "one pass" in variants else "as loaded"
+                runs = {}
+                for label, variant in variants.items():
+                    rollout_seconds(variant, state, 2)  # warm-up
+                    runs[label] = (lambda v=variant: rollout_seconds(v, state, steps))
+                if args.compile:
+                    compile_s, runs["compiled"] = compiled_rollout(variants[one_pass], state, steps)
+                bullet_s, seconds, positions = paired_times(
+                    lambda: time_pybullet(spec, args.seed)[1], runs, args.repeats)
+                row["pybullet_ms_runs"] += [1e3 * b for b in bullet_s]
+                results = {label: paired_summary(bullet_s, s) for label, s in seconds.items()}
                 if one_pass == "one pass":
                     results["one pass"]["mse_to_averaged_last_step"] = float(
                         ((positions["one pass"][-1] - positions["as loaded"][-1]) ** 2).sum(-1).mean())
                 if args.compile:
-                    eager = positions[one_pass]
-                    first, seconds, pos = time_compiled(variants[one_pass].eval(), state, args.steps - 2, args.repeats)
-                    results["compiled"] = {"ms": 1e3 * seconds, "x_pybullet": seconds / bullet_s,
-                                           "compile_s": first,
-                                           "max_abs_diff_to_eager_m": float((pos - eager).abs().max())}
+                    results["compiled"]["compile_s"] = compile_s
+                    results["compiled"]["max_abs_diff_to_eager_m"] = float(
+                        (positions["compiled"] - positions[one_pass]).abs().max())
                 row["models"][name] = results
+            row["pybullet_ms"] = statistics.median(row["pybullet_ms_runs"])
             rows.append(row)
             print(f"{count} objects, {leaves} leaves: pybullet {row['pybullet_ms']:.2f} ms; "
                   + "; ".join(f"{n} {lab} {r['ms']:.2f} ms" for n, res in row["models"].items() for lab, r in res.items()),
@@ -179,10 +220,12 @@ def main() -> None:
     for row in rows:
         cells = [f"{r['ms']:.2f} ({r['x_pybullet']:.2f}x)" for res in row["models"].values() for r in res.values()]
         print(f"| {row['objects']} | {row['leaves']} | {row['pybullet_ms']:.2f} | " + " | ".join(cells) + " |")
+    result = {"material": args.material, "pitch": args.pitch, "steps": args.steps, "repeats": args.repeats,
+              "threads": args.threads, "seed": args.seed, "meshes": list(meshes), "torch": torch.__version__,
+              "rows": rows}
     if args.out:
-        atomic_write_json(args.out, {"material": args.material, "pitch": args.pitch, "steps": args.steps,
-                                     "repeats": args.repeats, "threads": args.threads, "seed": args.seed,
-                                     "meshes": list(meshes), "torch": torch.__version__, "rows": rows})
+        atomic_write_json(args.out, result)
+    return result
 
 
 if __name__ == "__main__":

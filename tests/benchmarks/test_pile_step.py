@@ -1,0 +1,62 @@
+"""``benchmarks/pile_step.py``: paired rounds of pybullet and model timing, end to end on a tiny pile."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from benchmark_script import load_benchmark
+
+ROOT = Path(__file__).resolve().parents[2]
+MESHES = ROOT / "data" / "shapes" / "meshes"
+
+
+def test_rounds_alternate_pybullet_and_every_run():
+    bench = load_benchmark("pile_step")
+    calls: list[str] = []
+
+    def bullet() -> float:
+        calls.append("pybullet")
+        return 2.0
+
+    def run(label: str, seconds: float):
+        def timed():
+            calls.append(label)
+            return seconds, torch.full((1,), seconds)
+        return timed
+
+    bullet_s, seconds, positions = bench.paired_times(bullet, {"a": run("a", 1.0), "b": run("b", 4.0)}, 3)
+    assert calls == ["pybullet", "a", "b"] * 3
+    assert bullet_s == [2.0] * 3 and seconds == {"a": [1.0] * 3, "b": [4.0] * 3}
+    assert positions["b"].item() == 4.0
+
+
+def test_the_ratio_is_the_median_of_paired_ratios():
+    """A machine that slows down in the middle round slows both sides of that round: the paired
+    ratio stays, where the ratio of the two medians would not."""
+    bench = load_benchmark("pile_step")
+    summary = bench.paired_summary([1.0, 3.0, 1.0, 1.0], [0.9, 2.7, 0.9, 2.0])
+    assert summary["x_pybullet"] == pytest.approx(0.9)
+    assert summary["x_pybullet_range"] == pytest.approx([0.9, 2.0])
+    assert summary["ms"] == pytest.approx(1e3 * 1.45)
+
+
+def test_a_tiny_pile_is_timed_against_pybullet(tmp_path, capsys):
+    bench = load_benchmark("pile_step")
+    out = tmp_path / "pile.json"
+    result = bench.main(["--counts", "2", "--steps", "6", "--repeats", "2", "--meshes",
+                         str(MESHES / "random_hull_000.obj"), "--out", str(out)])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(result))
+    (row,) = result["rows"]
+    assert row["objects"] == 2 and row["leaves"] > 0
+    assert len(row["pybullet_ms_runs"]) == 2 and row["pybullet_ms"] > 0
+    results = row["models"]["shapes"]
+    assert set(results) == {"as loaded", "one pass"}             # the shipped model averages over d4
+    for timing in results.values():
+        assert len(timing["ms_runs"]) == 2 and timing["ms"] > 0
+        low, high = timing["x_pybullet_range"]
+        assert low <= timing["x_pybullet"] <= high
+    assert results["one pass"]["mse_to_averaged_last_step"] >= 0
+    assert "| objects | leaves | pybullet (ms) |" in capsys.readouterr().out
