@@ -18,7 +18,11 @@ time is measured:
 3. **Rest.** For every mesh and material of the unseen folders, the first ``--rest-episodes``
    episodes whose ground truth ends with every object at rest: the model started from the last
    three states and run ``--rest-steps`` steps with no force, scored by the package's stability
-   check (:func:`hrn_pyg.evaluate.rest_check`; objects should rest from step 0).
+   check (:func:`hrn_pyg.evaluate.rest_check`; objects should rest from step 0). With
+   ``--pybullet-rest WORK`` pybullet's own continuation of each such episode (the same seed run
+   ``--rest-steps`` further, in a process of its own, kept under ``WORK`` and reused) is scored
+   by the same check: an episode pybullet does not hold either was not at rest, whatever its last
+   frames' speeds said, and the table says so beside the model's verdict.
 4. **Time.** For one episode per unseen folder: the model's seconds per step over the whole
    episode (the default rollout, objects at rest sleeping; and all awake) and pybullet's seconds
    per step for the same episode (simulated again here), one torch thread, in one process.
@@ -42,6 +46,8 @@ import argparse
 import json
 import platform
 import statistics
+import subprocess
+import sys
 import time
 import tomllib
 from collections import defaultdict
@@ -69,6 +75,7 @@ from hrn_pyg.evaluate import (
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
+from hrn_pyg.sim.stability import stability_report
 from hrn_pyg.utils.files import atomic_write_json
 
 ERRORS = ("position", "shape")
@@ -202,6 +209,58 @@ def specialist_section(model, specialists: dict[str, str], args) -> dict:
     return out
 
 
+REPO = Path(__file__).resolve().parents[1]
+#: largest difference (m) between pybullet's continuation and the episode over the episode's own
+#: frames for the continuation to count as the same run
+REPLAY_TOLERANCE = 1e-4
+
+
+def continuation_path(work: Path, folder: Path, seed: int, extra_steps: int) -> Path:
+    return work / f"{folder.name}_plus{extra_steps}" / f"episode_{seed:06d}.npz"
+
+
+def pybullet_continuation(folder: Path, seed: int, extra_steps: int, work: Path) -> Path:
+    """The episode of ``seed`` in ``folder`` simulated again, ``extra_steps`` model steps longer,
+    by ``hrn-pyg generate`` in a process of its own (pybullet keeps soft-body state per
+    process); written once under ``work`` and reused."""
+    path = continuation_path(work, folder, seed, extra_steps)
+    if path.is_file():
+        return path
+    meta = json.loads((folder / "meta.json").read_text())
+    scene_file = Path(meta.get("scene_file", ""))
+    scene_file = scene_file if scene_file.is_absolute() else REPO / scene_file
+    if not scene_file.is_file():
+        raise FileNotFoundError(f"{folder}: its scene file {meta.get('scene_file')!r} is not there to simulate again")
+    config = meta["config"]
+    command = [sys.executable, "-m", "hrn_pyg.cli", "generate", "--scene-file", str(scene_file),
+               "--episodes", "1", "--first-seed", str(seed), "--episode-steps", str(config["steps"] + extra_steps),
+               "--substeps", str(config["substeps"]), "--physics-hz", str(config["physics_hz"]),
+               "--pitch", str(config["pitch"]), "--out", str(path.parent), "--no-progress"]
+    subprocess.run(command, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+    if not path.is_file():
+        raise RuntimeError(f"{folder} seed {seed}: pybullet lost its continuation ({path.parent})")
+    return path
+
+
+def pybullet_rest_report(episode, continuation, steps: int) -> dict:
+    """The stability check of pybullet's own ``steps`` frames after the end of ``episode``
+    (from ``continuation``, the same seed run longer), as :func:`hrn_pyg.evaluate.rest_check`
+    scores the model from there; ``replay_diff`` is how far the continuation strays from the
+    episode over the episode's frames (above :data:`REPLAY_TOLERANCE` it is not the same run and
+    the report says ``same_run`` false)."""
+    truth = torch.as_tensor(episode["positions"], dtype=torch.float32)
+    longer = torch.as_tensor(continuation["positions"], dtype=torch.float32)
+    end = truth.shape[0]
+    if longer.shape[0] < end - 1 + steps or longer.shape[1:] != truth.shape[1:]:
+        raise ValueError(f"continuation has {tuple(longer.shape)}; needs {end - 1 + steps} frames of "
+                         f"{tuple(truth.shape[1:])}")
+    replay_diff = float((longer[:end] - truth).abs().max())
+    # the state rest_check starts the model from, and pybullet's next ``steps`` frames (every node)
+    graph = episode_state(continuation, start=end - 2, steps=steps)
+    report = stability_report(graph[NODE].pos_seq[:, 3:].transpose(0, 1), graph, settle=0)
+    return {**report, "replay_diff": replay_diff, "same_run": replay_diff <= REPLAY_TOLERANCE}
+
+
 def rest_section(model, folders: list[Path], args) -> list[dict]:
     """1000 steps from the resting end of unseen episodes, a few per (mesh, material)."""
     wanted: dict[str, int] = defaultdict(int)
@@ -219,10 +278,16 @@ def rest_section(model, folders: list[Path], args) -> list[dict]:
                 continue
             for n in names:
                 wanted[n] += 1
-            rows.append({"folder": folder.name, "seed": int(episode["seed"]), "objects": names, **report,
-                         "seconds": time.perf_counter() - t0})
-            print(f"  rest {folder.name} seed {int(episode['seed'])} {names}: "
-                  f"{'holds' if report['holds'] else 'FAILS'}", flush=True)
+            seed = int(episode["seed"])
+            row = {"folder": folder.name, "seed": seed, "objects": names, **report,
+                   "seconds": time.perf_counter() - t0}
+            verdict = "holds" if report["holds"] else "FAILS"
+            if args.pybullet_rest:
+                longer = load_episode(pybullet_continuation(folder, seed, args.rest_steps, Path(args.pybullet_rest)))
+                row["pybullet"] = pybullet_rest_report(episode, longer, args.rest_steps)
+                verdict += f" (pybullet {'holds' if row['pybullet']['holds'] else 'does not hold'})"
+            rows.append(row)
+            print(f"  rest {folder.name} seed {seed} {names}: {verdict}", flush=True)
     return rows
 
 
@@ -288,14 +353,18 @@ def markdown(result: dict, horizons: tuple[int, ...]) -> str:
                                f"({s[f'{m}@{h}']['ratio']:.2f}x)" for h in horizons for m in ERRORS)
             lines.append(f"| {name} | {cells} |")
     if result.get("rest"):
-        lines += ["", "| folder | seed | objects | holds | max move (m) | lowest leaf (m) | rigid shape | drift (m) |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += ["", "| folder | seed | objects | holds | max move (m) | lowest leaf (m) | rigid shape | drift (m) | "
+                  "pybullet holds (drift, m) |", "|---|---|---|---|---|---|---|---|---|"]
         for r in result["rest"]:
+            truth = r.get("pybullet")
+            bullet = "" if truth is None else (f"{'yes' if truth['holds'] else 'no'} ({truth['rest_drift']:.3g})"
+                                               + ("" if truth["same_run"] else ", not the same run"))
             if "error" in r:
-                lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | no | {r['error']} | | | |")
+                lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | no | {r['error']} | | | | {bullet} |")
                 continue
             lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | {'yes' if r['holds'] else 'no'} | "
-                         f"{r['max_move']:.3g} | {r['min_z']:.3g} | {100 * r['rigid_shape']:.2f} % | {r['rest_drift']:.3g} |")
+                         f"{r['max_move']:.3g} | {r['min_z']:.3g} | {100 * r['rigid_shape']:.2f} % | {r['rest_drift']:.3g} | "
+                         f"{bullet} |")
     if result.get("time"):
         lines += ["", "| folder | model ms/step (objects at rest sleep) | all awake | pybullet ms/step | "
                   "pybullet / model |", "|---|---|---|---|---|"]
@@ -321,6 +390,9 @@ def main() -> int:
     parser.add_argument("--rest-episodes", type=int, default=2)
     parser.add_argument("--rest-steps", type=int, default=1000)
     parser.add_argument("--no-rest", action="store_true")
+    parser.add_argument("--pybullet-rest", default=None, metavar="WORK",
+                        help="also score pybullet's own continuation of each rest episode (simulated once "
+                             "into WORK and reused)")
     parser.add_argument("--no-time", action="store_true")
     parser.add_argument("--quick", action="store_true", help="stride 30, no rest or time sections")
     parser.add_argument("--threads", type=int, default=1)

@@ -6,7 +6,10 @@ for the final table), each the network alone, one torch thread:
 1. **Rest** (``benchmarks/unseen_shapes.py``): 1000 steps from the resting end of the first
    ``--rest-episodes`` episodes per mesh and material of the unseen validation folders
    (``unseen_val_rigid``, ``unseen_val_soft``, ``unseen_val_cloth``), scored by the package's
-   stability check; the table gives the episodes that hold per folder.
+   stability check, and pybullet's own continuation of each (the same seed run 1000 steps
+   longer, made once under ``--pybullet-rest``, default ``DATA/pybullet_rest``) scored by the
+   same check; the table gives the episodes that hold per folder, those pybullet holds, and how
+   many of those the model holds.
 2. **The specialists** (the same script): position and shape error at t+15 and t+50 on the
    validation splits of cube_collision, soft_bounce and multi_material, as multiples of the
    shipped specialist's.
@@ -42,13 +45,15 @@ SPECIALISTS = (("cube_collision", "cube_collision"), ("soft_bounce", "soft_bounc
                ("multi_material", "multi_material"))
 
 
-def commands(model: str, data: Path, out: Path, rest_episodes: int) -> dict[str, list[str]]:
+def commands(model: str, data: Path, out: Path, rest_episodes: int,
+             pybullet_rest: Path | None = None) -> dict[str, list[str]]:
     """The benchmark command lines, by the name of the JSON each writes under ``out``."""
     python = [sys.executable]
     rest = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
             *[a for name in UNSEEN for a in ("--unseen", str(data / name))],
             "--own", str(data / "shapes_drop"), "--own-split", "val", "--limit", "2", "--no-time",
-            "--rest-episodes", str(rest_episodes), "--out", str(out / "rest.json")]
+            "--rest-episodes", str(rest_episodes),
+            "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"), "--out", str(out / "rest.json")]
     parity = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
               *[a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")],
               "--own-split", "val", "--no-rest", "--no-time", "--out", str(out / "parity.json")]
@@ -63,11 +68,17 @@ def summary(out: Path) -> str:
     lines = ["| measure | value |", "|---|---|"]
     rest = _read(out / "rest.json")
     if rest and rest.get("rest"):
-        by_folder: dict[str, list[bool]] = {}
+        by_folder: dict[str, list[dict]] = {}
         for row in rest["rest"]:
-            by_folder.setdefault(row["folder"], []).append(bool(row["holds"]))
-        for folder, holds in by_folder.items():
-            lines.append(f"| rest, {folder} | {sum(holds)} of {len(holds)} hold |")
+            by_folder.setdefault(row["folder"], []).append(row)
+        for folder, rows in by_folder.items():
+            said = f"{sum(bool(r['holds']) for r in rows)} of {len(rows)} hold"
+            truth = [r for r in rows if "pybullet" in r]
+            if truth:
+                held = [r for r in truth if r["pybullet"]["holds"] and r["pybullet"]["same_run"]]
+                said += (f"; pybullet holds {len(held)} of {len(truth)}, the model "
+                         f"{sum(bool(r['holds']) for r in held)} of those {len(held)}")
+            lines.append(f"| rest, {folder} | {said} |")
     parity = _read(out / "parity.json")
     for name, cells in (parity or {}).get("specialists", {}).items():
         ratios = [f"{cells[key]['ratio']:.2f}" for key in ("position@15", "shape@15", "position@50", "shape@50")
@@ -93,6 +104,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for the benchmarks' JSON")
     parser.add_argument("--rest-episodes", type=int, default=6, help="rest episodes per mesh and material")
     parser.add_argument("--only", default="", help="rest,parity,cloth: run only these (default: all)")
+    parser.add_argument("--pybullet-rest", type=Path, default=None,
+                        help="folder for pybullet's continuations of the rest episodes, shared by every "
+                             "model (default: DATA/pybullet_rest)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(missing)}")
     args.out.mkdir(parents=True, exist_ok=True)
-    for name, command in commands(args.model, args.data, args.out, args.rest_episodes).items():
+    for name, command in commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest).items():
         if (wanted and name not in wanted) or (args.out / name).is_file():
             continue
         print(" ".join(command), flush=True)

@@ -9,9 +9,11 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from benchmark_script import load_benchmark
 
 from hrn_pyg.cli import main as cli
+from hrn_pyg.data.io import load_episode
 from hrn_pyg.data.scene_file import FileScene, drawn_mesh, read_scene_file
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -84,3 +86,44 @@ def test_unseen_shapes_scores_a_tiny_scene(tmp_path, tiny_episodes, monkeypatch,
     time_row = result["time"][0]                                 # the rollout starts from two states
     assert time_row["steps"] == 10 - 2 and time_row["model_s_per_step"] > 0 and time_row["pybullet_s_per_step"] > 0
     assert "| **all rigid** | 12 |" in result["table"]
+
+
+def test_pybullet_continues_an_episode_and_its_rest_is_scored(tmp_path):
+    """``--pybullet-rest``: the same seed simulated longer repeats the episode's frames, is scored
+    by the stability check over the frames after them, and is made once."""
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY)
+    folder, work = tmp_path / "unseen", tmp_path / "work"
+    assert cli(["generate", "--scene-file", str(scene), "--episodes", "1", "--first-seed", "7",
+                "--out", str(folder), "--no-progress"]) == 0
+    bench = _benchmark()
+    path = bench.pybullet_continuation(folder, 7, 4, work)
+    assert path == bench.continuation_path(work, folder, 7, 4)
+    episode, longer = load_episode(folder / "episode_000007.npz"), load_episode(path)
+    assert longer["positions"].shape[0] == episode["positions"].shape[0] + 4
+    report = bench.pybullet_rest_report(episode, longer, 4)
+    assert report["same_run"] and report["replay_diff"] <= bench.REPLAY_TOLERANCE
+    assert report["finite"] and {"holds", "rest_drift", "min_z", "rigid_shape"} <= set(report)
+    # the drift is that of pybullet's own frames after the model's start state
+    truth = torch.as_tensor(longer["positions"])
+    end = episode["positions"].shape[0]
+    leaf_move = (truth[end - 1:end + 3] - truth[end - 2]).abs().max()
+    assert report["max_move"] == pytest.approx(float(leaf_move), abs=1e-6)
+
+    stamp = path.stat().st_mtime_ns
+    assert bench.pybullet_continuation(folder, 7, 4, work) == path and path.stat().st_mtime_ns == stamp
+
+    moved = dict(episode, positions=episode["positions"] + 0.01)   # not the episode it continues
+    assert not bench.pybullet_rest_report(moved, longer, 4)["same_run"]
+    with pytest.raises(ValueError, match="needs"):
+        bench.pybullet_rest_report(episode, longer, 6)
+
+
+def test_pybullet_continuation_needs_the_scene_file(tmp_path):
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY)
+    folder = tmp_path / "unseen"
+    assert cli(["generate", "--scene-file", str(scene), "--episodes", "1", "--out", str(folder), "--no-progress"]) == 0
+    scene.unlink()
+    with pytest.raises(FileNotFoundError, match="scene file"):
+        _benchmark().pybullet_continuation(folder, 0, 4, tmp_path / "work")

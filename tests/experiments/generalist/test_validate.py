@@ -28,6 +28,9 @@ def test_the_commands_score_the_model_on_validation_episodes_only():
     assert [rest[i + 1] for i, w in enumerate(rest) if w == "--unseen"] == [
         str(Path("d") / n) for n in validate.UNSEEN]
     assert rest[rest.index("--own-split") + 1] == "val" and parity[parity.index("--own-split") + 1] == "val"
+    assert rest[rest.index("--pybullet-rest") + 1] == str(Path("d") / "pybullet_rest")   # shared by every model
+    shared = validate.commands("m.pt", Path("d"), Path("o"), 6, Path("w"))["rest.json"]
+    assert shared[shared.index("--pybullet-rest") + 1] == "w"
     assert [parity[i + 1] for i, w in enumerate(parity) if w == "--specialist"] == [
         f"{Path('d') / 'cube_collision'}=cube_collision", f"{Path('d') / 'soft_bounce'}=soft_bounce",
         f"{Path('d') / 'multi_material'}=multi_material"]
@@ -55,6 +58,19 @@ def test_a_rerun_skips_what_is_done_and_sums_it_up(tmp_path, monkeypatch, capsys
     table = capsys.readouterr().out
     assert "| rest, unseen_val_rigid | 1 of 2 hold |" in table and "| rest, unseen_val_soft | 1 of 1 hold |" in table
     assert "| 1.63, 1.20, 1.40, 1.10 |" in table and "| 10.50 (0.12) |" in table
+
+
+def test_the_summary_counts_the_model_where_pybullet_holds(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    truth = {"holds": True, "same_run": True}
+    (out / "rest.json").write_text(json.dumps({"rest": [
+        {"folder": "unseen_val_soft", "holds": True, "pybullet": truth},
+        {"folder": "unseen_val_soft", "holds": False, "pybullet": truth},
+        {"folder": "unseen_val_soft", "holds": False, "pybullet": dict(truth, holds=False)},
+        {"folder": "unseen_val_soft", "holds": True, "pybullet": dict(truth, same_run=False)}]}))
+    assert ("| rest, unseen_val_soft | 2 of 4 hold; pybullet holds 2 of 4, the model 1 of those 2 |"
+            in validate.summary(out))
 
 
 @pytest.mark.parametrize("extra, words", [
