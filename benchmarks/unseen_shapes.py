@@ -213,16 +213,19 @@ REPO = Path(__file__).resolve().parents[1]
 #: largest difference (m) between pybullet's continuation and the episode over the episode's own
 #: frames for the continuation to count as the same run
 REPLAY_TOLERANCE = 1e-4
+#: the report of a continuation pybullet lost (it left the finite numbers or the bounds)
+LOST = {"holds": False, "same_run": False, "lost": True, "rest_drift": float("nan")}
 
 
 def continuation_path(work: Path, folder: Path, seed: int, extra_steps: int) -> Path:
     return work / f"{folder.name}_plus{extra_steps}" / f"episode_{seed:06d}.npz"
 
 
-def pybullet_continuation(folder: Path, seed: int, extra_steps: int, work: Path) -> Path:
+def pybullet_continuation(folder: Path, seed: int, extra_steps: int, work: Path) -> Path | None:
     """The episode of ``seed`` in ``folder`` simulated again, ``extra_steps`` model steps longer,
     by ``hrn-pyg generate`` in a process of its own (pybullet keeps soft-body state per
-    process); written once under ``work`` and reused."""
+    process); written once under ``work`` and reused. None when pybullet lost it (the seed's
+    ``.rejected`` file there says why)."""
     path = continuation_path(work, folder, seed, extra_steps)
     if path.is_file():
         return path
@@ -237,9 +240,7 @@ def pybullet_continuation(folder: Path, seed: int, extra_steps: int, work: Path)
                "--substeps", str(config["substeps"]), "--physics-hz", str(config["physics_hz"]),
                "--pitch", str(config["pitch"]), "--out", str(path.parent), "--no-progress"]
     subprocess.run(command, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
-    if not path.is_file():
-        raise RuntimeError(f"{folder} seed {seed}: pybullet lost its continuation ({path.parent})")
-    return path
+    return path if path.is_file() else None
 
 
 def pybullet_rest_report(episode, continuation, steps: int) -> dict:
@@ -283,8 +284,9 @@ def rest_section(model, folders: list[Path], args) -> list[dict]:
                    "seconds": time.perf_counter() - t0}
             verdict = "holds" if report["holds"] else "FAILS"
             if args.pybullet_rest:
-                longer = load_episode(pybullet_continuation(folder, seed, args.rest_steps, Path(args.pybullet_rest)))
-                row["pybullet"] = pybullet_rest_report(episode, longer, args.rest_steps)
+                longer = pybullet_continuation(folder, seed, args.rest_steps, Path(args.pybullet_rest))
+                row["pybullet"] = (LOST if longer is None else
+                                   pybullet_rest_report(episode, load_episode(longer), args.rest_steps))
                 verdict += f" (pybullet {'holds' if row['pybullet']['holds'] else 'does not hold'})"
             rows.append(row)
             print(f"  rest {folder.name} seed {seed} {names}: {verdict}", flush=True)
@@ -359,6 +361,7 @@ def markdown(result: dict, horizons: tuple[int, ...]) -> str:
             truth = r.get("pybullet")
             bullet = "" if truth is None else (f"{'yes' if truth['holds'] else 'no'} ({truth['rest_drift']:.3g})"
                                                + ("" if truth["same_run"] else ", not the same run"))
+            bullet = "lost by pybullet" if truth is not None and truth.get("lost") else bullet
             if "error" in r:
                 lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | no | {r['error']} | | | | {bullet} |")
                 continue

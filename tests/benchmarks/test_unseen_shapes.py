@@ -127,3 +127,20 @@ def test_pybullet_continuation_needs_the_scene_file(tmp_path):
     scene.unlink()
     with pytest.raises(FileNotFoundError, match="scene file"):
         _benchmark().pybullet_continuation(folder, 0, 4, tmp_path / "work")
+
+
+def test_a_continuation_pybullet_loses_is_none(tmp_path, monkeypatch):
+    """A seed pybullet loses is marked ``.rejected`` by generate and written nowhere: the
+    continuation is None (the rest table says "lost by pybullet") rather than an error that
+    stops the benchmark."""
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY)
+    folder = tmp_path / "unseen"
+    assert cli(["generate", "--scene-file", str(scene), "--episodes", "1", "--out", str(folder), "--no-progress"]) == 0
+    bench = _benchmark()
+    monkeypatch.setattr(bench.subprocess, "run", lambda *a, **k: None)   # generate writing nothing
+    assert bench.pybullet_continuation(folder, 0, 4, tmp_path / "work") is None
+    row = {"folder": "f", "seed": 0, "objects": ["box (rigid)"], "holds": True, "max_move": 0.0, "min_z": 0.0,
+           "rigid_shape": 0.0, "rest_drift": 0.0, "pybullet": bench.LOST}
+    empty = {"unseen": {"unseen": {}, "unseen_by_material": {}, "own_test": {}}}
+    assert "lost by pybullet" in bench.markdown({**empty, "rest": [row]}, (15, 50))
