@@ -43,6 +43,8 @@ UNSEEN = ("unseen_val_rigid", "unseen_val_soft", "unseen_val_cloth")
 #: the specialists the generalist is held to: (dataset folder, shipped model)
 SPECIALISTS = (("cube_collision", "cube_collision"), ("soft_bounce", "soft_bounce"),
                ("multi_material", "multi_material"))
+#: the four errors compared with a specialist's, in the tables' order
+PARITY_KEYS = ("position@15", "shape@15", "position@50", "shape@50")
 
 
 def commands(model: str, data: Path, out: Path, rest_episodes: int,
@@ -66,35 +68,54 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
 def summary(out: Path) -> str:
     """The one-table summary of the JSON files under ``out`` (missing ones are left out)."""
     lines = ["| measure | value |", "|---|---|"]
-    rest = _read(out / "rest.json")
-    if rest and rest.get("rest"):
-        by_folder: dict[str, list[dict]] = {}
-        for row in rest["rest"]:
-            by_folder.setdefault(row["folder"], []).append(row)
-        for folder, rows in by_folder.items():
-            said = f"{sum(bool(r['holds']) for r in rows)} of {len(rows)} hold"
-            truth = [r for r in rows if "pybullet" in r]
-            if truth:
-                held = [r for r in truth if r["pybullet"]["holds"] and r["pybullet"]["same_run"]]
-                said += (f"; pybullet holds {len(held)} of {len(truth)}, the model "
-                         f"{sum(bool(r['holds']) for r in held)} of those {len(held)}")
-            lines.append(f"| rest, {folder} | {said} |")
-    parity = _read(out / "parity.json")
+    lines += rest_lines(read_json(out / "rest.json"))
+    lines += parity_lines(read_json(out / "parity.json"))
+    lines += cloth_lines(read_json(out / "cloth.json"))
+    return "\n".join(lines)
+
+
+def rest_lines(rest: dict | None) -> list[str]:
+    """Table rows of ``benchmarks/unseen_shapes.py``'s rest check, one per folder: the episodes
+    that hold, and with pybullet's continuation those pybullet holds and how many of those the
+    model holds."""
+    by_folder: dict[str, list[dict]] = {}
+    for row in (rest or {}).get("rest") or []:
+        by_folder.setdefault(row["folder"], []).append(row)
+    lines = []
+    for folder, rows in by_folder.items():
+        said = f"{sum(bool(r['holds']) for r in rows)} of {len(rows)} hold"
+        truth = [r for r in rows if "pybullet" in r]
+        if truth:
+            held = [r for r in truth if r["pybullet"]["holds"] and r["pybullet"]["same_run"]]
+            said += (f"; pybullet holds {len(held)} of {len(truth)}, the model "
+                     f"{sum(bool(r['holds']) for r in held)} of those {len(held)}")
+        lines.append(f"| rest, {folder} | {said} |")
+    return lines
+
+
+def parity_lines(parity: dict | None) -> list[str]:
+    """Table rows of the model's errors as multiples of each specialist's."""
+    lines = []
     for name, cells in (parity or {}).get("specialists", {}).items():
-        ratios = [f"{cells[key]['ratio']:.2f}" for key in ("position@15", "shape@15", "position@50", "shape@50")
-                  if key in cells]
+        ratios = [f"{cells[key]['ratio']:.2f}" for key in PARITY_KEYS if key in cells]
         lines.append(f"| {name} / specialist (position, shape at t+15; position, shape at t+50) | "
                      f"{', '.join(ratios)} |")
-    cloth = _read(out / "cloth.json")
+    return lines
+
+
+def cloth_lines(cloth: dict | None) -> list[str]:
+    """Table rows of ``benchmarks/cloth_pass_through.py``: cloth leaves inside a step, pybullet's beside."""
+    lines = []
     for run in (cloth or {}).get("runs", []):
         for name, folder in run["folders"].items():
             model, truth = folder["summary"]["model"], folder["summary"]["pybullet"]
             said = "diverged" if model is None else f"{model['mean']:.2f}"
             lines.append(f"| cloth leaves inside a step, {name} (pybullet) | {said} ({truth['mean']:.2f}) |")
-    return "\n".join(lines)
+    return lines
 
 
-def _read(path: Path) -> dict | None:
+def read_json(path: Path) -> dict | None:
+    """A JSON file's content, or None when there is no such file."""
     return json.loads(path.read_text()) if path.is_file() else None
 
 
@@ -121,14 +142,21 @@ def run(args: argparse.Namespace) -> int:
                if not (args.data / name).is_dir()]
     if missing:
         raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(missing)}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name, command in commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest).items():
-        if (wanted and name not in wanted) or (args.out / name).is_file():
+    run_missing(commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest),
+                args.out, wanted)
+    print(summary(args.out))
+    return 0
+
+
+def run_missing(named: dict[str, list[str]], out: Path, wanted: set[str]) -> None:
+    """Run each command of ``named`` (by the JSON it writes under ``out``) that is ``wanted``
+    (all when empty) and whose JSON is not there yet, one after the other, in the repository."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, command in named.items():
+        if (wanted and name not in wanted) or (out / name).is_file():
             continue
         print(" ".join(command), flush=True)
         subprocess.run(command, check=True, cwd=REPO)
-    print(summary(args.out))
-    return 0
 
 
 if __name__ == "__main__":

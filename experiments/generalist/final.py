@@ -1,0 +1,259 @@
+"""The final table of the next generalist: its test split, scored once, and every bar of the grown
+generalist measured on the one chosen model.
+
+Run it on the model chosen on validation (``python -m experiments.generalist.validate``), never to
+choose one. Each benchmark writes its JSON under ``--out`` and a rerun runs only the missing ones,
+so the test files are scored once and a stopped run continues where it stopped:
+
+1. ``test.json`` (``benchmarks/unseen_shapes.py``): the test folders, whose meshes were fixed in
+   ``data/shapes/unseen/test3_rigid.toml``, ``test3_soft.toml`` and ``test_cloth.toml`` before
+   any score: position and shape error at t+15 and t+50 beside the model's own test split
+   (``shapes_drop``); 1000 steps from the resting end of the first ``--rest-episodes`` episodes
+   per mesh and material, with pybullet's own continuation of each; the specialists' test splits
+   (cube_collision, soft_bounce, multi_material).
+2. ``test_shapes.json``: the same errors of ``shapes.pt`` (eight network passes a step) on the
+   rigid and soft test folders, so that the one-pass model's errors read as multiples of its.
+3. ``cloth.json`` (``benchmarks/cloth_pass_through.py``): cloth leaves inside another object a
+   step, the first six test cloth episodes, the network alone, pybullet's count beside.
+4. ``pitch.json`` (``benchmarks/accuracy_vs_time.py --model``): the rigid test scene made at
+   pitch 0.025, 0.035, 0.05 and 0.08 m: time per step beside pybullet's, errors and their ratio
+   to 0.05 m.
+5. ``many_objects.json`` (``benchmarks/many_objects.py``): piles of 2, 10, 20 and 40 test meshes,
+   errors as multiples of two objects', time per step, and 1000 steps from rest of each pile.
+6. ``equivariance.json`` (``benchmarks/equivariance.py``): the model under the lattice's eight
+   maps beside ``shapes.pt``'s exact average, on validation windows.
+7. ``pile_rigid.json``, ``pile_soft.json`` (``benchmarks/pile_step.py --compile``): the compiled
+   one-pass step against pybullet's in paired rounds, one thread, every object awake (a quiet
+   machine: pass ``--only pile_rigid,pile_soft`` when it is one).
+
+A test folder that is missing is made first with the ``hrn-pyg generate`` command of its scene
+file (the same seeds; making episodes is not scoring them). The summary gives each bar, the
+value measured and whether it is met. Run::
+
+    python -m experiments.generalist.final --model runs/generalist/shapes_next.ft3/model.pt \\
+        --data data --out runs/generalist/final
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+from experiments.command import script_main
+from experiments.generalist.validate import (PARITY_KEYS, REPO, SPECIALISTS, cloth_lines, read_json,
+                                             rest_lines, run_missing)
+
+#: the test folders: scene file (in the repository) and the first seed of its 40 episodes
+TEST_FOLDERS = {
+    "unseen_test3_rigid": ("data/shapes/unseen/test3_rigid.toml", 6_200_000),
+    "unseen_test3_soft": ("data/shapes/unseen/test3_soft.toml", 7_200_000),
+    "unseen_test_cloth": ("data/shapes/unseen/test_cloth.toml", 6_500_000),
+}
+TEST_EPISODES = 40
+#: the meshes of the rigid test folder, for the piles
+TEST_MESHES = ",".join(f"pybullet_data:random_urdfs/{n}/{n}.obj" for n in ("010", "017", "021"))
+#: the bars (the issue's "Done when")
+PARITY_BAR = 1.5
+UNSEEN_OWN_BAR = 2.0
+ONE_PASS_BAR = 1.2
+PITCH_BAR = 2.0
+MANY_OBJECTS_BAR = 2.0
+RIGID_PILE_BAR = 1.0
+SOFT_PILE_BAR = 0.2
+
+
+def generate_commands(data: Path) -> dict[str, list[str]]:
+    """``hrn-pyg generate`` of each test folder not under ``data`` yet, by folder name."""
+    return {name: [sys.executable, "-m", "hrn_pyg.cli", "generate", "--scene-file", str(REPO / scene), "--episodes", str(TEST_EPISODES),
+                   "--out", str(data / name), "--first-seed", str(seed)]
+            for name, (scene, seed) in TEST_FOLDERS.items() if not (data / name / "meta.json").is_file()}
+
+
+def commands(model: str, data: Path, out: Path, rest_episodes: int,
+             pybullet_rest: Path | None = None) -> dict[str, list[str]]:
+    """The benchmark command lines, by the name of the JSON each writes under ``out``."""
+    python = [sys.executable]
+    bench = REPO / "benchmarks"
+    unseen = [a for name in TEST_FOLDERS for a in ("--unseen", str(data / name))]
+    test = [*python, str(bench / "unseen_shapes.py"), "--model", model, *unseen,
+            "--own", str(data / "shapes_drop"), "--own-split", "test",
+            *[a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")],
+            "--rest-episodes", str(rest_episodes), "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"),
+            "--no-time", "--out", str(out / "test.json")]
+    baseline = [*python, str(bench / "unseen_shapes.py"), "--model", "shapes",
+                *[a for name in TEST_FOLDERS if "cloth" not in name for a in ("--unseen", str(data / name))],
+                "--own", str(data / "shapes_drop"), "--own-split", "test", "--no-rest", "--no-time",
+                "--out", str(out / "test_shapes.json")]
+    cloth = [*python, str(bench / "cloth_pass_through.py"), "--model", model,
+             "--episodes", str(data / "unseen_test_cloth"), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
+    scene, seed = TEST_FOLDERS["unseen_test3_rigid"]
+    pitch = [*python, str(bench / "accuracy_vs_time.py"), "--model", model, "--scene-file", str(REPO / scene),
+             "--first-seed", str(seed), "--work", str(data / "final_pitch"), "--out", str(out / "pitch.json")]
+    many = [*python, str(bench / "many_objects.py"), "--model", model, "--counts", "2,10,20,40",
+            "--meshes", TEST_MESHES, "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
+            "--work", str(data / "final_many_objects"), "--out", str(out / "many_objects.json")]
+    equivariance = [*python, str(bench / "equivariance.py"), "--model", model, "--model", "shapes",
+                    "--data", str(data / "shapes_drop"), "--split", "val", "--episodes", "4",
+                    "--out", str(out / "equivariance.json")]
+    pile_rigid = [*python, str(bench / "pile_step.py"), "--counts", "10", "--material", "rigid", "--model", model,
+                  "--compile", "--out", str(out / "pile_rigid.json")]
+    pile_soft = [*python, str(bench / "pile_step.py"), "--counts", "2,10", "--material", "soft",
+                 "--meshes", "pybullet_data:duck_vhacd.obj", "--model", model, "--compile",
+                 "--out", str(out / "pile_soft.json")]
+    return {"test.json": test, "test_shapes.json": baseline, "cloth.json": cloth, "pitch.json": pitch,
+            "many_objects.json": many, "equivariance.json": equivariance, "pile_rigid.json": pile_rigid,
+            "pile_soft.json": pile_soft}
+
+
+def _row(bar: str, value: str, met: bool | None) -> str:
+    return f"| {bar} | {value} | {'-' if met is None else ('yes' if met else 'no')} |"
+
+
+def _finite(values: list[float]) -> bool:
+    return bool(values) and all(math.isfinite(v) for v in values)
+
+
+def parity_bars(test: dict) -> list[str]:
+    """Each specialist's four errors (position and shape at t+15 and t+50) within 1.5x."""
+    lines = []
+    for name, cells in test.get("specialists", {}).items():
+        ratios = [cells[key]["ratio"] for key in PARITY_KEYS if key in cells]
+        met = _finite(ratios) and len(ratios) == len(PARITY_KEYS) and max(ratios) <= PARITY_BAR
+        lines.append(_row(f"{name} test split / specialist <= {PARITY_BAR} (position, shape at t+15; at t+50)",
+                          ", ".join(f"{r:.2f}" for r in ratios), met))
+    return lines
+
+
+def unseen_bars(test: dict, baseline: dict | None) -> list[str]:
+    """Unseen rigid meshes within 2x of the own test error at t+15; the unseen errors of the
+    rigid and soft folders within 1.2x of ``shapes.pt``'s (position, t+15 and t+50)."""
+    by_material = (test.get("unseen") or {}).get("unseen_by_material", {})
+    lines = []
+    rigid = by_material.get("rigid", {}).get("ratio_position@15")
+    if rigid is not None:
+        lines.append(_row(f"unseen rigid meshes / own test split, position t+15 <= {UNSEEN_OWN_BAR}",
+                          f"{rigid:.2f}", _finite([rigid]) and rigid <= UNSEEN_OWN_BAR))
+    old = ((baseline or {}).get("unseen") or {}).get("unseen_by_material", {})
+    for material in ("rigid", "soft"):
+        if material in by_material and material in old:
+            ratios = [by_material[material][f"position@{h}"] / old[material][f"position@{h}"] for h in (15, 50)]
+            lines.append(_row(f"unseen {material} meshes / shapes.pt, position t+15, t+50 <= {ONE_PASS_BAR}",
+                              ", ".join(f"{r:.2f}" for r in ratios), _finite(ratios) and max(ratios) <= ONE_PASS_BAR))
+    return lines
+
+
+def rest_bars(test: dict, many: dict | None) -> list[str]:
+    """Every test rest episode and every settled pile holds 1000 steps from rest."""
+    rows = test.get("rest") or []
+    lines = []
+    if rows:
+        held = sum(bool(r["holds"]) for r in rows)
+        lines.append(_row("1000 steps from rest: every test episode holds", f"{held} of {len(rows)}", held == len(rows)))
+    piles = [r for row in (many or {}).get("rows", []) for r in (row.get("rest") or [])]
+    if piles:
+        at_rest = [r for r in piles if r["at_rest"]]
+        held = sum(bool(r.get("holds")) for r in at_rest)
+        said = f"{held} of {len(at_rest)} settled piles ({len(piles) - len(at_rest)} not settled)"
+        lines.append(_row("1000 steps from rest: every pile holds", said, held == len(piles)))
+    return lines
+
+
+def pitch_bars(pitch: dict) -> list[str]:
+    """Position errors at 0.025 and 0.08 m within 2x of those at 0.05 m (t+15 and t+50; a rigid
+    body's shape error is rounding, 1e-15 m², so its ratio is not a bar)."""
+    lines = []
+    for row in pitch.get("rows", []):
+        if row["pitch"] in (0.025, 0.08):
+            ratios = [row.get(f"ratio_position@{h}", float("nan")) for h in (15, 50)]
+            lines.append(_row(f"pitch {row['pitch']:g} m / 0.05 m, position t+15, t+50 <= {PITCH_BAR}",
+                              ", ".join(f"{r:.2f}" for r in ratios), _finite(ratios) and max(ratios) <= PITCH_BAR))
+    return lines
+
+
+def many_object_bars(many: dict) -> list[str]:
+    """Piles of 10 or more objects within 2x of two objects' position error (t+15, t+50), and the
+    time per step and leaf at each count (linear growth: reported, not judged)."""
+    lines = []
+    rows = many.get("rows", [])
+    for row in rows:
+        if row["objects"] >= 10:
+            ratios = [row.get(f"ratio_position@{h}", float("nan")) for h in (15, 50)]
+            lines.append(_row(f"{row['objects']} objects / {row.get('ratio_to', 2)}, position t+15, t+50 "
+                              f"<= {MANY_OBJECTS_BAR}", ", ".join(f"{r:.2f}" for r in ratios),
+                              _finite(ratios) and max(ratios) <= MANY_OBJECTS_BAR))
+    if rows:
+        said = "; ".join(f"{r['objects']}: {r['model_ms']:.1f} ms ({1e3 * r['model_ms'] / r['leaves']:.1f} µs a leaf)"
+                         for r in rows)
+        lines.append(_row("time per step by object count", said, None))
+    return lines
+
+
+def pile_bars(pile: dict, soft: bool) -> list[str]:
+    """The compiled one-pass step against pybullet's: a rigid pile of 10 at most pybullet's time,
+    soft piles at least 5x faster."""
+    lines = []
+    for row in pile.get("rows", []):
+        for name, variants in row["models"].items():
+            run = variants.get("compiled")
+            if run is None or (not soft and row["objects"] != 10):
+                continue
+            bar = SOFT_PILE_BAR if soft else RIGID_PILE_BAR
+            lines.append(_row(f"{'soft' if soft else 'rigid'} pile of {row['objects']}, compiled step / pybullet's <= {bar}",
+                              f"{run['x_pybullet']:.2f} ({run['ms']:.2f} ms against {row['pybullet_ms']:.2f})",
+                              run["x_pybullet"] <= bar))
+    return lines
+
+
+def summary(out: Path) -> str:
+    """Each bar with its value and whether it is met, from the JSON under ``out`` (missing ones
+    are left out), then the rest and cloth tables."""
+    lines = ["| bar | value | met |", "|---|---|---|"]
+    test, many = read_json(out / "test.json"), read_json(out / "many_objects.json")
+    if test:
+        lines += parity_bars(test) + unseen_bars(test, read_json(out / "test_shapes.json"))
+    lines += rest_bars(test or {}, many)
+    lines += pitch_bars(read_json(out / "pitch.json") or {})
+    lines += many_object_bars(many or {})
+    lines += pile_bars(read_json(out / "pile_rigid.json") or {}, soft=False)
+    lines += pile_bars(read_json(out / "pile_soft.json") or {}, soft=True)
+    details = ["| measure | value |", "|---|---|", *rest_lines(test), *cloth_lines(read_json(out / "cloth.json"))]
+    return "\n".join(lines) + "\n\n" + "\n".join(details)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, help="the chosen model: a checkpoint path or a shipped name")
+    parser.add_argument("--data", type=Path, default=Path("data"), help="folder of the episode folders")
+    parser.add_argument("--out", type=Path, required=True, help="folder for the benchmarks' JSON")
+    parser.add_argument("--rest-episodes", type=int, default=6, help="rest episodes per mesh and material")
+    parser.add_argument("--only", default="", help="comma-separated benchmark names (test, test_shapes, cloth, "
+                                                   "pitch, many_objects, equivariance, pile_rigid, pile_soft; "
+                                                   "default: all)")
+    parser.add_argument("--pybullet-rest", type=Path, default=None,
+                        help="folder for pybullet's continuations of the rest episodes (default: DATA/pybullet_rest)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.rest_episodes < 1:
+        raise ValueError("--rest-episodes must be >= 1")
+    named = commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest)
+    wanted = {f"{n}.json" for n in args.only.split(",") if n}
+    unknown = sorted(wanted - set(named))
+    if unknown:
+        raise ValueError(f"--only: unknown {', '.join(n.removesuffix('.json') for n in unknown)}; choose from "
+                         + ", ".join(n.removesuffix(".json") for n in named))
+    missing = [name for name in ("shapes_drop", *(f for f, _ in SPECIALISTS)) if not (args.data / name).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(missing)}")
+    for name, command in generate_commands(args.data).items():
+        print(" ".join(command), flush=True)
+        subprocess.run(command, check=True, cwd=REPO)
+    run_missing(named, args.out, wanted)
+    print(summary(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(script_main("python -m experiments.generalist.final", __doc__.splitlines()[0], add_arguments, run))

@@ -1,0 +1,132 @@
+"""The generalist's final table: the test folders it makes and scores, a rerun that scores nothing
+twice, each bar judged from the benchmarks' JSON, and one-line errors for bad input."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from experiments.command import script_main
+from experiments.generalist import final, validate
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def _data(tmp_path, with_test_folders=True):
+    data = tmp_path / "data"
+    for name in ("shapes_drop", *(f for f, _ in validate.SPECIALISTS)):
+        (data / name).mkdir(parents=True)
+    if with_test_folders:
+        for name in final.TEST_FOLDERS:
+            (data / name).mkdir(parents=True)
+            (data / name / "meta.json").write_text("{}")
+    return data
+
+
+def test_the_test_folders_are_those_their_scene_files_name():
+    for name, (scene, seed) in final.TEST_FOLDERS.items():
+        header = (REPO / scene).read_text()
+        assert (f"--scene-file {scene} --episodes {final.TEST_EPISODES} --out data/{name} "
+                f"--first-seed {seed}") in header
+
+
+def test_the_test_split_is_scored_on_test_folders_and_test_splits():
+    cmds = final.commands("m.pt", Path("d"), Path("o"), 6)
+    test, baseline = cmds["test.json"], cmds["test_shapes.json"]
+    assert [test[i + 1] for i, w in enumerate(test) if w == "--unseen"] == [
+        str(Path("d") / n) for n in final.TEST_FOLDERS]
+    assert test[test.index("--own-split") + 1] == "test" and baseline[baseline.index("--own-split") + 1] == "test"
+    assert baseline[baseline.index("--model") + 1] == "shapes" and "--no-rest" in baseline
+    assert not any("cloth" in w for w in baseline)   # shapes.pt never moved cloth
+    assert not any("val" in w for name in ("test.json", "cloth.json") for w in cmds[name])
+    for name, cmd in cmds.items():
+        assert cmd[cmd.index("--out") + 1] == str(Path("o") / name)
+        if name != "test_shapes.json":
+            assert cmd[cmd.index("--model") + 1] == "m.pt"
+
+
+def test_missing_test_folders_are_made_with_their_seeds(tmp_path, monkeypatch):
+    data, out = _data(tmp_path, with_test_folders=False), tmp_path / "out"
+    (data / "unseen_test_cloth").mkdir()
+    (data / "unseen_test_cloth" / "meta.json").write_text("{}")   # made already
+    ran = []
+    monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
+    argv = ["--model", "m.pt", "--data", str(data), "--out", str(out), "--only", "pitch"]
+    assert script_main("f", "f", final.add_arguments, final.run, argv) == 0
+    made = [c for c in ran if "generate" in c]
+    assert [c[c.index("--out") + 1] for c in made] == [str(data / "unseen_test3_rigid"), str(data / "unseen_test3_soft")]
+    assert [c[c.index("--first-seed") + 1] for c in made] == ["6200000", "7200000"]
+    assert made[0][:3] == [sys.executable, "-m", "hrn_pyg.cli"]
+    scored = [c for c in ran if "generate" not in c]
+    assert len(scored) == 1 and scored[0][scored[0].index("--out") + 1] == str(out / "pitch.json")
+
+
+def _write(out, name, content):
+    (out / name).write_text(json.dumps(content))
+
+
+def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch, capsys):
+    data, out = _data(tmp_path), tmp_path / "out"
+    out.mkdir()
+    ratios = lambda *r: {k: {"ratio": v} for k, v in zip(validate.PARITY_KEYS, r)}   # noqa: E731
+    by_material = lambda rigid15, rigid50: {"rigid": {"position@15": rigid15, "position@50": rigid50,   # noqa: E731
+                                                      "ratio_position@15": 1.3}}
+    _write(out, "test.json", {
+        "specialists": {"cube_collision": ratios(1.2, 1.1, 1.4, 1.5), "multi_material": ratios(1.4, 1.2, 1.3, 1.6)},
+        "unseen": {"unseen_by_material": by_material(1.1e-3, 2.0e-3)},
+        "rest": [{"folder": "unseen_test3_rigid", "holds": True}, {"folder": "unseen_test3_soft", "holds": False}]})
+    _write(out, "test_shapes.json", {"unseen": {"unseen_by_material": by_material(1.0e-3, 1.0e-3)}})
+    _write(out, "pitch.json", {"rows": [{"pitch": 0.025, "ratio_position@15": 1.1, "ratio_position@50": 1.9},
+                                        {"pitch": 0.05, "ratio_position@15": 1.0, "ratio_position@50": 1.0},
+                                        {"pitch": 0.08, "ratio_position@15": 2.5, "ratio_position@50": 1.0}]})
+    _write(out, "many_objects.json", {"rows": [
+        {"objects": 2, "leaves": 100, "model_ms": 2.0, "rest": [{"at_rest": True, "holds": True}]},
+        {"objects": 10, "leaves": 500, "model_ms": 8.0, "ratio_to": 2, "ratio_position@15": 1.2,
+         "ratio_position@50": 1.5, "rest": [{"at_rest": True, "holds": True}, {"at_rest": False}]}]})
+    pile = lambda n, x: {"objects": n, "pybullet_ms": 2.0, "models": {"m.pt": {"compiled": {"x_pybullet": x, "ms": 2 * x}}}}  # noqa: E731
+    _write(out, "pile_rigid.json", {"rows": [pile(10, 0.97)]})
+    _write(out, "pile_soft.json", {"rows": [pile(2, 0.12), pile(10, 0.25)]})
+    for name in ("cloth.json", "equivariance.json"):
+        _write(out, name, {})
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("a finished benchmark ran again")
+
+    monkeypatch.setattr(subprocess, "run", no_run)
+    argv = ["--model", "m.pt", "--data", str(data), "--out", str(out)]
+    assert script_main("f", "f", final.add_arguments, final.run, argv) == 0
+    table = capsys.readouterr().out
+    met = {line.split(" | ")[0].strip("| "): line.rsplit(" | ", 1)[1].strip(" |")
+           for line in table.splitlines() if line.startswith("| ") and line.endswith(("yes |", "no |", "- |"))}
+    expected = {
+        "cube_collision test split / specialist <= 1.5 (position, shape at t+15; at t+50)": "yes",
+        "multi_material test split / specialist <= 1.5 (position, shape at t+15; at t+50)": "no",
+        "unseen rigid meshes / own test split, position t+15 <= 2.0": "yes",
+        "unseen rigid meshes / shapes.pt, position t+15, t+50 <= 1.2": "no",   # 1.10, 2.00
+        "1000 steps from rest: every test episode holds": "no",
+        "1000 steps from rest: every pile holds": "no",   # a pile that never settled is not held
+        "pitch 0.025 m / 0.05 m, position t+15, t+50 <= 2.0": "yes",
+        "pitch 0.08 m / 0.05 m, position t+15, t+50 <= 2.0": "no",
+        "10 objects / 2, position t+15, t+50 <= 2.0": "yes",
+        "time per step by object count": "-",
+        "rigid pile of 10, compiled step / pybullet's <= 1.0": "yes",
+        "soft pile of 2, compiled step / pybullet's <= 0.2": "yes",
+        "soft pile of 10, compiled step / pybullet's <= 0.2": "no",
+    }
+    assert met == expected
+    assert "| 1000 steps from rest: every pile holds | 2 of 2 settled piles (1 not settled) | no |" in table
+    assert "| rest, unseen_test3_soft | 0 of 1 hold |" in table
+
+
+@pytest.mark.parametrize("extra, words", [
+    ([], "no folder shapes_drop"),
+    (["--only", "test,nope"], "--only: unknown nope"),
+    (["--rest-episodes", "0"], "--rest-episodes must be >= 1"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, extra, words):
+    argv = ["--model", "m.pt", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "o"), *extra]
+    assert script_main("f", "f", final.add_arguments, final.run, argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0]
