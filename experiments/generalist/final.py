@@ -1,5 +1,4 @@
-"""The final table of the next generalist: its test split, scored once, and every bar of the grown
-generalist measured on the one chosen model.
+"""The next generalist's final table: its test split scored once, every bar judged on one model.
 
 Run it on the model chosen on validation (``python -m experiments.generalist.validate``), never to
 choose one. Each benchmark writes its JSON under ``--out`` and a rerun runs only the missing ones,
