@@ -359,9 +359,9 @@ def markdown(result: dict, horizons: tuple[int, ...]) -> str:
                   "pybullet holds (drift, m) |", "|---|---|---|---|---|---|---|---|---|"]
         for r in result["rest"]:
             truth = r.get("pybullet")
-            bullet = "" if truth is None else (f"{'yes' if truth['holds'] else 'no'} ({truth['rest_drift']:.3g})"
-                                               + ("" if truth["same_run"] else ", not the same run"))
-            bullet = "lost by pybullet" if truth is not None and truth.get("lost") else bullet
+            bullet = ("" if truth is None else "lost by pybullet" if truth.get("lost") else
+                      f"{'yes' if truth['holds'] else 'no'} ({truth['rest_drift']:.3g})"
+                      + ("" if truth["same_run"] else ", not the same run"))
             if "error" in r:
                 lines.append(f"| {r['folder']} | {r['seed']} | {', '.join(r['objects'])} | no | {r['error']} | | | | {bullet} |")
                 continue

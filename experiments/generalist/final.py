@@ -59,6 +59,8 @@ PARITY_BAR = 1.5
 UNSEEN_OWN_BAR = 2.0
 ONE_PASS_BAR = 1.2
 PITCH_BAR = 2.0
+#: the pitches (m) whose errors are held to PITCH_BAR times those at 0.05 m
+BAR_PITCHES = (0.025, 0.08)
 MANY_OBJECTS_BAR = 2.0
 RIGID_PILE_BAR = 1.0
 SOFT_PILE_BAR = 0.2
@@ -165,7 +167,7 @@ def pitch_bars(pitch: dict) -> list[str]:
     body's shape error is rounding, 1e-15 m², so its ratio is not a bar)."""
     lines = []
     for row in pitch.get("rows", []):
-        if row["pitch"] in (0.025, 0.08):
+        if any(math.isclose(row["pitch"], p) for p in BAR_PITCHES):
             ratios = [row.get(f"ratio_position@{h}", float("nan")) for h in (15, 50)]
             lines.append(_row(f"pitch {row['pitch']:g} m / 0.05 m, position t+15, t+50 <= {PITCH_BAR}",
                               ", ".join(f"{r:.2f}" for r in ratios), _finite(ratios) and max(ratios) <= PITCH_BAR))
