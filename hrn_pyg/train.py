@@ -787,8 +787,8 @@ def _checkpoint_to_resume(last: Path, resume: bool) -> dict[str, Any] | None:
 def _initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: EpisodeWindows,
                    ckpt: dict[str, Any] | None) -> Network:
     """The network the steps start from: the checkpoint's when resuming, else the model of
-    ``init_from`` or a fresh one with its normaliser fitted; under ``augment_symmetry`` a new
-    run's normaliser is made isotropic."""
+    ``init_from`` or a fresh one with its normaliser fitted; under ``augment_symmetry``, and for
+    an equivariant network, a new run's normaliser is made isotropic."""
     torch.manual_seed(config.seed)
     # built in every case: its initialisation advances the global random stream, which the
     # dropout masks of a run from init_from then continue
@@ -801,7 +801,7 @@ def _initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: 
         model = _fine_tuned_start(config.init_from, model_config)
     else:
         _fit_to_training_windows(model, train_set, config.seed)
-    if config.augment_symmetry:
+    if config.augment_symmetry or getattr(model.config, "equivariant", False):
         isotropic_horizontal(model.normalizer)
     return model
 

@@ -244,6 +244,30 @@ def test_symmetry_augmentation_is_seeded_and_leaves_no_horizontal_mean(tiny_epis
     assert not torch.equal(base.root_mean[:2], torch.zeros(2))
 
 
+def test_an_equivariant_network_trains_with_an_isotropic_normaliser_and_resumes(tiny_episodes, tmp_path):
+    """Without augmentation too, an equivariant model's normaliser is made isotropic (else its
+    inputs and decoding would have a horizontal direction); it trains, saves, loads and
+    resumes like any HRN, and a fine-tuning from it keeps its settings."""
+    config = dataclasses.replace(SMALL, equivariant=True, vector_channels=3)
+    train(_config(tiny_episodes, tmp_path / "eq", seq_end=2), config, progress=False, stop_after=3)
+    train(_config(tiny_episodes, tmp_path / "eq", seq_end=2), config, progress=False, resume=True)
+    model = load_model(tmp_path / "eq" / "model.pt")
+    assert model.config.equivariant and model.config.vector_channels == 3
+    norm = model.normalizer
+    for mean, std in (("velocity_mean", "velocity_std"), ("root_mean", "root_std"), ("local_mean", "local_std")):
+        assert torch.equal(getattr(norm, mean)[:2], torch.zeros(2)), mean
+        assert getattr(norm, std)[0] == getattr(norm, std)[1], std
+    assert norm.force_std[0] == norm.force_std[1]
+    losses = [l for _, l in _losses(tmp_path / "eq")]
+    assert len(losses) == 6 and all(math.isfinite(l) for l in losses)
+    start = str(tmp_path / "eq" / "model.pt")
+    train(_config(tiny_episodes, tmp_path / "tuned", steps=1, init_from=start), SMALL, progress=False)
+    assert load_model(tmp_path / "tuned" / "model.pt").config == model.config  # the checkpoint's settings hold
+    with pytest.raises(ValueError, match="differ from it: vector_channels"):
+        train(_config(tiny_episodes, tmp_path / "clash", steps=1, init_from=start),
+              dataclasses.replace(SMALL, vector_channels=5), progress=False)
+
+
 def _energy_column(out):
     with open(out / "metrics.csv") as fh:
         return [r["energy"] for r in csv.DictReader(fh)]

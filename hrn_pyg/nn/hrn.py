@@ -11,7 +11,9 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
+from hrn_pyg.nn import equivariant
 from hrn_pyg.nn.collision import CollisionModule
+from hrn_pyg.nn.equivariant.features import invariant_state
 from hrn_pyg.nn.force import ForceModule
 from hrn_pyg.nn.history import HistoryModule
 from hrn_pyg.nn.mlp import NetworkConfig, dropout_mask, in_degree
@@ -131,6 +133,17 @@ class HRNConfig(NetworkConfig):
             soft, cloth) instead of one for all (:class:`~hrn_pyg.nn.state.NextStateModule`); a
             model without them starts one with them from its weights, every head a copy of its
             one head (:func:`hrn_pyg.nn.widen.with_material_heads`).
+        equivariant: build the network of :mod:`hrn_pyg.nn.equivariant`: its MLPs read only
+            quantities that no turn about z and no mirror in a vertical plane changes (heights,
+            vertical components, horizontal lengths and dot products), its horizontal outputs
+            are weighted sums of the scene's horizontal vectors, and effects carry
+            ``vector_channels`` horizontal vectors beside the scalar effect. One pass is then
+            exactly equivariant under every turn about z and every mirror (the lattice's eight
+            maps among them): no average over passes, and no direction of its own to drift in.
+            Its normaliser must be isotropic in the horizontal
+            (:func:`hrn_pyg.nn.normalizer.isotropic_horizontal`; training makes it so). Not
+            with ``mirror_average`` or ``material_heads``.
+        vector_channels: :math:`C`, the horizontal vectors each effect carries (``equivariant``).
     """
 
     hidden: int = 64
@@ -154,6 +167,8 @@ class HRNConfig(NetworkConfig):
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
     material_heads: bool = False
+    equivariant: bool = False
+    vector_channels: int = 8
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -176,6 +191,11 @@ class HRNConfig(NetworkConfig):
             raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
         if not 0.0 <= self.cloth_clearance < 1.0:
             raise ValueError(f"HRNConfig.cloth_clearance must be in [0, 1) pitches, got {self.cloth_clearance}")
+        if self.vector_channels < 1:
+            raise ValueError(f"HRNConfig.vector_channels must be >= 1, got {self.vector_channels}")
+        if self.equivariant and (self.mirror_average or self.material_heads):
+            raise ValueError("HRNConfig.equivariant is exact in one pass and has one output network: "
+                             "not with mirror_average or material_heads")
         if not 0.0 < self.reference_pitch < float("inf"):
             raise ValueError(f"HRNConfig.reference_pitch must be a finite number > 0, got {self.reference_pitch}")
 
@@ -415,6 +435,16 @@ class HRN(nn.Module):
     def __init__(self, config: HRNConfig = HRNConfig()) -> None:
         super().__init__()
         self.config = config
+        if config.equivariant:
+            self._build_equivariant(config)
+        else:
+            self._build_plain(config)
+        self.normalizer = Normalizer()
+        # [G, 3] signs of the mirror group's reflections: made once, moved with the module, so a
+        # step builds no tensor from host data (none to copy, nothing a CUDA graph cannot hold)
+        self.register_buffer("mirror_signs", reflection_signs(config.mirror_group), persistent=False)
+
+    def _build_plain(self, config: HRNConfig) -> None:
         s, d, mlp = config.state_dim, config.effect_dim, config.mlp
         self.force = ForceModule(s, d, mlp)
         self.collision = CollisionModule(s, d, mlp)
@@ -424,10 +454,19 @@ class HRN(nn.Module):
         self.ws = PropagationModule(s, d, mlp, name="ws", rest_offsets=rest)
         self.a2d = PropagationModule(s, d, mlp, name="a2d", rest_offsets=rest)
         self.state = NextStateModule(s, d, mlp, MATERIAL_COLUMNS if config.material_heads else None)
-        self.normalizer = Normalizer()
-        # [G, 3] signs of the mirror group's reflections: made once, moved with the module, so a
-        # step builds no tensor from host data (none to copy, nothing a CUDA graph cannot hold)
-        self.register_buffer("mirror_signs", reflection_signs(config.mirror_group), persistent=False)
+
+    def _build_equivariant(self, config: HRNConfig) -> None:
+        """The modules of :mod:`hrn_pyg.nn.equivariant`, under the same names (one state column
+        fewer: the horizontal velocity is read as its length)."""
+        s, d, c, mlp = config.state_dim - 1, config.effect_dim, config.vector_channels, config.mlp
+        self.force = equivariant.ForceModule(s, d, c, mlp)
+        self.collision = equivariant.CollisionModule(s, d, c, mlp)
+        self.history = equivariant.HistoryModule(s, d, c, mlp)
+        rest = config.rest_offsets
+        self.l2a = equivariant.PropagationModule(s, d, c, mlp, name="l2a", rest_offsets=rest)
+        self.ws = equivariant.PropagationModule(s, d, c, mlp, name="ws", rest_offsets=rest)
+        self.a2d = equivariant.PropagationModule(s, d, c, mlp, name="a2d", rest_offsets=rest)
+        self.state = equivariant.NextStateModule(s, d, c, mlp)
 
     def reset_parameters(self) -> None:
         for name in MODULE_NAMES:
@@ -488,6 +527,8 @@ class HRN(nn.Module):
 
     def _pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
         """One pass of the modules (the whole network without the mirror average)."""
+        if self.config.equivariant:
+            return self._equivariant_pass(inputs, masks)
         x, s, b, rest = inputs.pos, inputs.state, inputs.batch, inputs.rest_pos
         skip = self.config.skip_idle_modules
         effect = self.history(s, inputs.prev_state, masks.get("history"), b)
@@ -511,6 +552,36 @@ class HRN(nn.Module):
             effect = effect + phase(s, effect, x, edges, masks.get(name), b, rest, degree=d, rest_offset=r)
         return self.state(s, effect, inputs.is_static, masks.get("state"), b, dense=options.fixed_shape)
 
+    def _equivariant_pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
+        """One pass of the equivariant modules: the same phases as :meth:`_pass`, each adding to
+        the scalar effect and to the vector channels."""
+        x, b, rest, options = inputs.pos, inputs.batch, inputs.rest_pos, inputs.options
+        s, velocity = invariant_state(inputs.state), inputs.state[:, :2]
+        effect, vectors = self.history(s, invariant_state(inputs.prev_state), velocity,
+                                       inputs.prev_state[:, :2], masks.get("history"), b)
+        force_active = options.force_active
+        if force_active is None:
+            force_active = bool(inputs.force.ne(0).any())
+        parts = []
+        if not (self.config.skip_idle_modules and not force_active):
+            parts.append(self.force(s, velocity, inputs.force, masks.get("force"), b, dense=options.fixed_shape))
+        if not (self.config.skip_idle_modules and inputs.collision.size(1) == 0):
+            parts.append(self.collision(s, velocity, x, inputs.collision, masks.get("collision"), b,
+                                        edge_weight=options.collision_weight))
+        for e, v in parts:
+            effect, vectors = effect + e, vectors + v
+        hierarchy = inputs.hierarchy
+        degree = (None, None, None) if hierarchy is None else hierarchy.degree
+        rest_offset = (None, None, None) if hierarchy is None or hierarchy.rest_offset is None \
+            else hierarchy.rest_offset
+        phases = (("l2a", inputs.leaf_to_ancestor), ("ws", inputs.within_siblings),
+                  ("a2d", inputs.ancestor_to_descendant))
+        for (name, edges), d, r in zip(phases, degree, rest_offset):
+            e, v = getattr(self, name)(s, velocity, effect, vectors, x, edges, masks.get(name), b, rest,
+                                       degree=d, rest_offset=r)
+            effect, vectors = effect + e, vectors + v
+        return self.state(s, velocity, effect, vectors, inputs.is_static, masks.get("state"), b)
+
     def __repr__(self) -> str:
         c = self.config
         return (
@@ -521,6 +592,7 @@ class HRN(nn.Module):
             + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
             + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")
             + (", material_heads=True" if getattr(c, "material_heads", False) else "")
+            + (f", equivariant=True, vector_channels={c.vector_channels}" if getattr(c, "equivariant", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")

@@ -159,6 +159,8 @@ MODEL_OPTIONS = [
     dict(mirror_average=True),
     dict(mirror_average=True, mirror_planes="xy", rigid_fit=True),
     dict(skip_idle_modules=False),
+    dict(equivariant=True, vector_channels=4),
+    dict(equivariant=True, vector_channels=4, rigid_fit=True, rest_offsets=True, skip_idle_modules=False),
 ]
 
 
@@ -222,6 +224,19 @@ def test_pruned_rigid_leaf_siblings_equal_the_plain_rollout_bit_for_bit():
     forces = pushes(graph[NODE].num_nodes, (2, 3))
     result = fixed_shape_rollout(model, graph, STEPS, forces)
     assert torch.equal(result.pos, plain(model, graph, forces))
+
+
+def test_the_equivariant_network_equals_the_plain_rollout_bit_for_bit():
+    """The fixed-shape step of the equivariant network (a random horizontal readout, so that it
+    moves sideways): the plain rollout's positions."""
+    model = fitted_model(rigid_fit=True, rest_offsets=True, equivariant=True, vector_channels=4)
+    torch.nn.init.normal_(model.state.vector.weight, std=0.3)
+    graph = toy_scene()
+    forces = pushes(graph[NODE].num_nodes, (2, 3))
+    result = fixed_shape_rollout(model, graph, STEPS, forces)
+    expected = plain(model, graph, forces)
+    assert torch.equal(result.pos, expected)
+    assert (expected[-1, :, :2] - graph[NODE].pos[:, :2]).abs().max() > 0
 
 
 def test_compiled_steps_equal_the_plain_rollout_to_rounding():

@@ -1,0 +1,96 @@
+"""Collision module of the horizontally equivariant HRN: effects of nearby particles of other objects."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from hrn_pyg.nn.collision import safe_norm
+from hrn_pyg.nn.equivariant.features import dot, horizontal, horizontal_length, mean_vectors_by_index, weighted_sum
+from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
+
+#: invariants of a collision edge: |o_h|, o_z, |o|, v_i . o_h, v_j . o_h, v_i . v_j
+EDGE_INVARIANTS = 6
+
+
+class CollisionModule(nn.Module):
+    r"""Sum of pairwise collision effects over the collision edges ``j -> i``, a scalar part and
+    ``C`` horizontal vectors.
+
+    .. math::
+        h_{ij} &= \phi_C\bigl(\tilde s_i,\ \tilde s_j,\ \lVert o_h \rVert,\ o_z,\ \lVert o \rVert,\
+            v_i \cdot o_h,\ v_j \cdot o_h,\ v_i \cdot v_j\bigr), \qquad o = x_i - x_j \\
+        e_C(i) &= \sum_j (W h_{ij} + b), \qquad
+        E_C(i)_c = \frac{1}{n_i} \sum_j a_c(h_{ij})\, o_h + a'_c(h_{ij})\, (v_j - v_i)
+
+    :math:`\tilde s` is the invariant state, :math:`v` the normalised horizontal velocity and
+    :math:`x` the (scaled) position: the messages see how far apart the two particles are, across
+    and up, and how fast they close, but no direction of the world. The vectors are averaged over
+the :math:`n_i` edges into :math:`i` (:func:`~hrn_pyg.nn.equivariant.features.mean_vectors_by_index`),
+the scalar effect summed. An edge of weight 0
+    (``edge_weight``) adds an exact zero, as in :class:`hrn_pyg.nn.collision.CollisionModule`.
+
+    Args:
+        state_dim: size :math:`S'` of an invariant state vector.
+        effect_dim: size :math:`D` of the scalar effect.
+        channels: number :math:`C` of vector channels.
+        mlp: shape of :math:`\phi_C`.
+
+    **Shapes:**
+        - **input:** state :math:`(|\mathcal{V}|, S')`, velocity :math:`(|\mathcal{V}|, 2)`,
+          pos :math:`(|\mathcal{V}|, 3)`, edge_index :math:`(2, |\mathcal{E}_C|)`, mask
+          :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)`, edge_weight
+          :math:`(|\mathcal{E}_C|,)` or None
+        - **output:** effect :math:`(|\mathcal{V}|, D)`, vectors :math:`(|\mathcal{V}|, C, 2)`
+    """
+
+    def __init__(self, state_dim: int, effect_dim: int, channels: int, mlp: MLPConfig = MLPConfig()) -> None:
+        super().__init__()
+        self.state_dim, self.effect_dim, self.channels = state_dim, effect_dim, channels
+        self.phi = MLP(2 * state_dim + EDGE_INVARIANTS, effect_dim, mlp)
+        self.vector = nn.Linear(mlp.hidden, 2 * channels)
+
+    def reset_parameters(self) -> None:
+        self.phi.reset_parameters()
+        self.vector.reset_parameters()
+
+    def forward(self, state: Tensor, velocity: Tensor, pos: Tensor, edge_index: Tensor,
+                mask: Tensor | None = None, batch: Tensor | None = None,
+                edge_weight: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        n = state.size(0)
+        if state.dim() != 2 or state.size(1) != self.state_dim:
+            raise ValueError(f"equivariant CollisionModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+        if pos.shape != (n, 3) or velocity.shape != (n, 2):
+            raise ValueError("equivariant CollisionModule: pos must be [N, 3] and velocity [N, 2]")
+        if edge_index.dim() != 2 or edge_index.size(0) != 2:
+            raise ValueError(f"equivariant CollisionModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
+        if mask is not None and batch is None:
+            raise ValueError("equivariant CollisionModule: a dropout mask needs the node batch vector")
+        if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
+            raise ValueError(f"equivariant CollisionModule: edge_weight must be [{edge_index.size(1)}], "
+                             f"got {tuple(edge_weight.shape)}")
+        src, dst = edge_index
+        edge_batch = batch.index_select(0, dst) if mask is not None else None
+        offset = pos.index_select(0, dst) - pos.index_select(0, src)  # x_i - x_j
+        o_h = horizontal(offset)
+        v_i, v_j = velocity.index_select(0, dst), velocity.index_select(0, src)
+        invariants = torch.cat([horizontal_length(o_h), offset[:, 2:], safe_norm(offset),
+                                dot(v_i, o_h), dot(v_j, o_h), dot(v_i, v_j)], dim=-1)
+        w_dst, w_src, w_edge = self.phi.split_first_weight((self.state_dim, self.state_dim, EDGE_INVARIANTS))
+        from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
+        pre = from_dst.index_select(0, dst) + (state @ w_src.T).index_select(0, src)
+        pre = pre.addmm_(invariants, w_edge.T)
+        hidden = self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
+        weights = self.vector(hidden).view(-1, 2, self.channels)
+        vectors = weighted_sum(weights, torch.stack([o_h, v_j - v_i], dim=1))
+        if edge_weight is not None:
+            weight = edge_weight.to(hidden.dtype)
+            hidden = hidden * weight.unsqueeze(-1)
+            vectors = vectors * weight.view(-1, 1, 1)
+        degree = in_degree(edge_index, n, edge_weight)
+        effect = self.phi.output_of_sum(sum_by_index(hidden, dst, n), degree)
+        return effect, mean_vectors_by_index(vectors, dst, degree)
+
+    def __repr__(self) -> str:
+        return (f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, "
+                f"channels={self.channels}, phi={self.phi})")

@@ -1,0 +1,41 @@
+"""The invariants and vector sums of hrn_pyg.nn.equivariant.features."""
+
+import math
+
+import torch
+
+from hrn_pyg.nn.equivariant.features import (channel_dot, channel_length, dot, horizontal_length, invariant_state,
+                                             mean_vectors_by_index, weighted_sum)
+
+
+def _turn(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, -s], [s, c]])
+
+
+def test_invariants_do_not_change_under_a_turn_or_a_mirror():
+    gen = torch.Generator().manual_seed(0)
+    a, b, channels = torch.randn(5, 2, generator=gen), torch.randn(5, 2, generator=gen), torch.randn(5, 3, 2, generator=gen)
+    for g in (_turn(0.4), _turn(2.0) @ torch.diag(torch.tensor([1.0, -1.0]))):
+        torch.testing.assert_close(dot(a @ g.T, b @ g.T), dot(a, b))
+        torch.testing.assert_close(horizontal_length(a @ g.T), horizontal_length(a))
+        torch.testing.assert_close(channel_dot(channels @ g.T, a @ g.T), channel_dot(channels, a))
+        torch.testing.assert_close(channel_length(channels @ g.T), channel_length(channels))
+
+
+def test_the_invariant_state_reads_the_horizontal_velocity_as_its_length():
+    state = torch.tensor([[3.0, 4.0, -1.0, 7.0, 8.0]])
+    torch.testing.assert_close(invariant_state(state), torch.tensor([[5.0, -1.0, 7.0, 8.0]]))
+
+
+def test_weighted_sum_by_hand():
+    weights = torch.tensor([[[1.0, 0.0], [2.0, -1.0]]])  # [1, K=2, C=2]
+    basis = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]])  # [1, K=2, 2]
+    torch.testing.assert_close(weighted_sum(weights, basis), torch.tensor([[[1.0, 2.0], [0.0, -1.0]]]))
+
+
+def test_the_mean_over_edges_divides_by_the_in_degree_and_leaves_silent_nodes_at_zero():
+    vectors = torch.tensor([[[1.0, 0.0]], [[3.0, 2.0]], [[5.0, 5.0]]])  # three edges, one channel
+    index = torch.tensor([0, 0, 2])
+    out = mean_vectors_by_index(vectors, index, torch.tensor([2.0, 0.0, 1.0]))
+    torch.testing.assert_close(out, torch.tensor([[[2.0, 1.0]], [[0.0, 0.0]], [[5.0, 5.0]]]))
