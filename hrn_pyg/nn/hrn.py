@@ -13,7 +13,7 @@ from torch_geometric.data import HeteroData
 
 from hrn_pyg.nn import equivariant
 from hrn_pyg.nn.collision import CollisionModule
-from hrn_pyg.nn.equivariant.features import invariant_state
+from hrn_pyg.nn.equivariant.features import invariant_state, squash
 from hrn_pyg.nn.force import ForceModule
 from hrn_pyg.nn.history import HistoryModule
 from hrn_pyg.nn.mlp import NetworkConfig, dropout_mask, in_degree
@@ -554,7 +554,9 @@ class HRN(nn.Module):
 
     def _equivariant_pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
         """One pass of the equivariant modules: the same phases as :meth:`_pass`, each adding to
-        the scalar effect and to the vector channels."""
+        the scalar effect and to the vector channels, which are squashed to lengths under 1
+        after the first three modules and after each phase
+        (:func:`~hrn_pyg.nn.equivariant.features.squash`)."""
         x, b, rest, options = inputs.pos, inputs.batch, inputs.rest_pos, inputs.options
         s, velocity = invariant_state(inputs.state), inputs.state[:, :2]
         effect, vectors = self.history(s, invariant_state(inputs.prev_state), velocity,
@@ -570,6 +572,7 @@ class HRN(nn.Module):
                                         edge_weight=options.collision_weight))
         for e, v in parts:
             effect, vectors = effect + e, vectors + v
+        vectors = squash(vectors)
         hierarchy = inputs.hierarchy
         degree = (None, None, None) if hierarchy is None else hierarchy.degree
         rest_offset = (None, None, None) if hierarchy is None or hierarchy.rest_offset is None \
@@ -579,7 +582,7 @@ class HRN(nn.Module):
         for (name, edges), d, r in zip(phases, degree, rest_offset):
             e, v = getattr(self, name)(s, velocity, effect, vectors, x, edges, masks.get(name), b, rest,
                                        degree=d, rest_offset=r)
-            effect, vectors = effect + e, vectors + v
+            effect, vectors = effect + e, squash(vectors + v)
         return self.state(s, velocity, effect, vectors, inputs.is_static, masks.get("state"), b)
 
     def __repr__(self) -> str:

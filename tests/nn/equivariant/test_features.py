@@ -5,6 +5,7 @@ import math
 import torch
 
 from hrn_pyg.nn.equivariant.features import (channel_dot, channel_length, dot, horizontal_length, invariant_state,
+                                             squash,
                                              mean_vectors_by_index, weighted_sum)
 
 
@@ -39,3 +40,12 @@ def test_the_mean_over_edges_divides_by_the_in_degree_and_leaves_silent_nodes_at
     index = torch.tensor([0, 0, 2])
     out = mean_vectors_by_index(vectors, index, torch.tensor([2.0, 0.0, 1.0]))
     torch.testing.assert_close(out, torch.tensor([[[2.0, 1.0]], [[0.0, 0.0]], [[5.0, 5.0]]]))
+
+
+def test_squash_keeps_directions_and_bounds_lengths_below_one():
+    channels = torch.tensor([[[3.0, 4.0], [0.0, 0.0], [-1e6, 0.0]]])
+    out = squash(channels)
+    torch.testing.assert_close(out[0, 0], torch.tensor([0.5, 4.0 / 6.0]))  # length 5 -> 5/6
+    assert torch.equal(out[0, 1], torch.zeros(2)) and -1.0 < out[0, 2, 0] < -0.99
+    g = _turn(0.9)
+    torch.testing.assert_close(squash(channels[:, :2] @ g.T), squash(channels[:, :2]) @ g.T)
