@@ -359,6 +359,17 @@ def check_hierarchy(hierarchy: HierarchyConstants, inputs: HRNInputs) -> None:
                          "rest offset per hierarchy edge expected)")
 
 
+def propagation_phases(inputs: HRNInputs) -> list[tuple[str, Tensor, Tensor | None, Tensor | None]]:
+    """The three propagation phases in order, each as ``(module name, edges, in-degree or None,
+    rest offsets or None)``: L2A, WS, A2D with the constants of ``inputs.hierarchy`` when it has
+    them."""
+    hierarchy = inputs.hierarchy
+    degree = (None, None, None) if hierarchy is None else hierarchy.degree
+    rest = (None, None, None) if hierarchy is None or hierarchy.rest_offset is None else hierarchy.rest_offset
+    edges = (inputs.leaf_to_ancestor, inputs.within_siblings, inputs.ancestor_to_descendant)
+    return list(zip(("l2a", "ws", "a2d"), edges, degree, rest))
+
+
 def state_features(
     normalizer: Normalizer,
     velocity: Tensor,
@@ -529,25 +540,15 @@ class HRN(nn.Module):
         """One pass of the modules (the whole network without the mirror average)."""
         if self.config.equivariant:
             return self._equivariant_pass(inputs, masks)
-        x, s, b, rest = inputs.pos, inputs.state, inputs.batch, inputs.rest_pos
-        skip = self.config.skip_idle_modules
+        x, s, b, rest, options = inputs.pos, inputs.state, inputs.batch, inputs.rest_pos, inputs.options
         effect = self.history(s, inputs.prev_state, masks.get("history"), b)
-        options = inputs.options
-        force_active = options.force_active
-        if force_active is None:
-            force_active = bool(inputs.force.ne(0).any())
-        if not (skip and not force_active):
+        run_force, run_collision = self._busy_modules(inputs)
+        if run_force:
             effect = effect + self.force(s, inputs.force, masks.get("force"), b, dense=options.fixed_shape)
-        if not (skip and inputs.collision.size(1) == 0):
+        if run_collision:
             effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b,
                                              edge_weight=options.collision_weight)
-        hierarchy = inputs.hierarchy
-        degree = (None, None, None) if hierarchy is None else hierarchy.degree
-        rest_offset = (None, None, None) if hierarchy is None or hierarchy.rest_offset is None \
-            else hierarchy.rest_offset
-        phases = (("l2a", inputs.leaf_to_ancestor), ("ws", inputs.within_siblings),
-                  ("a2d", inputs.ancestor_to_descendant))
-        for (name, edges), d, r in zip(phases, degree, rest_offset):
+        for name, edges, d, r in propagation_phases(inputs):
             phase = getattr(self, name)
             effect = effect + phase(s, effect, x, edges, masks.get(name), b, rest, degree=d, rest_offset=r)
         return self.state(s, effect, inputs.is_static, masks.get("state"), b, dense=options.fixed_shape)
@@ -561,29 +562,31 @@ class HRN(nn.Module):
         s, velocity = invariant_state(inputs.state), inputs.state[:, :2]
         effect, vectors = self.history(s, invariant_state(inputs.prev_state), velocity,
                                        inputs.prev_state[:, :2], masks.get("history"), b)
-        force_active = options.force_active
-        if force_active is None:
-            force_active = bool(inputs.force.ne(0).any())
-        parts = []
-        if not (self.config.skip_idle_modules and not force_active):
-            parts.append(self.force(s, velocity, inputs.force, masks.get("force"), b, dense=options.fixed_shape))
-        if not (self.config.skip_idle_modules and inputs.collision.size(1) == 0):
-            parts.append(self.collision(s, velocity, x, inputs.collision, masks.get("collision"), b,
-                                        edge_weight=options.collision_weight))
-        for e, v in parts:
+        run_force, run_collision = self._busy_modules(inputs)
+        if run_force:
+            e, v = self.force(s, velocity, inputs.force, masks.get("force"), b, dense=options.fixed_shape)
+            effect, vectors = effect + e, vectors + v
+        if run_collision:
+            e, v = self.collision(s, velocity, x, inputs.collision, masks.get("collision"), b,
+                                  edge_weight=options.collision_weight)
             effect, vectors = effect + e, vectors + v
         vectors = squash(vectors)
-        hierarchy = inputs.hierarchy
-        degree = (None, None, None) if hierarchy is None else hierarchy.degree
-        rest_offset = (None, None, None) if hierarchy is None or hierarchy.rest_offset is None \
-            else hierarchy.rest_offset
-        phases = (("l2a", inputs.leaf_to_ancestor), ("ws", inputs.within_siblings),
-                  ("a2d", inputs.ancestor_to_descendant))
-        for (name, edges), d, r in zip(phases, degree, rest_offset):
+        for name, edges, d, r in propagation_phases(inputs):
             e, v = getattr(self, name)(s, velocity, effect, vectors, x, edges, masks.get(name), b, rest,
                                        degree=d, rest_offset=r)
             effect, vectors = effect + e, squash(vectors + v)
         return self.state(s, velocity, effect, vectors, inputs.is_static, masks.get("state"), b)
+
+    def _busy_modules(self, inputs: HRNInputs) -> tuple[bool, bool]:
+        """Whether the force and the collision module run this pass: always without
+        ``skip_idle_modules``, else only with a nonzero force (``StepOptions.force_active``, or
+        one host read of the force) and with a collision edge."""
+        if not self.config.skip_idle_modules:
+            return True, True
+        force_active = inputs.options.force_active
+        if force_active is None:
+            force_active = bool(inputs.force.ne(0).any())
+        return bool(force_active), inputs.collision.size(1) > 0
 
     def __repr__(self) -> str:
         c = self.config
