@@ -85,11 +85,7 @@ class PropagationModule(nn.Module):
         src, dst = edge_index
         offset = edge_offsets(pos, edge_index)  # x_j - x_i
         if self.rest_offsets:
-            if rest_offset is None:
-                if rest_pos is None or rest_pos.shape != (n, 3):
-                    got = None if rest_pos is None else tuple(rest_pos.shape)
-                    raise ValueError(f"PropagationModule: rest_offsets needs rest_pos [N, 3], got {got}")
-                rest_offset = edge_offsets(rest_pos, edge_index)
+            rest_offset = given_rest_offset("PropagationModule", rest_offset, rest_pos, edge_index, n)
             offset = torch.cat([offset, rest_offset], dim=-1)  # both offsets go through one weight block
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         edge_batch = batch.index_select(0, dst) if mask is not None else None
@@ -122,3 +118,16 @@ def edge_offsets(x: Tensor, edge_index: Tensor) -> Tensor:
     **Shapes:** x ``(N, F)``, edge_index ``(2, E)``; returns ``(E, F)``.
     """
     return x.index_select(0, edge_index[0]) - x.index_select(0, edge_index[1])
+
+
+def given_rest_offset(who: str, rest_offset: Tensor | None, rest_pos: Tensor | None, edge_index: Tensor,
+                      num_nodes: int) -> Tensor:
+    """The edges' rest offsets: ``rest_offset`` when the caller has them, else the
+    :func:`edge_offsets` of ``rest_pos`` (a one-line ValueError naming ``who`` unless it is
+    ``[N, 3]``)."""
+    if rest_offset is not None:
+        return rest_offset
+    if rest_pos is None or rest_pos.shape != (num_nodes, 3):
+        got = None if rest_pos is None else tuple(rest_pos.shape)
+        raise ValueError(f"{who}: rest_offsets needs rest_pos [N, 3], got {got}")
+    return edge_offsets(rest_pos, edge_index)

@@ -6,7 +6,8 @@ import torch
 from torch import Tensor, nn
 
 from hrn_pyg.nn.collision import safe_norm
-from hrn_pyg.nn.equivariant.features import dot, horizontal, horizontal_length, mean_vectors_by_index, weighted_sum
+from hrn_pyg.nn.equivariant.features import (check_edge_inputs, dot, horizontal, horizontal_length,
+                                             mean_vectors_by_index, weighted_sum)
 from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
 
 #: invariants of a collision edge: |o_h|, o_z, |o|, v_i . o_h, v_j . o_h, v_i . v_j
@@ -59,13 +60,9 @@ the scalar effect summed. An edge of weight 0
                 edge_weight: Tensor | None = None) -> tuple[Tensor, Tensor]:
         n = state.size(0)
         if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"equivariant CollisionModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
-        if pos.shape != (n, 3) or velocity.shape != (n, 2):
-            raise ValueError("equivariant CollisionModule: pos must be [N, 3] and velocity [N, 2]")
-        if edge_index.dim() != 2 or edge_index.size(0) != 2:
-            raise ValueError(f"equivariant CollisionModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
-        if mask is not None and batch is None:
-            raise ValueError("equivariant CollisionModule: a dropout mask needs the node batch vector")
+            raise ValueError(f"equivariant CollisionModule: state must be [N, {self.state_dim}], "
+                             f"got {tuple(state.shape)}")
+        check_edge_inputs("equivariant CollisionModule", n, pos, velocity, edge_index, mask, batch)
         if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
             raise ValueError(f"equivariant CollisionModule: edge_weight must be [{edge_index.size(1)}], "
                              f"got {tuple(edge_weight.shape)}")

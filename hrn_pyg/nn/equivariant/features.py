@@ -100,3 +100,17 @@ def mean_vectors_by_index(vectors: Tensor, index: Tensor, count: Tensor) -> Tens
     n = count.size(0)
     total = sum_by_index(vectors.reshape(e, 2 * c), index, n).view(n, c, 2)
     return total / count.to(total.dtype).clamp_min(1.0).view(n, 1, 1)
+
+
+def check_edge_inputs(who: str, num_nodes: int, pos: Tensor, velocity: Tensor, edge_index: Tensor,
+                      mask: Tensor | None, batch: Tensor | None) -> None:
+    """Raise a one-line ValueError naming ``who`` unless ``pos`` is ``[N, 3]``, ``velocity``
+    ``[N, 2]`` and ``edge_index`` ``[2, E]``, and a dropout mask comes with the batch vector
+    (the checks an edge module of this package makes before it reads its inputs)."""
+    if pos.shape != (num_nodes, 3) or velocity.shape != (num_nodes, 2):
+        raise ValueError(f"{who}: pos must be [N, 3] and velocity [N, 2], got {tuple(pos.shape)} and "
+                         f"{tuple(velocity.shape)}")
+    if edge_index.dim() != 2 or edge_index.size(0) != 2:
+        raise ValueError(f"{who}: edge_index must be [2, E], got {tuple(edge_index.shape)}")
+    if mask is not None and batch is None:
+        raise ValueError(f"{who}: a dropout mask needs the node batch vector")

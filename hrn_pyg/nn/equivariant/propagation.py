@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.equivariant.features import (channel_dot, dot, horizontal, horizontal_length,
+from hrn_pyg.nn.equivariant.features import (check_edge_inputs, channel_dot, dot, horizontal, horizontal_length,
                                              mean_vectors_by_index, weighted_sum)
 from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
-from hrn_pyg.nn.propagation import edge_offsets
+from hrn_pyg.nn.propagation import edge_offsets, given_rest_offset
 
 
 def edge_invariant_count(channels: int, rest_offsets: bool) -> int:
@@ -78,23 +78,14 @@ class PropagationModule(nn.Module):
         if effect.shape != (n, self.effect_dim) or vectors.shape != (n, c, 2):
             raise ValueError(f"equivariant PropagationModule: effect must be [N, {self.effect_dim}] and "
                              f"vectors [N, {c}, 2], got {tuple(effect.shape)} and {tuple(vectors.shape)}")
-        if pos.shape != (n, 3) or velocity.shape != (n, 2):
-            raise ValueError("equivariant PropagationModule: pos must be [N, 3] and velocity [N, 2]")
-        if edge_index.dim() != 2 or edge_index.size(0) != 2:
-            raise ValueError(f"equivariant PropagationModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
-        if mask is not None and batch is None:
-            raise ValueError("equivariant PropagationModule: a dropout mask needs the node batch vector")
+        check_edge_inputs("equivariant PropagationModule", n, pos, velocity, edge_index, mask, batch)
         src, dst = edge_index
         offset = edge_offsets(pos, edge_index)  # x_j - x_i
         o_h = horizontal(offset)
         parts = [horizontal_length(o_h), offset[:, 2:]]
         basis = [o_h]
         if self.rest_offsets:
-            if rest_offset is None:
-                if rest_pos is None or rest_pos.shape != (n, 3):
-                    got = None if rest_pos is None else tuple(rest_pos.shape)
-                    raise ValueError(f"equivariant PropagationModule: rest_offsets needs rest_pos [N, 3], got {got}")
-                rest_offset = edge_offsets(rest_pos, edge_index)
+            rest_offset = given_rest_offset("equivariant PropagationModule", rest_offset, rest_pos, edge_index, n)
             r_h = horizontal(rest_offset)
             parts += [horizontal_length(r_h), rest_offset[:, 2:], dot(o_h, r_h)]
             basis.append(r_h)

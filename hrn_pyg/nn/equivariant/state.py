@@ -55,7 +55,8 @@ class NextStateModule(nn.Module):
                 batch: Tensor | None = None) -> Tensor:
         n, c = state.size(0), self.channels
         if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"equivariant NextStateModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+            raise ValueError(f"equivariant NextStateModule: state must be [N, {self.state_dim}], "
+                             f"got {tuple(state.shape)}")
         if effect.shape != (n, self.effect_dim) or vectors.shape != (n, c, 2) or velocity.shape != (n, 2):
             raise ValueError(f"equivariant NextStateModule: effect must be [N, {self.effect_dim}], vectors "
                              f"[N, {c}, 2] and velocity [N, 2]")

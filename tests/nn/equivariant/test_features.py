@@ -16,7 +16,8 @@ def _turn(angle: float) -> torch.Tensor:
 
 def test_invariants_do_not_change_under_a_turn_or_a_mirror():
     gen = torch.Generator().manual_seed(0)
-    a, b, channels = torch.randn(5, 2, generator=gen), torch.randn(5, 2, generator=gen), torch.randn(5, 3, 2, generator=gen)
+    a, b = torch.randn(5, 2, generator=gen), torch.randn(5, 2, generator=gen)
+    channels = torch.randn(5, 3, 2, generator=gen)
     for g in (_turn(0.4), _turn(2.0) @ torch.diag(torch.tensor([1.0, -1.0]))):
         torch.testing.assert_close(dot(a @ g.T, b @ g.T), dot(a, b))
         torch.testing.assert_close(horizontal_length(a @ g.T), horizontal_length(a))
