@@ -7,10 +7,10 @@ from torch import Tensor, nn
 
 from hrn_pyg.nn.collision import safe_norm
 from hrn_pyg.nn.equivariant.features import (check_edge_inputs, dot, horizontal, horizontal_length,
-                                             mean_vectors_by_index, weighted_sum)
+                                             mean_vectors_by_index, squash, weighted_sum)
 from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
 
-#: invariants of a collision edge: |o_h|, o_z, |o|, v_i . o_h, v_j . o_h, v_i . v_j
+#: invariants of a collision edge: |o_h|, o_z, |o|, v_i . o_h, v_j . o_h, v^_i . v^_j (squashed velocities)
 EDGE_INVARIANTS = 6
 
 
@@ -20,11 +20,13 @@ class CollisionModule(nn.Module):
 
     .. math::
         h_{ij} &= \phi_C\bigl(\tilde s_i,\ \tilde s_j,\ \lVert o_h \rVert,\ o_z,\ \lVert o \rVert,\
-            v_i \cdot o_h,\ v_j \cdot o_h,\ v_i \cdot v_j\bigr), \qquad o = x_i - x_j \\
+            v_i \cdot o_h,\ v_j \cdot o_h,\ \hat v_i \cdot \hat v_j\bigr), \qquad o = x_i - x_j \\
         e_C(i) &= \sum_j (W h_{ij} + b), \qquad
         E_C(i)_c = \frac{1}{n_i} \sum_j a_c(h_{ij})\, o_h + a'_c(h_{ij})\, (v_j - v_i)
 
-    :math:`\tilde s` is the invariant state, :math:`v` the normalised horizontal velocity and
+    :math:`\tilde s` is the invariant state, :math:`v` the normalised horizontal velocity
+    (:math:`\hat v = v / (1 + \lVert v \rVert)` where two velocities meet, so that no input grows
+    with the speed's square) and
     :math:`x` the (scaled) position: the messages see how far apart the two particles are, across
     and up, and how fast they close, but no direction of the world. The vectors are averaged over
 the :math:`n_i` edges into :math:`i` (:func:`~hrn_pyg.nn.equivariant.features.mean_vectors_by_index`),
@@ -72,7 +74,7 @@ the scalar effect summed. An edge of weight 0
         o_h = horizontal(offset)
         v_i, v_j = velocity.index_select(0, dst), velocity.index_select(0, src)
         invariants = torch.cat([horizontal_length(o_h), offset[:, 2:], safe_norm(offset),
-                                dot(v_i, o_h), dot(v_j, o_h), dot(v_i, v_j)], dim=-1)
+                                dot(v_i, o_h), dot(v_j, o_h), dot(squash(v_i), squash(v_j))], dim=-1)
         w_dst, w_src, w_edge = self.phi.split_first_weight((self.state_dim, self.state_dim, EDGE_INVARIANTS))
         from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
         pre = from_dst.index_select(0, dst) + (state @ w_src.T).index_select(0, src)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.equivariant.features import dot, weighted_sum
+from hrn_pyg.nn.equivariant.features import dot, squash, weighted_sum
 from hrn_pyg.nn.mlp import MLP, MLPConfig
 
 
@@ -13,13 +13,16 @@ class HistoryModule(nn.Module):
     r"""Effect of the previous state on a particle, a scalar part and ``C`` horizontal vectors.
 
     .. math::
-        h_i &= \phi_H\bigl(\tilde s_i(t),\ \tilde s_i(t-1),\ v_i(t) \cdot v_i(t-1)\bigr) \\
+        h_i &= \phi_H\bigl(\tilde s_i(t),\ \tilde s_i(t-1),\ \hat v_i(t) \cdot \hat v_i(t-1)\bigr) \\
         e_H(i) &= W h_i + b, \qquad
         E_H(i)_c = a_c(h_i)\, v_i(t) + a'_c(h_i)\, v_i(t-1)
 
     :math:`\tilde s` is the invariant state (:func:`~hrn_pyg.nn.equivariant.features.invariant_state`),
-    :math:`v` the normalised horizontal velocity, :math:`h_i` the last hidden layer of
-    :math:`\phi_H` and :math:`a, a'` linear in it: the vectors turn with the scene.
+    :math:`v` the normalised horizontal velocity, :math:`\hat v = v / (1 + \lVert v \rVert)`
+    (a product of two raw velocities would grow with the speed's square, and an input that does
+    makes the network's output do so: :class:`~hrn_pyg.nn.equivariant.state.NextStateModule`),
+    :math:`h_i` the last hidden layer of :math:`\phi_H` and :math:`a, a'` linear in it: the
+    vectors turn with the scene.
 
     Args:
         state_dim: size :math:`S'` of an invariant state vector.
@@ -51,7 +54,7 @@ class HistoryModule(nn.Module):
                              f"got {tuple(state.shape)} and {tuple(prev_state.shape)}")
         if velocity.shape != (n, 2) or prev_velocity.shape != (n, 2):
             raise ValueError("equivariant HistoryModule: velocity and prev_velocity must be [N, 2]")
-        x = torch.cat([state, prev_state, dot(velocity, prev_velocity)], dim=-1)
+        x = torch.cat([state, prev_state, dot(squash(velocity), squash(prev_velocity))], dim=-1)
         hidden = self.phi.last_hidden_from_first(self.phi.hidden_layers[0](x), mask, batch, pre_is_scratch=True)
         weights = self.vector(hidden).view(n, 2, self.channels)
         vectors = weighted_sum(weights, torch.stack([velocity, prev_velocity], dim=1))

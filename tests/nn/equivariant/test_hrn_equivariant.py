@@ -152,3 +152,20 @@ def test_a_fresh_model_predicts_no_horizontal_change():
     with torch.no_grad():
         out = model(build_inputs(model, _scene()))
     assert torch.equal(out[:, :2], torch.zeros_like(out[:, :2])) and out[:, 2].abs().max() > 0
+
+
+def test_the_output_grows_at_most_linearly_with_the_speed():
+    """Every velocity times 1e3 and then 1e4: the output grows about tenfold, not a hundredfold
+    (no input or vector of the readout grows with the speed's square), as a plain MLP's would."""
+    model = _model(rest_offsets=True)
+    inputs = build_inputs(model, _scene())
+
+    def output_at(speed: float) -> float:
+        scale = torch.ones(inputs.state.size(1))
+        scale[:3] = speed
+        fast = inputs._replace(state=inputs.state * scale, prev_state=inputs.prev_state * scale)
+        with torch.no_grad():
+            return float(model(fast).abs().max())
+
+    ratio = output_at(1e4) / output_at(1e3)
+    assert 2.0 < ratio < 15.0
