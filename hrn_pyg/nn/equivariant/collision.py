@@ -73,8 +73,9 @@ the scalar effect summed. An edge of weight 0
         offset = pos.index_select(0, dst) - pos.index_select(0, src)  # x_i - x_j
         o_h = horizontal(offset)
         v_i, v_j = velocity.index_select(0, dst), velocity.index_select(0, src)
+        unit = squash(velocity)  # once per node, then gathered: the same rows as squashing per edge
         invariants = torch.cat([horizontal_length(o_h), offset[:, 2:], safe_norm(offset),
-                                dot(v_i, o_h), dot(v_j, o_h), dot(squash(v_i), squash(v_j))], dim=-1)
+                                dot(v_i, o_h), dot(v_j, o_h), dot(unit.index_select(0, dst), unit.index_select(0, src))], dim=-1)
         w_dst, w_src, w_edge = self.phi.split_first_weight((self.state_dim, self.state_dim, EDGE_INVARIANTS))
         from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
         pre = from_dst.index_select(0, dst) + (state @ w_src.T).index_select(0, src)
