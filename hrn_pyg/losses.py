@@ -2,8 +2,9 @@
 
 The group shape loss is the baseline HRN's (distances between siblings of one parent only); the
 fully-connected shape loss is the seed paper's (distances between all leaf pairs of an object),
-computed in row chunks, each under activation checkpointing, so its memory stays bounded by
-``chunk_size`` times the size of the largest object, in the forward and the backward pass.
+computed object by object in row chunks, each chunk's gradient formed with its value, so its memory
+stays bounded by ``chunk_size`` times the size of the largest object, in the forward and the
+backward pass.
 :func:`fair_energy_score` scores K sampled futures against the one observed future (the
 stochastic training mode of :mod:`hrn_pyg.train`, ``sample_copies``).
 """
@@ -12,7 +13,6 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
-from torch.utils.checkpoint import checkpoint
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import NODE, copy_object_ids, object_span
@@ -21,6 +21,8 @@ from hrn_pyg.nn.normalizer import Normalizer
 
 #: rows of the pairwise-distance matrix handled at once by :func:`full_shape_loss`
 DEFAULT_CHUNK_SIZE = 512
+#: objects of fewer leaves are padded and taken together by :func:`full_shape_loss`
+SMALL_GROUP = 64
 #: smoothing length of the norm in :func:`fair_energy_score` (in the units of its inputs)
 ENERGY_EPSILON = 1e-6
 
@@ -194,14 +196,72 @@ def group_shape_loss(
     return ((d_pred - d_true) / scale).pow(2).mean()
 
 
-def _block_error(
-    p_rows: Tensor, t_rows: Tensor, p_cols: Tensor, t_cols: Tensor, g_rows: Tensor, g_cols: Tensor
-) -> Tensor:
-    """Sum of squared distance errors over the same-group pairs of one block."""
-    d_pred = safe_norm(p_rows[:, None, :] - p_cols[None, :, :], keepdim=False)
-    d_true = safe_norm(t_rows[:, None, :] - t_cols[None, :, :], keepdim=False)
-    same = g_rows[:, None] == g_cols[None, :]
-    return torch.where(same, (d_pred - d_true).pow(2), torch.zeros_like(d_pred)).sum()
+class _PairDistanceError(torch.autograd.Function):
+    r"""Weighted sum of squared distance errors over a block of leaf pairs, with its gradient
+    formed in the forward pass.
+
+    .. math::
+        E = \sum_{i \in R} \sum_{j \in C} w_{ij} (d_{ij} - \bar d_{ij})^2, \qquad
+        \frac{\partial E}{\partial \hat x_i} = \sum_j g_{ij} (\hat x_i - \hat x_j), \qquad
+        g_{ij} = \frac{2 w_{ij} (d_{ij} - \bar d_{ij})}{d_{ij}}
+
+    with :math:`d_{ij} = \sqrt{\lVert \hat x_i - \hat x_j \rVert^2 + \epsilon}` predicted and
+    :math:`\bar d_{ij}` true (the norm of :func:`~hrn_pyg.nn.collision.safe_norm`). The columns
+    start at the rows' first leaf: :math:`w_{ij} = 1` for the first ``diagonal`` columns (the
+    square block of the rows with themselves, every pair in both orders) and 2 beyond (pairs whose
+    reverse order no later block visits). Only the two gradients, ``[R, 3]`` and ``[C, 3]``, are
+    kept for the backward pass, so a block's ``R x C`` distances are freed as soon as it is summed,
+    and the gradient's sums over ``j`` are matrix products.
+
+    **Shapes:** pred rows :math:`(R, 3)`, pred columns :math:`(C, 3)`, true rows and columns the
+    same; returns a scalar. The true positions are constants (no gradient).
+    """
+
+    @staticmethod
+    def forward(ctx, p_rows: Tensor, p_cols: Tensor, t_rows: Tensor, t_cols: Tensor, diagonal: int) -> Tensor:
+        d_pred = safe_norm(p_rows[:, None, :] - p_cols[None, :, :], keepdim=False)
+        d_true = safe_norm(t_rows[:, None, :] - t_cols[None, :, :], keepdim=False)
+        error = d_pred - d_true
+        weight = torch.full((1, p_cols.size(0)), 2.0, dtype=error.dtype, device=error.device)
+        weight[:, :diagonal] = 1.0
+        weighted = error * weight
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            g = 2.0 * weighted / d_pred
+            grad_rows = g.sum(1, keepdim=True) * p_rows - g @ p_cols
+            grad_cols = g.sum(0).unsqueeze(1) * p_cols - g.T @ p_rows
+            ctx.save_for_backward(grad_rows, grad_cols)
+        return (weighted * error).sum()
+
+    @staticmethod
+    def backward(ctx, grad_output: Tensor) -> tuple[Tensor | None, ...]:
+        grad_rows, grad_cols = ctx.saved_tensors
+        return grad_rows * grad_output, grad_cols * grad_output, None, None, None
+
+
+def _small_groups_error(p: Tensor, t: Tensor, counts: Tensor, chunk_size: int) -> Tensor:
+    """Sum of squared distance errors over every ordered pair of the groups of fewer than
+    :data:`SMALL_GROUP` rows (``p``, ``t`` sorted by group, ``counts`` the groups' sizes): the
+    groups padded to one size ``m`` and taken together, about ``chunk_size * SMALL_GROUP`` pairs
+    at a time, so that many small objects cost a few tensor operations, not a loop over them."""
+    starts = torch.cumsum(counts, 0) - counts
+    small = (counts >= 2) & (counts < SMALL_GROUP)
+    if not bool(small.any()):
+        return p.new_zeros(())
+    sizes, starts = counts[small], starts[small]
+    m = int(sizes.max())
+    slot = torch.arange(m, device=p.device)
+    valid = slot[None, :] < sizes[:, None]  # [G, m]
+    index = torch.where(valid, starts[:, None] + slot[None, :], 0)
+    per_slice = max(1, (chunk_size * SMALL_GROUP) // (m * m))
+    total = p.new_zeros(())
+    for g0 in range(0, index.size(0), per_slice):
+        rows, ok = index[g0:g0 + per_slice], valid[g0:g0 + per_slice]
+        p_s, t_s = p[rows], t[rows]  # [G', m, 3]
+        d_pred = safe_norm(p_s[:, :, None, :] - p_s[:, None, :, :], keepdim=False)
+        d_true = safe_norm(t_s[:, :, None, :] - t_s[:, None, :, :], keepdim=False)
+        pair = ok[:, :, None] & ok[:, None, :]
+        total = total + ((d_pred - d_true).pow(2) * pair).sum()
+    return total
 
 
 def full_shape_loss(
@@ -220,10 +280,14 @@ def full_shape_loss(
         \qquad P = \sum_g |g| (|g| - 1)
 
     :math:`g` runs over the groups (one object of one batch copy, see :func:`shape_groups`).
-    The rows are sorted by group and taken ``chunk_size`` at a time against the columns of
-    their own groups only; each block is checkpointed, so at most one
-    ``chunk_size x (largest group)`` block of distances is alive at any time. Exact: every
-    pair is counted once per order, as in the formula.
+    A group of :data:`SMALL_GROUP` leaves or more is taken on its own, its rows at most
+    ``chunk_size`` (and half the group) at a time against its own later rows only: a pair in two
+    chunks is visited once and counted twice, so about half of the :math:`|g|^2` distances are
+    formed and no pair of two groups is. Such a block's gradient is formed with its value
+    (:class:`_PairDistanceError`), so at most one ``chunk_size x (largest group)`` block of
+    distances is alive at any time, in the forward and the backward pass. Smaller groups are
+    padded to one size and taken together. Exact: every pair is counted once per order, as in
+    the formula.
 
     ``fixed`` marks the rows of groups whose predicted distances the network cannot change: the
     leaves of a rigid object under the model's rigid fit move by one rigid motion of their
@@ -249,20 +313,22 @@ def full_shape_loss(
         pred_pos, true_pos, group = pred_pos[~fixed], true_pos[~fixed], group[~fixed]
     order = torch.argsort(group, stable=True)
     g, p, t = group[order], pred_pos[order] / scale, true_pos[order] / scale
+    t = t.detach()
     _, counts = torch.unique_consecutive(g, return_counts=True)
     if n_pairs == 0 or int((counts * (counts - 1)).sum()) == 0:
         return _zero(pred_pos)
-    ends = torch.cumsum(counts, 0)
-    starts = (ends - counts).repeat_interleave(counts).tolist()  # group start of each sorted row
-    ends = ends.repeat_interleave(counts).tolist()
-    use_checkpoint = torch.is_grad_enabled() and (p.requires_grad or t.requires_grad)
-    total = p.new_zeros(())
-    for r0 in range(0, g.numel(), chunk_size):  # loop over row chunks (bounded memory), not particles
-        r1 = min(r0 + chunk_size, g.numel())
-        c0, c1 = starts[r0], ends[r1 - 1]
-        args = (p[r0:r1], t[r0:r1], p[c0:c1], t[c0:c1], g[r0:r1], g[c0:c1])
-        block = checkpoint(_block_error, *args, use_reentrant=False) if use_checkpoint else _block_error(*args)
-        total = total + block
+    starts = (torch.cumsum(counts, 0) - counts).tolist()
+    total = _small_groups_error(p, t, counts, chunk_size)
+    for start, count in zip(starts, counts.tolist()):  # a loop over objects and row chunks, not particles
+        if count >= SMALL_GROUP:
+            # centred on the object (the loss does not see a translation): smaller numbers in the
+            # gradient's matrix products; the centre is a constant, so the gradient is unchanged
+            centre = p[start:start + count].detach().mean(0)
+            p_g, t_g = p[start:start + count] - centre, t[start:start + count]
+            rows = min(chunk_size, (count + 1) // 2)
+            for r0 in range(0, count, rows):
+                r1 = min(r0 + rows, count)
+                total = total + _PairDistanceError.apply(p_g[r0:r1], p_g[r0:], t_g[r0:r1], t_g[r0:], r1 - r0)
     return total / n_pairs
 
 
