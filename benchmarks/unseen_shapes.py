@@ -404,6 +404,9 @@ def main() -> int:
     parser.add_argument("--ground-projection", choices=("on", "off", "deformable"), default=None,
                         help="apply the model with HRNConfig.ground_projection set so everywhere "
                              "(deformable: on for soft bodies and cloth only, ground_projection_rigid off)")
+    parser.add_argument("--rigid-ground-depth", type=float, default=None,
+                        help="with --ground-projection on: how many pitches under the plane a rigid object's "
+                             "lowest leaf may lie before it is lifted (HRNConfig.rigid_ground_depth)")
     parser.add_argument("--corotated-rest", choices=("on", "off"), default=None,
                         help="apply the model with HRNConfig.corotated_rest set so (the rest shape of soft "
                              "bodies and cloth turned onto their current leaves)")
@@ -429,6 +432,8 @@ def main() -> int:
     if args.ground_projection:
         model = with_applied_options(model, ground_projection=args.ground_projection != "off",
                                      ground_projection_rigid=args.ground_projection == "on")
+    if args.rigid_ground_depth is not None:
+        model = with_applied_options(model, rigid_ground_depth=args.rigid_ground_depth)
     if args.corotated_rest:
         model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
     if args.cloth_clearance is not None:
@@ -441,6 +446,7 @@ def main() -> int:
                     "limit": args.limit, "mirror_average": args.mirror_average,
                     "ground_projection": bool(getattr(model.config, "ground_projection", False)),
                     "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
+                    "rigid_ground_depth": float(getattr(model.config, "rigid_ground_depth", 0.0)),
                     "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
                     "cloth_clearance": float(getattr(model.config, "cloth_clearance", 0.0)),
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}

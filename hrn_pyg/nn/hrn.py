@@ -109,6 +109,12 @@ class HRNConfig(NetworkConfig):
             on the plane; a rigid object's leaves are the centres of its voxels, and where its
             surface rests on the ground the lowest of them may lie up to a pitch under it, so
             lifting them to the plane raises a resting body off the ground.
+        rigid_ground_depth: how far under the plane, in voxel pitches, the lowest leaf of a rigid
+            object may lie before ``ground_projection_rigid`` lifts the object. A rigid leaf is
+            the centre of a voxel that meets the body, so a body resting on the plane has leaves
+            down to half a pitch under it: 0.5 lifts only a body sunk into the ground (back to
+            half a pitch under the plane) and leaves a resting one where it is; 0 lifts every
+            rigid leaf onto the plane. Needs the graph's pitch when above 0.
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
             of rigid objects. False drops them (:func:`within_siblings_of`; on a pile of rigid
             meshes at pitch 0.05 about two thirds of the within-siblings edges): a rigid body's
@@ -163,6 +169,7 @@ class HRNConfig(NetworkConfig):
     reference_pitch: float = 0.05
     ground_projection: bool = False
     ground_projection_rigid: bool = True
+    rigid_ground_depth: float = 0.0
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
@@ -189,6 +196,8 @@ class HRNConfig(NetworkConfig):
                              f"got {self.mirror_planes!r}")
         if self.corotated_rest and not self.rest_offsets:
             raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
+        if not 0.0 <= self.rigid_ground_depth <= 1.0:
+            raise ValueError(f"HRNConfig.rigid_ground_depth must be in [0, 1] pitches, got {self.rigid_ground_depth}")
         if not 0.0 <= self.cloth_clearance < 1.0:
             raise ValueError(f"HRNConfig.cloth_clearance must be in [0, 1) pitches, got {self.cloth_clearance}")
         if self.vector_channels < 1:
@@ -601,6 +610,8 @@ class HRN(nn.Module):
             + (f", equivariant=True, vector_channels={c.vector_channels}" if getattr(c, "equivariant", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
+            + (f", rigid_ground_depth={c.rigid_ground_depth}" if c.ground_projection and c.ground_projection_rigid
+               and c.rigid_ground_depth else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 

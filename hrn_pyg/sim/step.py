@@ -43,6 +43,7 @@ from hrn_pyg.data.graph import (
     WITHIN_SIBLINGS,
     leaf_collision_edges,
     leaf_to_ancestor_mean,
+    node_pitch,
 )
 from hrn_pyg.nn.gns import GNS
 from hrn_pyg.nn.hrn import (
@@ -333,16 +334,18 @@ def decode(
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     if getattr(model.config, "ground_projection", False):
         rigid_too = getattr(model.config, "ground_projection_rigid", True)
-        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects, rigid_too)
+        rigid_depth = getattr(model.config, "rigid_ground_depth", 0.0)
+        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects, rigid_too, rigid_depth)
     return pos, local, velocity
 
 
 def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity: Tensor,
-                         objects: tuple[Tensor, int] | None, rigid: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+                         objects: tuple[Tensor, int] | None, rigid: bool = True,
+                         rigid_depth: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """``decode``'s ``(pos, local, velocity)`` after :func:`ground_projected_positions`: a lifted
     node's velocity is its whole move, and the local velocities of its object are derived anew."""
     group, count = object_of(graph) if objects is None else objects
-    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid), graph)
+    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid, rigid_depth), graph)
     moved = (lifted != pos).any(-1)
     touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
     velocity = torch.where(moved.unsqueeze(-1), lifted - graph[NODE].pos, velocity)
@@ -351,24 +354,32 @@ def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity
 
 
 def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None,
-                               rigid: bool = True) -> Tensor:
-    r"""``pos`` ``[N, 3]`` with every moving leaf on or above the ground plane :math:`z = 0`.
+                               rigid: bool = True, rigid_depth: float = 0.0) -> Tensor:
+    r"""``pos`` ``[N, 3]`` with every moving leaf on or above the ground plane :math:`z = 0`
+    (a rigid object's leaves: on or above :math:`z = -\delta p`).
 
     .. math::
-        d_i = \max(0, -z_i), \qquad
+        d_i = \max(0, -z_i - \delta_i p_i), \qquad
         z_i \leftarrow z_i + \begin{cases} \max_{j \in o(i)} d_j & i \text{ a leaf of a rigid object } o(i) \\
                                          d_i & i \text{ a leaf of a soft body or cloth} \end{cases}
 
     so a rigid object is lifted as a whole (it stays rigid) and a deformable leaf alone; static
     rows, ancestors and leaves above the ground are returned unchanged, bit for bit (ancestor rows
-    need re-deriving). With ``rigid=False`` rigid objects are left where they are too, and only
-    the leaves of soft bodies and cloth are lifted. ``objects``: :func:`object_of` of ``graph``,
-    if the caller has it.
+    need re-deriving). :math:`\delta_i` is ``rigid_depth`` on the leaves of rigid objects and 0
+    on the others, :math:`p_i` the node's voxel pitch (:func:`~hrn_pyg.data.graph.node_pitch`,
+    read only when ``rigid_depth > 0``): a rigid object's leaves are voxel centres and may lie
+    that deep (``HRNConfig.rigid_ground_depth``). With ``rigid=False`` rigid objects are left where
+    they are too, and only the leaves of soft bodies and cloth are lifted. ``objects``:
+    :func:`object_of` of ``graph``, if the caller has it.
     """
     store = graph[NODE]
     moving_leaf = store.is_leaf & ~store.is_static
     rigid_leaf = moving_leaf & store.material[:, RIGID].bool()
-    depth = torch.where(moving_leaf, (-pos[:, 2]).clamp_min(0.0), torch.zeros_like(pos[:, 2]))
+    under = -pos[:, 2]
+    if rigid and rigid_depth > 0:
+        allowance = rigid_depth * node_pitch(graph).to(pos.dtype)
+        under = torch.where(rigid_leaf, under - allowance, under)
+    depth = torch.where(moving_leaf, under.clamp_min(0.0), torch.zeros_like(pos[:, 2]))
     group, count = object_of(graph) if objects is None else objects
     deepest = torch.zeros(count, dtype=pos.dtype, device=pos.device).scatter_reduce(
         0, group, torch.where(rigid_leaf, depth, torch.zeros_like(depth)), "amax")

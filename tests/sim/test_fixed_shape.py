@@ -8,7 +8,7 @@ from stability.stability_helpers import fitted_model
 from toy_scene import toy_scene
 
 from hrn_pyg.data.effects import SceneEffects
-from hrn_pyg.data.graph import NODE, replicate
+from hrn_pyg.data.graph import NODE, replicate, set_pitch
 from hrn_pyg.nn.hrn import StepOptions
 from hrn_pyg.sampling.sample import make_masks_fn
 from hrn_pyg.sim import fixed_shape
@@ -156,6 +156,7 @@ MODEL_OPTIONS = [
     dict(),
     dict(rigid_fit=True),
     dict(rest_offsets=True, ground_contact=True),
+    dict(rigid_fit=True, ground_projection=True, rigid_ground_depth=0.5),
     dict(mirror_average=True),
     dict(mirror_average=True, mirror_planes="xy", rigid_fit=True),
     dict(skip_idle_modules=False),
@@ -170,7 +171,7 @@ def test_the_fixed_shape_step_never_reads_the_host(options, masks):
     """On the ``meta`` device every read of a value raises, so a step that runs there to the end
     asks the device nothing: for every model option, with and without dropout masks."""
     model = fitted_model(dropout_modules=("force", "collision"), **options)
-    graph = toy_scene()
+    graph = set_pitch(toy_scene(), 0.1)  # read by the rigid ground depth
     step_fn, args = _fixed_step_args(model, graph, masks, "meta")
     next_pos, report = step_fn(*args)
     assert next_pos.device.type == "meta" and next_pos.shape == graph[NODE].pos.shape
@@ -199,7 +200,7 @@ def test_on_cuda_the_step_never_syncs_and_a_cuda_graph_rollout_equals_the_plain_
     """With ``set_sync_debug_mode("error")`` any synchronising call inside the step raises; the
     CUDA-graph rollout then gives the plain rollout's positions (run by benchmarks/device_check.sh)."""
     model = fitted_model(dropout_modules=("force", "collision"), **options)
-    graph = toy_scene()
+    graph = set_pitch(toy_scene(), 0.1)  # read by the rigid ground depth
     step_fn, args = _fixed_step_args(model, graph, True, "cuda")
     step_fn(*args)  # warm-up: lazy initialisation may sync once
     torch.cuda.synchronize()
@@ -224,6 +225,24 @@ def test_pruned_rigid_leaf_siblings_equal_the_plain_rollout_bit_for_bit():
     forces = pushes(graph[NODE].num_nodes, (2, 3))
     result = fixed_shape_rollout(model, graph, STEPS, forces)
     assert torch.equal(result.pos, plain(model, graph, forces))
+
+
+def test_the_ground_projection_with_a_rigid_depth_equals_the_plain_rollout_bit_for_bit():
+    """The rigid square started 30 cm into the ground and lifted back to half a pitch under it
+    each step (the node pitch read on the step's own device): the plain rollout's positions."""
+    from hrn_pyg.data.graph import leaf_to_ancestor_mean
+
+    model = fitted_model(rigid_fit=True, ground_projection=True, rigid_ground_depth=0.5)
+    graph = set_pitch(toy_scene(), 0.1)
+    store = graph[NODE]
+    for name in ("pos", "prev_pos", "prev_prev_pos"):
+        value = store[name].clone()
+        value[8:12, 2] -= 0.3
+        store[name] = leaf_to_ancestor_mean(value, graph)
+    result = fixed_shape_rollout(model, graph, STEPS)
+    expected = plain(model, graph)
+    assert torch.equal(result.pos, expected)
+    assert expected[-1, 8:12, 2].min() >= -0.05 - 1e-6
 
 
 def test_the_equivariant_network_equals_the_plain_rollout_bit_for_bit():

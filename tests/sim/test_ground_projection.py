@@ -1,14 +1,16 @@
 """``HRNConfig.ground_projection``: no moving leaf ends under the ground; a rigid object is
 lifted whole, a deformable leaf alone, static rows and leaves above the ground untouched; off,
-or with nothing under the ground, the step is the same bit for bit."""
+or with nothing under the ground, the step is the same bit for bit. ``rigid_ground_depth``: a
+rigid object's leaves may lie that many pitches under the plane before it is lifted."""
 
 import dataclasses
 
+import pytest
 import torch
 from toy_scene import toy_model, toy_scene
 
 from hrn_pyg.checkpoints import with_applied_options
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.graph import NODE, set_pitch
 from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sim.step import ground_projected_positions, leaf_to_ancestor_mean, predict, step
 
@@ -46,6 +48,42 @@ def test_without_rigid_objects_only_the_deformable_leaves_are_lifted():
     assert torch.equal(out[RIGID], pos[RIGID])           # the sunk rigid square stays where it is
     assert out[0, 2] == 0.0 and torch.equal(out[0, :2], pos[0, :2])
     assert torch.equal(out[1:8], pos[1:8]) and torch.equal(out[STATIC], pos[STATIC])
+
+
+def test_a_rigid_object_may_lie_a_given_depth_under_the_plane():
+    """With ``rigid_depth`` 0.5 at pitch 0.1 a rigid object sunk 7 cm comes back to 5 cm under the
+    plane (lifted whole), one 4 cm under it stays bit for bit; soft leaves still go to the plane."""
+    graph = set_pitch(toy_scene(), 0.1)
+    pos = _sunk(graph)
+    out = ground_projected_positions(graph, pos, rigid_depth=0.5)
+    lift = -pos[RIGID, 2].min() - 0.05
+    torch.testing.assert_close(out[RIGID], pos[RIGID] + torch.tensor([0.0, 0.0, 1.0]) * lift)
+    torch.testing.assert_close(out[RIGID, 2].min(), torch.tensor(-0.05))
+    assert out[0, 2] == 0.0 and torch.equal(out[1:8], pos[1:8]) and torch.equal(out[STATIC], pos[STATIC])
+    shallow = pos.clone()
+    shallow[RIGID, 2] += -0.04 - pos[RIGID, 2].min()  # lowest rigid leaf 4 cm under the plane
+    assert torch.equal(ground_projected_positions(graph, shallow, rigid_depth=0.5)[RIGID], shallow[RIGID])
+    assert ground_projected_positions(graph, shallow)[RIGID, 2].min() == 0.0  # depth 0: onto the plane
+    assert torch.equal(ground_projected_positions(graph, pos, rigid=False, rigid_depth=0.5)[RIGID], pos[RIGID])
+    with pytest.raises(ValueError, match="pitch"):
+        ground_projected_positions(toy_scene(), pos, rigid_depth=0.5)  # a graph without a pitch
+
+
+def test_the_rigid_ground_depth_is_checked_and_shown():
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="rigid_ground_depth"):
+            HRNConfig(rigid_ground_depth=bad)
+    model = with_applied_options(_model(), ground_projection=True, rigid_ground_depth=0.5)
+    assert "rigid_ground_depth=0.5" in repr(model)
+    graph = set_pitch(toy_scene(), 0.1)
+    store = graph[NODE]
+    for name in ("pos", "prev_pos", "prev_prev_pos"):  # the rigid square falls into the ground
+        value = store[name].clone()
+        value[RIGID, 2] -= 0.35
+        store[name] = leaf_to_ancestor_mean(value, graph)
+    with torch.no_grad():
+        after = predict(model, graph)
+    assert after.pos[RIGID, 2].min() >= -0.05 - 1e-6
 
 
 def test_nothing_under_the_ground_is_returned_bit_for_bit():
