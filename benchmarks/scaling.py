@@ -30,8 +30,12 @@ allocation and unmapped on free: the resident set then follows the live tensors 
 Python objects and small tensors is below this method's resolution). The shape loss is timed as
 the median of 3 runs (its memory is the point).
 
-Run: ``python benchmarks/scaling.py [--repeats 5] [--steps 3] [--threads 1]``. Prints markdown
-tables, writes ``benchmarks/results/scaling.json`` and ``benchmarks/results/scaling.png``.
+Run: ``python benchmarks/scaling.py [--repeats 5] [--steps 3] [--threads 1]
+[--sections particles,objects,shape]``. Prints markdown tables, writes
+``benchmarks/results/scaling.json`` and ``benchmarks/results/scaling.png``. With ``--sections``
+naming some of the three experiments, only those run; the others' rows are kept from the JSON
+already at ``--out``, and ``measured`` in the JSON says when and under what load each section
+was measured.
 """
 
 from __future__ import annotations
@@ -63,6 +67,8 @@ SIDES = (4, 6, 8, 11, 14, 18, 22)
 #: object counts of the object experiment (cubes of OBJECT_SIDE^3 leaves)
 OBJECTS = (1, 2, 4, 8, 16, 32, 64)
 OBJECT_SIDE, OBJECT_PITCH, OBJECT_RADIUS = 5, 0.05, 0.08
+#: the three experiments, as ``--sections`` names them
+SECTIONS = ("particles", "objects", "shape")
 #: shape loss: leaves per side of the big object, chunk sizes, and sides at a fixed chunk
 SHAPE_SIDE = 16
 CHUNKS = (32, 128, 512, 2048, 4096)
@@ -251,6 +257,20 @@ def fit_normalizer_file(path: str) -> None:
     torch.save(norm.state_dict(), path)
 
 
+def kept_sections(path: Path, names: list[str]) -> dict:
+    """The rows of the sections ``names`` (and their ``measured`` records) from the JSON at
+    ``path``, for a run that measures the other sections only."""
+    if not names:
+        return {}
+    if not path.is_file():
+        raise SystemExit(f"--sections leaves out {', '.join(names)}, but {path} holds no earlier rows to keep")
+    old = json.loads(path.read_text())
+    keys = {"particles": ("particles",), "objects": ("objects",), "shape": ("shape_loss_chunks", "shape_loss_sizes")}
+    kept = {key: old[key] for name in names for key in keys[name]}
+    kept["measured"] = {name: old.get("measured", {}).get(name, "with the other sections") for name in names}
+    return kept
+
+
 def loglog_slope(x: list[float], y: list[float]) -> float:
     return float(np.polyfit(np.log(x), np.log(y), 1)[0])
 
@@ -324,6 +344,9 @@ def main(argv: list[str] | None = None) -> dict | None:
                         help=f"leaves per side of the shape-loss object at chunk {FIXED_CHUNK}")
     parser.add_argument("--out", default="benchmarks/results/scaling.json")
     parser.add_argument("--plot", default="benchmarks/results/scaling.png")
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help="experiments to run (particles, objects, shape); the others' rows are kept "
+                             "from the JSON at --out")
     parser.add_argument("--child", choices=("step", "shape"), help=argparse.SUPPRESS)
     parser.add_argument("--n", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--n-objects", type=int, dest="n_objects", help=argparse.SUPPRESS)
@@ -344,6 +367,17 @@ def main(argv: list[str] | None = None) -> dict | None:
         print(json.dumps(child_shape(args)))
         return None
 
+    sections = [x for x in args.sections.split(",") if x]
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown or not sections:
+        raise SystemExit(f"--sections: choose from {', '.join(SECTIONS)}, got {args.sections!r}")
+    kept = kept_sections(Path(args.out), [x for x in SECTIONS if x not in sections])
+    if "particles" not in sections:
+        args.sides = ""
+    if "objects" not in sections:
+        args.objects = ""
+    if "shape" not in sections:
+        args.chunks = args.shape_sides = ""
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         norm_path = os.path.join(tmp, "normalizer.pt")
@@ -377,6 +411,9 @@ def main(argv: list[str] | None = None) -> dict | None:
             sizes.append(r)
             print(f"shape loss L={r['leaves']} chunk {r['chunk']}: {r['ms']:.1f} ms, {r['peak_mb']:.1f} MB", flush=True)
 
+    particles = kept.get("particles", particles)
+    objects = kept.get("objects", objects)
+    chunks, sizes = kept.get("shape_loss_chunks", chunks), kept.get("shape_loss_sizes", sizes)
     L = [r["leaves"] for r in particles]
     slopes = {
         "time_vs_leaves": loglog_slope(L, [r["ms_per_step"] for r in particles]),
@@ -420,6 +457,9 @@ def main(argv: list[str] | None = None) -> dict | None:
                     "torch": torch.__version__, "torch_threads": args.threads,
                     "load_average_1m": os.getloadavg()[0],
                     "note": "2 shared cores, loaded by other jobs while this ran"},
+        "measured": {**kept.get("measured", {}),
+                     **{x: {"utc": time.strftime("%Y-%m-%dT%H:%MZ", time.gmtime()),
+                            "load_average_1m": os.getloadavg()[0]} for x in sections}},
         "particles": particles, "objects": objects, "shape_loss_chunks": chunks, "shape_loss_sizes": sizes,
         "loglog_slopes": slopes, "total_seconds": round(time.perf_counter() - t_start, 1),
     }
