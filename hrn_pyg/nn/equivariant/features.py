@@ -88,8 +88,20 @@ def invariant_state(state: Tensor) -> Tensor:
 
 def weighted_sum(weights: Tensor, basis: Tensor) -> Tensor:
     r"""Channel :math:`c` of a row: :math:`\sum_k w_{k c}\, b_k` over the row's ``K`` horizontal
-    basis vectors. **Shapes:** weights ``[M, K, C]``, basis ``[M, K, 2]`` -> ``[M, C, 2]``."""
+    basis vectors. **Shapes:** weights ``[M, K, C]``, basis ``[M, K, 2]`` -> ``[M, C, 2]``.
+
+    Eagerly one batched matrix product; under ``torch.compile`` the products and the sum over
+    ``k`` written out (:func:`weighted_sum_elementwise`), which the compiler fuses with the
+    operations around them (a batched product of ``M`` tiny matrices stays a call of its own)."""
+    if torch.compiler.is_compiling():
+        return weighted_sum_elementwise(weights, basis)
     return torch.einsum("mkc,mkd->mcd", weights, basis)
+
+
+def weighted_sum_elementwise(weights: Tensor, basis: Tensor) -> Tensor:
+    """:func:`weighted_sum` as broadcast products summed over ``k`` (the same numbers up to
+    rounding). **Shapes:** as :func:`weighted_sum`."""
+    return (weights.unsqueeze(-1) * basis.unsqueeze(2)).sum(1)
 
 
 def mean_vectors_by_index(vectors: Tensor, index: Tensor, count: Tensor) -> Tensor:

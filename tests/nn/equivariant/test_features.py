@@ -5,8 +5,8 @@ import math
 import torch
 
 from hrn_pyg.nn.equivariant.features import (channel_dot, channel_length, dot, horizontal_length, invariant_state,
-                                             squash,
-                                             mean_vectors_by_index, weighted_sum)
+                                             mean_vectors_by_index, squash, weighted_sum,
+                                             weighted_sum_elementwise)
 
 
 def _turn(angle: float) -> torch.Tensor:
@@ -34,6 +34,17 @@ def test_weighted_sum_by_hand():
     weights = torch.tensor([[[1.0, 0.0], [2.0, -1.0]]])  # [1, K=2, C=2]
     basis = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]])  # [1, K=2, 2]
     torch.testing.assert_close(weighted_sum(weights, basis), torch.tensor([[[1.0, 2.0], [0.0, -1.0]]]))
+
+
+def test_the_compiled_form_of_the_weighted_sum_is_the_eager_one():
+    """The elementwise form taken under ``torch.compile`` gives the batched product's numbers, for
+    the module's shapes (K = 2, 3 basis vectors of C = 8 channels; K = C + 1 of one channel)."""
+    gen = torch.Generator().manual_seed(3)
+    for m, k, c in ((50, 2, 8), (50, 3, 8), (20, 9, 1)):
+        weights, basis = torch.randn(m, k, c, generator=gen), torch.randn(m, k, 2, generator=gen)
+        torch.testing.assert_close(weighted_sum_elementwise(weights, basis), weighted_sum(weights, basis))
+        compiled = torch.compile(weighted_sum, backend="eager", fullgraph=True)
+        torch.testing.assert_close(compiled(weights, basis), weighted_sum(weights, basis))
 
 
 def test_the_mean_over_edges_divides_by_the_in_degree_and_leaves_silent_nodes_at_zero():
