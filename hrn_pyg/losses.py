@@ -3,8 +3,8 @@
 The group shape loss is the baseline HRN's (distances between siblings of one parent only); the
 fully-connected shape loss is the seed paper's (distances between all leaf pairs of an object),
 computed object by object in row chunks, each chunk's gradient formed with its value, so its memory
-stays bounded by ``chunk_size`` times the size of the largest object, in the forward and the
-backward pass.
+stays bounded by ``chunk_size`` times the size of the largest object (and a few numbers per pair of
+each object under 64 leaves), in the forward and the backward pass.
 :func:`fair_energy_score` scores K sampled futures against the one observed future (the
 stochastic training mode of :mod:`hrn_pyg.train`, ``sample_copies``).
 """
@@ -286,8 +286,9 @@ def full_shape_loss(
     formed and no pair of two groups is. Such a block's gradient is formed with its value
     (:class:`_PairDistanceError`), so at most one ``chunk_size x (largest group)`` block of
     distances is alive at any time, in the forward and the backward pass. Smaller groups are
-    padded to one size and taken together. Exact: every pair is counted once per order, as in
-    the formula.
+    padded to one size and taken together under autograd, which keeps their distances for the
+    backward pass (fewer than :data:`SMALL_GROUP` squared pairs each). Exact: every pair is
+    counted once per order, as in the formula.
 
     ``fixed`` marks the rows of groups whose predicted distances the network cannot change: the
     leaves of a rigid object under the model's rigid fit move by one rigid motion of their

@@ -105,7 +105,7 @@ def weighted_sum_elementwise(weights: Tensor, basis: Tensor) -> Tensor:
 
 
 def mean_vectors_by_index(vectors: Tensor, index: Tensor, count: Tensor) -> Tensor:
-    r"""Vector channels of edges averaged over their destinations: :math:`\sum_{e 	o i} E_e /
+    r"""Vector channels of edges averaged over their destinations: :math:`\sum_{e \to i} E_e /
     \max(n_i, 1)` with :math:`n_i` the node's in-degree ``count`` (a row no edge reaches is an
     exact zero). A mean, not a sum: a vector effect keeps the scale of the vectors it is made of
     however many edges a node has (a root hears every leaf of its object), and it is copied on
