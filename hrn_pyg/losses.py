@@ -238,12 +238,11 @@ class _PairDistanceError(torch.autograd.Function):
         return grad_rows * grad_output, grad_cols * grad_output, None, None, None
 
 
-def _small_groups_error(p: Tensor, t: Tensor, counts: Tensor, chunk_size: int) -> Tensor:
+def _small_groups_error(p: Tensor, t: Tensor, counts: Tensor, starts: Tensor, chunk_size: int) -> Tensor:
     """Sum of squared distance errors over every ordered pair of the groups of fewer than
-    :data:`SMALL_GROUP` rows (``p``, ``t`` sorted by group, ``counts`` the groups' sizes): the
-    groups padded to one size ``m`` and taken together, about ``chunk_size * SMALL_GROUP`` pairs
+    :data:`SMALL_GROUP` rows (``p``, ``t`` sorted by group; ``counts`` and ``starts`` the groups'
+    sizes and first rows): the groups padded to one size ``m`` and taken together, about ``chunk_size * SMALL_GROUP`` pairs
     at a time, so that many small objects cost a few tensor operations, not a loop over them."""
-    starts = torch.cumsum(counts, 0) - counts
     small = (counts >= 2) & (counts < SMALL_GROUP)
     if not bool(small.any()):
         return p.new_zeros(())
@@ -318,9 +317,9 @@ def full_shape_loss(
     _, counts = torch.unique_consecutive(g, return_counts=True)
     if n_pairs == 0 or int((counts * (counts - 1)).sum()) == 0:
         return _zero(pred_pos)
-    starts = (torch.cumsum(counts, 0) - counts).tolist()
-    total = _small_groups_error(p, t, counts, chunk_size)
-    for start, count in zip(starts, counts.tolist()):  # a loop over objects and row chunks, not particles
+    starts = torch.cumsum(counts, 0) - counts
+    total = _small_groups_error(p, t, counts, starts, chunk_size)
+    for start, count in zip(starts.tolist(), counts.tolist()):  # a loop over objects and row chunks, not particles
         if count >= SMALL_GROUP:
             # centred on the object (the loss does not see a translation): smaller numbers in the
             # gradient's matrix products; the centre is a constant, so the gradient is unchanged
