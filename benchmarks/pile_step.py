@@ -22,8 +22,15 @@ as fixed-shape steps compiled by ``torch.compile``
 first rollout (the compilation) are reported beside its median time per step, and its largest
 difference from the eager one-pass rollout says it computes the same positions.
 
+``--sizes W:C:L,...`` also times fresh networks of other sizes in the same rounds: the model's
+config with MLP width and effect size ``W``, ``C`` vector channels (an equivariant network) and
+``L`` hidden layers, one pass, the trained normaliser and the next-state module's weights zeroed
+(the pile then falls freely and stays finite; a network's time does not depend on its weights'
+values). Each is timed as the model is (eagerly, and compiled with ``--compile``), so a size's
+cost against pybullet is read off before anything is trained at it.
+
 Run: ``python benchmarks/pile_step.py [--counts 2,5,10,20,40] [--material rigid] [--model shapes]
-[--compile] [--out benchmarks/results/pile_step_rigid.json]``. Prints a markdown table and writes JSON
+[--compile] [--sizes 48:4:2] [--out benchmarks/results/pile_step_rigid.json]``. Prints a markdown table and writes JSON
 atomically. Time only on a quiet machine.
 """
 
@@ -43,6 +50,7 @@ import hrn_pyg
 from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.scene_file import read_scene_file
+from hrn_pyg.nn.networks import network_from_dict
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
 from hrn_pyg.utils.files import atomic_write_json
@@ -72,6 +80,34 @@ def pile_scene_text(count: int, material: str, meshes: tuple[str, ...], pitch: f
             lines.append("stiffness = { min = 0.4, max = 0.7 }")
         lines.append("")
     return "\n".join(lines)
+
+
+def parse_sizes(text: str) -> list[tuple[int, int, int]]:
+    """``"W:C:L,..."`` as (width, vector channels, hidden layers) triples of positive integers."""
+    sizes = []
+    for item in (t for t in text.split(",") if t):
+        parts = item.split(":")
+        if len(parts) != 3 or not all(p.isdigit() and int(p) > 0 for p in parts):
+            raise SystemExit(f"--sizes: {item!r} is not WIDTH:CHANNELS:LAYERS of positive integers")
+        sizes.append((int(parts[0]), int(parts[1]), int(parts[2])))
+    return sizes
+
+
+def sized_network(model, width: int, channels: int, layers: int):
+    """A fresh one-pass network of ``model``'s config at another size, for timing: MLP width and
+    effect size ``width``, ``channels`` vector channels (used by an equivariant network),
+    ``layers`` hidden layers; ``model``'s normaliser, and the next-state module's weights zeroed
+    so that a rollout stays finite."""
+    config = {**model.config.to_dict(), "hidden": width, "effect_dim": width, "depth": layers,
+              "vector_channels": channels, "mirror_average": False}
+    if not hasattr(model, "state"):
+        raise SystemExit(f"--sizes: {type(model).__name__} is not an HRN; sizes are timed for HRNs only")
+    network = network_from_dict(config)
+    network.normalizer.load_state_dict(model.normalizer.state_dict())
+    with torch.no_grad():
+        for parameter in network.state.parameters():
+            parameter.zero_()
+    return network.eval()
 
 
 def time_pybullet(spec, seed: int) -> tuple[dict, float]:
@@ -109,10 +145,13 @@ def time_rollout(model, state, steps: int, repeats: int) -> tuple[float, torch.T
     return statistics.median(s for s, _ in timed), timed[-1][1]
 
 
-def compiled_rollout(model, state, steps: int):
+def compiled_rollout(model, state, steps: int, reset: bool = True):
     """A compiled fixed-shape simulator of ``model`` on ``state``, the seconds of its first
-    (compiling) rollout, and a function that times one more rollout as :func:`rollout_seconds`."""
-    torch._dynamo.reset()  # each count compiles afresh, as in a new process (not past the recompile limit)
+    (compiling) rollout, and a function that times one more rollout as :func:`rollout_seconds`.
+    ``reset`` drops what was compiled before, as a new process would start (the simulators of
+    one round must then be made after it: each has steps of its own)."""
+    if reset:
+        torch._dynamo.reset()
     simulator = FixedShapeSimulator(model, state, FixedShapeConfig(compile=True))
     with torch.no_grad():
         start = time.perf_counter()
@@ -163,10 +202,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--compile", action="store_true",
                         help="also time one pass as compiled fixed-shape steps (a minute or so to compile per count)")
+    parser.add_argument("--sizes", default="",
+                        help="also time fresh one-pass networks of these sizes, WIDTH:CHANNELS:LAYERS comma-separated")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     if args.repeats < 1 or args.steps < 4:
         raise SystemExit("--repeats must be >= 1 and --steps >= 4")
+    sizes = parse_sizes(args.sizes)
     torch.set_num_threads(args.threads)
     counts = [int(c) for c in args.counts.split(",") if c]
     meshes = tuple(m for m in args.meshes.split(",") if m)
@@ -189,12 +231,17 @@ def main(argv: list[str] | None = None) -> dict:
                 if getattr(model.config, "mirror_average", False):
                     variants["one pass"] = with_applied_options(model, mirror_average=False).eval()
                 one_pass = "one pass" if "one pass" in variants else "as loaded"
+                for w, c, layers in sizes:
+                    variants[f"fresh {w}:{c}:{layers}"] = sized_network(model, w, c, layers)
                 runs = {}
                 for label, variant in variants.items():
                     rollout_seconds(variant, state, 2)  # warm-up
                     runs[label] = (lambda v=variant: rollout_seconds(v, state, steps))
+                compile_seconds = {}
                 if args.compile:
-                    compile_s, runs["compiled"] = compiled_rollout(variants[one_pass], state, steps)
+                    compiled = [("compiled", one_pass)] + [(f"compiled {lab}", lab) for lab in variants if lab.startswith("fresh")]
+                    for k, (label, source) in enumerate(compiled):
+                        compile_seconds[label], runs[label] = compiled_rollout(variants[source], state, steps, reset=k == 0)
                 bullet_s, seconds, positions = paired_times(
                     lambda: time_pybullet(spec, args.seed)[1], runs, args.repeats)
                 row["pybullet_ms_runs"] += [1e3 * b for b in bullet_s]
@@ -202,10 +249,10 @@ def main(argv: list[str] | None = None) -> dict:
                 if one_pass == "one pass":
                     results["one pass"]["mse_to_averaged_last_step"] = float(
                         ((positions["one pass"][-1] - positions["as loaded"][-1]) ** 2).sum(-1).mean())
-                if args.compile:
-                    results["compiled"]["compile_s"] = compile_s
-                    results["compiled"]["max_abs_diff_to_eager_m"] = float(
-                        (positions["compiled"] - positions[one_pass]).abs().max())
+                for label, seconds_to_compile in compile_seconds.items():
+                    eager = one_pass if label == "compiled" else label.removeprefix("compiled ")
+                    results[label]["compile_s"] = seconds_to_compile
+                    results[label]["max_abs_diff_to_eager_m"] = float((positions[label] - positions[eager]).abs().max())
                 row["models"][name] = results
             row["pybullet_ms"] = statistics.median(row["pybullet_ms_runs"])
             rows.append(row)
@@ -221,7 +268,8 @@ def main(argv: list[str] | None = None) -> dict:
         cells = [f"{r['ms']:.2f} ({r['x_pybullet']:.2f}x)" for res in row["models"].values() for r in res.values()]
         print(f"| {row['objects']} | {row['leaves']} | {row['pybullet_ms']:.2f} | " + " | ".join(cells) + " |")
     result = {"material": args.material, "pitch": args.pitch, "steps": args.steps, "repeats": args.repeats,
-              "threads": args.threads, "seed": args.seed, "meshes": list(meshes), "torch": torch.__version__,
+              "threads": args.threads, "seed": args.seed, "meshes": list(meshes), "sizes": [list(z) for z in sizes],
+              "torch": torch.__version__,
               "rows": rows}
     if args.out:
         atomic_write_json(args.out, result)

@@ -60,3 +60,36 @@ def test_a_tiny_pile_is_timed_against_pybullet(tmp_path, capsys):
         assert low <= timing["x_pybullet"] <= high
     assert results["one pass"]["mse_to_averaged_last_step"] >= 0
     assert "| objects | leaves | pybullet (ms) |" in capsys.readouterr().out
+
+
+def test_sizes_are_width_channels_layers():
+    bench = load_benchmark("pile_step")
+    assert bench.parse_sizes("48:4:2,32:8:1") == [(48, 4, 2), (32, 8, 1)]
+    assert bench.parse_sizes("") == []
+    for bad in ("48:4", "48:0:2", "a:4:2", "48:4:2:1"):
+        with pytest.raises(SystemExit, match="WIDTH:CHANNELS:LAYERS"):
+            bench.parse_sizes(bad)
+
+
+def test_a_sized_network_keeps_the_config_and_normaliser_its_readout_zeroed():
+    from hrn_pyg.checkpoints import load_model
+    bench = load_benchmark("pile_step")
+    model = load_model("shapes")
+    network = bench.sized_network(model, 16, 2, 1)
+    config = network.config
+    assert (config.hidden, config.effect_dim, config.vector_channels, config.depth) == (16, 16, 2, 1)
+    assert not config.mirror_average and config.pitch_aware == model.config.pitch_aware
+    for name, value in model.normalizer.state_dict().items():
+        assert torch.equal(network.normalizer.state_dict()[name], value)
+    assert all(not p.any() for p in network.state.parameters())
+    assert any(p.any() for p in network.collision.parameters())   # the rest is a fresh network
+
+
+def test_a_tiny_pile_times_the_sizes_too(tmp_path):
+    bench = load_benchmark("pile_step")
+    result = bench.main(["--counts", "2", "--steps", "6", "--repeats", "1", "--meshes",
+                         str(MESHES / "random_hull_000.obj"), "--sizes", "16:2:1"])
+    (row,) = result["rows"]
+    timing = row["models"]["shapes"]["fresh 16:2:1"]
+    assert timing["ms"] > 0 and len(timing["ms_runs"]) == 1
+    assert result["sizes"] == [[16, 2, 1]]
