@@ -36,24 +36,32 @@ class CollisionModule(nn.Module):
     (:mod:`hrn_pyg.sim.fixed_shape`): a candidate set that only changes when something has moved far,
     with the pairs closer than the radius marked per step.
 
+    With ``reads_force`` the messages also read the external force (normalised) on both ends,
+    :math:`\phi_C(s_i, s_j, f_i, f_j, x_i - x_j, \lVert x_i - x_j \rVert)`: a push on either body
+    reaches the contact in the step it is applied, where without it the contact learns of the push
+    only from the overlap it has made one step later.
+
     Args:
         state_dim: size :math:`S` of a particle's state vector.
         effect_dim: size :math:`D` of the effect.
         mlp: shape of :math:`\phi_C`.
+        reads_force: the messages read the force on both ends (``force`` is then required).
 
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, pos :math:`(|\mathcal{V}|, 3)`,
           edge_index :math:`(2, |\mathcal{E}_C|)`, mask :math:`(B, H)` or None,
           batch :math:`(|\mathcal{V}|,)` (needed with a mask; an edge uses its destination's id),
-          edge_weight :math:`(|\mathcal{E}_C|,)` or None
+          edge_weight :math:`(|\mathcal{E}_C|,)` or None, force :math:`(|\mathcal{V}|, 3)` (with ``reads_force``)
         - **output:** effect :math:`(|\mathcal{V}|, D)`
     """
 
-    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig()) -> None:
+    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig(), reads_force: bool = False) -> None:
         super().__init__()
         self.state_dim = state_dim
         self.effect_dim = effect_dim
-        self.phi = MLP(2 * state_dim + 4, effect_dim, mlp)
+        self.reads_force = bool(reads_force)
+        self.node_dim = state_dim + (3 if self.reads_force else 0)
+        self.phi = MLP(2 * self.node_dim + 4, effect_dim, mlp)
 
     def reset_parameters(self) -> None:
         self.phi.reset_parameters()
@@ -66,6 +74,7 @@ class CollisionModule(nn.Module):
         mask: Tensor | None = None,
         batch: Tensor | None = None,
         edge_weight: Tensor | None = None,
+        force: Tensor | None = None,
     ) -> Tensor:
         if state.dim() != 2 or state.size(1) != self.state_dim:
             raise ValueError(f"CollisionModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
@@ -78,15 +87,19 @@ class CollisionModule(nn.Module):
         if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
             raise ValueError(f"CollisionModule: edge_weight must be [{edge_index.size(1)}], "
                              f"got {tuple(edge_weight.shape)}")
+        if self.reads_force and (force is None or force.shape != (state.size(0), 3)):
+            raise ValueError(f"CollisionModule: reads_force needs force [N, 3], got "
+                             f"{None if force is None else tuple(force.shape)}")
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         src, dst = edge_index
         edge_batch = batch.index_select(0, dst) if mask is not None else None
         n = state.size(0)
         # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks,
         # each applied per node and gathered onto the edges
-        w_dst, w_src, w_offset, w_dist = self.phi.split_first_weight((self.state_dim, self.state_dim, 3, 1))
-        from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
-        from_src = state @ w_src.T
+        node = torch.cat([state, force], dim=-1) if self.reads_force else state
+        w_dst, w_src, w_offset, w_dist = self.phi.split_first_weight((self.node_dim, self.node_dim, 3, 1))
+        from_dst = torch.addmm(self.phi.first_bias, node, w_dst.T)
+        from_src = node @ w_src.T
         offset = pos.index_select(0, dst) - pos.index_select(0, src)  # x_i - x_j
         # the gathered rows are made for this call alone: without autograd they take the sum in place
         pre = from_dst.index_select(0, dst)
@@ -102,4 +115,5 @@ class CollisionModule(nn.Module):
         return self.phi.output_of_sum(hidden_sum, in_degree(edge_index, n, edge_weight))
 
     def __repr__(self) -> str:
-        return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, phi={self.phi})"
+        return (f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, "
+                f"{'reads_force=True, ' if self.reads_force else ''}phi={self.phi})")

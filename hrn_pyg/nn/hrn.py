@@ -152,6 +152,9 @@ class HRNConfig(NetworkConfig):
             (:func:`hrn_pyg.nn.normalizer.isotropic_horizontal`; training makes it so). Not
             with ``mirror_average`` or ``material_heads``.
         vector_channels: :math:`C`, the horizontal vectors each effect carries (``equivariant``).
+        collision_force: the collision module also reads the external force on both ends of a
+            collision edge, so that two bodies pushed into each other resist in the step of the
+            push rather than one step after, from the overlap the push has made.
     """
 
     hidden: int = 64
@@ -178,6 +181,7 @@ class HRNConfig(NetworkConfig):
     material_heads: bool = False
     equivariant: bool = False
     vector_channels: int = 8
+    collision_force: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dropout_modules", tuple(self.dropout_modules))
@@ -469,7 +473,7 @@ class HRN(nn.Module):
     def _build_plain(self, config: HRNConfig) -> None:
         s, d, mlp = config.state_dim, config.effect_dim, config.mlp
         self.force = ForceModule(s, d, mlp)
-        self.collision = CollisionModule(s, d, mlp)
+        self.collision = CollisionModule(s, d, mlp, reads_force=config.collision_force)
         self.history = HistoryModule(s, d, mlp)
         rest = config.rest_offsets
         self.l2a = PropagationModule(s, d, mlp, name="l2a", rest_offsets=rest)
@@ -482,7 +486,7 @@ class HRN(nn.Module):
         fewer: the horizontal velocity is read as its length)."""
         s, d, c, mlp = config.state_dim - 1, config.effect_dim, config.vector_channels, config.mlp
         self.force = equivariant.ForceModule(s, d, c, mlp)
-        self.collision = equivariant.CollisionModule(s, d, c, mlp)
+        self.collision = equivariant.CollisionModule(s, d, c, mlp, reads_force=config.collision_force)
         self.history = equivariant.HistoryModule(s, d, c, mlp)
         rest = config.rest_offsets
         self.l2a = equivariant.PropagationModule(s, d, c, mlp, name="l2a", rest_offsets=rest)
@@ -558,7 +562,7 @@ class HRN(nn.Module):
             effect = effect + self.force(s, inputs.force, masks.get("force"), b, dense=options.fixed_shape)
         if run_collision:
             effect = effect + self.collision(s, x, inputs.collision, masks.get("collision"), b,
-                                             edge_weight=options.collision_weight)
+                                             edge_weight=options.collision_weight, force=self._collision_force(inputs))
         for name, edges, d, r in propagation_phases(inputs):
             phase = getattr(self, name)
             effect = effect + phase(s, effect, x, edges, masks.get(name), b, rest, degree=d, rest_offset=r)
@@ -579,7 +583,7 @@ class HRN(nn.Module):
             effect, vectors = effect + e, vectors + v
         if run_collision:
             e, v = self.collision(s, velocity, x, inputs.collision, masks.get("collision"), b,
-                                  edge_weight=options.collision_weight)
+                                  edge_weight=options.collision_weight, force=self._collision_force(inputs))
             effect, vectors = effect + e, vectors + v
         vectors = squash(vectors)
         for name, edges, d, r in propagation_phases(inputs):
@@ -587,6 +591,10 @@ class HRN(nn.Module):
                                        degree=d, rest_offset=r)
             effect, vectors = effect + e, squash(vectors + v)
         return self.state(s, velocity, effect, vectors, inputs.is_static, masks.get("state"), b)
+
+    def _collision_force(self, inputs: HRNInputs) -> Tensor | None:
+        """The force the collision module reads (``collision_force``), else None."""
+        return inputs.force if self.config.collision_force else None
 
     def _busy_modules(self, inputs: HRNInputs) -> tuple[bool, bool]:
         """Whether the force and the collision module run this pass: always without
@@ -610,6 +618,7 @@ class HRN(nn.Module):
             + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")
             + (", material_heads=True" if getattr(c, "material_heads", False) else "")
             + (f", equivariant=True, vector_channels={c.vector_channels}" if getattr(c, "equivariant", False) else "")
+            + (", collision_force=True" if getattr(c, "collision_force", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", rigid_ground_depth={c.rigid_ground_depth}" if c.ground_projection and c.ground_projection_rigid

@@ -110,3 +110,31 @@ def test_edge_weight_zero_removes_the_edge_exactly():
     torch.testing.assert_close(m(state, pos, ei, edge_weight=weight), m(state, pos, kept))
     with pytest.raises(ValueError, match=r"edge_weight must be \[4\]"):
         m(state, pos, ei, edge_weight=torch.ones(3))
+
+
+def test_reading_the_force_matches_brute_force_and_a_push_reaches_the_other_body():
+    torch.manual_seed(0)
+    m = CollisionModule(4, 6, CFG, reads_force=True)
+    state, pos, ei = _inputs()
+    force = torch.randn(5, 3, generator=torch.Generator().manual_seed(3))
+    out = m(state, pos, ei, force=force)
+    expected = torch.zeros(5, 6)
+    for j, i in ei.t().tolist():
+        off = pos[i] - pos[j]
+        feat = torch.cat([state[i], force[i], state[j], force[j], off, off.norm().reshape(1)])
+        expected[i] += m.phi(feat[None])[0]
+    torch.testing.assert_close(out, expected)
+    pushed = force.clone()
+    pushed[1] += torch.tensor([2.0, 0.0, 0.0])  # a push on a source reaches its destination (0) only
+    changed = (m(state, pos, ei, force=pushed) - out).abs().amax(dim=-1)
+    assert changed[0] > 1e-4 and torch.equal(changed[[1, 2, 3, 4]], torch.zeros(4))
+    assert "reads_force=True" in repr(m)
+
+
+def test_reading_the_force_needs_it():
+    m = CollisionModule(4, 6, CFG, reads_force=True)
+    state, pos, ei = _inputs()
+    with pytest.raises(ValueError, match=r"reads_force needs force \[N, 3\], got None"):
+        m(state, pos, ei)
+    with pytest.raises(ValueError, match=r"got \(5, 2\)"):
+        m(state, pos, ei, force=torch.zeros(5, 2))

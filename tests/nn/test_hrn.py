@@ -127,3 +127,29 @@ def test_one_mask_per_copy_shared_by_its_nodes_and_edges():
     assert not torch.equal(masks["force"][0], masks["force"][1])
     out2 = model(inputs, masks)
     assert not torch.allclose(out2[:19], out2[19:])
+
+
+@pytest.mark.parametrize("equivariant", [False, True])
+def test_with_collision_force_a_push_reaches_the_other_body_in_the_same_step(equivariant):
+    """Objects are separate trees: in one pass only the collision module links them, so a push on
+    one object changes the other's next step only when the collision module reads the force."""
+    g = toy_scene()
+    store = g["particle"]
+    first = store.object == 0
+    assert g[COLLISION].edge_index.size(1) > 0
+    force = torch.zeros(store.num_nodes, 3)
+    force[first & store.is_leaf.bool()] = torch.tensor([1.0, 0.5, 0.0])
+    others = ~first & ~store.is_static.bool()
+    for reads, reaches in ((False, False), (True, True)):
+        model = _model(collision_force=reads, equivariant=equivariant, vector_channels=4).eval()
+        if equivariant:
+            from hrn_pyg.nn.normalizer import isotropic_horizontal
+            isotropic_horizontal(model.normalizer)
+            torch.nn.init.normal_(model.state.vector.weight, std=0.5)
+        with torch.no_grad():
+            still = model(build_inputs(model, g, torch.zeros_like(force)))
+            pushed = model(build_inputs(model, g, force))
+        changed = (pushed - still)[others].abs().max()
+        assert (changed > 1e-6) == reaches, (reads, float(changed))
+    config = HRNConfig(collision_force=True)
+    assert HRNConfig.from_dict(config.to_dict()) == config and "collision_force=True" in repr(HRN(config))

@@ -12,6 +12,8 @@ from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
 
 #: invariants of a collision edge: |o_h|, o_z, |o|, v_i . o_h, v_j . o_h, v^_i . v^_j (squashed velocities)
 EDGE_INVARIANTS = 6
+#: with ``reads_force``: per end |f_h| and f_z, per edge f_i . o_h and f_j . o_h
+FORCE_NODE_INVARIANTS, FORCE_EDGE_INVARIANTS = 2, 2
 
 
 class CollisionModule(nn.Module):
@@ -33,25 +35,37 @@ the :math:`n_i` edges into :math:`i` (:func:`~hrn_pyg.nn.equivariant.features.me
 the scalar effect summed. An edge of weight 0
     (``edge_weight``) adds an exact zero, as in :class:`hrn_pyg.nn.collision.CollisionModule`.
 
+    With ``reads_force`` the messages also read the external force :math:`f` (normalised) on both
+    ends, :math:`\lVert f_{i,h} \rVert,\ f_{i,z},\ \lVert f_{j,h} \rVert,\ f_{j,z},\ f_i \cdot o_h,\
+    f_j \cdot o_h`, and the vectors are also weighted sums of :math:`f_{i,h}` and :math:`f_{j,h}`:
+    a push on either body reaches the contact in the step it is applied, where without it the
+    contact learns of the push only from the overlap it has made one step later.
+
     Args:
         state_dim: size :math:`S'` of an invariant state vector.
         effect_dim: size :math:`D` of the scalar effect.
         channels: number :math:`C` of vector channels.
         mlp: shape of :math:`\phi_C`.
+        reads_force: the messages read the force on both ends (``force`` is then required).
 
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S')`, velocity :math:`(|\mathcal{V}|, 2)`,
           pos :math:`(|\mathcal{V}|, 3)`, edge_index :math:`(2, |\mathcal{E}_C|)`, mask
           :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)`, edge_weight
-          :math:`(|\mathcal{E}_C|,)` or None
+          :math:`(|\mathcal{E}_C|,)` or None, force :math:`(|\mathcal{V}|, 3)` (with ``reads_force``)
         - **output:** effect :math:`(|\mathcal{V}|, D)`, vectors :math:`(|\mathcal{V}|, C, 2)`
     """
 
-    def __init__(self, state_dim: int, effect_dim: int, channels: int, mlp: MLPConfig = MLPConfig()) -> None:
+    def __init__(self, state_dim: int, effect_dim: int, channels: int, mlp: MLPConfig = MLPConfig(),
+                 reads_force: bool = False) -> None:
         super().__init__()
         self.state_dim, self.effect_dim, self.channels = state_dim, effect_dim, channels
-        self.phi = MLP(2 * state_dim + EDGE_INVARIANTS, effect_dim, mlp)
-        self.vector = nn.Linear(mlp.hidden, 2 * channels)
+        self.reads_force = bool(reads_force)
+        self.node_dim = state_dim + (FORCE_NODE_INVARIANTS if self.reads_force else 0)
+        self.edge_dim = EDGE_INVARIANTS + (FORCE_EDGE_INVARIANTS if self.reads_force else 0)
+        self.basis = 4 if self.reads_force else 2  # o_h, v_j - v_i (, f_i, f_j)
+        self.phi = MLP(2 * self.node_dim + self.edge_dim, effect_dim, mlp)
+        self.vector = nn.Linear(mlp.hidden, self.basis * channels)
 
     def reset_parameters(self) -> None:
         self.phi.reset_parameters()
@@ -59,7 +73,7 @@ the scalar effect summed. An edge of weight 0
 
     def forward(self, state: Tensor, velocity: Tensor, pos: Tensor, edge_index: Tensor,
                 mask: Tensor | None = None, batch: Tensor | None = None,
-                edge_weight: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                edge_weight: Tensor | None = None, force: Tensor | None = None) -> tuple[Tensor, Tensor]:
         n = state.size(0)
         if state.dim() != 2 or state.size(1) != self.state_dim:
             raise ValueError(f"equivariant CollisionModule: state must be [N, {self.state_dim}], "
@@ -68,21 +82,32 @@ the scalar effect summed. An edge of weight 0
         if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
             raise ValueError(f"equivariant CollisionModule: edge_weight must be [{edge_index.size(1)}], "
                              f"got {tuple(edge_weight.shape)}")
+        if self.reads_force and (force is None or force.shape != (n, 3)):
+            raise ValueError(f"equivariant CollisionModule: reads_force needs force [N, 3], got "
+                             f"{None if force is None else tuple(force.shape)}")
         src, dst = edge_index
         edge_batch = batch.index_select(0, dst) if mask is not None else None
         offset = pos.index_select(0, dst) - pos.index_select(0, src)  # x_i - x_j
         o_h = horizontal(offset)
         v_i, v_j = velocity.index_select(0, dst), velocity.index_select(0, src)
         unit = squash(velocity)  # once per node, then gathered: the same rows as squashing per edge
-        invariants = torch.cat([horizontal_length(o_h), offset[:, 2:], safe_norm(offset),
-                                dot(v_i, o_h), dot(v_j, o_h), dot(unit.index_select(0, dst), unit.index_select(0, src))], dim=-1)
-        w_dst, w_src, w_edge = self.phi.split_first_weight((self.state_dim, self.state_dim, EDGE_INVARIANTS))
-        from_dst = torch.addmm(self.phi.first_bias, state, w_dst.T)
-        pre = from_dst.index_select(0, dst) + (state @ w_src.T).index_select(0, src)
-        pre = pre.addmm_(invariants, w_edge.T)
+        parts = [horizontal_length(o_h), offset[:, 2:], safe_norm(offset),
+                 dot(v_i, o_h), dot(v_j, o_h), dot(unit.index_select(0, dst), unit.index_select(0, src))]
+        basis = [o_h, v_j - v_i]
+        node = state
+        if self.reads_force:
+            f_h = horizontal(force)
+            f_i, f_j = f_h.index_select(0, dst), f_h.index_select(0, src)
+            node = torch.cat([state, horizontal_length(f_h), force[:, 2:]], dim=-1)
+            parts += [dot(f_i, o_h), dot(f_j, o_h)]
+            basis += [f_i, f_j]
+        w_dst, w_src, w_edge = self.phi.split_first_weight((self.node_dim, self.node_dim, self.edge_dim))
+        from_dst = torch.addmm(self.phi.first_bias, node, w_dst.T)
+        pre = from_dst.index_select(0, dst) + (node @ w_src.T).index_select(0, src)
+        pre = pre.addmm_(torch.cat(parts, dim=-1), w_edge.T)
         hidden = self.phi.last_hidden_from_first(pre, mask, edge_batch, pre_is_scratch=True)
-        weights = self.vector(hidden).view(-1, 2, self.channels)
-        vectors = weighted_sum(weights, torch.stack([o_h, v_j - v_i], dim=1))
+        weights = self.vector(hidden).view(-1, self.basis, self.channels)
+        vectors = weighted_sum(weights, torch.stack(basis, dim=1))
         if edge_weight is not None:
             weight = edge_weight.to(hidden.dtype)
             hidden = hidden * weight.unsqueeze(-1)
@@ -93,4 +118,4 @@ the scalar effect summed. An edge of weight 0
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, "
-                f"channels={self.channels}, phi={self.phi})")
+                f"channels={self.channels}, {'reads_force=True, ' if self.reads_force else ''}phi={self.phi})")

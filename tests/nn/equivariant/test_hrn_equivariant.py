@@ -47,10 +47,10 @@ def _scene(g: torch.Tensor | None = None, seed: int = 0):
 
 MAPS = [(0.3, False), (math.pi / 2, False), (2.0, True), (0.0, True), (math.pi, False)]
 OPTIONS = [{}, {"rigid_fit": True, "ground_contact": True}, {"rest_offsets": True, "corotated_rest": True},
-           {"pitch_aware": True}]
+           {"pitch_aware": True}, {"collision_force": True}]
 
 
-@pytest.mark.parametrize("kw", OPTIONS, ids=["plain", "rigid-fit", "rest-offsets", "pitch-aware"])
+@pytest.mark.parametrize("kw", OPTIONS, ids=["plain", "rigid-fit", "rest-offsets", "pitch-aware", "collision-force"])
 @pytest.mark.parametrize("angle,mirror", MAPS)
 def test_a_mapped_scene_gets_the_mapped_step(kw, angle, mirror):
     """step(g s) = g step(s) to float precision, for any turn about z and any vertical mirror,

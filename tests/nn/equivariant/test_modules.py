@@ -77,6 +77,25 @@ def test_collision_is_equivariant_and_a_zero_weight_edge_is_no_edge(angle, mirro
 
 
 @pytest.mark.parametrize("angle,mirror", MAPS)
+def test_collision_reading_the_force_is_equivariant_and_feels_a_push_on_the_other_end(angle, mirror):
+    g2 = _turn(angle, mirror)
+    g = _lift(g2)
+    module = _randomised(CollisionModule(S, D, C, MLP_SHAPE, reads_force=True))
+    x = _inputs(2)
+    e, v = module(x["state"], x["velocity"], x["pos"], EDGES, force=x["force"])
+    e_g, v_g = module(x["state"], x["velocity"] @ g2.T, x["pos"] @ g.T, EDGES, force=x["force"] @ g.T)
+    torch.testing.assert_close(e_g, e, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(v_g, v @ g2.T, atol=1e-5, rtol=1e-5)
+    pushed = x["force"].clone()
+    pushed[6] += torch.tensor([1.5, -0.5, 0.0])  # node 6 sends to node 5 only (edge 6 -> 5)
+    e_p, v_p = module(x["state"], x["velocity"], x["pos"], EDGES, force=pushed)
+    moved = (e_p - e).abs().amax(dim=-1) + (v_p - v).abs().flatten(1).amax(dim=-1)
+    assert moved[5] > 1e-4 and torch.equal(moved[[0, 1, 2, 3, 4, 6]], torch.zeros(6))
+    with pytest.raises(ValueError, match="reads_force needs force"):
+        module(x["state"], x["velocity"], x["pos"], EDGES)
+
+
+@pytest.mark.parametrize("angle,mirror", MAPS)
 def test_force_history_and_state_are_equivariant(angle, mirror):
     g2 = _turn(angle, mirror)
     g = _lift(g2)
