@@ -38,7 +38,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -72,7 +72,7 @@ from hrn_pyg.nn.networks import Network, NetworkConfig, build_network, network_f
 from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 from hrn_pyg.nn.pitch import collision_radius_of, is_pitch_aware
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.nn.widen import widen_to_pitch_aware, with_material_heads
+from hrn_pyg.nn.widen import widen_to_pitch_aware, with_collision_force, with_material_heads
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.step import root_of
 from hrn_pyg.utils.checkpoint import (
@@ -785,7 +785,7 @@ def _checkpoint_to_resume(last: Path, resume: bool) -> dict[str, Any] | None:
 
 
 def _initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: EpisodeWindows,
-                   ckpt: dict[str, Any] | None) -> Network:
+                   ckpt: dict[str, Any] | None, given: frozenset[str] = frozenset()) -> Network:
     """The network the steps start from: the checkpoint's when resuming, else the model of
     ``init_from`` or a fresh one with its normaliser fitted; under ``augment_symmetry``, and for
     an equivariant network, a new run's normaliser is made isotropic."""
@@ -798,7 +798,7 @@ def _initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: 
         model.load_state_dict(ckpt["model"])
         return model
     if config.init_from:
-        model = _fine_tuned_start(config.init_from, model_config)
+        model = _fine_tuned_start(config.init_from, model_config, given)
     else:
         _fit_to_training_windows(model, train_set, config.seed)
     if config.augment_symmetry or getattr(model.config, "equivariant", False):
@@ -806,11 +806,12 @@ def _initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: 
     return model
 
 
-def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
+def _fine_tuned_start(path: str, model_config: NetworkConfig, given: frozenset[str] = frozenset()) -> Network:
     """The model of checkpoint ``path``, in training mode, for ``init_from``.
 
     Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
-    that differs from both the defaults and the checkpoint) is an error, not silently ignored;
+    that differs from the checkpoint and either differs from the defaults or is named in
+    ``given``, the options set on purpose) is an error, not silently ignored;
     except the options of :data:`APPLIED_OPTIONS`, which change how the same weights are applied
     (``mirror_average``, ``mirror_planes``): set, they hold from this fine-tuning on. A
     ``model_config`` with ``pitch_aware`` from a plain checkpoint starts a pitch-aware model from
@@ -818,7 +819,9 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
     that new model takes the applied options of ``model_config`` as given (e.g. one pass, where
     the checkpoint averaged over mirrors). One with ``material_heads`` from a checkpoint without
     them starts every material's head as a copy of the checkpoint's one head
-    (:func:`hrn_pyg.nn.widen.with_material_heads`).
+    (:func:`hrn_pyg.nn.widen.with_material_heads`); one with ``collision_force`` from a checkpoint
+    without it starts the collision module's weights on the force at zero
+    (:func:`hrn_pyg.nn.widen.with_collision_force`).
     """
     model = load_model(path)
     if type(model.config) is not type(model_config):
@@ -829,8 +832,11 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig) -> Network:
         model = widen_to_pitch_aware(model, reference_pitch=model_config.reference_pitch, **applied)
     if getattr(model_config, "material_heads", False) and not model.config.material_heads:
         model = with_material_heads(model)
-    saved, given, default = model.config.to_dict(), model_config.to_dict(), type(model_config)().to_dict()
-    changed = {k: given[k] for k in given if given[k] != default.get(k) and given[k] != saved.get(k)}
+    if getattr(model_config, "collision_force", False) and not model.config.collision_force:
+        model = with_collision_force(model)
+    saved, wanted, default = model.config.to_dict(), model_config.to_dict(), type(model_config)().to_dict()
+    changed = {k: value for k, value in wanted.items()
+               if (value != default.get(k) or k in given) and value != saved.get(k)}
     clashes = sorted(k for k in changed if k not in APPLIED_OPTIONS)
     if clashes:
         raise ValueError(f"init_from={path!r} keeps that model's settings; these model options "
@@ -1047,11 +1053,15 @@ class _Run:
 
 
 def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume: bool = False,
-          progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
+          progress: bool = True, stop_after: int | None = None,
+          given_model_options: Collection[str] = ()) -> dict[str, Any]:
     """Run (or continue) one training job; returns the last logged row.
 
     ``model_config``: an :class:`~hrn_pyg.nn.hrn.HRNConfig` for the ``hrn`` and ``ours``
     presets, a :class:`~hrn_pyg.nn.gns.GNSConfig` for ``gns`` (None: the preset's default).
+    ``given_model_options``: the names of ``model_config``'s fields that were set on purpose
+    (the command line's ``--model-*`` options); with ``init_from`` they count as set even where
+    they equal the default (:func:`_fine_tuned_start`).
 
     ``stop_after`` ends this call after that many more steps (with a checkpoint), as if it had
     been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
@@ -1063,7 +1073,7 @@ def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume
     out = Path(config.out)
     train_set, val_set = _load_splits(config)
     ckpt = _checkpoint_to_resume(out / "last.pt", resume)
-    model = _initial_model(config, model_config, train_set, ckpt)
+    model = _initial_model(config, model_config, train_set, ckpt, frozenset(given_model_options))
     config = resolved_noise(config, model)
     model.to(place.device)
     optimizer, scheduler = _optimiser(model, config)
@@ -1172,6 +1182,12 @@ def _option_type(default: Any) -> Any:
     return _parse_bool if isinstance(default, bool) else type(default)
 
 
+def given_model_options(args: argparse.Namespace) -> frozenset[str]:
+    """The model config fields set on the command line (``--model-*``, ``--dropout-modules``)."""
+    names = {f.name for f in _model_fields() if getattr(args, f"model_{f.name}", None) is not None}
+    return frozenset(names | ({"dropout_modules"} if args.dropout_modules else set()))
+
+
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, NetworkConfig]:
     overrides = {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)
                  if f.name not in ("preset", "data", "out")}
@@ -1190,7 +1206,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, NetworkConf
 
 def run(args: argparse.Namespace) -> int:
     config, model_config = config_from_args(args)
-    summary = train(config, model_config, resume=args.resume, progress=not args.no_progress)
+    summary = train(config, model_config, resume=args.resume, progress=not args.no_progress,
+                    given_model_options=given_model_options(args))
     # the process group is gone once train() returns: the launcher's RANK says who reports
     if int(os.environ.get("RANK", "0")) == 0 and summary:
         done = int(summary["step"]) + 1

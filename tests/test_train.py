@@ -626,6 +626,50 @@ def test_init_from_may_switch_on_the_mirror_average(tiny_episodes, tmp_path):
         assert torch.allclose(a, b, atol=1e-12), name
 
 
+def test_an_option_given_on_purpose_holds_even_at_its_default(tiny_episodes, tmp_path):
+    """A checkpoint trained with ground_projection_rigid off, fine-tuned with it set to true (its
+    default): set on purpose, it holds; not named, the checkpoint's setting holds."""
+    import argparse
+
+    from hrn_pyg.train import add_arguments, given_model_options
+
+    train(_config(tiny_episodes, tmp_path / "base", steps=2), HRNConfig(**{**SMALL.to_dict(), "ground_projection": True,
+                                                                          "ground_projection_rigid": False}),
+          progress=False)
+    base = tmp_path / "base" / "model.pt"
+    for given, expected in ((("ground_projection_rigid",), True), ((), False)):
+        out = tmp_path / f"tuned_{expected}"
+        train(_config(tiny_episodes, out, steps=1, lr=1e-30, init_from=str(base)), HRNConfig(),
+              progress=False, given_model_options=given)
+        assert load_model(out / "model.pt").config.ground_projection_rigid is expected
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--preset", "ours", "--data", "d", "--out", "o",
+                              "--model-ground-projection-rigid", "true", "--dropout-modules", "force"])
+    assert given_model_options(args) == {"ground_projection_rigid", "dropout_modules"}
+
+
+def test_init_from_may_make_the_collision_module_read_the_force(tiny_episodes, tmp_path):
+    """collision_force from a checkpoint without it: the new weights start at zero, every other
+    weight at the checkpoint's, and the run's model reads the force from then on."""
+    train(_config(tiny_episodes, tmp_path / "base", steps=2), SMALL, progress=False)
+    base = tmp_path / "base" / "model.pt"
+    tuned = _config(tiny_episodes, tmp_path / "tuned", steps=1, lr=1e-30, init_from=str(base))
+    train(tuned, HRNConfig(collision_force=True), progress=False)
+    before, after = load_model(base), load_model(tmp_path / "tuned" / "model.pt")
+    assert after.config.collision_force and not before.config.collision_force
+    assert dataclasses.replace(after.config, collision_force=False) == before.config
+    key = "collision.phi.hidden_layers.0.weight"
+    old, new = before.state_dict(), after.state_dict()
+    state = before.collision.node_dim
+    assert new[key].shape[1] == old[key].shape[1] + 6
+    force_columns = [state, state + 1, state + 2, 2 * state + 3, 2 * state + 4, 2 * state + 5]
+    assert new[key][:, force_columns].abs().max() < 1e-20
+    for name, value in old.items():
+        if name != key:
+            assert torch.allclose(value, new[name], atol=1e-12), name
+
+
 def test_with_applied_options_keeps_the_weights_and_refuses_other_settings(tiny_episodes, tmp_path):
     """The xy mirror average applied to trained weights: same weights and normaliser, the new
     planes in the config, the mode kept; a setting that changes which weights there are is

@@ -1,6 +1,7 @@
 r"""A trained model's weights as the start of a larger one: a pitch-aware model from a plain
-one (:func:`widen_to_pitch_aware`), or one with a next-state head per material from one with a
-single head (:func:`with_material_heads`).
+one (:func:`widen_to_pitch_aware`), one with a next-state head per material from one with a
+single head (:func:`with_material_heads`), or one whose collision module reads the force from
+one whose does not (:func:`with_collision_force`).
 
 **Pitch-aware.** A pitch-aware HRN (``HRNConfig.pitch_aware``, :mod:`hrn_pyg.nn.pitch`) reads one more state
 column than the plain model it may start from: :math:`\log_2(p / p_{ref})`, appended to the
@@ -96,3 +97,31 @@ def _grown_config(model: HRN, caller: str, option: str, already: str, changes: d
     if getattr(model.config, option):
         raise ValueError(f"{caller}: the model {already}")
     return dataclasses.replace(model.config, **{**changes, option: True})
+
+
+def with_collision_force(model: HRN, **changes: Any) -> HRN:
+    """An :class:`HRN` with ``HRNConfig.collision_force`` holding ``model``'s weights, the
+    collision module's weights on the force zero, so it predicts what ``model`` does (up to the
+    rounding of longer sums) until training moves them.
+
+    The collision MLP's first layer gains zero columns after each end's state block (the force,
+    or with ``equivariant`` the force's horizontal length and vertical part) and, equivariant, at
+    the end (the force's dot products with the edge's offset); the equivariant vector readout
+    gains zero rows for the two force vectors of its weighted sum. ``changes``: other fields of
+    the new config that keep every other layer's size. The result is in ``model``'s training mode.
+    """
+    config = _grown_config(model, "with_collision_force", "collision_force", "reads the force already", changes)
+    grown = HRN(config)
+    old, new = model.collision, grown.collision
+    weights = dict(model.state_dict())
+    key = "collision.phi.hidden_layers.0.weight"
+    first = widen_state_blocks(weights[key], 2, old.node_dim, new.node_dim)
+    extra_edge = new.phi.in_dim - 2 * new.node_dim - (old.phi.in_dim - 2 * old.node_dim)
+    weights[key] = torch.cat([first, first.new_zeros(first.size(0), extra_edge)], dim=1)
+    if config.equivariant:
+        for name in ("collision.vector.weight", "collision.vector.bias"):
+            value = weights[name]
+            rows = (new.basis - old.basis) * new.channels
+            weights[name] = torch.cat([value, value.new_zeros(rows, *value.shape[1:])], dim=0)
+    grown.load_state_dict(weights)  # strict: any other size that changed is an error here
+    return grown.train(model.training)

@@ -87,3 +87,36 @@ def test_train_init_from_a_plain_model_with_pitch_aware_widens_it(tmp_path):
     first = trained.history.phi.hidden_layers[0].weight  # [s(t), s(t-1)]: two pitch columns
     assert first.size(1) == shapes.history.phi.hidden_layers[0].weight.size(1) + 2
     assert first[:, state_dim].abs().sum() > 0  # the pitch column learnt from pitch 0.08 windows
+
+
+@pytest.mark.parametrize("name", ["cube_collision", "equivariant"])
+def test_a_model_made_to_read_the_force_in_collisions_predicts_as_before(drop_start, name):
+    """The force's new weights start at zero: the same rollout, pushes included, and only the
+    collision module's first layer (and the equivariant vector readout) grew."""
+    from hrn_pyg.nn.hrn import HRN, HRNConfig
+    from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
+    from hrn_pyg.nn.widen import with_collision_force
+    torch.set_num_threads(1)
+    if name == "equivariant":
+        torch.manual_seed(0)
+        model = HRN(HRNConfig(hidden=16, effect_dim=8, vector_channels=3, equivariant=True, rigid_fit=True))
+        fit_normalizer([drop_start], model.normalizer)
+        isotropic_horizontal(model.normalizer)
+        torch.nn.init.normal_(model.state.vector.weight, std=0.3)
+        torch.nn.init.normal_(model.collision.vector.weight, std=0.3)
+    else:
+        model = load_model(name)
+    model = model.eval()
+    grown = with_collision_force(model).eval()
+    assert grown.config.collision_force and not model.config.collision_force
+    forces = torch.zeros(10, drop_start["particle"].num_nodes, 3)
+    forces[:, :12] = torch.tensor([3.0, -1.0, 0.0])
+    with torch.no_grad():
+        expected = hrn_pyg.rollout(model, drop_start.clone(), 10, forces=forces, sleep=None)
+        got = hrn_pyg.rollout(grown, drop_start.clone(), 10, forces=forces, sleep=None)
+    torch.testing.assert_close(got, expected, atol=1e-6, rtol=0)
+    changed = [k for k, v in grown.state_dict().items() if v.shape != model.state_dict()[k].shape]
+    assert set(changed) <= {"collision.phi.hidden_layers.0.weight", "collision.vector.weight", "collision.vector.bias"}
+    assert "collision.phi.hidden_layers.0.weight" in changed
+    with pytest.raises(ValueError, match="reads the force already"):
+        with_collision_force(grown)
