@@ -612,14 +612,20 @@ def test_init_from_starts_at_the_checkpoint_and_keeps_its_settings(tiny_episodes
               HRNConfig(hidden=32), progress=False)
 
 
-def test_init_from_may_switch_on_the_mirror_average(tiny_episodes, tmp_path):
-    """mirror_average changes how the weights are applied, not which weights there are: a
-    fine-tuning may set it, and its first step starts from the checkpoint's weights."""
+def _base_and_fine_tuned(tiny_episodes, tmp_path, model_config: HRNConfig):
+    """A two-step run of SMALL and a one-step fine-tuning of it at a vanishing rate under
+    ``model_config``: both models, as loaded."""
     train(_config(tiny_episodes, tmp_path / "base", steps=2), SMALL, progress=False)
     base = tmp_path / "base" / "model.pt"
     tuned = _config(tiny_episodes, tmp_path / "tuned", steps=1, lr=1e-30, init_from=str(base))
-    train(tuned, HRNConfig(mirror_average=True), progress=False)
-    before, after = load_model(base), load_model(tmp_path / "tuned" / "model.pt")
+    train(tuned, model_config, progress=False)
+    return load_model(base), load_model(tmp_path / "tuned" / "model.pt")
+
+
+def test_init_from_may_switch_on_the_mirror_average(tiny_episodes, tmp_path):
+    """mirror_average changes how the weights are applied, not which weights there are: a
+    fine-tuning may set it, and its first step starts from the checkpoint's weights."""
+    before, after = _base_and_fine_tuned(tiny_episodes, tmp_path, HRNConfig(mirror_average=True))
     assert after.config.mirror_average and not before.config.mirror_average
     assert dataclasses.replace(after.config, mirror_average=False) == before.config
     for (name, a), b in zip(before.state_dict().items(), after.state_dict().values()):
@@ -652,11 +658,7 @@ def test_an_option_given_on_purpose_holds_even_at_its_default(tiny_episodes, tmp
 def test_init_from_may_make_the_collision_module_read_the_force(tiny_episodes, tmp_path):
     """collision_force from a checkpoint without it: the new weights start at zero, every other
     weight at the checkpoint's, and the run's model reads the force from then on."""
-    train(_config(tiny_episodes, tmp_path / "base", steps=2), SMALL, progress=False)
-    base = tmp_path / "base" / "model.pt"
-    tuned = _config(tiny_episodes, tmp_path / "tuned", steps=1, lr=1e-30, init_from=str(base))
-    train(tuned, HRNConfig(collision_force=True), progress=False)
-    before, after = load_model(base), load_model(tmp_path / "tuned" / "model.pt")
+    before, after = _base_and_fine_tuned(tiny_episodes, tmp_path, HRNConfig(collision_force=True))
     assert after.config.collision_force and not before.config.collision_force
     assert dataclasses.replace(after.config, collision_force=False) == before.config
     key = "collision.phi.hidden_layers.0.weight"
