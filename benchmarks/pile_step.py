@@ -27,7 +27,9 @@ config with MLP width and effect size ``W``, ``C`` vector channels (an equivaria
 ``L`` hidden layers, one pass, the trained normaliser and the next-state module's weights zeroed
 (the pile then falls freely and stays finite; a network's time does not depend on its weights'
 values). Each is timed as the model is (eagerly, and compiled with ``--compile``), so a size's
-cost against pybullet is read off before anything is trained at it.
+cost against pybullet is read off before anything is trained at it. Their compiled rollouts'
+difference from the eager ones is recorded too, but says little: with the readout zeroed, every
+position is the free fall's.
 
 Run: ``python benchmarks/pile_step.py [--counts 2,5,10,20,40] [--material rigid] [--model shapes]
 [--compile] [--sizes 48:4:2] [--out benchmarks/results/pile_step_rigid.json]``. Prints a markdown table and writes JSON
