@@ -413,6 +413,9 @@ def main() -> int:
     parser.add_argument("--cloth-clearance", type=float, default=None,
                         help="apply the model with HRNConfig.cloth_clearance set to this many pitches (cloth "
                              "leaves kept out of other objects; 0: off)")
+    parser.add_argument("--rigid-fit-rest", choices=("on", "off"), default=None,
+                        help="apply the model with HRNConfig.rigid_fit_rest set so (each rigid object's "
+                             "motion fitted from its rest shape, not its current leaves)")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
     args = parser.parse_args()
@@ -438,6 +441,8 @@ def main() -> int:
         model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
     if args.cloth_clearance is not None:
         model = with_applied_options(model, cloth_clearance=args.cloth_clearance)
+    if args.rigid_fit_rest:
+        model = with_applied_options(model, rigid_fit_rest=args.rigid_fit_rest == "on")
     unseen = [Path(f) for f in args.unseen]
     own = [Path(f) for f in args.own]
     started = time.perf_counter()
@@ -449,6 +454,7 @@ def main() -> int:
                     "rigid_ground_depth": float(getattr(model.config, "rigid_ground_depth", 0.0)),
                     "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
                     "cloth_clearance": float(getattr(model.config, "cloth_clearance", 0.0)),
+                    "rigid_fit_rest": bool(getattr(model.config, "rigid_fit_rest", False)),
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
     print("errors on unseen meshes and the own test split", flush=True)
     result["unseen"] = unseen_section(model, unseen, own, args)

@@ -76,6 +76,13 @@ class HRNConfig(NetworkConfig):
             no collision edge (the result is the same; False runs them on empty input).
         rigid_fit: replace the predicted leaf motion of every rigid object by its best rigid
             transform (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`), in training and at inference.
+        rigid_fit_rest: fit that transform from the object's rest shape (the graph's
+            ``rest_pos``) rather than from its current leaves. Both are rigid images of one
+            body, so the fitted positions agree to rounding; from the rest shape the rounding of
+            one step is not carried into the next, and a rigid body's pairwise distances stay
+            those of its rest shape to one rounding at every horizon (from the current leaves
+            the rounding adds up over the steps). A graph without ``rest_pos`` is fitted from its
+            current leaves. Needs ``rigid_fit``.
         rest_offsets: the propagation modules also see each edge's offset in the rest shape
             (``graph['particle'].rest_pos``), so an elastic restoring effect is learnable.
         ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`: the distance to
@@ -166,6 +173,7 @@ class HRNConfig(NetworkConfig):
     dropout_modules: tuple[str, ...] = field(default=("force", "collision"))
     skip_idle_modules: bool = True
     rigid_fit: bool = False
+    rigid_fit_rest: bool = False
     rest_offsets: bool = False
     ground_contact: bool = False
     mirror_average: bool = False
@@ -200,6 +208,8 @@ class HRNConfig(NetworkConfig):
         if self.mirror_planes not in MIRROR_GROUPS:
             raise ValueError(f"HRNConfig.mirror_planes must be one of {sorted(MIRROR_GROUPS)}, "
                              f"got {self.mirror_planes!r}")
+        if self.rigid_fit_rest and not self.rigid_fit:
+            raise ValueError("HRNConfig.rigid_fit_rest says where the rigid fit starts from: it needs rigid_fit=True")
         if self.corotated_rest and not self.rest_offsets:
             raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
         if not 0.0 <= self.rigid_ground_depth <= 1.0:
@@ -613,6 +623,7 @@ class HRN(nn.Module):
             f"{self.__class__.__name__}(hidden={c.hidden}, depth={c.depth}, effect_dim={c.effect_dim}, "
             f"collision_radius={c.collision_radius}, dropout={c.dropout_rate} on {list(c.dropout_modules)}, "
             f"rigid_fit={c.rigid_fit}, rest_offsets={c.rest_offsets}, ground_contact={c.ground_contact}"
+            + (", rigid_fit_rest=True" if getattr(c, "rigid_fit_rest", False) else "")
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
             + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")

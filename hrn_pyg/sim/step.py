@@ -328,7 +328,8 @@ def decode(
         velocity = to_global_velocity(local, graph[LEAF_TO_ANCESTOR].edge_index)
         pos = leaf_to_ancestor_mean(store.pos + velocity, graph)
     if model.config.rigid_fit:
-        pos = leaf_to_ancestor_mean(rigid_leaf_positions(graph, pos, objects), graph)
+        from_rest = getattr(model.config, "rigid_fit_rest", False)
+        pos = leaf_to_ancestor_mean(rigid_leaf_positions(graph, pos, objects, from_rest), graph)
         rigid = store.material[:, RIGID].bool().unsqueeze(-1)
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
@@ -407,11 +408,13 @@ def integrate_acceleration(model: GNS, graph: HeteroData, out: Tensor) -> tuple[
 
 
 def rigid_leaf_positions(
-    graph: HeteroData, pred_pos: Tensor, objects: tuple[Tensor, int] | None = None
+    graph: HeteroData, pred_pos: Tensor, objects: tuple[Tensor, int] | None = None, from_rest: bool = False
 ) -> Tensor:
     """``pred_pos`` ``[N, 3]`` with the leaves of each rigid object replaced by the best rigid
     motion of their current positions (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`); other rows are
-    returned unchanged (ancestor rows still need re-deriving).
+    returned unchanged (ancestor rows still need re-deriving). ``from_rest``: the motion of their
+    rest shape (``rest_pos``) instead, where the graph has one
+    (:attr:`~hrn_pyg.nn.hrn.HRNConfig.rigid_fit_rest`).
 
     An object (of one batch copy) is identified by its root node (:func:`object_of`, one fit per
     object rather than per node); rows other than rigid leaves enter the fit with zero weight,
@@ -422,7 +425,8 @@ def rigid_leaf_positions(
     rigid_leaf = store.is_leaf & store.material[:, RIGID].bool() & ~store.is_static
     weight = torch.where(rigid_leaf, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
     group, count = object_of(graph) if objects is None else objects
-    fitted = fit_rigid_motion(store.pos, pred_pos, weight, group, count)
+    reference = store.rest_pos if from_rest and "rest_pos" in store else store.pos
+    fitted = fit_rigid_motion(reference, pred_pos, weight, group, count)
     return torch.where(rigid_leaf.unsqueeze(-1), fitted, pred_pos)
 
 

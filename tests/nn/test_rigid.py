@@ -203,3 +203,51 @@ def test_polar_rotation_takes_the_torch_path_for_a_gradient():
     m = _hard_matrices(torch.Generator().manual_seed(6))[:8].requires_grad_(True)
     polar_rotation(m).sum().backward()
     assert m.grad is not None and torch.isfinite(m.grad).all()
+
+
+def _rotation_about(axis_angle: torch.Tensor) -> torch.Tensor:
+    return _rotation(axis_angle.tolist(), float(axis_angle.norm())).float()
+
+
+def test_a_fit_from_the_rest_shape_carries_no_rounding_from_step_to_step():
+    """1000 fits of a rigid square, each to a slightly noisy turn of the last: fitted from the
+    current leaves the square's pairwise distances drift by the rounding of every step; fitted
+    from its rest shape they stay those of the rest shape to less than one float32 rounding."""
+    from hrn_pyg.sim.step import rigid_leaf_positions
+
+    g = toy_scene(separate=True)
+    g[NODE].rest_pos = g[NODE].pos.clone()
+    square = slice(8, 12)
+    rest = _pairwise(g[NODE].rest_pos[square].double())
+    drift = {}
+    for from_rest in (False, True):
+        gen = torch.Generator().manual_seed(0)
+        h = g.clone()
+        for _ in range(1000):
+            turn = _rotation_about(0.05 * torch.randn(3, generator=gen, dtype=torch.float64))
+            centre = h[NODE].pos[square].mean(0)
+            pred = h[NODE].pos.clone()
+            pred[square] = (pred[square] - centre) @ turn.T + centre + 1e-3 * torch.randn(4, 3, generator=gen)
+            h[NODE].pos = rigid_leaf_positions(h, pred, None, from_rest)
+        assert h[NODE].pos[square].abs().max() < 2.0  # near the origin: one rounding is below 2.4e-7
+        drift[from_rest] = float((_pairwise(h[NODE].pos[square].double()) - rest).abs().max())
+    assert drift[True] < 1.2e-7
+    assert drift[False] > 5 * drift[True]
+
+
+def test_rigid_fit_rest_moves_a_rigid_body_as_the_fit_from_its_leaves_does():
+    current = _model(rigid_fit=True)
+    from_rest = _model_like(current, rigid_fit_rest=True)
+    g = toy_scene(separate=True)
+    # no rest shape in the graph: fitted from the current leaves, bit for bit
+    assert torch.equal(step(from_rest, g).pos, step(current, g).pos)
+    # the rest shape elsewhere and turned: the same motion to rounding, other rows untouched
+    turn = _rotation_about(torch.tensor([0.2, -0.4, 0.9], dtype=torch.float64))
+    g[NODE].rest_pos = g[NODE].pos @ turn.T + torch.tensor([2.0, -1.0, 0.5])
+    a, b = step(from_rest, g).pos, step(current, g).pos
+    assert torch.allclose(a, b, rtol=0, atol=1e-6)
+    others = torch.cat([torch.arange(0, 8), torch.arange(12, 17), torch.tensor([18])])
+    assert torch.equal(a[others], b[others])
+    assert "rigid_fit_rest=True" in repr(from_rest)
+    with pytest.raises(ValueError, match="rigid_fit_rest"):
+        HRNConfig(rigid_fit_rest=True)
