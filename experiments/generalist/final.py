@@ -21,13 +21,18 @@ so the test files are scored once and a stopped run continues where it stopped:
    errors as multiples of two objects', time per step, and 1000 steps from rest of each pile.
 6. ``equivariance.json`` (``benchmarks/equivariance.py``): the model under the lattice's eight
    maps beside ``shapes.pt``'s exact average, on validation windows.
-7. ``pile_rigid.json``, ``pile_soft.json`` (``benchmarks/pile_step.py --compile``): the compiled
+7. ``roof.json`` (``benchmarks/wedge_sides.py --scene-file``): the two-outcome check, a ball
+   dropped near the ridge of a roof the model never saw (``data/shapes/unseen/roof_drop.toml``),
+   20 test drops, samples at the checkpoint's calibrated rate against pybullet ensembles from
+   starts jittered by 2 mm and 1 cm (kept under ``DATA/final_roof_cache``).
+8. ``pile_rigid.json``, ``pile_soft.json`` (``benchmarks/pile_step.py --compile``): the compiled
    one-pass step against pybullet's in paired rounds, one thread, every object awake (a quiet
    machine: pass ``--only pile_rigid,pile_soft`` when it is one).
 
 A test folder that is missing is made first with the ``hrn-pyg generate`` command of its scene
 file (the same seeds; making episodes is not scoring them). The summary gives each bar, the
-value measured and whether it is met. Run::
+value measured and whether it is met, and the calibrated sampling rate that the checkpoint
+itself stores (``hrn-pyg calibrate``). Run::
 
     python -m experiments.generalist.final --model runs/generalist/shapes_next.ft3/model.pt \\
         --data data --out runs/generalist/final
@@ -64,6 +69,8 @@ BAR_PITCHES = (0.025, 0.08)
 MANY_OBJECTS_BAR = 2.0
 RIGID_PILE_BAR = 1.0
 SOFT_PILE_BAR = 0.2
+#: the roof scene (in the repository) of the two-outcome check
+ROOF_SCENE = "data/shapes/unseen/roof_drop.toml"
 
 
 def generate_commands(data: Path) -> dict[str, list[str]]:
@@ -99,14 +106,16 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
     equivariance = [*python, str(bench / "equivariance.py"), "--model", model, "--model", "shapes",
                     "--data", str(data / "shapes_drop"), "--split", "val", "--episodes", "4",
                     "--out", str(out / "equivariance.json")]
+    roof = [*python, str(bench / "wedge_sides.py"), "--scene-file", str(REPO / ROOF_SCENE), "--model", model,
+            "--split", "test", "--cache", str(data / "final_roof_cache"), "--out", str(out / "roof.json")]
     pile_rigid = [*python, str(bench / "pile_step.py"), "--counts", "10", "--material", "rigid", "--model", model,
                   "--compile", "--out", str(out / "pile_rigid.json")]
     pile_soft = [*python, str(bench / "pile_step.py"), "--counts", "2,10", "--material", "soft",
                  "--meshes", "pybullet_data:duck_vhacd.obj", "--model", model, "--compile",
                  "--out", str(out / "pile_soft.json")]
     return {"test.json": test, "test_shapes.json": baseline, "cloth.json": cloth, "pitch.json": pitch,
-            "many_objects.json": many, "equivariance.json": equivariance, "pile_rigid.json": pile_rigid,
-            "pile_soft.json": pile_soft}
+            "many_objects.json": many, "equivariance.json": equivariance, "roof.json": roof,
+            "pile_rigid.json": pile_rigid, "pile_soft.json": pile_soft}
 
 
 def _row(bar: str, value: str, met: bool | None) -> str:
@@ -192,6 +201,42 @@ def many_object_bars(many: dict) -> list[str]:
     return lines
 
 
+def roof_bars(roof: dict) -> list[str]:
+    """At the calibrated rate (the first rate ``wedge_sides.py`` scored), the samples' Brier score
+    against the 2 mm ensemble below the constant 1/2's (they pick pybullet's likely side better
+    than a coin), and their split difference against the 1 cm ensemble (reported, not judged)."""
+    results, rates = roof.get("results", []), roof.get("rates") or []
+    coin = next((r for r in results if r["model"] == "constant 1/2"), None)
+    samples = next((r for r in results if r["model"] == "samples" and rates and r["rate"] == rates[0]), None)
+    if coin is None or samples is None:
+        return []
+    brier, coin_brier = samples["brier_fine"], coin["brier_fine"]
+    split, coin_split = samples["split_difference_coarse"], coin["split_difference_coarse"]
+    return [_row(f"roof ridge, samples at rate {samples['rate']:g}: Brier vs 2 mm ensemble < constant 1/2's",
+                 f"{brier:.3f} against {coin_brier:.3f}", _finite([brier, coin_brier]) and brier < coin_brier),
+            _row(f"roof ridge, samples at rate {samples['rate']:g}: split difference vs 1 cm ensemble",
+                 f"{split:.3f} (constant 1/2: {coin_split:.3f})", None)]
+
+
+def calibration_bars(model: str) -> list[str]:
+    """The sampling rate and modules stored in the model's checkpoint by ``hrn-pyg calibrate``
+    (its ``calibration`` record; ``hrn-pyg sample`` and ``wedge_sides.py`` sample at the config's
+    ``dropout_rate`` when given none): met when the checkpoint holds that record. A checkpoint
+    that cannot be read is not met, its error the value."""
+    from hrn_pyg.checkpoints import load_model, model_path
+    from hrn_pyg.sampling.calibrate import calibration_record
+
+    bar = "calibrated sampling rate stored in the checkpoint"
+    try:
+        path = model_path(model)
+        config, record = load_model(path).config, calibration_record(path)
+    except (FileNotFoundError, ValueError) as exc:
+        return [_row(bar, str(exc).splitlines()[0], False)]
+    if record is None:
+        return [_row(bar, f"none (dropout_rate {float(config.dropout_rate):g})", False)]
+    return [_row(bar, f"{float(config.dropout_rate):g} on {', '.join(config.dropout_modules)}", True)]
+
+
 def pile_bars(pile: dict, soft: bool) -> list[str]:
     """The compiled one-pass step against pybullet's: a rigid pile of 10 at most pybullet's time,
     soft piles at least 5x faster."""
@@ -208,9 +253,9 @@ def pile_bars(pile: dict, soft: bool) -> list[str]:
     return lines
 
 
-def summary(out: Path) -> str:
+def summary(out: Path, model: str | None = None) -> str:
     """Each bar with its value and whether it is met, from the JSON under ``out`` (missing ones
-    are left out), then the rest and cloth tables."""
+    are left out) and, given ``model``, from its checkpoint; then the rest and cloth tables."""
     lines = ["| bar | value | met |", "|---|---|---|"]
     test, many = read_json(out / "test.json"), read_json(out / "many_objects.json")
     if test:
@@ -218,6 +263,8 @@ def summary(out: Path) -> str:
     lines += rest_bars(test or {}, many)
     lines += pitch_bars(read_json(out / "pitch.json") or {})
     lines += many_object_bars(many or {})
+    lines += calibration_bars(model) if model is not None else []
+    lines += roof_bars(read_json(out / "roof.json") or {})
     lines += pile_bars(read_json(out / "pile_rigid.json") or {}, soft=False)
     lines += pile_bars(read_json(out / "pile_soft.json") or {}, soft=True)
     details = ["| measure | value |", "|---|---|", *rest_lines(test), *cloth_lines(read_json(out / "cloth.json"))]
@@ -230,8 +277,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for the benchmarks' JSON")
     parser.add_argument("--rest-episodes", type=int, default=6, help="rest episodes per mesh and material")
     parser.add_argument("--only", default="", help="comma-separated benchmark names (test, test_shapes, cloth, "
-                                                   "pitch, many_objects, equivariance, pile_rigid, pile_soft; "
-                                                   "default: all)")
+                                                   "pitch, many_objects, equivariance, roof, pile_rigid, "
+                                                   "pile_soft; default: all)")
     parser.add_argument("--pybullet-rest", type=Path, default=None,
                         help="folder for pybullet's continuations of the rest episodes (default: DATA/pybullet_rest)")
 
@@ -252,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
         print(" ".join(command), flush=True)
         subprocess.run(command, check=True, cwd=REPO)
     run_missing(named, args.out, wanted)
-    print(summary(args.out))
+    print(summary(args.out, args.model))
     return 0
 
 

@@ -1,5 +1,6 @@
 """The generalist's final table: the test folders it makes and scores, a rerun that scores nothing
-twice, each bar judged from the benchmarks' JSON, and one-line errors for bad input."""
+twice, each bar judged from the benchmarks' JSON and the checkpoint, and one-line errors for bad
+input."""
 
 import json
 import subprocess
@@ -7,9 +8,14 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from experiments.command import script_main
 from experiments.generalist import final, validate
+from hrn_pyg.nn.hrn import HRN, HRNConfig
+from hrn_pyg.sampling.calibrate import write_calibrated
+from hrn_pyg.train import TrainConfig, model_payload
+from hrn_pyg.utils.checkpoint import save_checkpoint
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -45,6 +51,60 @@ def test_the_test_split_is_scored_on_test_folders_and_test_splits():
         assert cmd[cmd.index("--out") + 1] == str(Path("o") / name)
         if name != "test_shapes.json":
             assert cmd[cmd.index("--model") + 1] == "m.pt"
+
+
+def test_the_roof_check_is_scored_on_test_drops_of_the_roof_scene():
+    roof = final.commands("m.pt", Path("d"), Path("o"), 6)["roof.json"]
+    assert roof[1] == str(REPO / "benchmarks" / "wedge_sides.py")
+    assert roof[roof.index("--scene-file") + 1] == str(REPO / "data/shapes/unseen/roof_drop.toml")
+    assert roof[roof.index("--split") + 1] == "test" and roof[roof.index("--model") + 1] == "m.pt"
+    assert roof[roof.index("--cache") + 1] == str(Path("d") / "final_roof_cache")
+    assert "--rates" not in roof and "--data" not in roof   # the checkpoint's calibrated rate; the scene file
+
+
+def _roof(*samples, coin=(0.136, 0.122)):
+    """``wedge_sides.py``'s JSON, cut to what the bars read: ``samples`` are (rate, Brier vs the
+    fine ensemble, split difference vs the coarse one), the first rate the calibrated one."""
+    results = [{"model": "constant 1/2", "rate": None, "brier_fine": coin[0], "split_difference_coarse": coin[1],
+                "energy_score_m": None},
+               {"model": "deterministic", "rate": 0.0, "brier_fine": 0.061, "split_difference_coarse": 0.397,
+                "energy_score_m": 1.318}]
+    results += [{"model": "samples", "rate": rate, "brier_fine": brier, "split_difference_coarse": split,
+                 "energy_score_m": 1.3, "share_below": 0.4} for rate, brier, split in samples]
+    return {"rates": [rate for rate, _, _ in samples], "results": results}
+
+
+def _met(lines):
+    return [line.rsplit(" | ", 1)[1].strip(" |") for line in lines]
+
+
+def test_roof_bar_is_met_when_the_samples_beat_a_coin_at_the_calibrated_rate():
+    better = final.roof_bars(_roof((0.02, 0.050, 0.377), (0.5, 0.2, 0.175)))
+    assert _met(better) == ["yes", "-"]
+    assert "rate 0.02" in better[0] and "| 0.050 against 0.136 |" in better[0]
+    assert "| 0.377 (constant 1/2: 0.122) |" in better[1]
+    worse = final.roof_bars(_roof((0.02, 0.150, 0.377), (0.1, 0.024, 0.305)))   # only the first rate counts
+    assert _met(worse) == ["no", "-"] and "| 0.150 against 0.136 |" in worse[0]
+    assert final.roof_bars({}) == []
+
+
+def _checkpoint(path, rate=None):
+    """A tiny untrained model's checkpoint; with ``rate``, its copy as ``hrn-pyg calibrate`` writes it."""
+    torch.manual_seed(0)
+    save_checkpoint(path, model_payload(HRN(HRNConfig(hidden=8, effect_dim=8)), TrainConfig(), 0))
+    if rate is not None:
+        write_calibrated(path, path, rate, ("force", "collision"), {"rate": rate, "modules": ["force", "collision"]})
+    return path
+
+
+def test_calibration_bar_reads_the_rate_stored_in_the_checkpoint(tmp_path):
+    calibrated = final.calibration_bars(str(_checkpoint(tmp_path / "calibrated.pt", 0.02)))
+    assert calibrated == ["| calibrated sampling rate stored in the checkpoint | 0.02 on force, collision | yes |"]
+    plain = final.calibration_bars(str(_checkpoint(tmp_path / "plain.pt")))
+    assert plain == ["| calibrated sampling rate stored in the checkpoint | none (dropout_rate 0) | no |"]
+    assert _met(final.calibration_bars(str(tmp_path / "missing.pt"))) == ["no"]
+    assert "calibrated sampling rate" not in final.summary(tmp_path)   # no model, no row
+    assert "0.02 on force, collision | yes |" in final.summary(tmp_path, str(tmp_path / "calibrated.pt"))
 
 
 def test_missing_test_folders_are_made_with_their_seeds(tmp_path, monkeypatch):
@@ -88,6 +148,7 @@ def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch
     pile = lambda n, x: {"objects": n, "pybullet_ms": 2.0, "models": {"m.pt": {"compiled": {"x_pybullet": x, "ms": 2 * x}}}}  # noqa: E731
     _write(out, "pile_rigid.json", {"rows": [pile(10, 0.97)]})
     _write(out, "pile_soft.json", {"rows": [pile(2, 0.12), pile(10, 0.25)]})
+    _write(out, "roof.json", _roof((0.02, 0.05, 0.377)))
     for name in ("cloth.json", "equivariance.json"):
         _write(out, name, {})
 
@@ -111,6 +172,9 @@ def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch
         "pitch 0.08 m / 0.05 m, position t+15, t+50 <= 2.0": "no",
         "10 objects / 2, position t+15, t+50 <= 2.0": "yes",
         "time per step by object count": "-",
+        "calibrated sampling rate stored in the checkpoint": "no",   # m.pt is no file
+        "roof ridge, samples at rate 0.02: Brier vs 2 mm ensemble < constant 1/2's": "yes",
+        "roof ridge, samples at rate 0.02: split difference vs 1 cm ensemble": "-",
         "rigid pile of 10, compiled step / pybullet's <= 1.0": "yes",
         "soft pile of 2, compiled step / pybullet's <= 0.2": "yes",
         "soft pile of 10, compiled step / pybullet's <= 0.2": "no",
