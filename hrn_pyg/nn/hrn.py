@@ -82,7 +82,8 @@ class HRNConfig(NetworkConfig):
             one step is not carried into the next, and a rigid body's pairwise distances stay
             those of its rest shape to one rounding at every horizon (from the current leaves
             the rounding adds up over the steps). A graph without ``rest_pos`` is fitted from its
-            current leaves. Needs ``rigid_fit``.
+            current leaves. Without ``rigid_fit`` it does nothing (so a fine-tuning of a
+            checkpoint with the rigid fit can name it alone).
         rest_offsets: the propagation modules also see each edge's offset in the rest shape
             (``graph['particle'].rest_pos``), so an elastic restoring effect is learnable.
         ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`: the distance to
@@ -208,8 +209,6 @@ class HRNConfig(NetworkConfig):
         if self.mirror_planes not in MIRROR_GROUPS:
             raise ValueError(f"HRNConfig.mirror_planes must be one of {sorted(MIRROR_GROUPS)}, "
                              f"got {self.mirror_planes!r}")
-        if self.rigid_fit_rest and not self.rigid_fit:
-            raise ValueError("HRNConfig.rigid_fit_rest says where the rigid fit starts from: it needs rigid_fit=True")
         if self.corotated_rest and not self.rest_offsets:
             raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
         if not 0.0 <= self.rigid_ground_depth <= 1.0:

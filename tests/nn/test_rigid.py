@@ -249,5 +249,23 @@ def test_rigid_fit_rest_moves_a_rigid_body_as_the_fit_from_its_leaves_does():
     others = torch.cat([torch.arange(0, 8), torch.arange(12, 17), torch.tensor([18])])
     assert torch.equal(a[others], b[others])
     assert "rigid_fit_rest=True" in repr(from_rest)
-    with pytest.raises(ValueError, match="rigid_fit_rest"):
-        HRNConfig(rigid_fit_rest=True)
+
+
+def test_rigid_fit_rest_can_be_named_alone_for_a_fine_tuning(tmp_path):
+    """``--init-from M --model-rigid-fit-rest true``: the command line's config holds only the
+    options it names (the rest come from M), so the option alone must be a valid config, and
+    without the rigid fit it changes nothing."""
+    import argparse
+
+    from hrn_pyg.train import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    _, config = config_from_args(parser.parse_args(
+        ["--preset", "ours", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--model-rigid-fit-rest", "true"]))
+    assert config.rigid_fit_rest and not config.rigid_fit
+    plain = _model()
+    inert = _model_like(plain, rigid_fit_rest=True)
+    g = toy_scene(separate=True)
+    g[NODE].rest_pos = g[NODE].pos + 1.0
+    assert torch.equal(step(inert, g).pos, step(plain, g).pos)
