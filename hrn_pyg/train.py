@@ -50,7 +50,7 @@ from torch.utils.data import DataLoader
 from torch_geometric.data import Batch, HeteroData
 from tqdm import tqdm
 
-from hrn_pyg.checkpoints import APPLIED_OPTIONS, load_model, training_domain, with_applied_options
+from hrn_pyg.checkpoints import APPLIED_OPTIONS, checkpoint_config, load_model, training_domain, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, RIGID, WITHIN_SIBLINGS, node_pitch, set_state
 from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries
@@ -1201,7 +1201,19 @@ def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, NetworkConf
                          f"{model_class.__name__.removesuffix('Config')} that preset {args.preset!r} trains")
     if args.dropout_modules:
         model_kwargs["dropout_modules"] = tuple(m for m in args.dropout_modules.split(",") if m)
-    return config, model_class(**model_kwargs)
+    return config, _named_model_config(model_class, model_kwargs, config.init_from)
+
+
+def _named_model_config(model_class: type[NetworkConfig], named: dict[str, Any], init_from: str) -> NetworkConfig:
+    """The network config of the command line's ``--model-*`` options (``named``): over the
+    defaults, or with ``init_from`` over that checkpoint's own config, so that an option whose
+    check reads another field (``corotated_rest`` needs ``rest_offsets``) may be named alone in
+    a fine-tuning. A checkpoint of another network type gives the defaults, and the fine-tuning
+    then names the mismatch (:func:`_fine_tuned_start`)."""
+    base = checkpoint_config(init_from) if init_from else None
+    if not isinstance(base, model_class):
+        return model_class(**named)
+    return replace(base, **named)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -655,6 +655,37 @@ def test_an_option_given_on_purpose_holds_even_at_its_default(tiny_episodes, tmp
     assert given_model_options(args) == {"ground_projection_rigid", "dropout_modules"}
 
 
+def test_a_fine_tuning_command_line_builds_its_config_over_the_checkpoints(tiny_episodes, tmp_path):
+    """``--init-from M --model-corotated-rest true``: corotated_rest needs rest_offsets, which M
+    has and the command line does not name, so the command line's config is M's with the named
+    options over it (a config of the named options alone would be refused); an option that
+    changes the weights still clashes with M by name, and without --init-from the defaults hold."""
+    import argparse
+
+    from hrn_pyg.train import add_arguments, config_from_args
+
+    train(_config(tiny_episodes, tmp_path / "base", steps=2), HRNConfig(**{**SMALL.to_dict(), "rest_offsets": True}),
+          progress=False)
+    base = tmp_path / "base" / "model.pt"
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+
+    def parsed(*extra: str):
+        return config_from_args(parser.parse_args(["--preset", "ours", "--data", str(tiny_episodes),
+                                                   "--out", str(tmp_path / "tuned"), *extra]))
+
+    config, model_config = parsed("--init-from", str(base), "--model-corotated-rest", "true")
+    assert model_config == dataclasses.replace(load_model(base).config, corotated_rest=True)
+    train(dataclasses.replace(config, steps=1, lr=1e-30), model_config, progress=False,
+          given_model_options=("corotated_rest",))
+    assert load_model(tmp_path / "tuned" / "model.pt").config.corotated_rest
+    with pytest.raises(ValueError, match="rest_offsets"):
+        parsed("--model-corotated-rest", "true")
+    _, wider = parsed("--init-from", str(base), "--model-hidden", "32")
+    with pytest.raises(ValueError, match="hidden"):
+        train(_config(tiny_episodes, tmp_path / "clash", steps=1, init_from=str(base)), wider, progress=False)
+
+
 def test_init_from_may_make_the_collision_module_read_the_force(tiny_episodes, tmp_path):
     """collision_force from a checkpoint without it: the new weights start at zero, every other
     weight at the checkpoint's, and the run's model reads the force from then on."""

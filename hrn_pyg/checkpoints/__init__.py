@@ -26,7 +26,7 @@ import torch
 
 from hrn_pyg.checkpoints.domain import Domain, dataset_domain, with_pitch_range
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.nn.networks import applied_options, network_from_dict
+from hrn_pyg.nn.networks import NetworkConfig, applied_options, config_from_dict, network_from_dict
 from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import file_sha256
@@ -146,6 +146,19 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
     model.checkpoint_name = display_name(path)
     model.eval()
     return model.to(resolve_device(device)) if device is not None else model
+
+
+def checkpoint_config(path: str | os.PathLike) -> NetworkConfig:
+    """The network config a model checkpoint (a path or a shipped name) was saved with, without
+    building its network. Raises :class:`~hrn_pyg.utils.checkpoint.CheckpointError` naming the
+    file when it holds no model config."""
+    path = model_path(path)
+    try:
+        return config_from_dict(json.loads(load_checkpoint(path)["config"])["model"])
+    except (KeyError, TypeError, ValueError) as exc:
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
+                              f"({type(exc).__name__}: {first_line})") from None
 
 
 def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = None) -> Domain | None:

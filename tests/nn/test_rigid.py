@@ -252,8 +252,8 @@ def test_rigid_fit_rest_moves_a_rigid_body_as_the_fit_from_its_leaves_does():
 
 
 def test_rigid_fit_rest_can_be_named_alone_for_a_fine_tuning(tmp_path):
-    """``--init-from M --model-rigid-fit-rest true``: the command line's config holds only the
-    options it names (the rest come from M), so the option alone must be a valid config, and
+    """``--model-rigid-fit-rest true`` named alone: without ``--init-from`` the command line's
+    config is the defaults with that option, so it must be a valid config on its own, and
     without the rigid fit it changes nothing."""
     import argparse
 
