@@ -18,7 +18,8 @@ so the test files are scored once and a stopped run continues where it stopped:
    pitch 0.025, 0.035, 0.05 and 0.08 m: time per step beside pybullet's, errors and their ratio
    to 0.05 m.
 5. ``many_objects.json`` (``benchmarks/many_objects.py``): piles of 2, 10, 20 and 40 test meshes,
-   errors as multiples of two objects', time per step, and 1000 steps from rest of each pile.
+   errors as multiples of two objects', time per step, and 1000 steps from rest of each pile
+   (the piles of 10 are the rest bar; the others are reported).
 6. ``equivariance.json`` (``benchmarks/equivariance.py``): the model under the lattice's eight
    maps beside ``shapes.pt``'s exact average, on validation windows.
 7. ``roof.json`` (``benchmarks/wedge_sides.py --scene-file``): the two-outcome check, a ball
@@ -67,6 +68,8 @@ PITCH_BAR = 2.0
 #: the pitches (m) whose errors are held to PITCH_BAR times those at 0.05 m
 BAR_PITCHES = (0.025, 0.08)
 MANY_OBJECTS_BAR = 2.0
+#: the pile size whose rest is a bar (the issue's "piles of 10 objects")
+REST_PILE_OBJECTS = 10
 RIGID_PILE_BAR = 1.0
 SOFT_PILE_BAR = 0.2
 #: the roof scene (in the repository) of the two-outcome check
@@ -156,18 +159,24 @@ def unseen_bars(test: dict, baseline: dict | None) -> list[str]:
 
 
 def rest_bars(test: dict, many: dict | None) -> list[str]:
-    """Every test rest episode and every settled pile holds 1000 steps from rest."""
+    """Every test rest episode and every pile of :data:`REST_PILE_OBJECTS` objects holds 1000
+    steps from rest (a pile that never settled counts as not held); the piles of the other
+    counts are reported beside, not judged."""
     rows = test.get("rest") or []
     lines = []
     if rows:
         held = sum(bool(r["holds"]) for r in rows)
         lines.append(_row("1000 steps from rest: every test episode holds", f"{held} of {len(rows)}", held == len(rows)))
-    piles = [r for row in (many or {}).get("rows", []) for r in (row.get("rest") or [])]
-    if piles:
+    for row in (many or {}).get("rows", []):
+        piles = row.get("rest") or []
+        if not piles:
+            continue
         at_rest = [r for r in piles if r["at_rest"]]
         held = sum(bool(r.get("holds")) for r in at_rest)
         said = f"{held} of {len(at_rest)} settled piles ({len(piles) - len(at_rest)} not settled)"
-        lines.append(_row("1000 steps from rest: every pile holds", said, held == len(piles)))
+        judged = row["objects"] == REST_PILE_OBJECTS
+        lines.append(_row(f"1000 steps from rest: every pile of {row['objects']} holds", said,
+                          held == len(piles) if judged else None))
     return lines
 
 
