@@ -44,7 +44,10 @@ over windows from step 2 and then every ``--stride`` steps
 (:func:`hrn_pyg.evaluate.evaluate_model`, the network alone); the model's time per step (median
 over ``--repeats`` rollouts of the first window, ``max(--horizons)`` steps, sleeping off,
 ``--threads`` torch threads); pybullet's time per model step on the first episode, simulated again
-in the same process; and each error over the one at pitch 0.05 when 0.05 is swept. A model reads
+in the same process; with ``--compile``, also the same rollout as compiled fixed-shape steps
+(:class:`hrn_pyg.sim.fixed_shape.FixedShapeSimulator`, ``compile=True``, the package's fast path;
+median over ``--repeats`` after the compiling one); and each error over the one at pitch 0.05
+when 0.05 is swept. A model reads
 the pitch from every graph (a pitch-aware model uses it; a plain one does not), and the model's
 domain check runs at each pitch: a pitch it was not trained at is warned about and recorded. Run::
 
@@ -82,6 +85,7 @@ from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
 from hrn_pyg.data.scene_file import builtin_scene, make_scene, read_scene_file
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise
 from hrn_pyg.nn.hrn import HRNConfig
+from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.sim.rollout import rollout
 from hrn_pyg.train import TrainConfig, train
@@ -90,6 +94,7 @@ from hrn_pyg.viz import save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from episode_cache import cached_episodes, episode_leaves, scene_digest, windows_of  # noqa: E402
+from pile_step import compiled_rollout  # noqa: E402
 
 SCENES = ("soft_bounce", "cube_collision")
 HORIZONS = (5, 15)
@@ -372,18 +377,35 @@ def pitch_point(model, spec, pitch: float, args) -> dict:
             rollout(model, first, steps, forces, sleep=None)
             times.append((time.perf_counter() - start) / steps)
     seconds = statistics.median(times)
+    compiled = compiled_times(model, made["timed_episode"], steps, args.repeats) if args.compile else {}
     leaves = [episode_leaves(folder / f"episode_{s:06d}.npz") for s in made["seeds"]]
     return {"pitch": pitch, "leaves": int(made["timed_episode"]["positions"].shape[1]),
             "leaves_mean": float(np.mean(leaves)), "episodes": len(made["seeds"]), "seeds": made["seeds"],
             "rejected": made["rejected"], "made": made["made"], "windows": len(windows), "folder": str(folder),
             "pybullet_ms": 1e3 * made["pybullet_s_per_step"], "model_ms": 1e3 * seconds,
             "model_ms_runs": [1e3 * t for t in times], "x_pybullet": seconds / made["pybullet_s_per_step"],
-            "outside": outside, "errors": errors}
+            "outside": outside, "errors": errors,
+            **{key: (value / made["pybullet_s_per_step"] if key == "compiled_x_pybullet" else value)
+               for key, value in compiled.items()}}
+
+
+def compiled_times(model, episode: dict, steps: int, repeats: int) -> dict:
+    """The compiled fixed-shape rollout of ``steps`` steps from step 2 of ``episode``: the
+    seconds of the compiling run, the median ms per step of ``repeats`` more, and the median in
+    seconds (``compiled_x_pybullet``, divided by pybullet's time by the caller)."""
+    state = episode_state(episode, start=2, steps=steps)
+    first, timed = compiled_rollout(model, state, steps)
+    runs = [timed()[0] for _ in range(repeats)]
+    return {"compile_s": first, "compiled_ms": 1e3 * statistics.median(runs),
+            "compiled_ms_runs": [1e3 * t for t in runs], "compiled_x_pybullet": statistics.median(runs)}
 
 
 def pitch_table(rows: list[dict], horizons: tuple[int, ...]) -> str:
     """One row per pitch: leaves, times, errors and their ratio to pitch 0.05 (when swept)."""
     head = ["pitch (m)", "leaves", "pybullet ms/step", "model ms/step", "model / pybullet"]
+    compiled = all("compiled_ms" in r for r in rows)
+    if compiled:
+        head += ["compiled ms/step", "compiled / pybullet"]
     head += [f"{m} MSE t+{h}" for m in ("position", "shape") for h in horizons]
     ratios = any(r["pitch"] == BASE_PITCH for r in rows)
     if ratios:
@@ -393,6 +415,8 @@ def pitch_table(rows: list[dict], horizons: tuple[int, ...]) -> str:
     for r in rows:
         cells = [f"{r['pitch']:g}", str(r["leaves"]), f"{r['pybullet_ms']:.2f}", f"{r['model_ms']:.2f}",
                  f"{r['x_pybullet']:.2f}x"]
+        if compiled:
+            cells += [f"{r['compiled_ms']:.2f}", f"{r['compiled_x_pybullet']:.2f}x"]
         for m in ("position", "shape"):
             for h in horizons:
                 s = r["errors"][m][f"t+{h}"]
@@ -440,10 +464,12 @@ def one_model(args) -> dict:
         "stride": args.stride, "limit": args.limit, "repeats": args.repeats, "threads": args.threads,
         "statistics": "errors: mean and standard error over windows (from step 2, then every --stride steps), "
                       "the network alone; model_ms: median over --repeats of a max(--horizons)-step rollout "
-                      "of the first window, sleeping off; pybullet_ms: median over the model steps of the "
+                      "of the first window, sleeping off; compiled_ms (--compile): median over --repeats of the same "
+                      "rollout as compiled fixed-shape steps, after the compiling one; pybullet_ms: median over the model steps of the "
                       "first episode, simulated again in this run",
         "machine": {"cpu": platform.machine(), "cpus": os.cpu_count(), "torch": torch.__version__,
                     "torch_threads": args.threads, "load_average_1m_at_end": os.getloadavg()[0]},
+        "compile": bool(args.compile),
         "seconds": round(time.perf_counter() - started, 1), "rows": rows, "table": table,
     }
     atomic_write_json(args.out, result)
@@ -478,6 +504,8 @@ def main(argv: list[str] | None = None) -> dict:
     one.add_argument("--horizons", default=",".join(map(str, PITCH_HORIZONS)))
     one.add_argument("--stride", type=int, default=STRIDE, help="steps between window starts in an episode")
     one.add_argument("--limit", type=int, default=None, help="at most this many windows per pitch")
+    one.add_argument("--compile", action="store_true",
+                     help="also time the rollout as compiled fixed-shape steps (a minute or so to compile per pitch)")
     args = parser.parse_args(argv)
     if args.model is not None:
         args.pitches = args.pitches or ",".join(map(str, PITCH_PITCHES))

@@ -14,9 +14,9 @@ so the test files are scored once and a stopped run continues where it stopped:
    rigid and soft test folders, so that the one-pass model's errors read as multiples of its.
 3. ``cloth.json`` (``benchmarks/cloth_pass_through.py``): cloth leaves inside another object a
    step, the first six test cloth episodes, the network alone, pybullet's count beside.
-4. ``pitch.json`` (``benchmarks/accuracy_vs_time.py --model``): the rigid test scene made at
-   pitch 0.025, 0.035, 0.05 and 0.08 m: time per step beside pybullet's, errors and their ratio
-   to 0.05 m.
+4. ``pitch.json`` (``benchmarks/accuracy_vs_time.py --model --compile``): the rigid test scene
+   made at pitch 0.025, 0.035, 0.05 and 0.08 m: time per step (eager and compiled) beside
+   pybullet's, errors and their ratio to 0.05 m.
 5. ``many_objects.json`` (``benchmarks/many_objects.py``): piles of 2, 10, 20 and 40 test meshes,
    errors as multiples of two objects', time per step, and 1000 steps from rest of each pile
    (the piles of 10 are the rest bar; the others are reported).
@@ -102,7 +102,7 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
              "--episodes", str(data / "unseen_test_cloth"), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
     scene, seed = TEST_FOLDERS["unseen_test3_rigid"]
     pitch = [*python, str(bench / "accuracy_vs_time.py"), "--model", model, "--scene-file", str(REPO / scene),
-             "--first-seed", str(seed), "--work", str(data / "final_pitch"), "--out", str(out / "pitch.json")]
+             "--first-seed", str(seed), "--compile", "--work", str(data / "final_pitch"), "--out", str(out / "pitch.json")]
     many = [*python, str(bench / "many_objects.py"), "--model", model, "--counts", "2,10,20,40",
             "--meshes", TEST_MESHES, "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
             "--work", str(data / "final_many_objects"), "--out", str(out / "many_objects.json")]

@@ -62,3 +62,31 @@ def test_one_model_across_pitches_plain_then_pitch_aware(tmp_path, monkeypatch, 
     assert all(r["outside"] is None for r in again.values())              # inside its pitch range
     assert again[0.05]["errors"] == rows[0.05]["errors"]                  # zero pitch column at 0.05
     assert again[0.08]["errors"]["position"] != rows[0.08]["errors"]["position"]  # it reads the pitch
+
+
+def test_compile_adds_the_fixed_shape_steps_time_beside_pybullets(tmp_path, monkeypatch, capsys):
+    """``--compile``: each pitch also times the rollout as fixed-shape steps (here uncompiled, the
+    same steps without the compiler's minute), its median over the repeats, and its ratio to
+    pybullet's time at that pitch."""
+    from hrn_pyg.data.graph import NODE
+    from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
+
+    bench = _benchmark(monkeypatch)
+    made = []
+
+    def fixed_shape_rollout(model, state, steps):
+        simulator = FixedShapeSimulator(model, state, FixedShapeConfig(compile=False))
+        made.append(state)
+        return 1.0, lambda: (0.002 * len(made), simulator.rollout(steps).pos)
+
+    monkeypatch.setattr(bench, "compiled_rollout", fixed_shape_rollout)
+    argv = _argv(tmp_path, "compiled.json")
+    argv[argv.index("--repeats") + 1] = "3"
+    result = bench.main(argv + ["--compile"])
+    assert result["compile"] and len(made) == 2                          # one simulator per pitch
+    for i, row in enumerate(result["rows"]):
+        assert row["compiled_ms_runs"] == [2.0 * (i + 1)] * 3 and row["compiled_ms"] == 2.0 * (i + 1)
+        assert row["compiled_x_pybullet"] == pytest.approx(row["compiled_ms"] / row["pybullet_ms"])
+        assert row["compile_s"] == 1.0
+    assert made[0][NODE].pos.shape[0] > made[1][NODE].pos.shape[0]      # 0.05 m has more leaves than 0.08
+    assert "| compiled ms/step | compiled / pybullet |" in capsys.readouterr().out
