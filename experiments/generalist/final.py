@@ -160,13 +160,21 @@ def unseen_bars(test: dict, baseline: dict | None) -> list[str]:
 
 def rest_bars(test: dict, many: dict | None) -> list[str]:
     """Every test rest episode and every pile of :data:`REST_PILE_OBJECTS` objects holds 1000
-    steps from rest (a pile that never settled counts as not held); the piles of the other
-    counts are reported beside, not judged."""
+    steps from rest (a pile that never settled counts as not held); beside, the same over the
+    episodes whose own pybullet continuation holds (those that are at rest in the truth); the
+    piles of the other counts are reported, not judged."""
     rows = test.get("rest") or []
     lines = []
     if rows:
         held = sum(bool(r["holds"]) for r in rows)
         lines.append(_row("1000 steps from rest: every test episode holds", f"{held} of {len(rows)}", held == len(rows)))
+        truth = [r for r in rows if r.get("pybullet", {}).get("same_run")]
+        if truth:
+            settled = [r for r in truth if r["pybullet"]["holds"]]
+            kept = sum(bool(r["holds"]) for r in settled)
+            lines.append(_row("1000 steps from rest: every test episode that pybullet's own continuation holds",
+                              f"{kept} of {len(settled)} (pybullet holds {len(settled)} of {len(truth)})",
+                              kept == len(settled)))
     for row in (many or {}).get("rows", []):
         piles = row.get("rest") or []
         if not piles:

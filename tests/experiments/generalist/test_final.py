@@ -136,7 +136,8 @@ def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch
     _write(out, "test.json", {
         "specialists": {"cube_collision": ratios(1.2, 1.1, 1.4, 1.5), "multi_material": ratios(1.4, 1.2, 1.3, 1.6)},
         "unseen": {"unseen_by_material": by_material(1.1e-3, 2.0e-3)},
-        "rest": [{"folder": "unseen_test3_rigid", "holds": True}, {"folder": "unseen_test3_soft", "holds": False}]})
+        "rest": [{"folder": "unseen_test3_rigid", "holds": True, "pybullet": {"holds": True, "same_run": True}},
+                 {"folder": "unseen_test3_soft", "holds": False, "pybullet": {"holds": False, "same_run": True}}]})
     _write(out, "test_shapes.json", {"unseen": {"unseen_by_material": by_material(1.0e-3, 1.0e-3)}})
     _write(out, "pitch.json", {"rows": [{"pitch": 0.025, "ratio_position@15": 1.1, "ratio_position@50": 1.9},
                                         {"pitch": 0.05, "ratio_position@15": 1.0, "ratio_position@50": 1.0},
@@ -167,6 +168,7 @@ def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch
         "unseen rigid meshes / own test split, position t+15 <= 2.0": "yes",
         "unseen rigid meshes / shapes.pt, position t+15, t+50 <= 1.2": "no",   # 1.10, 2.00
         "1000 steps from rest: every test episode holds": "no",
+        "1000 steps from rest: every test episode that pybullet's own continuation holds": "yes",
         "1000 steps from rest: every pile of 2 holds": "-",   # reported, not judged
         "1000 steps from rest: every pile of 10 holds": "no",   # a pile that never settled is not held
         "pitch 0.025 m / 0.05 m, position t+15, t+50 <= 2.0": "yes",
@@ -183,7 +185,8 @@ def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch
     assert met == expected
     assert "| 1000 steps from rest: every pile of 10 holds | 1 of 1 settled piles (1 not settled) | no |" in table
     assert "| 1000 steps from rest: every pile of 2 holds | 1 of 1 settled piles (0 not settled) | - |" in table
-    assert "| rest, unseen_test3_soft | 0 of 1 hold |" in table
+    assert "| rest, unseen_test3_soft | 0 of 1 hold; pybullet holds 0 of 1, the model 0 of those 0 |" in table
+    assert "| 1000 steps from rest: every test episode that pybullet's own continuation holds | 1 of 1 (pybullet holds 1 of 2) | yes |" in table
 
 
 @pytest.mark.parametrize("extra, words", [
