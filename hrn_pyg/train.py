@@ -39,6 +39,7 @@ import math
 import os
 import time
 from collections.abc import Collection, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,7 @@ from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog
 from hrn_pyg.utils.options import add_no_progress, add_renamed, attribute_help, shown_default
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
+from hrn_pyg.utils.weight_average import WeightAverage
 from hrn_pyg.viz import plot_curves
 
 PRESETS = ("hrn", "ours", "gns")
@@ -125,6 +127,13 @@ class TrainConfig:
         snapshot_every: keep the model (weights, config and normaliser, like ``model.pt``) every
             that many steps in ``snapshots/step_<step>.pt``, so a model can be selected on
             validation afterwards; 0: none.
+        ema_decay: keep an exponential moving average of the weights,
+            ``w_avg <- d * w_avg + (1 - d) * w`` after every optimiser step
+            (:class:`~hrn_pyg.utils.weight_average.WeightAverage`), starting at the run's first
+            weights: the average is the run's model (``model.pt``, snapshots) and is what the
+            validation loss scores, and ``last.pt`` keeps both it and the trained weights, so a
+            resumed run continues the same average. It spans about ``1 / (1 - d)`` steps
+            (0.997: about 330). 0: off, the last weights are the model.
         seed: seeds the model initialisation, the window draws and the dropout masks.
         threads: torch intra-op threads (0: leave torch's default).
         input_noise: standard deviation (m) of a random walk added to the input positions
@@ -209,6 +218,7 @@ class TrainConfig:
     checkpoint_every: int = 200
     eval_every: int = 200
     snapshot_every: int = 0
+    ema_decay: float = 0.0
     seed: int = 0
     threads: int = 0
     input_noise: float = 0.0
@@ -276,6 +286,8 @@ class TrainConfig:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
         if self.snapshot_every < 0:
             raise ValueError(f"snapshot_every must be >= 0 (0: none), got {self.snapshot_every}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must be in [0, 1) (0: off), got {self.ema_decay}")
         if self.seq_start > self.seq_end:
             raise ValueError(f"seq_start ({self.seq_start}) must be <= seq_end ({self.seq_end})")
         if self.sample_copies < 0 or self.sample_copies == 1:
@@ -884,6 +896,17 @@ def _restore_training_state(ckpt: dict[str, Any], optimizer: torch.optim.Optimiz
     return int(ckpt["step"])
 
 
+def _weight_average(model: Network, config: TrainConfig, ckpt: dict[str, Any] | None) -> WeightAverage | None:
+    """The run's weight average under ``ema_decay`` (None when off): the checkpoint's when it
+    has one, else started at the model's weights (a new run, or a run that turns it on)."""
+    if config.ema_decay == 0:
+        return None
+    average = WeightAverage(model, config.ema_decay)
+    if ckpt is not None and "weight_average" in ckpt:
+        average.load_state_dict(ckpt["weight_average"])
+    return average
+
+
 def _open_run_folder(out: Path, config: TrainConfig, model: HRN, place: _Place,
                      resumed_at: int | None) -> CSVLog | None:
     """On rank 0, write ``config.json`` and open ``metrics.csv``, dropping the rows of the steps
@@ -954,9 +977,10 @@ class _Run:
 
     def __init__(self, config: TrainConfig, out: Path, place: _Place, model: HRN, optimizer: torch.optim.Optimizer,
                  scheduler: torch.optim.lr_scheduler.LambdaLR, log: CSVLog | None,
-                 val_set: EpisodeWindows | None) -> None:
+                 val_set: EpisodeWindows | None, average: WeightAverage | None = None) -> None:
         self.config, self.out, self.place = config, out, place
         self.model, self.optimizer, self.scheduler, self.log = model, optimizer, scheduler, log
+        self.average = average
         self.val_set, self.val_ids = val_set, _validation_ids(val_set)
         self.seq_schedule = SequenceLengthSchedule(config.seq_start, config.seq_end, config.steps, config.grow_until)
         self.summary: dict[str, Any] = {}  # the last logged row
@@ -1007,6 +1031,8 @@ class _Run:
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
         self.optimizer.step()
         self.scheduler.step()
+        if self.average is not None:
+            self.average.update()
         return loss, parts
 
     def log_row(self, step_index: int, seq_len: int, loss: Tensor, parts: dict[str, float]) -> dict[str, Any]:
@@ -1017,7 +1043,8 @@ class _Run:
                "loss": float(loss.detach()), **parts, "seconds": round(time.perf_counter() - self.t0, 3)}
         last_step = config.stop_at or config.steps  # the kept model is scored whatever eval_every is
         if self.val_ids and ((step_index + 1) % config.eval_every == 0 or step_index + 1 == last_step):
-            row["val_loss"] = validation_loss(self.model, self.val_set, self.val_ids, config.seq_end, config)
+            with self.kept_weights():
+                row["val_loss"] = validation_loss(self.model, self.val_set, self.val_ids, config.seq_end, config)
         if self.log is not None:
             self.log.append(row)
         return row
@@ -1033,12 +1060,20 @@ class _Run:
             return
         payload = model_payload(self.model, self.config, step_done)
         payload.update(optimizer=self.optimizer.state_dict(), scheduler=self.scheduler.state_dict(), rng=rng_state())
+        if self.average is not None:
+            payload["weight_average"] = self.average.state_dict()
         save_checkpoint(self.out / "last.pt", payload)
+
+    def kept_weights(self) -> AbstractContextManager:
+        """A block in which the model holds the weights the run keeps: the average under
+        ``ema_decay``, else the trained ones."""
+        return nullcontext() if self.average is None else self.average.applied()
 
     def snapshot(self, step_done: int) -> None:
         """Keep the model after ``step_done`` steps in ``snapshots/step_<step>.pt`` on rank 0."""
         if self.place.rank == 0:
-            save_checkpoint(snapshot_path(self.out, step_done), model_payload(self.model, self.config, step_done))
+            with self.kept_weights():
+                save_checkpoint(snapshot_path(self.out, step_done), model_payload(self.model, self.config, step_done))
 
     def close(self, step_done: int) -> None:
         """Keep the finished steps in ``last.pt``, draw ``loss.png`` from ``metrics.csv`` and leave
@@ -1078,14 +1113,16 @@ def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume
     model.to(place.device)
     optimizer, scheduler = _optimiser(model, config)
     start = 0 if ckpt is None else _restore_training_state(ckpt, optimizer, scheduler)
+    average = _weight_average(model, config, ckpt)
     log = _open_run_folder(out, config, model, place, resumed_at=None if ckpt is None else start)
-    run = _Run(config, out, place, model, optimizer, scheduler, log, val_set)
+    run = _Run(config, out, place, model, optimizer, scheduler, log, val_set, average)
     last = config.stop_at or config.steps
     end = last if stop_after is None else min(last, start + int(stop_after))
     noise, turns = _augmentation_streams(config, place.rank, start)
     done = run.take_steps(_step_batches(train_set, config, place, start, end), start, end, noise, turns, progress)
     if place.rank == 0 and done == last:
-        save_checkpoint(out / "model.pt", model_payload(model, config, last))
+        with run.kept_weights():
+            save_checkpoint(out / "model.pt", model_payload(model, config, last))
     return run.summary
 
 

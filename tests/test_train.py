@@ -61,6 +61,28 @@ def test_resume_gives_the_same_next_losses(tiny_episodes, tmp_path):
     assert model.normalizer.fitted
 
 
+def test_a_weight_average_is_the_kept_model_and_resumes_to_the_same_average(tiny_episodes, tmp_path):
+    """ema_decay: model.pt and the snapshots hold the average of the weights (not the last
+    weights, which last.pt keeps beside it), and a run stopped and resumed ends with the same
+    average as one run straight through."""
+    kw = dict(seq_end=3, ema_decay=0.6, snapshot_every=3)
+    train(_config(tiny_episodes, tmp_path / "full", **kw), SMALL, progress=False)
+    train(_config(tiny_episodes, tmp_path / "part", **kw), SMALL, progress=False, stop_after=3)
+    train(_config(tiny_episodes, tmp_path / "part", **kw), SMALL, progress=False, resume=True)
+    full, part = (torch.load(tmp_path / run / "model.pt", weights_only=True)["model"] for run in ("full", "part"))
+    for name, value in full.items():
+        assert torch.allclose(value, part[name], rtol=0, atol=1e-6), name
+    last = torch.load(tmp_path / "full" / "last.pt", weights_only=True)
+    params = last["weight_average"]
+    assert params and all(torch.equal(full[name], value) for name, value in params.items())
+    assert any(not torch.equal(last["model"][name], value) for name, value in params.items())
+    assert all(torch.equal(last["model"][name], full[name]) for name in full if name not in params)  # buffers: the model's
+    snap = torch.load(tmp_path / "full" / "snapshots" / "step_00006.pt", weights_only=True)["model"]
+    assert all(torch.equal(snap[name], full[name]) for name in full)
+    with pytest.raises(ValueError, match="ema_decay must be in"):
+        _config(tiny_episodes, tmp_path / "bad", ema_decay=1.0)
+
+
 def test_training_lowers_the_loss(tiny_episodes, tmp_path):
     cfg = _config(tiny_episodes, tmp_path / "fit", preset="hrn", steps=60, lr=3e-3, batch_size=4,
                   checkpoint_every=100, eval_every=100)
