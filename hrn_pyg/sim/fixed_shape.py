@@ -32,6 +32,9 @@ of another length, one graph serves every length, so lists are not padded): on a
 few hundred small operations become a few fused kernels, so a step costs its arithmetic rather
 than its dispatches. The first steps pay the compilation (seconds to a minute on a CPU); the
 positions are those of the eager step up to the rounding of reordered float arithmetic.
+
+A model with ``cloth_clearance`` on a scene whose cloth can land on another object is refused
+(that rule's sizes depend on the contacts of the step); on scenes without cloth it runs as any model.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ from hrn_pyg.data.effects import SceneEffects, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
+from hrn_pyg.sim.cloth_contact import cloth_contact
 from hrn_pyg.sim.rollout import check_forces
 from hrn_pyg.sim.step import NEXT_POS, MasksFn, hierarchy_constants, object_of, predict, require_state
 from hrn_pyg.utils.checks import non_finite_error
@@ -238,6 +242,11 @@ class FixedShapeSimulator:
         self.model, self.config = model, config
         self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
         self.objects = object_of(self.graph) if model.config.rigid_fit else None
+        clearance = float(getattr(model.config, "cloth_clearance", 0.0))
+        if clearance > 0 and cloth_contact(self.graph, clearance, objects=self.objects) is not None:
+            raise ValueError(f"fixed_shape_rollout: this model keeps cloth out of solids (cloth_clearance="
+                             f"{clearance:g}), a rule whose sizes depend on the contacts, which fixed-shape steps "
+                             "do not run; roll this scene out with hrn_pyg.sim.rollout")
         self.hierarchy = hierarchy_constants(model, self.graph)
         self._steps: dict[tuple, StepFn] = {}
 

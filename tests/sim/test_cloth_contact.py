@@ -196,3 +196,24 @@ def test_objects_asleep_elsewhere_change_nothing_for_the_rule():
     assert not torch.allclose(awake[:, sheet_rows], rollout(_model(), graph, 6, sleep=None)[:, sheet_rows], atol=1e-3)
     far = slice(n_box + 25, n_box + 33)
     assert torch.equal(asleep[:, far], store.pos[far].expand(6, -1, -1))
+
+
+def test_fixed_shape_steps_refuse_the_rule_where_it_acts_and_run_without_cloth():
+    """The rule's sizes depend on the step's contacts, which fixed-shape steps cannot have: a
+    model with it is refused on a scene with a cloth over a solid (one line naming the option
+    and what to use), and runs as the plain rollout on a scene with no cloth."""
+    from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
+
+    top = PITCH * (BOX_SIDE - 1)
+    ticks = torch.arange(3, dtype=torch.float32) * 0.075
+    x, y = torch.meshgrid(ticks, ticks, indexing="ij")
+    sheet = torch.stack([x.flatten(), y.flatten(), torch.full((9,), top + 0.03)], dim=1)
+    graph, _ = box_and_cloth(sheet)
+    kept = with_applied_options(_model(), cloth_clearance=0.1)
+    with pytest.raises(ValueError, match=r"cloth_clearance=0\.1.*hrn_pyg\.sim\.rollout"):
+        fixed_shape_rollout(kept, graph, 3)
+    no_cloth = toy_window(steps=4)
+    with torch.no_grad():
+        fixed = fixed_shape_rollout(kept, no_cloth, 3).pos
+        plain = rollout(kept, no_cloth, 3, sleep=None)
+    assert torch.equal(fixed, plain)
