@@ -144,7 +144,8 @@ class HRNConfig(NetworkConfig):
             (:mod:`hrn_pyg.sim.cloth_contact`; 0: off). A rule applied after the network in a
             rollout, like ``ground_projection``: the cloth's own model does not change. The
             package's rollout loop (:func:`hrn_pyg.sim.rollout.iterate`) applies it; the
-            fixed-shape simulator (:mod:`hrn_pyg.sim.fixed_shape`) does not.
+            fixed-shape simulator (:mod:`hrn_pyg.sim.fixed_shape`) cannot, and refuses such a
+            model on a scene whose cloth can land on another object.
         material_heads: the next-state module has one output network per material (rigid,
             soft, cloth) instead of one for all (:class:`~hrn_pyg.nn.state.NextStateModule`); a
             model without them starts one with them from its weights, every head a copy of its
