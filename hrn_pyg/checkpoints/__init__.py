@@ -139,9 +139,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
         model = network_from_dict(config["model"])  # an HRN, or a GNS (its config says so)
         model.load_state_dict(ckpt["model"])
     except (KeyError, TypeError, RuntimeError) as exc:
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
-                              f"({type(exc).__name__}: {first_line})") from None
+        raise _not_a_model(path, exc) from None
     model.domain = checkpoint_domain(path, ckpt)
     model.checkpoint_name = display_name(path)
     model.eval()
@@ -156,9 +154,14 @@ def checkpoint_config(path: str | os.PathLike) -> NetworkConfig:
     try:
         return config_from_dict(json.loads(load_checkpoint(path)["config"])["model"])
     except (KeyError, TypeError, ValueError) as exc:
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
-                              f"({type(exc).__name__}: {first_line})") from None
+        raise _not_a_model(path, exc) from None
+
+
+def _not_a_model(path: Path, exc: Exception) -> CheckpointError:
+    """The one-line error for a file that holds no model: its path, the error's type and first line."""
+    text = str(exc).strip()
+    return CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
+                           f"({type(exc).__name__}: {text.splitlines()[0] if text else ''})")
 
 
 def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = None) -> Domain | None:
