@@ -207,8 +207,8 @@ def build_start(scene: str, seed: int, steps: int, members: int,
 
 def data_scene(folder: Path, scene: str | None) -> tuple[str, Any]:
     """The scene a folder written by ``hrn-pyg generate`` holds: its name and the spec to simulate
-    (a scene file's text as it was recorded, or a built-in scene with its recorded settings; None:
-    the built-in ``scene`` as it is). ``scene`` (optional) must agree with the folder's."""
+    (a scene file's text as it was recorded, or a built-in scene, each with the settings its
+    episodes were made with, e.g. another pitch; None: the built-in ``scene`` as it is). ``scene`` (optional) must agree with the folder's."""
     from hrn_pyg.data.scene_file import builtin_scene, parse_scene
 
     meta_path = folder / "meta.json"
@@ -220,14 +220,15 @@ def data_scene(folder: Path, scene: str | None) -> tuple[str, Any]:
     if scene is not None and meta.get("scene") not in (None, scene):
         raise ValueError(f"--data: {folder} holds {meta['scene']!r} episodes, not {scene!r}")
     name = meta.get("scene") or scene
+    # the settings the episodes were made with (generate's --pitch, --set ...), as recorded
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
     if meta.get("scene_text"):  # a scene file: the text the episodes were made from
         source = Path(meta.get("scene_file") or folder / "scene.toml")
         spec = parse_scene(tomllib.loads(meta["scene_text"]), name=name, base=source.parent,
                            source=str(source), text=meta["scene_text"])
-        return name, spec
+        return name, spec.with_settings(**fields)
     if name is None:
         raise ValueError(f"--data: {folder}'s meta.json names no scene; pass --scene")
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (meta.get("config") or {}).items()}
     return name, builtin_scene(name, **fields) if fields else None
 
 

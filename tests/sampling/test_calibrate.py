@@ -189,6 +189,25 @@ def test_scene_file_folders_name_their_scene(checkpoint, tiny_episodes, tmp_path
     assert "--scene is required" in capsys.readouterr().err
 
 
+def test_a_scene_file_folder_keeps_the_settings_it_was_made_with(tmp_path):
+    """A folder generated from a scene file at another pitch is simulated at that pitch again:
+    the ensemble has the leaves of the folder's own episodes (it had the file's pitch before)."""
+    from hrn_pyg.data.episodes import simulate_episode
+    from hrn_pyg.data.io import load_episode
+    from hrn_pyg.data.scene_file import BUILTIN_DIR
+
+    scene_file = tmp_path / "two_cubes.toml"
+    scene_file.write_text((BUILTIN_DIR / f"{SCENE}.toml").read_text())
+    data = tmp_path / "two_cubes_fine"
+    assert main(["generate", "--scene-file", str(scene_file), "--episodes", "1", "--first-seed", "8",
+                 "--episode-steps", "4", "--pitch", "0.04", "--out", str(data), "--no-progress"]) == 0
+    name, spec = cal.data_scene(data, None)
+    assert (name, spec.config.pitch, spec.config.steps) == ("two_cubes", 0.04, 4)
+    made = load_episode(data / "episode_000008.npz")
+    again = simulate_episode(spec, 8)
+    assert np.array_equal(made["positions"], again["positions"])
+
+
 def _spy_on_scoring(monkeypatch) -> list[torch.device]:
     """The device of the model every calibration scores its candidates with."""
     devices, calibrate = [], cal.calibrate
