@@ -524,3 +524,60 @@ def test_the_next_generalists_recipe_starts_from_shapes_on_the_shipped_datasets(
     assert model.start == "shapes" and recipe.identity(model)["start"]["sha256"]
     for name in (model.dataset, *model.extra_datasets()):
         assert recipe.dataset(name) == shipped.dataset(name)  # the same seeds: nothing generated twice
+
+
+def test_an_average_table_ships_the_mean_of_the_stages_and_is_not_redone(tmp_path):
+    """``[models.b.average]``: the published file is the weighted mean of the two stages' weights
+    (the last stage's normaliser and config); a rerun rewrites nothing, and changed weights
+    rewrite the mean without training again."""
+    import torch
+
+    from hrn_pyg.checkpoints import load_model
+
+    text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
+    text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours"})
+    text += _toml_table("models.b.train", {"steps": 2, "checkpoint-every": 2, **TINY_MODEL})
+    text += "[[models.b.finetune]]\n" + "\n".join(_toml_table("x", {"steps": 2, "lr": 0.01, "threads": 1})
+                                                  .splitlines()[1:]) + "\n"
+    (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.average", {"stages": [0, 1],
+                                                                                   "weights": [0.25, 0.75]}))
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
+    assert (ckpt / "b.pt").read_bytes() == (runs / "b.ft1" / "model.averaged.pt").read_bytes()
+    first, last, shipped = (load_model(p) for p in (runs / "b" / "model.pt", runs / "b.ft1" / "model.pt", ckpt / "b.pt"))
+    moved = 0
+    for (name, a), (_, b), (_, mean) in zip(first.named_parameters(), last.named_parameters(),
+                                            shipped.named_parameters(), strict=True):
+        torch.testing.assert_close(mean, 0.25 * a + 0.75 * b, rtol=0, atol=1e-7)
+        moved += int(not torch.equal(a, b))
+    assert moved > 0  # the fine-tuning changed weights: the mean is neither stage
+    entry = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]["b"]
+    assert entry["averaged"] == {"stages": [0, 1], "weights": [0.25, 0.75]}
+    before = _mtimes(runs / "b.ft1", "model*.pt")
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert _mtimes(runs / "b.ft1", "model*.pt") == before
+    (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.average", {"stages": [0, 1]}))
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    after = _mtimes(runs / "b.ft1", "model*.pt")
+    assert after["model.pt"] == before["model.pt"] and after["model.averaged.pt"] != before["model.averaged.pt"]
+    for (_, a), (_, b), (_, mean) in zip(first.named_parameters(), last.named_parameters(),
+                                         load_model(ckpt / "b.pt").named_parameters(), strict=True):
+        torch.testing.assert_close(mean, 0.5 * a + 0.5 * b, rtol=0, atol=1e-7)
+
+
+def test_bad_average_tables_are_refused():
+    base = {"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3}},
+            "models": {"m": {"dataset": "d", "preset": "ours", "finetune": [{"steps": 2}, {"steps": 2}]}}}
+    for table, word in (({"stages": [0, 1]}, "ending with the last stage"), ({"stages": [2]}, "two or more"),
+                        ({"stages": [2, 0]}, "rising"), ({"stages": [0, 2], "weights": [0.5, 0.6]}, "sum to 1"),
+                        ({"stages": [0, 2], "weights": [1.0]}, "1 weights for 2"),
+                        ({"stages": [0, 2], "weights": "even"}, "list of numbers"),
+                        ({"stages": [0, 2], "mix": 1}, "unknown key"), ({"stages": "0,2"}, "wrong type"),
+                        ("x", "must be a table"), ({"stages": [True, 2]}, "rising stage numbers")):
+        recipe = json.loads(json.dumps(base))
+        recipe["models"]["m"]["average"] = table
+        with pytest.raises(ValueError, match=word):
+            parse_recipe(recipe)
+    recipe = json.loads(json.dumps(base))
+    recipe["models"]["m"]["average"] = {"stages": [0, 2]}
+    assert parse_recipe(recipe).models[0].average == ((0, 0.5), (2, 0.5))

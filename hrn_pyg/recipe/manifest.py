@@ -4,7 +4,8 @@ A run folder's ``recipe.json`` (:data:`RUN_RECORD`) holds what the folder was tr
 identity) and every train invocation (command, device, seconds, exit code). The checkpoints
 folder's ``manifest.json`` (:data:`MANIFEST_NAME`) holds one entry per shipped model: the
 dataset recipe, the exact commands, training steps, device, wall seconds of the training
-invocations, the calibrated rate and modules, and the SHA-256 of the checkpoint. Entries are
+invocations, the stages whose weights were averaged (when they were), the calibrated rate and
+modules, and the SHA-256 of the checkpoint. Entries are
 built from the run records (:func:`model_entry`) and written atomically, only when they change
 (:func:`update_manifest`); :func:`copy_atomic` and :func:`sha256` publish the checkpoints
 themselves.
@@ -84,6 +85,8 @@ def model_entry(model: ModelRecipe, dataset: DatasetRecipe, data_dir: Path, runs
         "train_invocations": len(invocations),
         "sha256": digest,
         **stages,
+        **({"averaged": {"stages": [s for s, _ in model.average], "weights": [w for _, w in model.average]}}
+           if model.average else {}),
         **calibration_entry(model, run, calibrate_command),
     }
 

@@ -12,10 +12,13 @@ One run does, for the selected models (``--only``, default all):
    ``hrn-pyg train --init-from`` the previous stage's ``model.pt`` into
    ``<runs-dir>/<model>.ft<i>``, with the same rules (skip, resume, replace; a stage is redone
    when anything before it changes); the last stage is the model;
-3. for a model with a ``[models.<name>.calibrate]`` table: calibrates the run's ``model.pt``
-   into ``model.calibrated.pt`` (validation seeds only; redone only when ``model.pt`` or the
-   options change, ``calibration.json``);
-4. copies ``model.pt`` (the calibrated copy when there is one) to
+2c. for a model with a ``[models.<name>.average]`` table: writes the weighted mean of the named
+   stages' weights into the last stage's folder as ``model.averaged.pt``, which is then the
+   model (redone only when a stage's ``model.pt`` or the weights change, ``averaged.json``);
+3. for a model with a ``[models.<name>.calibrate]`` table: calibrates the run's model
+   (``model.pt`` or ``model.averaged.pt``) into ``model.calibrated.pt`` (validation seeds only;
+   redone only when that file or the options change, ``calibration.json``);
+4. copies the model (the calibrated copy when there is one) to
    ``<checkpoints-dir>/<model>.pt`` (and each alias) atomically and refreshes the model's entry
    in ``<checkpoints-dir>/manifest.json`` (:mod:`hrn_pyg.recipe.manifest`), with the domain the
    checkpoint records (:mod:`hrn_pyg.checkpoints.domain`). ``<checkpoints-dir>`` is
@@ -48,6 +51,7 @@ from hrn_pyg.recipe.manifest import (
     update_manifest,
 )
 from hrn_pyg.recipe.schema import (
+    AVERAGED_NAME,
     CALIBRATED_NAME,
     RECIPE_PATH,
     DatasetRecipe,
@@ -61,6 +65,8 @@ from hrn_pyg.utils.files import atomic_write_json
 STOP_GRACE_S = 30.0
 #: the record of what a run's calibrated copy was calibrated from
 CALIBRATION_RECORD = "calibration.json"
+#: the record of which stages' weights, with which weights, a run's averaged model was made from
+AVERAGE_RECORD = "averaged.json"
 #: where the checkpoints and their manifest go unless named, relative to the working directory
 #: (never the installed package's folder)
 DEFAULT_CHECKPOINTS_DIR = Path("checkpoints")
@@ -294,6 +300,32 @@ class Runner:
         return str(resolve_device(self.config.device))
 
     # -- publishing ----------------------------------------------------------------------------
+    def average(self, model: ModelRecipe) -> None:
+        """Write the recipe's weighted mean of stages' weights into ``model.averaged.pt``;
+        skipped when the copy exists and was made from these stages' model.pt files with these
+        weights (``averaged.json``). Raises ``RuntimeError`` when the stages cannot be averaged."""
+        if not model.average:
+            return
+        runs, run = self.config.runs_dir, self.config.runs_dir / model.final_run
+        sources = [runs / model.run_name(stage) / "model.pt" for stage, _ in model.average]
+        weights = [weight for _, weight in model.average]
+        if self.config.dry_run:
+            self.say(f"model {model.name}: average {', '.join(f'{w:g} x {s}' for s, w in zip(sources, weights))}"
+                     f" -> {run / AVERAGED_NAME}")
+            return
+        record = {"sources": [{"stage": stage, "weight": weight, "model_sha256": sha256(source)}
+                              for (stage, weight), source in zip(model.average, sources, strict=True)]}
+        if (run / AVERAGED_NAME).is_file() and read_json(run / AVERAGE_RECORD) == record:
+            return
+        from hrn_pyg.checkpoints.average import write_average  # imports torch
+
+        try:
+            write_average(sources, weights, run / AVERAGED_NAME)
+        except ValueError as exc:
+            raise RuntimeError(f"model {model.name}: {exc}") from None
+        atomic_write_json(run / AVERAGE_RECORD, record)
+        self.say(f"model {model.name}: wrote {run / AVERAGED_NAME}")
+
     def calibrate_command(self, model: ModelRecipe) -> list[str]:
         dataset = self.recipe.dataset(model.dataset)
         folders: tuple[Path, ...] = ()
@@ -304,9 +336,10 @@ class Runner:
         return args + (["--device", self.config.device] if args and self.config.device else [])
 
     def calibrate(self, model: ModelRecipe) -> None:
-        """``hrn-pyg calibrate`` the run's model.pt into ``model.calibrated.pt`` when the recipe
-        asks for it; skipped when the copy exists and was made from this model.pt with these
-        options (``calibration.json``). Raises ``RuntimeError`` when calibrate fails."""
+        """``hrn-pyg calibrate`` the run's model (:attr:`ModelRecipe.model_file`) into
+        ``model.calibrated.pt`` when the recipe asks for it; skipped when the copy exists and was
+        made from this model with these options (``calibration.json``). Raises ``RuntimeError``
+        when calibrate fails."""
         args = self.calibrate_command(model)
         if not args:
             return
@@ -314,7 +347,7 @@ class Runner:
         if self.config.dry_run:
             self.say(shown(args))
             return
-        record = {"model_sha256": sha256(run / "model.pt"), "options": [list(o) if not isinstance(o[1], tuple)
+        record = {"model_sha256": sha256(run / model.model_file), "options": [list(o) if not isinstance(o[1], tuple)
                                                                          else [o[0], list(o[1])] for o in model.calibrate]}
         if (run / CALIBRATED_NAME).is_file() and read_json(run / CALIBRATION_RECORD) == record:
             return
@@ -326,10 +359,10 @@ class Runner:
         atomic_write_json(run / CALIBRATION_RECORD, record)
 
     def publish(self, model: ModelRecipe) -> None:
-        """Copy the run's model.pt (its calibrated copy when the recipe calibrates it) to the
-        checkpoints folder and refresh the manifest."""
+        """Copy the run's model (:attr:`ModelRecipe.model_file`, or its calibrated copy when the
+        recipe calibrates it) to the checkpoints folder and refresh the manifest."""
         cfg, run = self.config, self.config.runs_dir / model.final_run
-        source = run / (CALIBRATED_NAME if model.calibrate else "model.pt")
+        source = run / (CALIBRATED_NAME if model.calibrate else model.model_file)
         if cfg.dry_run:
             self.say(f"copy {source} -> {cfg.checkpoints_dir / (model.name + '.pt')}"
                      + "".join(f", {a}.pt" for a in model.aliases) + f"; refresh {MANIFEST_NAME}")
@@ -363,6 +396,7 @@ class Runner:
     # -- everything ----------------------------------------------------------------------------
     def build(self, model: ModelRecipe) -> None:
         self.train(model)
+        self.average(model)
         self.calibrate(model)
         self.publish(model)
 

@@ -7,7 +7,10 @@ free-form ``[models.<name>.train]`` table of extra ``hrn-pyg train`` options: ``
 becomes ``--key value``, ``true`` a bare ``--key``, ``false`` nothing). A model may add
 fine-tuning stages (``[[models.<name>.finetune]]``, each a table of train options) and a
 ``[models.<name>.calibrate]`` table of ``hrn-pyg calibrate`` options (a list of strings
-becomes one flag with several values); a model whose dataset is a scene file is calibrated on
+becomes one flag with several values); a ``[models.<name>.average]`` table (``stages``, a
+rising list of stage numbers ending with the last, and optional ``weights`` summing to one,
+equal by default) makes the model the weighted mean of those stages' weights
+(:mod:`hrn_pyg.checkpoints.average`), which is then calibrated and shipped; a model whose dataset is a scene file is calibrated on
 the validation episodes of all its datasets (``--data`` each) rather than on fresh seeds. The train option ``extra-datasets`` names more recipe
 datasets whose episodes join the model's dataset in a stage. ``start = "<name>"`` starts a
 model's first training from the shipped checkpoint ``<name>`` (``--init-from``; its file's
@@ -47,11 +50,14 @@ EXTRA_DATASETS = "extra-datasets"
 #: a recipe's top-level key naming another recipe file (relative to it) whose datasets it uses
 DATASETS_FROM = "datasets_from"
 DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch", "set"})
-MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "start", "train", "calibrate", "finetune"})
+MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "start", "train", "calibrate", "finetune", "average"})
+AVERAGE_KEYS = frozenset({"stages", "weights"})
 #: calibrate options the runner sets itself; a recipe may not
 RESERVED_CALIBRATE_OPTIONS = frozenset({"scene", "model", "out", "in-place", "device", "no-progress", "data"})
 #: the calibrated copy of a run's model.pt
 CALIBRATED_NAME = "model.calibrated.pt"
+#: the mean of several stages' weights (``[models.<name>.average]``), in the last stage's run folder
+AVERAGED_NAME = "model.averaged.pt"
 
 OptionValue = str | int | float | bool
 
@@ -119,6 +125,9 @@ class ModelRecipe:
     #: a shipped checkpoint's name the first training starts from (``--init-from``); "" for a
     #: fresh network
     start: str = ""
+    #: ``[models.<name>.average]``: (stage, weight) pairs whose weights' mean is the model; empty
+    #: when the model is the last stage's model.pt
+    average: tuple[tuple[int, float], ...] = ()
 
     @property
     def num_stages(self) -> int:
@@ -132,6 +141,12 @@ class ModelRecipe:
     def final_run(self) -> str:
         """The run folder whose ``model.pt`` is the model (the last stage's)."""
         return self.run_name(self.num_stages - 1)
+
+    @property
+    def model_file(self) -> str:
+        """The file in :attr:`final_run` that is the trained model, calibrated and shipped:
+        ``model.pt``, or the mean of the stages' weights when the recipe averages them."""
+        return AVERAGED_NAME if self.average else "model.pt"
 
     def stage_options(self, stage: int = 0) -> tuple[tuple[str, OptionValue], ...]:
         """The train options of a stage (0: the first training, then each fine-tuning)."""
@@ -181,14 +196,14 @@ class ModelRecipe:
 
     def calibrate_args(self, scene: str, runs_dir: Path, data: Sequence[Path] = ()) -> list[str]:
         """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
-        model.pt into its calibrated copy; empty when the recipe has no calibrate table. With
+        model (:attr:`model_file`) into its calibrated copy; empty when the recipe has no calibrate table. With
         ``data`` (episode folders) the starts are their validation episodes (``--data`` each,
         the scenes named by the folders) instead of ``--scene``'s freshly simulated seeds."""
         if not self.calibrate:
             return []
         run = runs_dir / self.final_run
         where = [flag for folder in data for flag in ("--data", str(folder))] if data else ["--scene", scene]
-        return ["calibrate", *where, "--model", str(run / "model.pt"), "--out", str(run / CALIBRATED_NAME),
+        return ["calibrate", *where, "--model", str(run / self.model_file), "--out", str(run / CALIBRATED_NAME),
                 *option_flags(dict(self.calibrate), CALIBRATE_FLAGS)]
 
 
@@ -328,6 +343,30 @@ def _parse_calibrate(table: Any, where: str) -> tuple[tuple[str, OptionValue | t
     return tuple(options)
 
 
+def _parse_average(table: Any, where: str, num_stages: int) -> tuple[tuple[int, float], ...]:
+    """``[models.<name>.average]``: ``stages`` (at least two stage numbers, rising, the last
+    one the model's last stage, whose config and normaliser the mean keeps) and ``weights``
+    (one per stage, > 0, summing to one; equal when left out)."""
+    from hrn_pyg.checkpoints.average import check_average_weights  # imports torch; only for a recipe that averages
+
+    if not isinstance(table, Mapping):
+        raise ValueError(f"{where}: 'average' must be a table with 'stages' (and 'weights')")
+    _check_keys(table, AVERAGE_KEYS, f"{where}.average")
+    stages = _require(table, "stages", list, f"{where}.average")
+    if (len(stages) < 2 or not all(isinstance(s, int) and not isinstance(s, bool) for s in stages)
+            or any(b <= a for a, b in zip(stages, stages[1:])) or stages[0] < 0 or stages[-1] != num_stages - 1):
+        raise ValueError(f"{where}.average: stages must be two or more rising stage numbers ending with the last "
+                         f"stage ({num_stages - 1}), got {stages!r}")
+    weights = table.get("weights", [1.0 / len(stages)] * len(stages))
+    if not isinstance(weights, list) or not all(isinstance(w, (int, float)) and not isinstance(w, bool) for w in weights):
+        raise ValueError(f"{where}.average: weights must be a list of numbers, got {weights!r}")
+    try:
+        values = check_average_weights(weights, len(stages))
+    except ValueError as exc:
+        raise ValueError(f"{where}.{exc}") from None
+    return tuple(zip(stages, values, strict=True))
+
+
 def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> ModelRecipe:
     where = f"models.{_check_name(name, 'models')}"
     _check_keys(table, MODEL_KEYS, where)
@@ -347,7 +386,8 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
                         _parse_options(table.get("train", {}), where),
                         tuple(_check_name(a, f"{where}.aliases") for a in aliases),
                         _parse_calibrate(table["calibrate"], where) if "calibrate" in table else (),
-                        tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)), start)
+                        tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)), start,
+                        _parse_average(table["average"], where, 1 + len(stages)) if "average" in table else ())
     unknown = sorted(set(model.extra_datasets()) - datasets)
     if unknown:
         raise ValueError(f"{where}: {EXTRA_DATASETS} {unknown} not in [datasets]")
