@@ -4,9 +4,10 @@ Run it on the model chosen on validation (``python -m experiments.generalist.val
 choose one. Each benchmark writes its JSON under ``--out`` and a rerun runs only the missing ones,
 so the test files are scored once and a stopped run continues where it stopped:
 
-1. ``test.json`` (``benchmarks/unseen_shapes.py``): the test folders, whose meshes were fixed in
-   ``data/shapes/unseen/test3_rigid.toml``, ``test3_soft.toml`` and ``test_cloth.toml`` before
-   any score: position and shape error at t+15 and t+50 beside the model's own test split
+1. ``test.json`` (``benchmarks/unseen_shapes.py``): the test folders of ``--test-set``, whose
+   meshes were fixed in their scene files before any score (``test4``:
+   ``data/shapes/unseen/test4_rigid.toml``, ``test4_soft.toml`` and ``test4_cloth.toml``; ``test3``,
+   scored once already, ``test3_rigid``, ``test3_soft`` and ``test_cloth``): position and shape error at t+15 and t+50 beside the model's own test split
    (``shapes_drop``); 1000 steps from the resting end of the first ``--rest-episodes`` episodes
    per mesh and material, with pybullet's own continuation of each; the specialists' test splits
    (cube_collision, soft_bounce, multi_material).
@@ -51,15 +52,22 @@ from experiments.command import script_main
 from experiments.generalist.validate import (PARITY_KEYS, REPO, SPECIALISTS, cloth_lines, read_json,
                                              rest_lines, run_missing)
 
-#: the test folders: scene file (in the repository) and the first seed of its 40 episodes
-TEST_FOLDERS = {
-    "unseen_test3_rigid": ("data/shapes/unseen/test3_rigid.toml", 6_200_000),
-    "unseen_test3_soft": ("data/shapes/unseen/test3_soft.toml", 7_200_000),
-    "unseen_test_cloth": ("data/shapes/unseen/test_cloth.toml", 6_500_000),
+#: each set of test folders (rigid, soft, cloth; the rigid one first): folder name -> scene file
+#: (in the repository) and the first seed of its 40 episodes, and the random_urdfs meshes of its
+#: rigid folder, for the piles. A set is scored once: test3 was, on shapes_eq_small; test4's
+#: meshes were drawn before any score
+TEST_SETS: dict[str, tuple[dict[str, tuple[str, int]], tuple[str, ...]]] = {
+    "test3": ({"unseen_test3_rigid": ("data/shapes/unseen/test3_rigid.toml", 6_200_000),
+               "unseen_test3_soft": ("data/shapes/unseen/test3_soft.toml", 7_200_000),
+               "unseen_test_cloth": ("data/shapes/unseen/test_cloth.toml", 6_500_000)}, ("010", "017", "021")),
+    "test4": ({"unseen_test4_rigid": ("data/shapes/unseen/test4_rigid.toml", 6_300_000),
+               "unseen_test4_soft": ("data/shapes/unseen/test4_soft.toml", 7_300_000),
+               "unseen_test4_cloth": ("data/shapes/unseen/test4_cloth.toml", 6_600_000)}, ("335", "140", "251")),
 }
+#: the set a run scores unless told (the first not scored yet)
+DEFAULT_TEST_SET = "test4"
+TEST_FOLDERS = TEST_SETS[DEFAULT_TEST_SET][0]
 TEST_EPISODES = 40
-#: the meshes of the rigid test folder, for the piles
-TEST_MESHES = ",".join(f"pybullet_data:random_urdfs/{n}/{n}.obj" for n in ("010", "017", "021"))
 #: the bars (the issue's "Done when")
 PARITY_BAR = 1.5
 UNSEEN_OWN_BAR = 2.0
@@ -76,35 +84,42 @@ SOFT_PILE_BAR = 0.2
 ROOF_SCENE = "data/shapes/unseen/roof_drop.toml"
 
 
-def generate_commands(data: Path) -> dict[str, list[str]]:
-    """``hrn-pyg generate`` of each test folder not under ``data`` yet, by folder name."""
+def test_meshes(test_set: str) -> str:
+    """The meshes of a test set's rigid folder, as ``many_objects.py --meshes`` takes them."""
+    return ",".join(f"pybullet_data:random_urdfs/{n}/{n}.obj" for n in TEST_SETS[test_set][1])
+
+
+def generate_commands(data: Path, test_set: str = DEFAULT_TEST_SET) -> dict[str, list[str]]:
+    """``hrn-pyg generate`` of each folder of ``test_set`` not under ``data`` yet, by folder name."""
     return {name: [sys.executable, "-m", "hrn_pyg.cli", "generate", "--scene-file", str(REPO / scene), "--episodes", str(TEST_EPISODES),
                    "--out", str(data / name), "--first-seed", str(seed)]
-            for name, (scene, seed) in TEST_FOLDERS.items() if not (data / name / "meta.json").is_file()}
+            for name, (scene, seed) in TEST_SETS[test_set][0].items() if not (data / name / "meta.json").is_file()}
 
 
 def commands(model: str, data: Path, out: Path, rest_episodes: int,
-             pybullet_rest: Path | None = None) -> dict[str, list[str]]:
-    """The benchmark command lines, by the name of the JSON each writes under ``out``."""
+             pybullet_rest: Path | None = None, test_set: str = DEFAULT_TEST_SET) -> dict[str, list[str]]:
+    """The benchmark command lines on the folders of ``test_set``, by the name of the JSON each
+    writes under ``out``."""
+    folders = TEST_SETS[test_set][0]
     python = [sys.executable]
     bench = REPO / "benchmarks"
-    unseen = [a for name in TEST_FOLDERS for a in ("--unseen", str(data / name))]
+    unseen = [a for name in folders for a in ("--unseen", str(data / name))]
     test = [*python, str(bench / "unseen_shapes.py"), "--model", model, *unseen,
             "--own", str(data / "shapes_drop"), "--own-split", "test",
             *[a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")],
             "--rest-episodes", str(rest_episodes), "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"),
             "--no-time", "--out", str(out / "test.json")]
     baseline = [*python, str(bench / "unseen_shapes.py"), "--model", "shapes",
-                *[a for name in TEST_FOLDERS if "cloth" not in name for a in ("--unseen", str(data / name))],
+                *[a for name in folders if "cloth" not in name for a in ("--unseen", str(data / name))],
                 "--own", str(data / "shapes_drop"), "--own-split", "test", "--no-rest", "--no-time",
                 "--out", str(out / "test_shapes.json")]
     cloth = [*python, str(bench / "cloth_pass_through.py"), "--model", model,
-             "--episodes", str(data / "unseen_test_cloth"), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
-    scene, seed = TEST_FOLDERS["unseen_test3_rigid"]
+             "--episodes", str(data / next(n for n in folders if "cloth" in n)), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
+    scene, seed = next(iter(folders.values()))  # the rigid folder
     pitch = [*python, str(bench / "accuracy_vs_time.py"), "--model", model, "--scene-file", str(REPO / scene),
              "--first-seed", str(seed), "--compile", "--work", str(data / "final_pitch"), "--out", str(out / "pitch.json")]
     many = [*python, str(bench / "many_objects.py"), "--model", model, "--counts", "2,10,20,40",
-            "--meshes", TEST_MESHES, "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
+            "--meshes", test_meshes(test_set), "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
             "--work", str(data / "final_many_objects"), "--out", str(out / "many_objects.json")]
     equivariance = [*python, str(bench / "equivariance.py"), "--model", model, "--model", "shapes",
                     "--data", str(data / "shapes_drop"), "--split", "val", "--episodes", "4",
@@ -296,6 +311,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", default="", help="comma-separated benchmark names (test, test_shapes, cloth, "
                                                    "pitch, many_objects, equivariance, roof, pile_rigid, "
                                                    "pile_soft; default: all)")
+    parser.add_argument("--test-set", choices=sorted(TEST_SETS), default=DEFAULT_TEST_SET,
+                        help=f"the test folders to score (default {DEFAULT_TEST_SET}; each set is scored once)")
     parser.add_argument("--pybullet-rest", type=Path, default=None,
                         help="folder for pybullet's continuations of the rest episodes (default: DATA/pybullet_rest)")
 
@@ -303,7 +320,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.rest_episodes < 1:
         raise ValueError("--rest-episodes must be >= 1")
-    named = commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest)
+    named = commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest, args.test_set)
     wanted = {f"{n}.json" for n in args.only.split(",") if n}
     unknown = sorted(wanted - set(named))
     if unknown:
@@ -312,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
     missing = [name for name in ("shapes_drop", *(f for f, _ in SPECIALISTS)) if not (args.data / name).is_dir()]
     if missing:
         raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(missing)}")
-    for name, command in generate_commands(args.data).items():
+    for name, command in generate_commands(args.data, args.test_set).items():
         print(" ".join(command), flush=True)
         subprocess.run(command, check=True, cwd=REPO)
     run_missing(named, args.out, wanted)

@@ -109,15 +109,15 @@ def test_calibration_bar_reads_the_rate_stored_in_the_checkpoint(tmp_path):
 
 def test_missing_test_folders_are_made_with_their_seeds(tmp_path, monkeypatch):
     data, out = _data(tmp_path, with_test_folders=False), tmp_path / "out"
-    (data / "unseen_test_cloth").mkdir()
-    (data / "unseen_test_cloth" / "meta.json").write_text("{}")   # made already
+    (data / "unseen_test4_cloth").mkdir()
+    (data / "unseen_test4_cloth" / "meta.json").write_text("{}")   # made already
     ran = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
     argv = ["--model", "m.pt", "--data", str(data), "--out", str(out), "--only", "pitch"]
     assert script_main("f", "f", final.add_arguments, final.run, argv) == 0
     made = [c for c in ran if "generate" in c]
-    assert [c[c.index("--out") + 1] for c in made] == [str(data / "unseen_test3_rigid"), str(data / "unseen_test3_soft")]
-    assert [c[c.index("--first-seed") + 1] for c in made] == ["6200000", "7200000"]
+    assert [c[c.index("--out") + 1] for c in made] == [str(data / "unseen_test4_rigid"), str(data / "unseen_test4_soft")]
+    assert [c[c.index("--first-seed") + 1] for c in made] == ["6300000", "7300000"]
     assert made[0][:3] == [sys.executable, "-m", "hrn_pyg.cli"]
     scored = [c for c in ran if "generate" not in c]
     assert len(scored) == 1 and scored[0][scored[0].index("--out") + 1] == str(out / "pitch.json")
@@ -199,3 +199,26 @@ def test_bad_input_is_one_line(tmp_path, capsys, extra, words):
     assert script_main("f", "f", final.add_arguments, final.run, argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0]
+
+
+def test_each_test_set_scores_its_own_folders_and_meshes():
+    for name, (folders, meshes) in final.TEST_SETS.items():
+        cmds = final.commands("m.pt", Path("d"), Path("o"), 6, test_set=name)
+        test = cmds["test.json"]
+        assert [test[i + 1] for i, w in enumerate(test) if w == "--unseen"] == [str(Path("d") / n) for n in folders]
+        cloth = cmds["cloth.json"]
+        assert cloth[cloth.index("--episodes") + 1] == str(Path("d") / next(n for n in folders if "cloth" in n))
+        pitch = cmds["pitch.json"]
+        rigid_scene, rigid_seed = next(iter(folders.values()))
+        assert pitch[pitch.index("--scene-file") + 1] == str(REPO / rigid_scene) and "rigid" in rigid_scene
+        assert pitch[pitch.index("--first-seed") + 1] == str(rigid_seed)
+        many = cmds["many_objects.json"]
+        assert [m.split("/")[-2] for m in many[many.index("--meshes") + 1].split(",")] == list(meshes)
+        for folder, (scene, seed) in folders.items():   # each folder is the one its scene file's header names
+            assert f"--scene-file {scene} --episodes {final.TEST_EPISODES} --out data/{folder} --first-seed {seed}" \
+                in (REPO / scene).read_text()
+    made = final.generate_commands(Path("/nonexistent"), "test3")
+    assert sorted(made) == sorted(final.TEST_SETS["test3"][0])
+    # no two sets share a mesh
+    seen = [m for _, meshes in final.TEST_SETS.values() for m in meshes]
+    assert len(seen) == len(set(seen))
