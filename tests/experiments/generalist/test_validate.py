@@ -1,6 +1,7 @@
 """The generalist's validation suite: its commands, a rerun that skips finished benchmarks, the
 summary of their JSON, and one-line errors for bad input."""
 
+import argparse
 import json
 import subprocess
 from pathlib import Path
@@ -20,9 +21,10 @@ def _data(tmp_path):
 
 def test_the_commands_score_the_model_on_validation_episodes_only():
     cmds = validate.commands("m.pt", Path("d"), Path("o"), 6)
-    assert sorted(cmds) == ["cloth.json", "parity.json", "rest.json"]
+    assert sorted(cmds) == ["cloth.json", "parity.json", "rest.json", "unseen2.json", "unseen2_shapes.json"]
     for name, cmd in cmds.items():
-        assert cmd[cmd.index("--model") + 1] == "m.pt" and cmd[cmd.index("--out") + 1] == str(Path("o") / name)
+        model = "shapes" if name == "unseen2_shapes.json" else "m.pt"   # the one-pass bar's baseline
+        assert cmd[cmd.index("--model") + 1] == model and cmd[cmd.index("--out") + 1] == str(Path("o") / name)
         assert not any("test" in word for word in cmd)
     rest, parity = cmds["rest.json"], cmds["parity.json"]
     assert [rest[i + 1] for i, w in enumerate(rest) if w == "--unseen"] == [
@@ -83,3 +85,37 @@ def test_bad_input_is_one_line(tmp_path, capsys, extra, words):
     assert script_main("v", "v", validate.add_arguments, validate.run, argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0]
+
+
+def test_the_second_mesh_set_runs_when_its_folders_are_there_and_is_summed_up(tmp_path, monkeypatch, capsys):
+    data, out = _data(tmp_path), tmp_path / "out"
+    out.mkdir()
+    for name in ("rest.json", "parity.json", "cloth.json"):
+        (out / name).write_text("{}")
+    ran = []
+    monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
+    argv = ["--model", "m.pt", "--data", str(data), "--out", str(out)]
+    assert script_main("v", "v", validate.add_arguments, validate.run, argv) == 0
+    assert ran == [] and "the second mesh set is not run: no folder unseen_val2_rigid" in capsys.readouterr().out
+    with pytest.raises(FileNotFoundError, match="no folder unseen_val2_rigid"):
+        validate.run(argparse.Namespace(model="m.pt", data=data, out=out, rest_episodes=6, only="unseen2",
+                                        pybullet_rest=None))
+    for name in validate.UNSEEN2:
+        (data / name).mkdir()
+    assert script_main("v", "v", validate.add_arguments, validate.run, argv) == 0
+    outs = [c[c.index("--out") + 1] for c in ran]
+    assert outs == [str(out / "unseen2.json"), str(out / "unseen2_shapes.json")]
+    model, baseline = ran
+    assert [model[i + 1] for i, w in enumerate(model) if w == "--unseen"] == [str(data / n) for n in validate.UNSEEN2]
+    assert baseline[baseline.index("--model") + 1] == "shapes" and not any("cloth" in w for w in baseline)
+    by_material = {"rigid": {"position@15": 2e-3, "position@50": 6e-3, "ratio_position@15": 0.9},
+                   "soft": {"position@15": 1e-3, "position@50": 3e-3}}
+    (out / "unseen2.json").write_text(json.dumps({"unseen": {"unseen_by_material": by_material}, "rest": [
+        {"folder": "unseen_val2_cloth", "holds": False}]}))
+    (out / "unseen2_shapes.json").write_text(json.dumps({"unseen": {"unseen_by_material": {
+        "rigid": {"position@15": 1e-3, "position@50": 6e-3}, "soft": {"position@15": 1e-3, "position@50": 2e-3}}}}))
+    table = validate.summary(out)
+    assert "| unseen rigid meshes / own validation split, position t+15 | 0.90 |" in table
+    assert "| unseen rigid meshes / shapes.pt, position t+15, t+50 | 2.00, 1.00 |" in table
+    assert "| unseen soft meshes / shapes.pt, position t+15, t+50 | 1.00, 1.50 |" in table
+    assert "| rest, unseen_val2_cloth | 0 of 1 hold |" in table
