@@ -19,8 +19,8 @@ for the final table), each the network alone, one torch thread:
    random_urdfs objects 801, 881 and 022, ``data/shapes/unseen/validation2_*.toml``), when its
    folders are under ``--data``: every window's position and shape error beside the own
    validation split and beside ``shapes.pt``'s on the same rigid and soft windows (the one-pass
-   bar), and rest as in 1. Two meshes chose badly alone: a model 0.79x ``shapes.pt`` on the duck
-   and torus soft at t+50 was 1.33x on the test meshes.
+   bar), and rest as in 1: more meshes, so that a model that holds on the first two alone is not
+   chosen by chance.
 
 Each benchmark writes its JSON under ``--out``; a rerun skips the ones whose JSON is there, so a
 stopped run continues. Run::
