@@ -50,7 +50,8 @@ from pathlib import Path
 
 from experiments.command import script_main
 from experiments.generalist.validate import (PARITY_KEYS, REPO, SPECIALISTS, cloth_lines, read_json,
-                                             rest_lines, run_missing)
+                                             rest_lines, run_missing, specialist_options, unseen_ratios,
+                                             unseen_shapes_command)
 
 #: each set of test folders (rigid, soft, cloth; the rigid one first): folder name -> scene file
 #: (in the repository) and the first seed of its 40 episodes, and the random_urdfs meshes of its
@@ -66,7 +67,6 @@ TEST_SETS: dict[str, tuple[dict[str, tuple[str, int]], tuple[str, ...]]] = {
 }
 #: the set a run scores unless told (the first not scored yet)
 DEFAULT_TEST_SET = "test4"
-TEST_FOLDERS = TEST_SETS[DEFAULT_TEST_SET][0]
 TEST_EPISODES = 40
 #: the bars (the issue's "Done when")
 PARITY_BAR = 1.5
@@ -103,16 +103,11 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
     folders = TEST_SETS[test_set][0]
     python = [sys.executable]
     bench = REPO / "benchmarks"
-    unseen = [a for name in folders for a in ("--unseen", str(data / name))]
-    test = [*python, str(bench / "unseen_shapes.py"), "--model", model, *unseen,
-            "--own", str(data / "shapes_drop"), "--own-split", "test",
-            *[a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")],
-            "--rest-episodes", str(rest_episodes), "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"),
-            "--no-time", "--out", str(out / "test.json")]
-    baseline = [*python, str(bench / "unseen_shapes.py"), "--model", "shapes",
-                *[a for name in folders if "cloth" not in name for a in ("--unseen", str(data / name))],
-                "--own", str(data / "shapes_drop"), "--own-split", "test", "--no-rest", "--no-time",
-                "--out", str(out / "test_shapes.json")]
+    test = unseen_shapes_command(model, out / "test.json", [data / n for n in folders], data / "shapes_drop", "test",
+                                 *specialist_options(data), "--rest-episodes", str(rest_episodes),
+                                 "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"), "--no-time")
+    baseline = unseen_shapes_command("shapes", out / "test_shapes.json", [data / n for n in folders if "cloth" not in n],
+                                     data / "shapes_drop", "test", "--no-rest", "--no-time")
     cloth = [*python, str(bench / "cloth_pass_through.py"), "--model", model,
              "--episodes", str(data / next(n for n in folders if "cloth" in n)), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
     scene, seed = next(iter(folders.values()))  # the rigid folder
@@ -158,18 +153,14 @@ def parity_bars(test: dict) -> list[str]:
 def unseen_bars(test: dict, baseline: dict | None) -> list[str]:
     """Unseen rigid meshes within 2x of the own test error at t+15; the unseen errors of the
     rigid and soft folders within 1.2x of ``shapes.pt``'s (position, t+15 and t+50)."""
-    by_material = (test.get("unseen") or {}).get("unseen_by_material", {})
+    rigid, ratios = unseen_ratios(test, baseline)
     lines = []
-    rigid = by_material.get("rigid", {}).get("ratio_position@15")
     if rigid is not None:
         lines.append(_row(f"unseen rigid meshes / own test split, position t+15 <= {UNSEEN_OWN_BAR}",
                           f"{rigid:.2f}", _finite([rigid]) and rigid <= UNSEEN_OWN_BAR))
-    old = ((baseline or {}).get("unseen") or {}).get("unseen_by_material", {})
-    for material in ("rigid", "soft"):
-        if material in by_material and material in old:
-            ratios = [by_material[material][f"position@{h}"] / old[material][f"position@{h}"] for h in (15, 50)]
-            lines.append(_row(f"unseen {material} meshes / shapes.pt, position t+15, t+50 <= {ONE_PASS_BAR}",
-                              ", ".join(f"{r:.2f}" for r in ratios), _finite(ratios) and max(ratios) <= ONE_PASS_BAR))
+    for material, pair in ratios.items():
+        lines.append(_row(f"unseen {material} meshes / shapes.pt, position t+15, t+50 <= {ONE_PASS_BAR}",
+                          ", ".join(f"{r:.2f}" for r in pair), _finite(pair) and max(pair) <= ONE_PASS_BAR))
     return lines
 
 

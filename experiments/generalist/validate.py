@@ -40,6 +40,7 @@ import argparse
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from experiments.command import script_main
@@ -58,30 +59,37 @@ SPECIALISTS = (("cube_collision", "cube_collision"), ("soft_bounce", "soft_bounc
 PARITY_KEYS = ("position@15", "shape@15", "position@50", "shape@50")
 
 
+def unseen_shapes_command(model: str, out: Path, unseen: Sequence[Path] = (), own: Path | None = None,
+                          split: str = "val", *options: str) -> list[str]:
+    """``benchmarks/unseen_shapes.py`` on ``model``: each folder of ``unseen`` (``--unseen``), the
+    ``split`` of ``own`` (``--own``) and the specialists' splits, then ``options``, into ``out``."""
+    return [sys.executable, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
+            *[a for folder in unseen for a in ("--unseen", str(folder))],
+            *(["--own", str(own)] if own is not None else []), "--own-split", split, *options, "--out", str(out)]
+
+
+def specialist_options(data: Path) -> list[str]:
+    """``--specialist FOLDER=MODEL`` for each of :data:`SPECIALISTS` under ``data``."""
+    return [a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")]
+
+
 def commands(model: str, data: Path, out: Path, rest_episodes: int,
              pybullet_rest: Path | None = None) -> dict[str, list[str]]:
     """The benchmark command lines, by the name of the JSON each writes under ``out``."""
     python = [sys.executable]
-    rest = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
-            *[a for name in UNSEEN for a in ("--unseen", str(data / name))],
-            "--own", str(data / "shapes_drop"), "--own-split", "val", "--limit", "2", "--no-time",
-            "--rest-episodes", str(rest_episodes),
-            "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"), "--out", str(out / "rest.json")]
-    parity = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
-              *[a for folder, name in SPECIALISTS for a in ("--specialist", f"{data / folder}={name}")],
-              "--own-split", "val", "--no-rest", "--no-time", "--out", str(out / "parity.json")]
+    rest_options = ("--rest-episodes", str(rest_episodes), "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"))
+    rest = unseen_shapes_command(model, out / "rest.json", [data / n for n in UNSEEN], data / "shapes_drop", "val",
+                                 "--limit", "2", "--no-time", *rest_options)
+    parity = unseen_shapes_command(model, out / "parity.json", (), None, "val", *specialist_options(data),
+                                   "--no-rest", "--no-time")
     cloth = [*python, str(REPO / "benchmarks" / "cloth_pass_through.py"), "--model", model,
              "--episodes", str(data / "unseen_val_cloth"), "--limit", "6", "--awake",
              "--out", str(out / "cloth.json")]
-    unseen2 = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
-               *[a for name in UNSEEN2 for a in ("--unseen", str(data / name))],
-               "--own", str(data / "shapes_drop"), "--own-split", "val", "--no-time",
-               "--rest-episodes", str(rest_episodes),
-               "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"), "--out", str(out / "unseen2.json")]
-    baseline = [*python, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", "shapes",
-                *[a for name in UNSEEN2 if "cloth" not in name for a in ("--unseen", str(data / name))],
-                "--own", str(data / "shapes_drop"), "--own-split", "val", "--no-rest", "--no-time",
-                "--out", str(out / "unseen2_shapes.json")]
+    unseen2 = unseen_shapes_command(model, out / "unseen2.json", [data / n for n in UNSEEN2], data / "shapes_drop",
+                                    "val", "--no-time", *rest_options)
+    baseline = unseen_shapes_command("shapes", out / "unseen2_shapes.json",
+                                     [data / n for n in UNSEEN2 if "cloth" not in n], data / "shapes_drop", "val",
+                                     "--no-rest", "--no-time")
     return {"rest.json": rest, "parity.json": parity, "cloth.json": cloth,
             "unseen2.json": unseen2, "unseen2_shapes.json": baseline}
 
@@ -126,22 +134,24 @@ def parity_lines(parity: dict | None) -> list[str]:
     return lines
 
 
-def unseen_lines(unseen: dict | None, baseline: dict | None) -> list[str]:
-    """Table rows of the unseen meshes' position errors: rigid ones as a multiple of the own
-    split's at t+15, and each material's at t+15 and t+50 as a multiple of ``shapes.pt``'s on the
-    same windows (``baseline``)."""
+def unseen_ratios(unseen: dict | None, baseline: dict | None) -> tuple[float | None, dict[str, list[float]]]:
+    """From ``benchmarks/unseen_shapes.py``'s JSON of a model (``unseen``) and of ``shapes.pt`` on
+    the same windows (``baseline``): the rigid meshes' position error at t+15 as a multiple of the
+    own split's (None without rigid meshes), and per material (rigid, soft) the position errors at
+    t+15 and t+50 as multiples of ``shapes.pt``'s."""
     by_material = ((unseen or {}).get("unseen") or {}).get("unseen_by_material", {})
     old = ((baseline or {}).get("unseen") or {}).get("unseen_by_material", {})
-    lines = []
-    if "rigid" in by_material:
-        lines.append(f"| unseen rigid meshes / own validation split, position t+15 | "
-                     f"{by_material['rigid']['ratio_position@15']:.2f} |")
-    for material in ("rigid", "soft"):
-        if material in by_material and material in old:
-            ratios = [by_material[material][f"position@{h}"] / old[material][f"position@{h}"] for h in (15, 50)]
-            lines.append(f"| unseen {material} meshes / shapes.pt, position t+15, t+50 | "
-                         f"{', '.join(f'{r:.2f}' for r in ratios)} |")
-    return lines
+    own = by_material["rigid"].get("ratio_position@15") if "rigid" in by_material else None
+    return own, {material: [by_material[material][f"position@{h}"] / old[material][f"position@{h}"] for h in (15, 50)]
+                 for material in ("rigid", "soft") if material in by_material and material in old}
+
+
+def unseen_lines(unseen: dict | None, baseline: dict | None) -> list[str]:
+    """Table rows of :func:`unseen_ratios`."""
+    own, ratios = unseen_ratios(unseen, baseline)
+    lines = [] if own is None else [f"| unseen rigid meshes / own validation split, position t+15 | {own:.2f} |"]
+    return lines + [f"| unseen {material} meshes / shapes.pt, position t+15, t+50 | {', '.join(f'{r:.2f}' for r in pair)} |"
+                    for material, pair in ratios.items()]
 
 
 def cloth_lines(cloth: dict | None) -> list[str]:

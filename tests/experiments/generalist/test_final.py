@@ -25,24 +25,25 @@ def _data(tmp_path, with_test_folders=True):
     for name in ("shapes_drop", *(f for f, _ in validate.SPECIALISTS)):
         (data / name).mkdir(parents=True)
     if with_test_folders:
-        for name in final.TEST_FOLDERS:
+        for name in final.TEST_SETS[final.DEFAULT_TEST_SET][0]:
             (data / name).mkdir(parents=True)
             (data / name / "meta.json").write_text("{}")
     return data
 
 
 def test_the_test_folders_are_those_their_scene_files_name():
-    for name, (scene, seed) in final.TEST_FOLDERS.items():
-        header = (REPO / scene).read_text()
-        assert (f"--scene-file {scene} --episodes {final.TEST_EPISODES} --out data/{name} "
-                f"--first-seed {seed}") in header
+    for folders, _ in final.TEST_SETS.values():
+        for name, (scene, seed) in folders.items():
+            header = (REPO / scene).read_text()
+            assert (f"--scene-file {scene} --episodes {final.TEST_EPISODES} --out data/{name} "
+                    f"--first-seed {seed}") in header
 
 
 def test_the_test_split_is_scored_on_test_folders_and_test_splits():
     cmds = final.commands("m.pt", Path("d"), Path("o"), 6)
     test, baseline = cmds["test.json"], cmds["test_shapes.json"]
     assert [test[i + 1] for i, w in enumerate(test) if w == "--unseen"] == [
-        str(Path("d") / n) for n in final.TEST_FOLDERS]
+        str(Path("d") / n) for n in final.TEST_SETS[final.DEFAULT_TEST_SET][0]]
     assert test[test.index("--own-split") + 1] == "test" and baseline[baseline.index("--own-split") + 1] == "test"
     assert baseline[baseline.index("--model") + 1] == "shapes" and "--no-rest" in baseline
     assert not any("cloth" in w for w in baseline)   # shapes.pt never moved cloth
@@ -214,9 +215,6 @@ def test_each_test_set_scores_its_own_folders_and_meshes():
         assert pitch[pitch.index("--first-seed") + 1] == str(rigid_seed)
         many = cmds["many_objects.json"]
         assert [m.split("/")[-2] for m in many[many.index("--meshes") + 1].split(",")] == list(meshes)
-        for folder, (scene, seed) in folders.items():   # each folder is the one its scene file's header names
-            assert f"--scene-file {scene} --episodes {final.TEST_EPISODES} --out data/{folder} --first-seed {seed}" \
-                in (REPO / scene).read_text()
     made = final.generate_commands(Path("/nonexistent"), "test3")
     assert sorted(made) == sorted(final.TEST_SETS["test3"][0])
     # no two sets share a mesh
