@@ -188,6 +188,7 @@ def unseen_section(model, folders: list[Path], own: list[Path], args) -> dict:
             for m in ERRORS:
                 stats[f"ratio_{m}@{h}"] = stats[f"{m}@{h}"] / reference[f"{m}@{h}"] if reference else float("nan")
     return {"unseen": unseen, "unseen_by_material": by_material, "own_test": own_stats,
+            "unseen_by_folder": group_stats(rows, lambda r: f"{r['folder']} ({r['material']})", horizons),
             "own_by_folder": group_stats(own_rows, lambda r: f"{r['folder']} ({r['material']})", horizons)}
 
 
@@ -407,6 +408,9 @@ def main() -> int:
     parser.add_argument("--rigid-ground-depth", type=float, default=None,
                         help="with --ground-projection on: how many pitches under the plane a rigid object's "
                              "lowest leaf may lie before it is lifted (HRNConfig.rigid_ground_depth)")
+    parser.add_argument("--rigid-ground-speed", type=float, default=None,
+                        help="with --ground-projection on: how many pitches a rigid object may move in a step "
+                             "and still be lifted (HRNConfig.rigid_ground_speed; 0: at any speed)")
     parser.add_argument("--corotated-rest", choices=("on", "off"), default=None,
                         help="apply the model with HRNConfig.corotated_rest set so (the rest shape of soft "
                              "bodies and cloth turned onto their current leaves)")
@@ -437,6 +441,8 @@ def main() -> int:
                                      ground_projection_rigid=args.ground_projection == "on")
     if args.rigid_ground_depth is not None:
         model = with_applied_options(model, rigid_ground_depth=args.rigid_ground_depth)
+    if args.rigid_ground_speed is not None:
+        model = with_applied_options(model, rigid_ground_speed=args.rigid_ground_speed)
     if args.corotated_rest:
         model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
     if args.cloth_clearance is not None:
@@ -452,6 +458,7 @@ def main() -> int:
                     "ground_projection": bool(getattr(model.config, "ground_projection", False)),
                     "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
                     "rigid_ground_depth": float(getattr(model.config, "rigid_ground_depth", 0.0)),
+                    "rigid_ground_speed": float(getattr(model.config, "rigid_ground_speed", 0.0)),
                     "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
                     "cloth_clearance": float(getattr(model.config, "cloth_clearance", 0.0)),
                     "rigid_fit_rest": bool(getattr(model.config, "rigid_fit_rest", False)),

@@ -441,6 +441,19 @@ def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart():
     assert "--scene" not in args and args[args.index("--starts") + 1] == "2"
 
 
+def test_no_training_scene_of_the_generalist_uses_a_validation_or_test_mesh():
+    from hrn_pyg.data.scene_file import read_scene_file
+
+    def meshes(scene: Path) -> set[str]:
+        return {m for obj in read_scene_file(scene).objects for m in obj.meshes if m.endswith(".obj")}
+
+    recipe = load_recipe(REPO / "data" / "generalist.toml")  # its datasets and the shipped recipe's
+    trained = set().union(*(meshes(REPO / d.scene) for d in recipe.datasets if d.from_file))
+    held_out = set().union(*(meshes(f) for f in (REPO / "data" / "shapes" / "unseen").glob("*.toml")))
+    assert any("random_urdfs" in m for m in trained) and any("random_urdfs" in m for m in held_out)
+    assert not trained & held_out
+
+
 def test_a_model_can_start_from_a_shipped_checkpoint_and_its_bytes_are_its_identity(monkeypatch, tmp_path):
     import hrn_pyg.checkpoints as checkpoints
 
@@ -563,6 +576,59 @@ def test_an_average_table_ships_the_mean_of_the_stages_and_is_not_redone(tmp_pat
     for (_, a), (_, b), (_, mean) in zip(first.named_parameters(), last.named_parameters(),
                                          load_model(ckpt / "b.pt").named_parameters(), strict=True):
         torch.testing.assert_close(mean, 0.5 * a + 0.5 * b, rtol=0, atol=1e-7)
+
+
+def test_an_apply_table_sets_applied_options_on_the_shipped_model_and_is_not_redone(tmp_path):
+    """``[models.b.apply]``: the published model is the trained one (here the mean of its stages)
+    with the options set and nothing else changed; a rerun rewrites nothing, changed options
+    rewrite only the applied copy."""
+    import torch
+
+    from hrn_pyg.checkpoints import load_model
+
+    text = _toml_table("datasets.tiny", {"scene": "cube_collision", "episodes": 3, "steps": 12, "seed_offset": 0})
+    text += _toml_table("models.b", {"dataset": "tiny", "preset": "ours"})
+    text += _toml_table("models.b.train", {"steps": 2, "checkpoint-every": 2, **TINY_MODEL})
+    text += "[[models.b.finetune]]\n" + "\n".join(_toml_table("x", {"steps": 2, "lr": 0.01, "threads": 1})
+                                                  .splitlines()[1:]) + "\n"
+    text += _toml_table("models.b.average", {"stages": [0, 1]})
+    (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.apply", {"ground-projection": True,
+                                                                                 "cloth_clearance": 0.2}))
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    run, ckpt = tmp_path / "runs" / "b.ft1", tmp_path / "ckpt"
+    assert (ckpt / "b.pt").read_bytes() == (run / "model.applied.pt").read_bytes()
+    trained, shipped = load_model(run / "model.averaged.pt"), load_model(ckpt / "b.pt")
+    assert not trained.config.ground_projection and trained.config.cloth_clearance == 0.0
+    assert shipped.config.ground_projection and shipped.config.cloth_clearance == 0.2
+    changed = {k for k, v in trained.config.to_dict().items() if shipped.config.to_dict()[k] != v}
+    assert changed == {"ground_projection", "cloth_clearance"}
+    for (name, a), (_, b) in zip(trained.state_dict().items(), shipped.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
+    entry = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]["b"]
+    assert entry["applied"] == {"ground_projection": True, "cloth_clearance": 0.2}
+    before = _mtimes(run, "model*.pt")
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert _mtimes(run, "model*.pt") == before
+    (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.apply", {"ground-projection": True}))
+    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    after = _mtimes(run, "model*.pt")
+    assert after["model.averaged.pt"] == before["model.averaged.pt"] and after["model.applied.pt"] != before["model.applied.pt"]
+    assert load_model(ckpt / "b.pt").config.cloth_clearance == 0.0
+
+
+def test_bad_apply_tables_are_refused():
+    base = {"datasets": {"d": {"scene": "wedge", "episodes": 2, "steps": 3}},
+            "models": {"m": {"dataset": "d", "preset": "ours"}}}
+    for table, word in (({"hidden": 64}, "not an applied option"), ({"ground-projection": "yes"}, "boolean or a number"),
+                        ({}, "one or more applied options"), ("x", "one or more applied options")):
+        recipe = json.loads(json.dumps(base))
+        recipe["models"]["m"]["apply"] = table
+        with pytest.raises(ValueError, match=word):
+            parse_recipe(recipe)
+    recipe = json.loads(json.dumps(base))
+    recipe["models"]["m"]["apply"] = {"ground-projection-rigid": False}
+    model = parse_recipe(recipe).models[0]
+    assert model.apply == (("ground_projection_rigid", False),) and model.model_file == "model.applied.pt"
 
 
 def test_bad_average_tables_are_refused():

@@ -134,16 +134,50 @@ def parity_lines(parity: dict | None) -> list[str]:
     return lines
 
 
+def _folder_names(result: dict | None) -> list[str]:
+    return [Path(f).name for f in (result or {}).get("unseen_folders", [])]
+
+
+def pooled_error(result: dict, folders: Sequence[str], material: str, key: str) -> float:
+    """The mean ``key`` error (e.g. ``"position@50"``) of ``material``'s objects over the episode
+    folders ``folders`` only, pooled from ``benchmarks/unseen_shapes.py``'s per-folder means
+    (each weighted by its finite values). Raises ValueError when ``result`` has no per-folder
+    errors or no such object in those folders."""
+    by_folder = (result.get("unseen") or {}).get("unseen_by_folder")
+    if by_folder is None:
+        raise ValueError(f"{result.get('model')}: no per-folder errors in its unseen_shapes.py JSON; run it again")
+    horizon = key.split("@")[1]
+    total, count = 0.0, 0
+    for folder in folders:
+        stats = by_folder.get(f"{folder} ({material})")
+        if stats:
+            finite = stats["objects"] - stats[f"diverged@{horizon}"]
+            total, count = total + stats[key] * finite, count + finite
+    if count == 0:
+        raise ValueError(f"no {material} object in {', '.join(folders)}")
+    return total / count
+
+
 def unseen_ratios(unseen: dict | None, baseline: dict | None) -> tuple[float | None, dict[str, list[float]]]:
-    """From ``benchmarks/unseen_shapes.py``'s JSON of a model (``unseen``) and of ``shapes.pt`` on
-    the same windows (``baseline``): the rigid meshes' position error at t+15 as a multiple of the
-    own split's (None without rigid meshes), and per material (rigid, soft) the position errors at
-    t+15 and t+50 as multiples of ``shapes.pt``'s."""
+    """From ``benchmarks/unseen_shapes.py``'s JSON of a model (``unseen``) and of ``shapes.pt``
+    (``baseline``): the rigid meshes' position error at t+15 as a multiple of the own split's (None
+    without rigid meshes), and per material (rigid, soft) the position errors at t+15 and t+50 as
+    multiples of ``shapes.pt``'s on the same windows: the model's errors are pooled over the
+    baseline's folders only (the model's JSON may hold more, e.g. the cloth scenes' rigid and soft
+    objects, which ``shapes.pt`` never ran)."""
     by_material = ((unseen or {}).get("unseen") or {}).get("unseen_by_material", {})
     old = ((baseline or {}).get("unseen") or {}).get("unseen_by_material", {})
     own = by_material["rigid"].get("ratio_position@15") if "rigid" in by_material else None
-    return own, {material: [by_material[material][f"position@{h}"] / old[material][f"position@{h}"] for h in (15, 50)]
-                 for material in ("rigid", "soft") if material in by_material and material in old}
+    shared = _folder_names(baseline)
+    ratios = {}
+    for material in ("rigid", "soft"):
+        if material in by_material and material in old:
+            if shared and _folder_names(unseen) != shared:
+                model = [pooled_error(unseen, shared, material, f"position@{h}") for h in (15, 50)]
+            else:  # the same folders: the per-material means are on the same windows
+                model = [by_material[material][f"position@{h}"] for h in (15, 50)]
+            ratios[material] = [m / old[material][f"position@{h}"] for m, h in zip(model, (15, 50), strict=True)]
+    return own, ratios
 
 
 def unseen_lines(unseen: dict | None, baseline: dict | None) -> list[str]:

@@ -27,7 +27,7 @@ import torch
 from hrn_pyg.checkpoints.domain import Domain, dataset_domain, with_pitch_range
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.networks import NetworkConfig, applied_options, config_from_dict, network_from_dict
-from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
+from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import file_sha256
 
@@ -41,7 +41,7 @@ POLICY_NAMES = ("cube_push_policy",)
 #: model options that change how trained weights are applied, not which weights there are: a
 #: fine-tuning or a benchmark may set them on a trained model (:func:`with_applied_options`)
 APPLIED_OPTIONS = ("mirror_average", "mirror_planes", "ground_projection", "ground_projection_rigid",
-                   "rigid_ground_depth", "rigid_leaf_siblings", "corotated_rest", "cloth_clearance",
+                   "rigid_ground_depth", "rigid_ground_speed", "rigid_leaf_siblings", "corotated_rest", "cloth_clearance",
                    "rigid_fit_rest")
 
 
@@ -278,3 +278,17 @@ def with_applied_options(model: HRN, **options: Any) -> HRN:
         if hasattr(model, attribute):
             setattr(changed, attribute, getattr(model, attribute))
     return changed.to(model.normalizer.velocity_std.device).train(model.training)
+
+
+def write_applied(source: str | os.PathLike, options: dict[str, Any], target: str | os.PathLike) -> None:
+    """Write (atomically) to ``target`` the model checkpoint ``source`` (a path or a shipped name)
+    with the :data:`APPLIED_OPTIONS` ``options`` set in its config, everything else as it was (the
+    same weights, normaliser, step and domain). An option that is not an applied one, or a value
+    its config refuses, is a ``ValueError`` raised before anything is written."""
+    path = model_path(source)
+    changed = with_applied_options(load_model(path), **options)  # checks the options and their values
+    payload = {key: value for key, value in load_checkpoint(path).items() if key != "format"}
+    config = json.loads(payload["config"])
+    config["model"] = changed.config.to_dict()
+    payload["config"] = json.dumps(config)
+    save_checkpoint(target, payload)

@@ -125,6 +125,11 @@ class HRNConfig(NetworkConfig):
             lies up to 0.77 pitch under it. 0.8 then lifts only a body that sank further and
             leaves a resting one where it is; 0 lifts every rigid leaf onto the plane. Needs the
             graph's pitch when above 0.
+        rigid_ground_speed: the furthest, in voxel pitches, a rigid object's leaves may move in
+            the step for ``ground_projection_rigid`` to lift it; a faster one is left where the
+            network put it (0: lift at any speed). A body at rest sinks slowly and is lifted; one
+            that strikes the ground may pass under the allowance for a step or two, and lifting it
+            then turns its fall into its whole move up, which the network did not predict.
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
             of rigid objects. False drops them (:func:`within_siblings_of`; on a pile of rigid
             meshes at pitch 0.05 about two thirds of the within-siblings edges): a rigid body's
@@ -185,6 +190,7 @@ class HRNConfig(NetworkConfig):
     ground_projection: bool = False
     ground_projection_rigid: bool = True
     rigid_ground_depth: float = 0.0
+    rigid_ground_speed: float = 0.0
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
@@ -214,6 +220,9 @@ class HRNConfig(NetworkConfig):
             raise ValueError("HRNConfig.corotated_rest turns the rest shape: it needs rest_offsets=True")
         if not 0.0 <= self.rigid_ground_depth <= 1.0:
             raise ValueError(f"HRNConfig.rigid_ground_depth must be in [0, 1] pitches, got {self.rigid_ground_depth}")
+        if not 0.0 <= self.rigid_ground_speed < float("inf"):
+            raise ValueError(f"HRNConfig.rigid_ground_speed must be a finite number of pitches >= 0, "
+                             f"got {self.rigid_ground_speed}")
         if not 0.0 <= self.cloth_clearance < 1.0:
             raise ValueError(f"HRNConfig.cloth_clearance must be in [0, 1) pitches, got {self.cloth_clearance}")
         if self.vector_channels < 1:
@@ -634,6 +643,8 @@ class HRN(nn.Module):
             + (", ground_projection_rigid=False" if c.ground_projection and not c.ground_projection_rigid else "")
             + (f", rigid_ground_depth={c.rigid_ground_depth}" if c.ground_projection and c.ground_projection_rigid
                and c.rigid_ground_depth else "")
+            + (f", rigid_ground_speed={c.rigid_ground_speed}" if c.ground_projection and c.ground_projection_rigid
+               and getattr(c, "rigid_ground_speed", 0.0) else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 

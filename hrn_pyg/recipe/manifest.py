@@ -87,6 +87,7 @@ def model_entry(model: ModelRecipe, dataset: DatasetRecipe, data_dir: Path, runs
         **stages,
         **({"averaged": {"stages": [s for s, _ in model.average], "weights": [w for _, w in model.average]}}
            if model.average else {}),
+        **({"applied": dict(model.apply)} if model.apply else {}),
         **calibration_entry(model, run, calibrate_command),
     }
 

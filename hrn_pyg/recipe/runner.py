@@ -15,8 +15,11 @@ One run does, for the selected models (``--only``, default all):
 2c. for a model with a ``[models.<name>.average]`` table: writes the weighted mean of the named
    stages' weights into the last stage's folder as ``model.averaged.pt``, which is then the
    model (redone only when a stage's ``model.pt`` or the weights change, ``averaged.json``);
+2d. for a model with a ``[models.<name>.apply]`` table: writes that model with the table's
+   applied options set as ``model.applied.pt``, which is then the model (redone only when its
+   source or the options change, ``applied.json``);
 3. for a model with a ``[models.<name>.calibrate]`` table: calibrates the run's model
-   (``model.pt`` or ``model.averaged.pt``) into ``model.calibrated.pt`` (validation seeds only;
+   (``model.pt``, ``model.averaged.pt`` or ``model.applied.pt``) into ``model.calibrated.pt`` (validation seeds only;
    redone only when that file or the options change, ``calibration.json``);
 4. copies the model (the calibrated copy when there is one) to
    ``<checkpoints-dir>/<model>.pt`` (and each alias) atomically and refreshes the model's entry
@@ -51,6 +54,7 @@ from hrn_pyg.recipe.manifest import (
     update_manifest,
 )
 from hrn_pyg.recipe.schema import (
+    APPLIED_NAME,
     AVERAGED_NAME,
     CALIBRATED_NAME,
     RECIPE_PATH,
@@ -67,6 +71,8 @@ STOP_GRACE_S = 30.0
 CALIBRATION_RECORD = "calibration.json"
 #: the record of which stages' weights, with which weights, a run's averaged model was made from
 AVERAGE_RECORD = "averaged.json"
+#: the record of which file, with which options, a run's model.applied.pt was made from
+APPLY_RECORD = "applied.json"
 #: where the checkpoints and their manifest go unless named, relative to the working directory
 #: (never the installed package's folder)
 DEFAULT_CHECKPOINTS_DIR = Path("checkpoints")
@@ -326,6 +332,29 @@ class Runner:
         atomic_write_json(run / AVERAGE_RECORD, record)
         self.say(f"model {model.name}: wrote {run / AVERAGED_NAME}")
 
+    def apply(self, model: ModelRecipe) -> None:
+        """Write the trained model (:attr:`ModelRecipe.trained_file`) with the recipe's applied
+        options into ``model.applied.pt``; skipped when the copy exists and was made from this
+        file with these options (``applied.json``). Raises ``RuntimeError`` when they cannot be set."""
+        if not model.apply:
+            return
+        run = self.config.runs_dir / model.final_run
+        options = dict(model.apply)
+        if self.config.dry_run:
+            self.say(f"model {model.name}: set {options} on {run / model.trained_file} -> {run / APPLIED_NAME}")
+            return
+        record = {"model_sha256": sha256(run / model.trained_file), "options": [list(o) for o in model.apply]}
+        if (run / APPLIED_NAME).is_file() and read_json(run / APPLY_RECORD) == record:
+            return
+        from hrn_pyg.checkpoints import write_applied  # imports torch
+
+        try:
+            write_applied(run / model.trained_file, options, run / APPLIED_NAME)
+        except ValueError as exc:
+            raise RuntimeError(f"model {model.name}: {exc}") from None
+        atomic_write_json(run / APPLY_RECORD, record)
+        self.say(f"model {model.name}: wrote {run / APPLIED_NAME}")
+
     def calibrate_command(self, model: ModelRecipe) -> list[str]:
         dataset = self.recipe.dataset(model.dataset)
         folders: tuple[Path, ...] = ()
@@ -397,6 +426,7 @@ class Runner:
     def build(self, model: ModelRecipe) -> None:
         self.train(model)
         self.average(model)
+        self.apply(model)
         self.calibrate(model)
         self.publish(model)
 

@@ -10,7 +10,10 @@ fine-tuning stages (``[[models.<name>.finetune]]``, each a table of train option
 becomes one flag with several values); a ``[models.<name>.average]`` table (``stages``, a
 rising list of stage numbers ending with the last, and optional ``weights`` summing to one,
 equal by default) makes the model the weighted mean of those stages' weights
-(:mod:`hrn_pyg.checkpoints.average`), which is then calibrated and shipped; a model whose dataset is a scene file is calibrated on
+(:mod:`hrn_pyg.checkpoints.average`), which is then calibrated and shipped; a
+``[models.<name>.apply]`` table of options that change how trained weights are applied
+(:data:`hrn_pyg.checkpoints.APPLIED_OPTIONS`, e.g. ``ground-projection-rigid = false``) sets them
+on that model before it is calibrated and shipped; a model whose dataset is a scene file is calibrated on
 the validation episodes of all its datasets (``--data`` each) rather than on fresh seeds. The train option ``extra-datasets`` names more recipe
 datasets whose episodes join the model's dataset in a stage. ``start = "<name>"`` starts a
 model's first training from the shipped checkpoint ``<name>`` (``--init-from``; its file's
@@ -50,7 +53,8 @@ EXTRA_DATASETS = "extra-datasets"
 #: a recipe's top-level key naming another recipe file (relative to it) whose datasets it uses
 DATASETS_FROM = "datasets_from"
 DATASET_KEYS = frozenset({"scene", "episodes", "steps", "seed_offset", "pitch", "set"})
-MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "start", "train", "calibrate", "finetune", "average"})
+MODEL_KEYS = frozenset({"dataset", "preset", "aliases", "start", "train", "calibrate", "finetune", "average",
+                        "apply"})
 AVERAGE_KEYS = frozenset({"stages", "weights"})
 #: calibrate options the runner sets itself; a recipe may not
 RESERVED_CALIBRATE_OPTIONS = frozenset({"scene", "model", "out", "in-place", "device", "no-progress", "data"})
@@ -58,6 +62,8 @@ RESERVED_CALIBRATE_OPTIONS = frozenset({"scene", "model", "out", "in-place", "de
 CALIBRATED_NAME = "model.calibrated.pt"
 #: the mean of several stages' weights (``[models.<name>.average]``), in the last stage's run folder
 AVERAGED_NAME = "model.averaged.pt"
+#: the model with the recipe's applied options set (``[models.<name>.apply]``), beside it
+APPLIED_NAME = "model.applied.pt"
 
 OptionValue = str | int | float | bool
 
@@ -128,6 +134,9 @@ class ModelRecipe:
     #: ``[models.<name>.average]``: (stage, weight) pairs whose weights' mean is the model; empty
     #: when the model is the last stage's model.pt
     average: tuple[tuple[int, float], ...] = ()
+    #: ``[models.<name>.apply]``: (option, value) pairs of applied options set on the trained
+    #: model (underscored names of :data:`hrn_pyg.checkpoints.APPLIED_OPTIONS`); empty: none
+    apply: tuple[tuple[str, OptionValue], ...] = ()
 
     @property
     def num_stages(self) -> int:
@@ -143,10 +152,16 @@ class ModelRecipe:
         return self.run_name(self.num_stages - 1)
 
     @property
-    def model_file(self) -> str:
-        """The file in :attr:`final_run` that is the trained model, calibrated and shipped:
-        ``model.pt``, or the mean of the stages' weights when the recipe averages them."""
+    def trained_file(self) -> str:
+        """The file in :attr:`final_run` the training makes: ``model.pt``, or the mean of the
+        stages' weights when the recipe averages them."""
         return AVERAGED_NAME if self.average else "model.pt"
+
+    @property
+    def model_file(self) -> str:
+        """The file in :attr:`final_run` that is the model, calibrated and shipped:
+        :attr:`trained_file`, or its copy with the applied options when the recipe sets some."""
+        return APPLIED_NAME if self.apply else self.trained_file
 
     def stage_options(self, stage: int = 0) -> tuple[tuple[str, OptionValue], ...]:
         """The train options of a stage (0: the first training, then each fine-tuning)."""
@@ -367,6 +382,24 @@ def _parse_average(table: Any, where: str, num_stages: int) -> tuple[tuple[int, 
     return tuple(zip(stages, values, strict=True))
 
 
+def _parse_apply(table: Any, where: str) -> tuple[tuple[str, OptionValue], ...]:
+    """``[models.<name>.apply]``: options of :data:`hrn_pyg.checkpoints.APPLIED_OPTIONS` (dashes
+    or underscores) and their values (booleans or numbers), at least one."""
+    from hrn_pyg.checkpoints import APPLIED_OPTIONS  # imports torch; only for a recipe that applies options
+
+    if not isinstance(table, Mapping) or not table:
+        raise ValueError(f"{where}: 'apply' must be a table of one or more applied options")
+    options = []
+    for key, value in table.items():
+        name = str(key).replace("-", "_")
+        if name not in APPLIED_OPTIONS:
+            raise ValueError(f"{where}.apply: {key!r} is not an applied option ({', '.join(APPLIED_OPTIONS)})")
+        if not isinstance(value, (bool, int, float)):
+            raise ValueError(f"{where}.apply: {key!r} must be a boolean or a number, got {value!r}")
+        options.append((name, value))
+    return tuple(options)
+
+
 def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> ModelRecipe:
     where = f"models.{_check_name(name, 'models')}"
     _check_keys(table, MODEL_KEYS, where)
@@ -387,7 +420,8 @@ def _parse_model(name: str, table: Mapping[str, Any], datasets: set[str]) -> Mod
                         tuple(_check_name(a, f"{where}.aliases") for a in aliases),
                         _parse_calibrate(table["calibrate"], where) if "calibrate" in table else (),
                         tuple(_parse_options(t, where, f"finetune[{i}]") for i, t in enumerate(stages)), start,
-                        _parse_average(table["average"], where, 1 + len(stages)) if "average" in table else ())
+                        _parse_average(table["average"], where, 1 + len(stages)) if "average" in table else (),
+                        _parse_apply(table["apply"], where) if "apply" in table else ())
     unknown = sorted(set(model.extra_datasets()) - datasets)
     if unknown:
         raise ValueError(f"{where}: {EXTRA_DATASETS} {unknown} not in [datasets]")

@@ -336,17 +336,20 @@ def decode(
     if getattr(model.config, "ground_projection", False):
         rigid_too = getattr(model.config, "ground_projection_rigid", True)
         rigid_depth = getattr(model.config, "rigid_ground_depth", 0.0)
-        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects, rigid_too, rigid_depth)
+        rigid_speed = getattr(model.config, "rigid_ground_speed", 0.0)
+        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects, rigid_too, rigid_depth,
+                                                    rigid_speed)
     return pos, local, velocity
 
 
 def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity: Tensor,
                          objects: tuple[Tensor, int] | None, rigid: bool = True,
-                         rigid_depth: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+                         rigid_depth: float = 0.0, rigid_speed: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """``decode``'s ``(pos, local, velocity)`` after :func:`ground_projected_positions`: a lifted
     node's velocity is its whole move, and the local velocities of its object are derived anew."""
     group, count = object_of(graph) if objects is None else objects
-    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid, rigid_depth), graph)
+    lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid, rigid_depth,
+                                                              rigid_speed), graph)
     moved = (lifted != pos).any(-1)
     touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
     velocity = torch.where(moved.unsqueeze(-1), lifted - graph[NODE].pos, velocity)
@@ -355,7 +358,7 @@ def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity
 
 
 def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None,
-                               rigid: bool = True, rigid_depth: float = 0.0) -> Tensor:
+                               rigid: bool = True, rigid_depth: float = 0.0, rigid_speed: float = 0.0) -> Tensor:
     r"""``pos`` ``[N, 3]`` with every moving leaf on or above the ground plane :math:`z = 0`
     (a rigid object's leaves: on or above :math:`z = -\delta p`).
 
@@ -369,9 +372,11 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
     need re-deriving). :math:`\delta_i` is ``rigid_depth`` on the leaves of rigid objects and 0
     on the others, :math:`p_i` the node's voxel pitch (:func:`~hrn_pyg.data.graph.node_pitch`,
     read only when ``rigid_depth > 0``): a rigid object's leaves are voxel centres and may lie
-    that deep (``HRNConfig.rigid_ground_depth``). With ``rigid=False`` rigid objects are left where
-    they are too, and only the leaves of soft bodies and cloth are lifted. ``objects``:
-    :func:`object_of` of ``graph``, if the caller has it.
+    that deep (``HRNConfig.rigid_ground_depth``). With ``rigid_speed`` :math:`s > 0` a rigid object
+    is lifted only while :math:`\max_{j \in o} \lVert x_j - x_j^{\text{now}} \rVert \le s\, p_j`, its
+    leaves' largest move in the step against the graph's positions (``HRNConfig.rigid_ground_speed``).
+    With ``rigid=False`` rigid objects are left where they are too, and only the leaves of soft
+    bodies and cloth are lifted. ``objects``: :func:`object_of` of ``graph``, if the caller has it.
     """
     store = graph[NODE]
     moving_leaf = store.is_leaf & ~store.is_static
@@ -384,6 +389,11 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
     group, count = object_of(graph) if objects is None else objects
     deepest = torch.zeros(count, dtype=pos.dtype, device=pos.device).scatter_reduce(
         0, group, torch.where(rigid_leaf, depth, torch.zeros_like(depth)), "amax")
+    if rigid and rigid_speed > 0:  # a rigid object moving faster than that in the step stays where it is
+        moved = torch.where(rigid_leaf, (pos - store.pos).norm(dim=-1), torch.zeros_like(depth))
+        fast = moved > rigid_speed * node_pitch(graph).to(pos.dtype)
+        fastest = torch.zeros(count, dtype=torch.bool, device=pos.device).scatter_reduce(0, group, fast, "amax")
+        deepest = torch.where(fastest, torch.zeros_like(deepest), deepest)
     lift = torch.where(rigid_leaf, deepest[group] if rigid else torch.zeros_like(depth), depth)
     return torch.where((lift > 0).unsqueeze(-1), pos + lift.unsqueeze(-1) * pos.new_tensor([0.0, 0.0, 1.0]), pos)
 

@@ -72,6 +72,9 @@ def test_unseen_shapes_scores_a_tiny_scene(tmp_path, tiny_episodes, monkeypatch,
     assert set(groups) == {f"{name} (rigid)" for name in drawn} and len(drawn) >= 2
     windows = 3 * 2                                               # per episode: starts 0 and 3
     assert rigid["objects"] == sum(g["objects"] for g in groups.values()) == 2 * windows
+    # one folder: its per-folder errors are the material's (the ratios to shapes.pt pool folders)
+    assert result["unseen"]["unseen_by_folder"] == {
+        f"{unseen.name} (rigid)": {k: v for k, v in rigid.items() if not k.startswith("ratio_")}}
     own = result["unseen"]["own_test"]["rigid"]
     for horizon in (2, 4):
         for error in ("position", "shape"):

@@ -69,6 +69,21 @@ def test_a_rigid_object_may_lie_a_given_depth_under_the_plane():
         ground_projected_positions(toy_scene(), pos, rigid_depth=0.5)  # a graph without a pitch
 
 
+def test_a_rigid_object_moving_faster_than_the_speed_limit_is_not_lifted():
+    """``rigid_speed``: the sunk square moved 0.35 m (3.5 pitches of 0.1 m) in the step; a limit
+    of 3 pitches leaves it where it is, 4 lifts it as without a limit; soft leaves are lifted
+    either way."""
+    graph = set_pitch(toy_scene(), 0.1)
+    pos = _sunk(graph)
+    fast = ground_projected_positions(graph, pos, rigid_depth=0.5, rigid_speed=3.0)
+    assert torch.equal(fast[RIGID], pos[RIGID]) and fast[0, 2] == 0.0
+    slow = ground_projected_positions(graph, pos, rigid_depth=0.5, rigid_speed=4.0)
+    assert torch.equal(slow, ground_projected_positions(graph, pos, rigid_depth=0.5))
+    for bad in (-0.1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="rigid_ground_speed"):
+            HRNConfig(rigid_ground_speed=bad)
+
+
 def test_the_rigid_ground_depth_is_checked_and_shown():
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="rigid_ground_depth"):

@@ -119,3 +119,33 @@ def test_the_second_mesh_set_runs_when_its_folders_are_there_and_is_summed_up(tm
     assert "| unseen rigid meshes / shapes.pt, position t+15, t+50 | 2.00, 1.00 |" in table
     assert "| unseen soft meshes / shapes.pt, position t+15, t+50 | 1.00, 1.50 |" in table
     assert "| rest, unseen_val2_cloth | 0 of 1 hold |" in table
+
+
+def test_the_ratios_to_shapes_pt_compare_the_same_windows():
+    """The model's JSON also holds the cloth scenes' rigid and soft objects, which shapes.pt never
+    ran: its errors are pooled over shapes.pt's folders only, each folder weighted by its finite
+    values."""
+    def stats(p15, p50, objects, diverged50=0):
+        return {"position@15": p15, "position@50": p50, "objects": objects, "diverged@15": 0,
+                "diverged@50": diverged50}
+
+    model = {"unseen_folders": ["/d/unseen_val2_rigid", "/d/unseen_val2_soft", "/d/unseen_val2_cloth"],
+             "unseen": {"unseen_by_material": {"rigid": {**stats(1.0, 1.0, 9), "ratio_position@15": 0.5},
+                                               "soft": stats(1.0, 1.0, 5)},
+                        "unseen_by_folder": {"unseen_val2_rigid (rigid)": stats(2e-3, 4e-3, 4, diverged50=1),
+                                             "unseen_val2_soft (rigid)": stats(1e-3, 1e-3, 2),
+                                             "unseen_val2_cloth (rigid)": stats(1e-6, 1e-6, 3),
+                                             "unseen_val2_soft (soft)": stats(3e-4, 6e-4, 4),
+                                             "unseen_val2_cloth (soft)": stats(1e-7, 1e-7, 1)}}}
+    baseline = {"unseen_folders": ["/d/unseen_val2_rigid", "/d/unseen_val2_soft"],
+                "unseen": {"unseen_by_material": {"rigid": stats(1e-3, 2e-3, 6), "soft": stats(3e-4, 3e-4, 4)}}}
+    own, ratios = validate.unseen_ratios(model, baseline)
+    assert own == 0.5
+    rigid15 = (4 * 2e-3 + 2 * 1e-3) / 6 / 1e-3
+    rigid50 = (3 * 4e-3 + 2 * 1e-3) / 5 / 2e-3   # the diverged window has no value
+    assert ratios["rigid"] == pytest.approx([rigid15, rigid50]) and ratios["soft"] == pytest.approx([1.0, 2.0])
+    del model["unseen"]["unseen_by_folder"]
+    with pytest.raises(ValueError, match="no per-folder errors"):
+        validate.unseen_ratios(model, baseline)
+    model["unseen_folders"] = baseline["unseen_folders"]   # the same folders: the per-material means
+    assert validate.unseen_ratios(model, baseline)[1]["rigid"] == [1.0 / 1e-3, 1.0 / 2e-3]
