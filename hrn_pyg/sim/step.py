@@ -371,7 +371,7 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
     rows, ancestors and leaves above the ground are returned unchanged, bit for bit (ancestor rows
     need re-deriving). :math:`\delta_i` is ``rigid_depth`` on the leaves of rigid objects and 0
     on the others, :math:`p_i` the node's voxel pitch (:func:`~hrn_pyg.data.graph.node_pitch`,
-    read only when ``rigid_depth > 0``): a rigid object's leaves are voxel centres and may lie
+    read only when ``rigid_depth`` or ``rigid_speed`` is above 0): a rigid object's leaves are voxel centres and may lie
     that deep (``HRNConfig.rigid_ground_depth``). With ``rigid_speed`` :math:`s > 0` a rigid object
     is lifted only while :math:`\max_{j \in o} \lVert x_j - x_j^{\text{now}} \rVert \le s\, p_j`, its
     leaves' largest move in the step against the graph's positions (``HRNConfig.rigid_ground_speed``).
@@ -382,16 +382,16 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
     moving_leaf = store.is_leaf & ~store.is_static
     rigid_leaf = moving_leaf & store.material[:, RIGID].bool()
     under = -pos[:, 2]
+    pitch = node_pitch(graph).to(pos.dtype) if rigid and (rigid_depth > 0 or rigid_speed > 0) else None
     if rigid and rigid_depth > 0:
-        allowance = rigid_depth * node_pitch(graph).to(pos.dtype)
-        under = torch.where(rigid_leaf, under - allowance, under)
+        under = torch.where(rigid_leaf, under - rigid_depth * pitch, under)
     depth = torch.where(moving_leaf, under.clamp_min(0.0), torch.zeros_like(pos[:, 2]))
     group, count = object_of(graph) if objects is None else objects
     deepest = torch.zeros(count, dtype=pos.dtype, device=pos.device).scatter_reduce(
         0, group, torch.where(rigid_leaf, depth, torch.zeros_like(depth)), "amax")
     if rigid and rigid_speed > 0:  # a rigid object moving faster than that in the step stays where it is
         moved = torch.where(rigid_leaf, (pos - store.pos).norm(dim=-1), torch.zeros_like(depth))
-        fast = moved > rigid_speed * node_pitch(graph).to(pos.dtype)
+        fast = moved > rigid_speed * pitch
         fastest = torch.zeros(count, dtype=torch.bool, device=pos.device).scatter_reduce(0, group, fast, "amax")
         deepest = torch.where(fastest, torch.zeros_like(deepest), deepest)
     lift = torch.where(rigid_leaf, deepest[group] if rigid else torch.zeros_like(depth), depth)
