@@ -114,8 +114,8 @@ def step_parts(model: HRN, graph, device: torch.device, steps: int, repeats: int
         def run(step_fn) -> None:
             pos, prev, prev2 = start[:3]
             for _ in range(steps):
-                nxt, _ = step_fn(pos, prev, prev2, *start[3:])
-                pos, prev, prev2 = nxt, pos, prev
+                nxt, since, _ = step_fn(pos, prev, prev2, *start[3:])
+                pos, prev, prev2 = nxt, since, prev
 
         parts = {"candidate_pairs": candidates.pairs, "search_ms": 1e3 * statistics.median(search),
                  "fixed_step_ms": 1e3 * statistics.median(timed(lambda: run(fn), device, repeats)) / steps}

@@ -140,7 +140,7 @@ def stage_times(model: HRN, graph: HeteroData, force: torch.Tensor, repeats: int
                 t1 = time.perf_counter()
                 out = run_network(model, inputs)
                 t2 = time.perf_counter()
-                pos, _, _ = decode(model, graph, out)
+                pos = decode(model, graph, out).pos
                 t3 = time.perf_counter()
                 store = graph[NODE]
                 set_state(graph, store.prev_pos, store.pos, pos, radius=model.config.collision_radius)

@@ -411,6 +411,9 @@ def main() -> int:
     parser.add_argument("--rigid-ground-speed", type=float, default=None,
                         help="with --ground-projection on: how many pitches a rigid object may move in a step "
                              "and still be lifted (HRNConfig.rigid_ground_speed; 0: at any speed)")
+    parser.add_argument("--ground-lift-velocity", choices=("on", "off"), default=None,
+                        help="apply the model with HRNConfig.ground_lift_velocity set so (off: the ground "
+                             "lift carries x_t with it and is not a motion)")
     parser.add_argument("--corotated-rest", choices=("on", "off"), default=None,
                         help="apply the model with HRNConfig.corotated_rest set so (the rest shape of soft "
                              "bodies and cloth turned onto their current leaves)")
@@ -443,6 +446,8 @@ def main() -> int:
         model = with_applied_options(model, rigid_ground_depth=args.rigid_ground_depth)
     if args.rigid_ground_speed is not None:
         model = with_applied_options(model, rigid_ground_speed=args.rigid_ground_speed)
+    if args.ground_lift_velocity:
+        model = with_applied_options(model, ground_lift_velocity=args.ground_lift_velocity == "on")
     if args.corotated_rest:
         model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
     if args.cloth_clearance is not None:
@@ -459,6 +464,7 @@ def main() -> int:
                     "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
                     "rigid_ground_depth": float(getattr(model.config, "rigid_ground_depth", 0.0)),
                     "rigid_ground_speed": float(getattr(model.config, "rigid_ground_speed", 0.0)),
+                    "ground_lift_velocity": bool(getattr(model.config, "ground_lift_velocity", True)),
                     "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
                     "cloth_clearance": float(getattr(model.config, "cloth_clearance", 0.0)),
                     "rigid_fit_rest": bool(getattr(model.config, "rigid_fit_rest", False)),

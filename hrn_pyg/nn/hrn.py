@@ -130,6 +130,12 @@ class HRNConfig(NetworkConfig):
             network put it (0: lift at any speed). A body at rest sinks slowly and is lifted; one
             that strikes the ground may pass under the allowance for a step or two, and lifting it
             then turns its fall into its whole move up, which the network did not predict.
+        ground_lift_velocity: a node the ground projection lifts moves by the lift in the
+            step, so the velocity the next step reads (:math:`x_{t+1} - x_t`) includes it. False:
+            the lift corrects the node's place and is not a motion: it carries the node's
+            :math:`x_t` with it (the next graph's ``prev_pos``), and the next step reads the
+            velocity the network predicted. A body that strikes the ground and is lifted then
+            does not leave it with an upward speed the network never predicted.
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
             of rigid objects. False drops them (:func:`within_siblings_of`; on a pile of rigid
             meshes at pitch 0.05 about two thirds of the within-siblings edges): a rigid body's
@@ -191,6 +197,7 @@ class HRNConfig(NetworkConfig):
     ground_projection_rigid: bool = True
     rigid_ground_depth: float = 0.0
     rigid_ground_speed: float = 0.0
+    ground_lift_velocity: bool = True
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
@@ -306,8 +313,8 @@ class StepOptions:
         collisions: whether the next graph gets a collision search at :math:`x_{t+1}`
             (:func:`hrn_pyg.sim.step.step`; a rollout's ``EffectPlan.collisions``); False: nothing
             in the scene can touch, so the next graph has no collision edges and no search is made.
-        position_projection: ``(graph, (pos, local_velocity, velocity), movable) -> (...)``, a
-            rule applied to the step's prediction before the graph advances (a rollout's
+        position_projection: ``(graph, prediction, movable) -> prediction``, a rule applied to
+            the step's :class:`~hrn_pyg.sim.step.Prediction` before the graph advances (a rollout's
             :class:`~hrn_pyg.sim.cloth_contact.ClothContact` under ``HRNConfig.cloth_clearance``),
             on the whole graph also when objects sleep (``movable``: the awake rows, else None);
             None: none.
@@ -324,8 +331,8 @@ class StepOptions:
     fixed_shape: bool = False
     collisions: bool = True
     hierarchy: HierarchyConstants | None = None
-    position_projection: Callable[[HeteroData, tuple[Tensor, Tensor, Tensor], Tensor | None],
-                                  tuple[Tensor, Tensor, Tensor]] | None = None
+    # (graph, Prediction, movable) -> Prediction; the step module, above this one, defines Prediction
+    position_projection: Callable[[HeteroData, tuple, Tensor | None], tuple] | None = None
 
 
 class HRNInputs(NamedTuple):
@@ -645,6 +652,7 @@ class HRN(nn.Module):
                and c.rigid_ground_depth else "")
             + (f", rigid_ground_speed={c.rigid_ground_speed}" if c.ground_projection and c.ground_projection_rigid
                and getattr(c, "rigid_ground_speed", 0.0) else "")
+            + (", ground_lift_velocity=False" if not getattr(c, "ground_lift_velocity", True) else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 

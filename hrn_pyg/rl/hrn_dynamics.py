@@ -230,9 +230,9 @@ class HRNDynamics:
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.dropout_modules}
         leaf_pos = pos.repeat_interleave(copies_per_env, dim=0)  # [n, 3, L, 3]
-        nxt = self.next_positions(leaf_pos, index.repeat_interleave(copies_per_env),
-                                  forces.repeat_interleave(copies_per_env, dim=0), masks)
-        new_pos = torch.cat([leaf_pos[:, 1:], nxt.unsqueeze(1)], dim=1).reshape(B, copies_per_env, 3, self.num_leaves, 3)
+        new_pos = self.next_history(leaf_pos, index.repeat_interleave(copies_per_env),
+                                    forces.repeat_interleave(copies_per_env, dim=0), masks)
+        new_pos = new_pos.reshape(B, copies_per_env, 3, self.num_leaves, 3)
         new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
         return self._join(new_pos, index[:, None].expand(B, k))
 
@@ -246,6 +246,13 @@ class HRNDynamics:
         modules (:func:`~hrn_pyg.sampling.sample.draw_masks` of ``n`` copies; None: the
         deterministic model) -> leaf positions at ``t+1``, ``(n, L, 3)``.
         """
+        return self.next_history(leaf_pos, index, forces, masks)[:, 2]
+
+    def next_history(self, leaf_pos: Tensor, index: Tensor, forces: Tensor,
+                     masks: dict[str, Tensor] | None = None) -> Tensor:
+        """:meth:`next_positions` as the next step's history: leaf positions ``(n, 3, L, 3)`` at
+        ``t-1, t, t+1``, where ``x_t`` is the one the next step reads its velocity from (moved by
+        the ground lift when the model's lift is not a motion, ``HRNConfig.ground_lift_velocity``)."""
         n = leaf_pos.shape[0]
         per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [n, L, 3]
         graph = self._batched_structure(index)
@@ -258,8 +265,11 @@ class HRNDynamics:
             held = None
         # every copy is pushed by its action: the force module runs (a zero row adds nothing)
         options = StepOptions(force_active=True, objects=(objs.of_node, objs.count))
-        next_pos = predict_held(self.model, graph, graph[NODE].force, masks, held, options).pos
-        return next_pos[graph[NODE].is_leaf].reshape(n, self.num_leaves, 3)
+        prediction = predict_held(self.model, graph, graph[NODE].force, masks, held, options)
+        leaf = graph[NODE].is_leaf
+        since = (leaf_pos[:, 2] if prediction.prev_pos is None
+                 else prediction.prev_pos[leaf].reshape(n, self.num_leaves, 3))
+        return torch.stack([leaf_pos[:, 1], since, prediction.pos[leaf].reshape(n, self.num_leaves, 3)], dim=1)
 
     def _objects_of(self, graph: HeteroData, n: int) -> Objects:
         """The :class:`~hrn_pyg.sim.sleeping.Objects` of a batched graph of ``n`` copies, found

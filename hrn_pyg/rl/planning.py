@@ -325,7 +325,7 @@ def shared_masks(dynamics: HRNDynamics, candidates: int, futures: int, rate: flo
 def rollout_futures(dynamics: HRNDynamics, state: Tensor, actions: Tensor, futures: int, rate: float,
                     generator: torch.Generator) -> Tensor:
     """Every candidate's K futures from one state, one batched graph of ``N K`` copies per model
-    step (:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.next_positions`), differentiable in the
+    step (:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.next_history`), differentiable in the
     actions. At rate 0 the futures are one deterministic prediction (``futures`` must be 1).
 
     **Shapes:** state ``(S,)``, actions ``(N, H, A)`` -> roots ``(N, K, H, O, 6)`` after each step.
@@ -343,8 +343,7 @@ def rollout_futures(dynamics: HRNDynamics, state: Tensor, actions: Tensor, futur
     roots = []
     for h in range(H):  # a loop over model steps
         masks = shared_masks(dynamics, N, futures, rate, generator) if rate > 0 else None
-        nxt = dynamics.next_positions(pos, index, forces[:, h], masks)  # (n, L, 3)
-        pos = torch.cat([pos[:, 1:], nxt.unsqueeze(1)], dim=1)
+        pos = dynamics.next_history(pos, index, forces[:, h], masks)  # (n, 3, L, 3)
         roots.append(dynamics.roots(dynamics.state_of(pos, index)))     # (n, O, 6)
     return torch.stack(roots, 1).reshape(N, futures, H, *roots[0].shape[-2:])
 

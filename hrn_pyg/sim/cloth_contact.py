@@ -58,7 +58,7 @@ from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, leaf_to_ancesto
 from hrn_pyg.data.kinds import CLOTH, STATIC
 from hrn_pyg.nn.rigid import rigid_motion
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.sim.step import object_of
+from hrn_pyg.sim.step import Prediction, object_of
 
 #: a leaf is on the surface when its neighbours' mean offset is longer than this many pitches
 SURFACE_OFFSET = 0.1
@@ -159,21 +159,22 @@ class ClothContact:
         push = (self.clearance[c[picked]] - height[picked]).unsqueeze(-1) * normal[picked]
         return leaf_to_ancestor_mean(pos.index_add(0, c[picked], push), graph)
 
-    def __call__(self, graph: HeteroData, prediction: tuple[Tensor, Tensor, Tensor],
-                 movable: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """A step's ``(pos, local_velocity, velocity)`` after :meth:`project`: a moved node's
-        velocity is its whole move from :math:`x_t`, and the local velocities of a cloth that
-        moved are derived anew. The same tuple when nothing moves."""
-        pos, local, velocity = prediction
+    def __call__(self, graph: HeteroData, prediction: Prediction, movable: Tensor | None = None) -> Prediction:
+        """A step's :class:`~hrn_pyg.sim.step.Prediction` after :meth:`project`: a moved node's
+        velocity is its whole move from :math:`x_t` (the prediction's ``prev_pos`` when the ground
+        lift moved it), and the local velocities of a cloth that moved are derived anew. The
+        same prediction when nothing moves."""
+        pos, local, velocity, prev_pos = prediction
         projected = self.project(graph, pos, movable)
         if projected is pos:
             return prediction
+        since = graph[NODE].pos if prev_pos is None else prev_pos
         moved = (projected != pos).any(-1)
         touched = torch.zeros(self.count, dtype=torch.bool, device=pos.device).index_fill_(
             0, self.group[moved], True)[self.group]
-        velocity = torch.where(moved.unsqueeze(-1), projected - graph[NODE].pos, velocity)
+        velocity = torch.where(moved.unsqueeze(-1), projected - since, velocity)
         fresh = to_local_velocity(velocity, graph[CHILD_TO_PARENT].edge_index)
-        return projected, torch.where(touched.unsqueeze(-1), fresh, local), velocity
+        return Prediction(projected, torch.where(touched.unsqueeze(-1), fresh, local), velocity, prev_pos)
 
 
 def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,

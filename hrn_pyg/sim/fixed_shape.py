@@ -112,9 +112,11 @@ class FixedShapeRollout(NamedTuple):
     repeated_steps: int
 
 
-#: ``(pos, prev, prev_prev, force, masks, edge_index, valid, reference) -> (next_pos, report)``,
-#: report ``[3]``: input's largest move since the search, output's largest move, output not finite
-StepFn = Callable[..., tuple[Tensor, Tensor]]
+#: ``(pos, prev, prev_prev, force, masks, edge_index, valid, reference) -> (next_pos, since, report)``,
+#: ``since`` the next state's ``x_t`` (``pos``, or where the ground lift moved it: a
+#: :class:`~hrn_pyg.sim.step.Prediction`'s ``prev_pos``), report ``[3]``: input's largest move
+#: since the search, output's largest move, output not finite
+StepFn = Callable[..., tuple[Tensor, Tensor, Tensor]]
 
 #: the predicted moves are scaled by this before the look-ahead is chosen (motion speeds up)
 SPEED_MARGIN = 1.25
@@ -134,18 +136,20 @@ def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float
     options = replace(options, check=False, fixed_shape=True)
 
     def fixed_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
-                   edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
+                   edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         current = graph_at(graph, pos, prev, prev2, edge_index)
         weight, moved = None, pos.new_zeros(())
         if collisions:
             candidates = CollisionCandidates(edge_index, valid, reference, radius, skin, -1)
             weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
-        next_pos = predict(model, current, force, dict(zip(mask_names, masks)) or None,
-                           replace(options, collision_weight=weight)).pos
+        prediction = predict(model, current, force, dict(zip(mask_names, masks)) or None,
+                             replace(options, collision_weight=weight))
+        next_pos = prediction.pos
         step = next_pos - pos
         speed = (step * step).sum(dim=-1).amax().sqrt()
         bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
-        return next_pos, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
+        since = pos if prediction.prev_pos is None else prediction.prev_pos
+        return next_pos, since, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
 
     return fixed_step
 
@@ -207,7 +211,7 @@ class RecordedStep:
     def _clone(value):
         return tuple(v.clone() for v in value) if isinstance(value, tuple) else value.clone()
 
-    def __call__(self, *args) -> tuple[Tensor, Tensor]:
+    def __call__(self, *args) -> tuple[Tensor, Tensor, Tensor]:
         for buffer, value in zip(self.inputs, args):
             if isinstance(buffer, tuple):
                 for b, v in zip(buffer, value):
@@ -315,10 +319,10 @@ class FixedShapeSimulator:
                     names = tuple(sorted(masks)) if masks else ()
                     force = forces[t] if forces is not None else zero_force
                     args = (s[2], s[1], s[0], force, tuple(masks[n] for n in names), edges, valid, reference)
-                    nxt, report = self._step_fn(plan.force_active[t], names, radius, edges.size(1), args)(*args)
-                    trial.append(nxt)
+                    nxt, since, report = self._step_fn(plan.force_active[t], names, radius, edges.size(1), args)(*args)
+                    trial.append((since, nxt))
                     reports.append(report)
-                    s = (s[1], s[2], nxt)
+                    s = (s[1], since, nxt)
                 read = torch.stack(reports).cpu().tolist()  # the one host read of these steps
                 reads += 1
                 kept = len(trial)
@@ -328,8 +332,8 @@ class FixedShapeSimulator:
                         break
                     if bad:
                         raise non_finite_error(NEXT_POS)
-                for nxt in trial[:kept]:
-                    state = (state[1], state[2], nxt)
+                for since, nxt in trial[:kept]:
+                    state = (state[1], since, nxt)
                     out.append(nxt)
                 for t in range(t0, t0 + kept):
                     mask_cache.pop(t, None)

@@ -330,10 +330,12 @@ def sleeping_step(
             options = replace(options, objects=(objs.of_node, objs.count))
         result = step(model, graph, force, masks, options)
         return result._replace(asleep=graph[NODE].is_static), state
-    pos, local, velocity = predict_held(model, graph, force, masks, asleep_node, options)
+    prediction = predict_held(model, graph, force, masks, asleep_node, options)
     if options.position_projection is not None:
-        pos, local, velocity = options.position_projection(graph, (pos, local, velocity), ~asleep_node)
-    nxt = advance(graph, asleep_node, pos, collision_radius_of(model.config, graph) if options.collisions else None)
+        prediction = options.position_projection(graph, prediction, ~asleep_node)
+    pos, local, velocity, since = prediction
+    nxt = advance(graph, asleep_node, pos, collision_radius_of(model.config, graph) if options.collisions else None,
+                  since)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt, asleep=asleep_node), state
 
 
@@ -365,13 +367,15 @@ def predict_held(
         return Prediction(store.pos, zero, zero)
     prev_pos, prev_prev_pos = freeze(graph, held)
     sub, index, awake_rows = subgraph(graph, held, prev_pos, prev_prev_pos)
-    sub_pos, sub_local, sub_velocity = predict(model, sub, force.index_select(0, index), masks,
-                                               replace(options, objects=None, hierarchy=None))
+    sub_pos, sub_local, sub_velocity, sub_since = predict(model, sub, force.index_select(0, index), masks,
+                                                          replace(options, objects=None, hierarchy=None))
     keep = awake_rows.unsqueeze(-1)
     pos = store.pos.index_copy(0, index, torch.where(keep, sub_pos, store.pos.index_select(0, index)))
     local = zero.index_copy(0, index, torch.where(keep, sub_local, zero.index_select(0, index)))
     velocity = zero.index_copy(0, index, torch.where(keep, sub_velocity, zero.index_select(0, index)))
-    return Prediction(pos, local, velocity)
+    since = None if sub_since is None else store.pos.index_copy(
+        0, index, torch.where(keep, sub_since, store.pos.index_select(0, index)))
+    return Prediction(pos, local, velocity, since)
 
 
 def held_from_history(config: SleepConfig, graph: HeteroData, objs: Objects, force: Tensor) -> Tensor:
@@ -424,17 +428,19 @@ def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) ->
     return SleepState(asleep=asleep, still=torch.where(still, config.patience, 0).to(torch.long))
 
 
-def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | Tensor | None) -> HeteroData:
+def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | Tensor | None,
+            prev_pos: Tensor | None = None) -> HeteroData:
     """The graph at ``t+1`` after a step with sleeping objects: :func:`hrn_pyg.sim.step.advance`
     with the asleep nodes held (all three positions equal to the held one) and the collision
     edges of :func:`next_collision_edges`.
 
     ``pos`` ``[N, 3]`` is ``x_{t+1}`` with ancestors derived (the awake objects' from the
     sub-graph's decode, the asleep nodes' rows equal to ``x_t``), so the held rows stay bit for bit.
+    ``prev_pos``: the prediction's ``x_t`` where the ground lift moved it (None: the graph's).
     """
     check_next_pos(pos)  # before the search reads it
     edges = next_collision_edges(graph, asleep_node, pos, radius)
-    return advance_graph(graph, pos, radius, held=asleep_node, edges=edges, check=False)
+    return advance_graph(graph, pos, radius, held=asleep_node, edges=edges, check=False, prev_pos=prev_pos)
 
 
 def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor,

@@ -75,11 +75,15 @@ class Prediction(NamedTuple):
         pos: positions at ``t+1`` (leaves integrated, ancestors derived).
         local_velocity: velocity in the parent's frame (roots global).
         velocity: global velocity (local summed down the tree).
+        prev_pos: what the next graph holds as ``x_t`` (its ``prev_pos``), from which the next
+            step reads its velocity: the graph's ``pos`` moved by the ground lift where the lift
+            is not a motion (``HRNConfig.ground_lift_velocity`` False); None: the graph's ``pos``.
     """
 
     pos: Tensor
     local_velocity: Tensor
     velocity: Tensor
+    prev_pos: Tensor | None = None
 
 
 class Step(NamedTuple):
@@ -298,8 +302,9 @@ def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | Non
 
 def decode(
     model: HRN, graph: HeteroData, out: Tensor, objects: tuple[Tensor, int] | None = None
-) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Stage 3: normalised output -> ``(pos_{t+1}, local_velocity, velocity)``, each ``[N, 3]``.
+) -> Prediction:
+    r"""Stage 3: normalised output -> the :class:`Prediction` ``(pos_{t+1}, local_velocity, velocity,
+    prev_pos)``, each ``[N, 3]`` (``prev_pos`` None unless the ground lift moves ``x_t``).
 
     .. math::
         v^{loc}_i(t+1) &= v^{loc}_i(t) + \mu_{r(i)} + \sigma_{r(i)} \odot \hat u_i \\
@@ -313,7 +318,8 @@ def decode(
     object then move by the one rigid transform that fits their predicted motion best
     (:func:`rigid_leaf_positions`), and that
     object's velocities are the fitted ones; with ``ground_projection`` no moving leaf ends
-    under the ground (:func:`ground_projected_positions`). ``objects`` is :func:`object_of` of
+    under the ground (:func:`ground_projected_positions`; ``ground_lift_velocity`` False: the
+    lift moves the node's ``x_t`` too, returned as ``prev_pos``). ``objects`` is :func:`object_of` of
     ``graph`` when the caller has it (a rollout computes it once), else it is computed here (one
     host read).
     """
@@ -334,27 +340,33 @@ def decode(
         velocity = torch.where(rigid, pos - store.pos, velocity)
         local = torch.where(rigid, to_local_velocity(velocity, c2p), local)
     if getattr(model.config, "ground_projection", False):
-        rigid_too = getattr(model.config, "ground_projection_rigid", True)
-        rigid_depth = getattr(model.config, "rigid_ground_depth", 0.0)
-        rigid_speed = getattr(model.config, "rigid_ground_speed", 0.0)
-        pos, local, velocity = _lifted_above_ground(graph, pos, local, velocity, objects, rigid_too, rigid_depth,
-                                                    rigid_speed)
-    return pos, local, velocity
+        config = model.config
+        return _lifted_above_ground(graph, Prediction(pos, local, velocity), objects,
+                                    getattr(config, "ground_projection_rigid", True),
+                                    getattr(config, "rigid_ground_depth", 0.0),
+                                    getattr(config, "rigid_ground_speed", 0.0),
+                                    getattr(config, "ground_lift_velocity", True))
+    return Prediction(pos, local, velocity)
 
 
-def _lifted_above_ground(graph: HeteroData, pos: Tensor, local: Tensor, velocity: Tensor,
-                         objects: tuple[Tensor, int] | None, rigid: bool = True,
-                         rigid_depth: float = 0.0, rigid_speed: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
-    """``decode``'s ``(pos, local, velocity)`` after :func:`ground_projected_positions`: a lifted
-    node's velocity is its whole move, and the local velocities of its object are derived anew."""
+def _lifted_above_ground(graph: HeteroData, prediction: Prediction, objects: tuple[Tensor, int] | None,
+                         rigid: bool = True, rigid_depth: float = 0.0, rigid_speed: float = 0.0,
+                         lift_velocity: bool = True) -> Prediction:
+    """``decode``'s prediction after :func:`ground_projected_positions`. With ``lift_velocity`` a
+    lifted node's velocity is its whole move, and the local velocities of its object are derived
+    anew; without, the velocities stay the network's and the lift moves ``x_t`` too (the
+    prediction's ``prev_pos``)."""
+    pos, local, velocity = prediction.pos, prediction.local_velocity, prediction.velocity
     group, count = object_of(graph) if objects is None else objects
     lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid, rigid_depth,
                                                               rigid_speed), graph)
+    if not lift_velocity:  # rows not lifted add an exact zero: their x_t stays bit for bit
+        return Prediction(lifted, local, velocity, graph[NODE].pos + (lifted - pos))
     moved = (lifted != pos).any(-1)
     touched = torch.zeros(count, dtype=torch.long, device=pos.device).index_add_(0, group, moved.long()) > 0
     velocity = torch.where(moved.unsqueeze(-1), lifted - graph[NODE].pos, velocity)
     local = torch.where(touched[group].unsqueeze(-1), to_local_velocity(velocity, graph[CHILD_TO_PARENT].edge_index), local)
-    return lifted, local, velocity
+    return Prediction(lifted, local, velocity)
 
 
 def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None,
@@ -502,7 +514,7 @@ def predict(
     """
     options = _with_legacy(options, legacy, "predict")
     inputs = build_inputs(model, graph, force, options)
-    return Prediction(*decode(model, graph, run_network(model, inputs, masks), options.objects))
+    return decode(model, graph, run_network(model, inputs, masks), options.objects)
 
 
 def step(
@@ -526,14 +538,16 @@ def step(
     before the graph advances. The new positions are always checked for NaN / inf.
     """
     options = _with_legacy(options, legacy, "step")
-    pos, local, velocity = predict(model, graph, force, masks, options)
+    prediction = predict(model, graph, force, masks, options)
     if options.position_projection is not None:
-        pos, local, velocity = options.position_projection(graph, (pos, local, velocity), None)
+        prediction = options.position_projection(graph, prediction, None)
+    pos, local, velocity, since = prediction
     if options.collisions and search is not None:
         check_next_pos(pos)
-        nxt = advance(graph, pos, None, edges=search(graph, pos), check=False)
+        nxt = advance(graph, pos, None, edges=search(graph, pos), check=False, prev_pos=since)
     else:
-        nxt = advance(graph, pos, collision_radius_of(model.config, graph) if options.collisions else None)
+        nxt = advance(graph, pos, collision_radius_of(model.config, graph) if options.collisions else None,
+                      prev_pos=since)
     return Step(pos=pos, local_velocity=local, velocity=velocity, graph=nxt)
 
 
@@ -544,6 +558,7 @@ def advance(
     held: Tensor | None = None,
     edges: Tensor | None = None,
     check: bool = True,
+    prev_pos: Tensor | None = None,
 ) -> HeteroData:
     """The graph at ``t+1``: a shallow copy of ``graph`` (at ``t``) with ``prev_prev_pos, prev_pos,
     pos = x_{t-1}, x_t, x_{t+1}``, force zero and the collision edges of ``x_{t+1}``.
@@ -557,6 +572,8 @@ def advance(
     (the sleeping step searches only where something moved); else all leaves are searched at
     ``radius`` (a number, or one per graph of a batch: :func:`~hrn_pyg.nn.pitch.collision_radius_of`).
     ``check=False``: the caller has checked ``pos`` for NaN / inf (with :func:`check_next_pos`).
+    ``prev_pos`` ``[N, 3]`` (optional): ``x_t`` as the next graph holds it when it is not the
+    graph's ``pos`` (a :class:`Prediction`'s ``prev_pos``: the ground lift moved it).
 
     **Shapes:** pos ``(N, 3)``; returns a graph with ``collision`` ``(2, |E_C|)``.
     """
@@ -566,7 +583,7 @@ def advance(
     out = copy.copy(graph)
     part = out[NODE]
     part.prev_prev_pos = store.prev_pos if held is None else torch.where(held.unsqueeze(-1), store.pos, store.prev_pos)
-    part.prev_pos = store.pos
+    part.prev_pos = store.pos if prev_pos is None else prev_pos
     part.pos = pos
     part.force = torch.zeros_like(pos)
     out[COLLISION].edge_index = leaf_collision_edges(out, pos, radius) if edges is None else edges

@@ -114,7 +114,7 @@ def test_decode_is_semi_implicit_euler_and_target_output_inverts_it():
     nxt = set_state(graph, store.prev_pos, store.pos, next_leaves, radius=None)[NODE].pos
     out = target_output(model, graph, nxt)
     assert torch.equal(out[14:], torch.zeros(5, 3))
-    pos, local, velocity = decode(model, graph, out)
+    pos, local, velocity, _ = decode(model, graph, out)
     assert torch.allclose(pos[:12], nxt[:12], atol=1e-6)
     assert torch.equal(pos[12:14], store.pos[12:14])  # static leaves stay
     assert torch.allclose(velocity[:12], nxt[:12] - store.pos[:12], atol=1e-6)

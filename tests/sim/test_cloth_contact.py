@@ -139,6 +139,30 @@ def _model() -> HRN:
     return toy_model(collision_radius=1.6 * PITCH, rest_offsets=True)
 
 
+def test_the_push_keeps_an_x_t_the_ground_lift_moved():
+    """A prediction whose ``prev_pos`` the ground lift moved (``HRNConfig.ground_lift_velocity``
+    False) keeps it through the push, and a pushed leaf's velocity is measured from it."""
+    from hrn_pyg.sim.step import Prediction
+
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_cloth(torch.tensor([[0.15, 0.15, top + 0.5], [0.25, 0.15, top + 0.5]]))
+    now = graph[NODE].pos.clone()
+    now[n_box] = torch.tensor([0.15, 0.15, top + 0.02])  # 2 cm over the top leaves, falling
+    graph = set_state(graph, now, now, now, radius=1.6 * PITCH)
+    now = graph[NODE].pos
+    pos = now.clone()
+    pos[n_box] = torch.tensor([0.15, 0.15, top - 0.03])  # the step put it 3 cm into the box
+    since = now + torch.tensor([0.0, 0.0, 0.01])  # as if a lift had moved every x_t up 1 cm
+    contact = cloth_contact(graph, clearance=0.2)
+    plain = contact(graph, Prediction(pos, pos - now, pos - now))
+    lifted = contact(graph, Prediction(pos, pos - since, pos - since, since))
+    assert plain.prev_pos is None and lifted.prev_pos is since
+    torch.testing.assert_close(lifted.pos, plain.pos)
+    assert lifted.pos[n_box, 2] > pos[n_box, 2]  # pushed out
+    torch.testing.assert_close(lifted.velocity[n_box], lifted.pos[n_box] - since[n_box])
+    torch.testing.assert_close(plain.velocity[n_box], plain.pos[n_box] - now[n_box])
+
+
 @pytest.mark.parametrize("sleep", [None, "default"])
 def test_a_rollout_with_the_rule_keeps_the_falling_cloth_out_and_off_is_unchanged(sleep):
     """A sheet falling onto a static box, 2 cm a step from 3 cm above its top leaves, stepped by

@@ -157,6 +157,7 @@ MODEL_OPTIONS = [
     dict(rigid_fit=True),
     dict(rest_offsets=True, ground_contact=True),
     dict(rigid_fit=True, ground_projection=True, rigid_ground_depth=0.5),
+    dict(rigid_fit=True, ground_projection=True, rigid_ground_speed=0.1, ground_lift_velocity=False),
     dict(mirror_average=True),
     dict(mirror_average=True, mirror_planes="xy", rigid_fit=True),
     dict(skip_idle_modules=False),
@@ -173,8 +174,8 @@ def test_the_fixed_shape_step_never_reads_the_host(options, masks):
     model = fitted_model(dropout_modules=("force", "collision"), **options)
     graph = set_pitch(toy_scene(), 0.1)  # read by the rigid ground depth
     step_fn, args = _fixed_step_args(model, graph, masks, "meta")
-    next_pos, report = step_fn(*args)
-    assert next_pos.device.type == "meta" and next_pos.shape == graph[NODE].pos.shape
+    next_pos, since, report = step_fn(*args)
+    assert next_pos.device.type == "meta" and next_pos.shape == since.shape == graph[NODE].pos.shape
     assert report.shape == (3,)
 
 
@@ -227,12 +228,15 @@ def test_pruned_rigid_leaf_siblings_equal_the_plain_rollout_bit_for_bit():
     assert torch.equal(result.pos, plain(model, graph, forces))
 
 
-def test_the_ground_projection_with_a_rigid_depth_equals_the_plain_rollout_bit_for_bit():
+@pytest.mark.parametrize("lift_velocity", [True, False], ids=["lift_is_motion", "lift_moves_x_t"])
+def test_the_ground_projection_with_a_rigid_depth_equals_the_plain_rollout_bit_for_bit(lift_velocity):
     """The rigid square started 30 cm into the ground and lifted back to half a pitch under it
-    each step (the node pitch read on the step's own device): the plain rollout's positions."""
+    each step (the node pitch read on the step's own device): the plain rollout's positions,
+    whether the lift counts as motion or carries ``x_t`` with it."""
     from hrn_pyg.data.graph import leaf_to_ancestor_mean
 
-    model = fitted_model(rigid_fit=True, ground_projection=True, rigid_ground_depth=0.5)
+    model = fitted_model(rigid_fit=True, ground_projection=True, rigid_ground_depth=0.5,
+                         ground_lift_velocity=lift_velocity)
     graph = set_pitch(toy_scene(), 0.1)
     store = graph[NODE]
     for name in ("pos", "prev_pos", "prev_prev_pos"):

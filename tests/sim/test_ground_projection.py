@@ -133,6 +133,39 @@ def test_the_step_keeps_moving_leaves_above_the_ground_and_derives_velocities():
     torch.testing.assert_close(after.pos[SOFT], before.pos[SOFT])  # the soft cube is above the ground
 
 
+def test_a_lift_that_is_not_a_motion_carries_x_t_and_the_next_step_reads_the_network_s_velocity():
+    """``ground_lift_velocity=False``: the same lifted positions as with the lift counted as
+    motion, the network's own velocities, and ``prev_pos`` = x_t moved by the lift, which the
+    next graph holds, so x_{t+1} - prev_pos is the predicted velocity; rows not lifted keep x_t
+    bit for bit. Off the ground the two settings give the same step."""
+    moving = with_applied_options(_model(), ground_projection=True)
+    correcting = with_applied_options(moving, ground_lift_velocity=False)
+    assert "ground_lift_velocity=False" in repr(correcting) and "ground_lift_velocity" not in repr(moving)
+    graph = toy_scene()
+    store = graph[NODE]
+    for name in ("pos", "prev_pos", "prev_prev_pos"):  # the rigid square falls into the ground
+        value = store[name].clone()
+        value[RIGID] += torch.tensor([0.0, 0.0, -0.35])
+        store[name] = leaf_to_ancestor_mean(value, graph)
+    with torch.no_grad():
+        plain = predict(_model(), graph)
+        counted = predict(moving, graph)
+        carried = predict(correcting, graph)
+        nxt = step(correcting, graph).graph
+    assert counted.prev_pos is None and carried.prev_pos is not None
+    torch.testing.assert_close(carried.pos, counted.pos)
+    lifted = [8, 9, 10, 11, 17]  # the square's leaves and root
+    torch.testing.assert_close(carried.velocity, plain.velocity)
+    torch.testing.assert_close(carried.pos[lifted] - carried.prev_pos[lifted], plain.velocity[lifted])
+    assert (carried.prev_pos[lifted, 2] > store.pos[lifted, 2]).all()
+    still = [i for i in range(store.num_nodes) if i not in lifted]
+    assert torch.equal(carried.prev_pos[still], store.pos[still])
+    assert torch.equal(nxt[NODE].prev_pos, carried.prev_pos) and torch.equal(nxt[NODE].prev_prev_pos, store.prev_pos)
+    above = toy_scene()
+    with torch.no_grad():
+        assert torch.equal(step(correcting, above).graph[NODE].prev_pos, step(moving, above).graph[NODE].prev_pos)
+
+
 def test_the_step_without_rigid_objects_leaves_a_sunk_rigid_body_and_lifts_soft_leaves():
     plain = _model()
     projected = with_applied_options(plain, ground_projection=True, ground_projection_rigid=False)

@@ -35,7 +35,7 @@ def test_step_stages_compose_and_decode_inverts_target():
     model = _model()
     g = toy_scene(force=True)
     out = run_network(model, build_inputs(model, g))
-    pos, local, velocity = decode(model, g, out)
+    pos, local, velocity, _ = decode(model, g, out)
     result = step(model, g)
     assert torch.equal(result.pos, pos) and torch.equal(result.local_velocity, local)
     torch.testing.assert_close(result.pos[:14], g[NODE].pos[:14] + velocity[:14])
@@ -48,7 +48,7 @@ def test_decode_inverts_target_output():
     window = toy_window(1)
     true_next = window[NODE].pos_seq[:, 3]
     target = target_output(model, window, true_next)
-    pos, _, velocity = decode(model, window, target)
+    pos, _, velocity, _ = decode(model, window, target)
     torch.testing.assert_close(pos, true_next, atol=1e-6, rtol=0)
     torch.testing.assert_close(velocity, true_next - window[NODE].pos, atol=1e-6, rtol=0)
 

@@ -280,6 +280,29 @@ def test_asleep_objects_are_not_run_through_the_network():
     assert all(bool(s.asleep.all()) for s in steps[patience - 1:])
 
 
+def test_a_lift_that_is_not_a_motion_is_carried_by_the_sleeping_step():
+    """The square falls into the ground beside the resting (asleep) cube, with the ground lift
+    not a motion (``ground_lift_velocity=False``): each sleeping step keeps the network's
+    velocity in the next graph (x_{t+1} - x_t of the square's leaves is its constant fall) and
+    gives the plain rollout's positions; the asleep cube holds bit for bit."""
+    model = toy_model(ground_projection=True, ground_lift_velocity=False)
+    graph = scene({SQUARE: (0.0, 0.0, -0.06)})
+    square = nodes_of(graph, SQUARE) & graph[NODE].is_leaf
+    with torch.no_grad():
+        slept = unroll(model, graph, 6, sleep=SleepConfig(patience=2))
+        plain = unroll(model, graph, 6, sleep=None)
+    assert all(asleep_of(s, graph, CUBE) and not asleep_of(s, graph, SQUARE) for s in slept)
+    last = slept[-1].graph[NODE]
+    assert last.pos[square, 2].min() == 0.0 and graph[NODE].pos[square, 2].min() - 6 * 0.06 < 0.0  # lifted
+    torch.testing.assert_close(last.pos[square] - last.prev_pos[square],
+                               torch.tensor([0.0, 0.0, -0.06]).expand(int(square.sum()), 3))
+    for a, b in zip(slept, plain, strict=True):
+        torch.testing.assert_close(a.pos, b.pos)
+        torch.testing.assert_close(a.graph[NODE].prev_pos, b.graph[NODE].prev_pos)
+    cube = nodes_of(graph, CUBE)
+    assert torch.equal(last.pos[cube], graph[NODE].pos[cube])
+
+
 def test_a_start_at_rest_begins_asleep_by_default():
     """``start_from_history`` (the default): objects still over both steps of the start's
     history begin asleep, as the RL environment's do, so a scene at rest costs no network pass

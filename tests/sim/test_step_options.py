@@ -78,8 +78,7 @@ def test_a_position_projection_moves_the_step_before_the_graph_advances():
 
     def lifted(g, prediction, movable):
         calls.append((g, movable))
-        pos, local, velocity = prediction
-        return pos + lift, local, velocity + lift
+        return prediction._replace(pos=prediction.pos + lift, velocity=prediction.velocity + lift)
 
     with torch.no_grad():
         plain = step(model, graph)
