@@ -94,6 +94,35 @@ def test_rate_zero_gives_k_copies_of_one_deterministic_step(dynamics, model):
         assert not torch.allclose(got, x[2])  # the step moved something
 
 
+def test_the_next_history_holds_the_x_t_a_ground_lift_moved(model):
+    """A model whose ground lift is not a motion (``ground_lift_velocity`` False), the objects
+    sunk 5 cm into the ground and falling: the next state's three frames are those of the graph that
+    ``hrn_pyg.sim.step.step`` advances to (x_t moved up by the lift), not x_t as it was."""
+    from hrn_pyg.checkpoints import with_applied_options
+
+    lifting = with_applied_options(model, ground_projection=True, ground_lift_velocity=False)
+    dynamics = HRNDynamics(lifting, "cube_push", pool_seeds=POOL[:1])
+    L = dynamics.num_leaves
+    states = dynamics.reset_states(1, torch.Generator().manual_seed(2))
+    x = states[0, :-1].reshape(3, L, 3).clone()
+    x[..., 2] -= 0.05 + x[2, :, 2].min()  # the lowest leaf 5 cm under the ground, falling 1 cm a step
+    x[0, :, 2] += 0.02
+    x[1, :, 2] += 0.01
+    states = torch.cat([x.reshape(1, -1), states[:, -1:]], dim=1)
+    forces = torch.zeros(1, 2, 3)
+    got = dynamics.sample_next(states, forces, 1, 0.0, torch.Generator().manual_seed(3))[0, 0, :-1].reshape(3, L, 3)
+    structure = dynamics.structure_graph(int(states[0, -1]))
+    graph = set_state(structure, x[0], x[1], x[2], radius=lifting.config.collision_radius,
+                      force=torch.zeros(structure[NODE].num_nodes, 3))
+    with torch.no_grad():
+        nxt = model_step(lifting, graph).graph[NODE]
+    leaf = nxt.is_leaf
+    torch.testing.assert_close(got[2], nxt.pos[leaf], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got[1], nxt.prev_pos[leaf], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got[0], x[1])
+    assert got[2][:, 2].min() >= -1e-6 and (got[1][:, 2] > x[2][:, 2] + 0.01).any()  # lifted, and x_t with it
+
+
 def test_dropout_samples_differ_and_seeded_generator_repeats(dynamics):
     states = dynamics.reset_states(2, torch.Generator().manual_seed(4))
     forces = _forces(2, 2)
