@@ -43,6 +43,7 @@ Prints markdown tables and writes JSON atomically.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import statistics
@@ -72,6 +73,7 @@ from hrn_pyg.evaluate import (
     select_windows,
     summarise,
 )
+from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
@@ -79,6 +81,21 @@ from hrn_pyg.sim.stability import stability_report
 from hrn_pyg.utils.files import atomic_write_json
 
 ERRORS = ("position", "shape")
+#: the applied options (``HRNConfig``) a flag of their own sets: option, ``"switch"`` (on / off) or
+#: ``"pitches"`` (a number of voxel pitches), what it does
+APPLIED_FLAGS = (
+    ("rigid_ground_depth", "pitches", "with --ground-projection on: how far under the plane a rigid object's "
+                                      "lowest leaf may lie before it is lifted"),
+    ("rigid_ground_speed", "pitches", "with --ground-projection on: how far a rigid object may move in a step "
+                                      "and still be lifted; 0: at any speed"),
+    ("ground_lift_velocity", "switch", "off: the ground lift carries x_t with it and is not a motion"),
+    ("corotated_rest", "switch", "the rest shape of soft bodies and cloth turned onto their current leaves"),
+    ("cloth_clearance", "pitches", "cloth leaves kept out of other objects; 0: off"),
+    ("rigid_fit_rest", "switch", "each rigid object's motion fitted from its rest shape, not its current leaves"),
+)
+#: the options the JSON records as the model applied them
+RECORDED_OPTIONS = ("ground_projection", "ground_projection_rigid", *(option for option, _, _ in APPLIED_FLAGS))
+HRN_DEFAULTS = {f.name: f.default for f in dataclasses.fields(HRNConfig)}
 
 
 def mesh_name(mesh: str) -> str:
@@ -405,24 +422,15 @@ def main() -> int:
     parser.add_argument("--ground-projection", choices=("on", "off", "deformable"), default=None,
                         help="apply the model with HRNConfig.ground_projection set so everywhere "
                              "(deformable: on for soft bodies and cloth only, ground_projection_rigid off)")
-    parser.add_argument("--rigid-ground-depth", type=float, default=None,
-                        help="with --ground-projection on: how many pitches under the plane a rigid object's "
-                             "lowest leaf may lie before it is lifted (HRNConfig.rigid_ground_depth)")
-    parser.add_argument("--rigid-ground-speed", type=float, default=None,
-                        help="with --ground-projection on: how many pitches a rigid object may move in a step "
-                             "and still be lifted (HRNConfig.rigid_ground_speed; 0: at any speed)")
-    parser.add_argument("--ground-lift-velocity", choices=("on", "off"), default=None,
-                        help="apply the model with HRNConfig.ground_lift_velocity set so (off: the ground "
-                             "lift carries x_t with it and is not a motion)")
-    parser.add_argument("--corotated-rest", choices=("on", "off"), default=None,
-                        help="apply the model with HRNConfig.corotated_rest set so (the rest shape of soft "
-                             "bodies and cloth turned onto their current leaves)")
-    parser.add_argument("--cloth-clearance", type=float, default=None,
-                        help="apply the model with HRNConfig.cloth_clearance set to this many pitches (cloth "
-                             "leaves kept out of other objects; 0: off)")
-    parser.add_argument("--rigid-fit-rest", choices=("on", "off"), default=None,
-                        help="apply the model with HRNConfig.rigid_fit_rest set so (each rigid object's "
-                             "motion fitted from its rest shape, not its current leaves)")
+    for option, kind, meaning in APPLIED_FLAGS:
+        flag = "--" + option.replace("_", "-")
+        if kind == "switch":
+            parser.add_argument(flag, choices=("on", "off"), default=None,
+                                help=f"apply the model with HRNConfig.{option} set so ({meaning})")
+        else:
+            parser.add_argument(flag, type=float, default=None,
+                                help=f"apply the model with HRNConfig.{option} set to this many pitches "
+                                     f"({meaning})")
     parser.add_argument("--figures", default=None, help="folder for one picture per unseen folder")
     parser.add_argument("--out", default="benchmarks/results/unseen_shapes.json")
     args = parser.parse_args()
@@ -442,32 +450,17 @@ def main() -> int:
     if args.ground_projection:
         model = with_applied_options(model, ground_projection=args.ground_projection != "off",
                                      ground_projection_rigid=args.ground_projection == "on")
-    if args.rigid_ground_depth is not None:
-        model = with_applied_options(model, rigid_ground_depth=args.rigid_ground_depth)
-    if args.rigid_ground_speed is not None:
-        model = with_applied_options(model, rigid_ground_speed=args.rigid_ground_speed)
-    if args.ground_lift_velocity:
-        model = with_applied_options(model, ground_lift_velocity=args.ground_lift_velocity == "on")
-    if args.corotated_rest:
-        model = with_applied_options(model, corotated_rest=args.corotated_rest == "on")
-    if args.cloth_clearance is not None:
-        model = with_applied_options(model, cloth_clearance=args.cloth_clearance)
-    if args.rigid_fit_rest:
-        model = with_applied_options(model, rigid_fit_rest=args.rigid_fit_rest == "on")
+    for option, kind, _ in APPLIED_FLAGS:
+        value = getattr(args, option)
+        if value is not None:
+            model = with_applied_options(model, **{option: value == "on" if kind == "switch" else value})
     unseen = [Path(f) for f in args.unseen]
     own = [Path(f) for f in args.own]
     started = time.perf_counter()
     result: dict = {"model": args.model, "unseen_folders": args.unseen, "own_folders": args.own,
                     "own_split": args.own_split, "horizons": list(args.horizons), "stride": args.stride,
                     "limit": args.limit, "mirror_average": args.mirror_average,
-                    "ground_projection": bool(getattr(model.config, "ground_projection", False)),
-                    "ground_projection_rigid": bool(getattr(model.config, "ground_projection_rigid", True)),
-                    "rigid_ground_depth": float(getattr(model.config, "rigid_ground_depth", 0.0)),
-                    "rigid_ground_speed": float(getattr(model.config, "rigid_ground_speed", 0.0)),
-                    "ground_lift_velocity": bool(getattr(model.config, "ground_lift_velocity", True)),
-                    "corotated_rest": bool(getattr(model.config, "corotated_rest", False)),
-                    "cloth_clearance": float(getattr(model.config, "cloth_clearance", 0.0)),
-                    "rigid_fit_rest": bool(getattr(model.config, "rigid_fit_rest", False)),
+                    **{option: getattr(model.config, option, HRN_DEFAULTS[option]) for option in RECORDED_OPTIONS},
                     "machine": f"{platform.machine()}, {torch.get_num_threads()} torch thread(s)"}
     print("errors on unseen meshes and the own test split", flush=True)
     result["unseen"] = unseen_section(model, unseen, own, args)
