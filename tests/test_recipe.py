@@ -419,25 +419,29 @@ def test_a_dataset_from_a_scene_file_generates_with_it_and_changes_with_its_text
     assert len(list((tmp_path / "data" / "drop").glob("episode_*.npz"))) == 2
 
 
-def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart():
+@pytest.mark.parametrize("name, first", [
+    ("shapes", ["shapes_drop", "shapes_drop_p025", "shapes_drop_p035", "shapes_drop_p080"]),
+    ("shapes_d4", ["shapes_drop", "shapes_push", "soft_bounce_shapes", "cube_collision"]),
+])
+def test_the_generalist_recipe_reads_and_keeps_its_seeds_apart(name, first):
     from hrn_pyg.data.scene_file import builtin_scene, read_scene_file
 
     recipe = load_recipe(REPO / "data" / "recipes.toml")
-    model = next(m for m in recipe.models if m.name == "shapes")
+    model = next(m for m in recipe.models if m.name == name)
     datasets = [recipe.dataset(n) for n in (model.dataset, *model.extra_datasets())]
-    spans = []
+    spans: dict[str, list[tuple[int, int]]] = {}
     for dataset in datasets:
         spec = read_scene_file(REPO / dataset.scene) if dataset.from_file else builtin_scene(dataset.scene)
-        assert dataset.steps == spec.config.steps
-        spans.append((dataset.seed_offset, dataset.seed_offset + dataset.episodes))
-    spans.sort()
-    assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:]))  # they train together
+        assert dataset.steps in (spec.config.steps, 2 * spec.config.steps)  # a rest dataset runs twice as long
+        spans.setdefault(dataset.scene, []).append((dataset.seed_offset, dataset.seed_offset + dataset.episodes))
+    for scene_spans in spans.values():  # the datasets of one scene train together on seeds of their own
+        scene_spans.sort()
+        assert all(a[1] <= b[0] for a, b in zip(scene_spans, scene_spans[1:]))
     assert {d.name for d in datasets} >= {"shapes_drop", "shapes_soft", "cube_collision"}
     # calibrated on the validation episodes of all its datasets, the folders naming the scenes
     args = model.calibrate_args(recipe.dataset(model.dataset).scene, Path("runs"),
                                 [Path("data") / d.name for d in datasets])
-    assert args[:9] == ["calibrate", "--data", "data/shapes_drop", "--data", "data/shapes_push", "--data",
-                        "data/soft_bounce_shapes", "--data", "data/cube_collision"]
+    assert args[:9] == ["calibrate", *(w for n in first for w in ("--data", f"data/{n}"))]
     assert "--scene" not in args and args[args.index("--starts") + 1] == "2"
 
 
@@ -530,11 +534,11 @@ def test_skip_generate_checks_each_stage_before_it_trains(tmp_path, capsys):
     assert _mtimes(runs, "b/model.pt") == before  # the first stage was not trained again
 
 
-def test_the_next_generalists_recipe_starts_from_shapes_on_the_shipped_datasets():
+def test_the_next_generalists_recipe_starts_from_shapes_d4_on_the_shipped_datasets():
     shipped = load_recipe(REPO / "data" / "recipes.toml")
     recipe = load_recipe(REPO / "data" / "generalist.toml")
     model = recipe.models[0]
-    assert model.start == "shapes" and recipe.identity(model)["start"]["sha256"]
+    assert model.start == "shapes_d4" and recipe.identity(model)["start"]["sha256"]
     for name in (model.dataset, *model.extra_datasets()):
         assert recipe.dataset(name) == shipped.dataset(name)  # the same seeds: nothing generated twice
 

@@ -11,7 +11,7 @@ so the test files are scored once and a stopped run continues where it stopped:
    (``shapes_drop``); 1000 steps from the resting end of the first ``--rest-episodes`` episodes
    per mesh and material, with pybullet's own continuation of each; the specialists' test splits
    (cube_collision, soft_bounce, multi_material).
-2. ``test_shapes.json``: the same errors of ``shapes.pt`` (eight network passes a step) on the
+2. ``test_shapes.json``: the same errors of ``shapes_d4.pt`` (eight network passes a step) on the
    rigid and soft test folders, so that the one-pass model's errors read as multiples of its.
 3. ``cloth.json`` (``benchmarks/cloth_pass_through.py``): cloth leaves inside another object a
    step, the first six test cloth episodes, the network alone, pybullet's count beside.
@@ -22,7 +22,7 @@ so the test files are scored once and a stopped run continues where it stopped:
    errors as multiples of two objects', time per step, and 1000 steps from rest of each pile
    (the piles of 10 are the rest bar; the others are reported).
 6. ``equivariance.json`` (``benchmarks/equivariance.py``): the model under the lattice's eight
-   maps beside ``shapes.pt``'s exact average, on validation windows.
+   maps beside ``shapes_d4.pt``'s exact average, on validation windows.
 7. ``roof.json`` (``benchmarks/wedge_sides.py --scene-file``): the two-outcome check, a ball
    dropped near the ridge of a roof the model never saw (``data/shapes/unseen/roof_drop.toml``),
    20 test drops, samples at the checkpoint's calibrated rate against pybullet ensembles from
@@ -49,7 +49,7 @@ import sys
 from pathlib import Path
 
 from experiments.command import script_main
-from experiments.generalist.validate import (PARITY_KEYS, REPO, SPECIALISTS, cloth_lines, read_json,
+from experiments.generalist.validate import (BASELINE, PARITY_KEYS, REPO, SPECIALISTS, cloth_lines, read_json,
                                              rest_lines, run_missing, specialist_options, unseen_ratios,
                                              unseen_shapes_command)
 
@@ -65,7 +65,7 @@ TEST_SETS: dict[str, tuple[dict[str, tuple[str, int]], tuple[str, ...]]] = {
                "unseen_test4_soft": ("data/shapes/unseen/test4_soft.toml", 7_300_000),
                "unseen_test4_cloth": ("data/shapes/unseen/test4_cloth.toml", 6_600_000)}, ("335", "140", "251")),
 }
-#: the set a run scores unless told (the first not scored yet)
+#: the set a run scores unless told (the last one drawn)
 DEFAULT_TEST_SET = "test4"
 TEST_EPISODES = 40
 #: the bars (the issue's "Done when")
@@ -106,7 +106,8 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
     test = unseen_shapes_command(model, out / "test.json", [data / n for n in folders], data / "shapes_drop", "test",
                                  *specialist_options(data), "--rest-episodes", str(rest_episodes),
                                  "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"), "--no-time")
-    baseline = unseen_shapes_command("shapes", out / "test_shapes.json", [data / n for n in folders if "cloth" not in n],
+    baseline = unseen_shapes_command(BASELINE, out / "test_shapes.json",
+                                     [data / n for n in folders if "cloth" not in n],
                                      data / "shapes_drop", "test", "--no-rest", "--no-time")
     cloth = [*python, str(bench / "cloth_pass_through.py"), "--model", model,
              "--episodes", str(data / next(n for n in folders if "cloth" in n)), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
@@ -116,7 +117,7 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
     many = [*python, str(bench / "many_objects.py"), "--model", model, "--counts", "2,10,20,40",
             "--meshes", test_meshes(test_set), "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
             "--work", str(data / "final_many_objects"), "--out", str(out / "many_objects.json")]
-    equivariance = [*python, str(bench / "equivariance.py"), "--model", model, "--model", "shapes",
+    equivariance = [*python, str(bench / "equivariance.py"), "--model", model, "--model", BASELINE,
                     "--data", str(data / "shapes_drop"), "--split", "val", "--episodes", "4",
                     "--out", str(out / "equivariance.json")]
     roof = [*python, str(bench / "wedge_sides.py"), "--scene-file", str(REPO / ROOF_SCENE), "--model", model,
@@ -152,14 +153,14 @@ def parity_bars(test: dict) -> list[str]:
 
 def unseen_bars(test: dict, baseline: dict | None) -> list[str]:
     """Unseen rigid meshes within 2x of the own test error at t+15; the unseen errors of the
-    rigid and soft folders within 1.2x of ``shapes.pt``'s (position, t+15 and t+50)."""
+    rigid and soft folders within 1.2x of ``shapes_d4.pt``'s (position, t+15 and t+50)."""
     rigid, ratios = unseen_ratios(test, baseline)
     lines = []
     if rigid is not None:
         lines.append(_row(f"unseen rigid meshes / own test split, position t+15 <= {UNSEEN_OWN_BAR}",
                           f"{rigid:.2f}", _finite([rigid]) and rigid <= UNSEEN_OWN_BAR))
     for material, pair in ratios.items():
-        lines.append(_row(f"unseen {material} meshes / shapes.pt, position t+15, t+50 <= {ONE_PASS_BAR}",
+        lines.append(_row(f"unseen {material} meshes / {BASELINE}.pt, position t+15, t+50 <= {ONE_PASS_BAR}",
                           ", ".join(f"{r:.2f}" for r in pair), _finite(pair) and max(pair) <= ONE_PASS_BAR))
     return lines
 

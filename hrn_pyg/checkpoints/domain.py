@@ -11,7 +11,7 @@ domain of its datasets in each checkpoint it writes; the shipped checkpoints car
 :mod:`hrn_pyg.recipe.domains`).
 
 :func:`outside` lists what of a scene's domain lies outside a model's and by how much, each as a
-:class:`Outside`; :func:`outside_line` makes that one line, e.g. ``shapes.pt was trained at
+:class:`Outside`; :func:`outside_line` makes that one line, e.g. ``shapes_d4.pt was trained at
 pitch 0.05 m; this scene's pitch is 0.025 m (0.5x)``. A scene is inside when its pitch is one
 the model saw (within :data:`PITCH_TOLERANCE`; for a domain with a ``pitch_range``, a
 pitch-aware model's, any pitch in that range widened by the tolerance), its materials are among the model's, its object
@@ -272,7 +272,7 @@ def outside(model: Domain, scene: Domain) -> list[Outside]:
 
 
 def outside_line(name: str, found: Sequence[Outside]) -> str:
-    """One line naming what is outside, e.g. ``shapes.pt was trained at pitch 0.05 m; this
+    """One line naming what is outside, e.g. ``shapes_d4.pt was trained at pitch 0.05 m; this
     scene's pitch is 0.025 m (0.5x)``; several are joined by commas."""
     return f"{name} was trained {', '.join(o.trained for o in found)}; {', '.join(o.scene for o in found)}"
 

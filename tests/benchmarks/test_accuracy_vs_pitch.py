@@ -1,7 +1,8 @@
 """The one-model mode of ``benchmarks/accuracy_vs_time.py`` end to end on a tiny case: two
 pitches of the generalist's validation scene, one short episode each, scored and timed with the
-plain ``shapes`` model (warned about the pitch it never saw) and with the same model widened into
-a pitch-aware one (the same errors at the reference pitch, others where the pitch differs)."""
+plain eight-pass ``shapes_d4`` model (warned about the pitch it never saw), with the same model
+widened into a pitch-aware one (the same errors at the reference pitch, others where the pitch
+differs), and with the shipped ``shapes``, which reads the pitch (no warning at either)."""
 
 from __future__ import annotations
 
@@ -26,8 +27,8 @@ def _benchmark(monkeypatch):
     return module
 
 
-def _argv(tmp_path: Path, out: str) -> list[str]:
-    return ["--model", "shapes", "--pitches", "0.05,0.08", "--episodes", "1", "--episode-steps", "8",
+def _argv(tmp_path: Path, out: str, model: str = "shapes_d4") -> list[str]:
+    return ["--model", model, "--pitches", "0.05,0.08", "--episodes", "1", "--episode-steps", "8",
             "--horizons", "2,5", "--stride", "1", "--repeats", "1", "--work", str(tmp_path / "work"),
             "--out", str(tmp_path / out)]
 
@@ -51,10 +52,10 @@ def test_one_model_across_pitches_plain_then_pitch_aware(tmp_path, monkeypatch, 
     assert "pitch is 0.08 m" in captured.err                              # the warning is not silenced
     assert "| pitch (m) | leaves | pybullet ms/step | model ms/step |" in captured.out
 
-    shapes = load_model("shapes")
-    wide = widen_to_pitch_aware(shapes).eval()
-    wide.domain = dataclasses.replace(shapes.domain, pitch_range=(0.025, 0.08))
-    wide.checkpoint_name = "shapes widened"
+    shapes_d4 = load_model("shapes_d4")
+    wide = widen_to_pitch_aware(shapes_d4).eval()
+    wide.domain = dataclasses.replace(shapes_d4.domain, pitch_range=(0.025, 0.08))
+    wide.checkpoint_name = "shapes_d4 widened"
     monkeypatch.setattr(bench, "load_model", lambda name: wide)
     aware = bench.main(_argv(tmp_path, "aware.json"))
     again = {r["pitch"]: r for r in aware["rows"]}
@@ -62,6 +63,11 @@ def test_one_model_across_pitches_plain_then_pitch_aware(tmp_path, monkeypatch, 
     assert all(r["outside"] is None for r in again.values())              # inside its pitch range
     assert again[0.05]["errors"] == rows[0.05]["errors"]                  # zero pitch column at 0.05
     assert again[0.08]["errors"]["position"] != rows[0.08]["errors"]["position"]  # it reads the pitch
+
+    monkeypatch.setattr(bench, "load_model", load_model)
+    shipped = {r["pitch"]: r for r in bench.main(_argv(tmp_path, "shipped.json", "shapes"))["rows"]}
+    assert [r["outside"] for r in shipped.values()] == [None, None]
+    assert "pitch is" not in capsys.readouterr().err
 
 
 def test_compile_adds_the_fixed_shape_steps_time_beside_pybullets(tmp_path, monkeypatch, capsys):

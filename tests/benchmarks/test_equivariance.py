@@ -33,7 +33,7 @@ def test_the_eight_maps_are_distinct_orthogonal_keep_z_and_form_a_group(bench):
 
 
 def test_the_averaged_model_is_equivariant_and_one_pass_is_not(bench, tiny_episodes):
-    variants = bench.variants_of("shapes")
+    variants = bench.variants_of("shapes_d4")
     assert set(variants) == {"as loaded", "one pass"}
     state = episode_state(read_episode(sorted(tiny_episodes.glob("*.npz"))[0]), 2, 4)
     averaged = bench.equivariance_errors(variants["as loaded"], state, [1, 4])
@@ -42,6 +42,16 @@ def test_the_averaged_model_is_equivariant_and_one_pass_is_not(bench, tiny_episo
     assert max(e[4] for e in averaged["symmetries"].values()) < 1e-10
     assert max(e[4] for e in single["symmetries"].values()) > 1e-8
     assert averaged["truth_mse"][4] > 0
+
+
+def test_the_shipped_generalist_is_equivariant_in_one_pass(bench, tiny_episodes):
+    variants = bench.variants_of("shapes")
+    assert set(variants) == {"as loaded"} and not variants["as loaded"].config.mirror_average
+    state = episode_state(read_episode(sorted(tiny_episodes.glob("*.npz"))[0]), 2, 4)
+    errors = bench.equivariance_errors(variants["as loaded"], state, [1, 4])
+    assert len(errors["symmetries"]) == 7
+    assert max(e[4] for e in errors["symmetries"].values()) < 1e-10
+    assert errors["truth_mse"][4] > 0
 
 
 def test_the_command_writes_its_table(bench, tiny_episodes, tmp_path, capsys):

@@ -47,14 +47,16 @@ def test_a_tiny_pile_is_timed_against_pybullet(tmp_path, capsys):
     bench = load_benchmark("pile_step")
     out = tmp_path / "pile.json"
     result = bench.main(["--counts", "2", "--steps", "6", "--repeats", "2", "--meshes",
-                         str(MESHES / "random_hull_000.obj"), "--out", str(out)])
+                         str(MESHES / "random_hull_000.obj"), "--model", "shapes", "--model", "shapes_d4",
+                         "--out", str(out)])
     assert json.loads(out.read_text()) == json.loads(json.dumps(result))
     (row,) = result["rows"]
     assert row["objects"] == 2 and row["leaves"] > 0
-    assert len(row["pybullet_ms_runs"]) == 2 and row["pybullet_ms"] > 0
-    results = row["models"]["shapes"]
-    assert set(results) == {"as loaded", "one pass"}             # the shipped model averages over d4
-    for timing in results.values():
+    assert len(row["pybullet_ms_runs"]) == 2 * 2 and row["pybullet_ms"] > 0  # each model its own paired rounds
+    assert set(row["models"]["shapes"]) == {"as loaded"}               # one pass a step already
+    results = row["models"]["shapes_d4"]
+    assert set(results) == {"as loaded", "one pass"}                  # the eight-pass model, and one of its passes
+    for timing in [*results.values(), row["models"]["shapes"]["as loaded"]]:
         assert len(timing["ms_runs"]) == 2 and timing["ms"] > 0
         low, high = timing["x_pybullet_range"]
         assert low <= timing["x_pybullet"] <= high

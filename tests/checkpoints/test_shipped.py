@@ -24,7 +24,7 @@ from hrn_pyg.data.scene_file import BUILTIN_DIR
 def test_load_model_by_name_from_another_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     model = load_model("shapes")
-    assert model.checkpoint_name == "shapes.pt" and model.domain.pitches == (0.05,)
+    assert model.checkpoint_name == "shapes.pt" and model.domain.pitch_range == (0.025, 0.08)
     assert model_path("shapes.pt") == CHECKPOINT_DIR / "shapes.pt"
     assert model_path(str(CHECKPOINT_DIR / "wedge.pt")) == CHECKPOINT_DIR / "wedge.pt"  # a path still works
 
@@ -45,8 +45,10 @@ def test_every_shipped_model_is_listed_with_its_domain():
         assert m.domain is not None and m.domain.pitches and m.domain.materials and m.datasets, m.name
         assert m.sha256 and m.path.is_file()
     shapes = next(m for m in models if m.name == "shapes")
-    assert "cloth" not in shapes.domain.materials and shapes.rate == 0.02
-    assert {"shapes_drop", "cube_collision", "shapes_soft"} <= set(shapes.datasets)
+    assert set(shapes.domain.materials) == {"rigid", "soft", "cloth"} and shapes.rate == 0.2
+    assert {"shapes_drop", "cube_collision", "shapes_soft", "shapes_cloth", "urdf_drop"} <= set(shapes.datasets)
+    eight_pass = next(m for m in models if m.name == "shapes_d4")
+    assert "cloth" not in eight_pass.domain.materials and eight_pass.rate == 0.02
 
 
 def test_shipped_domains_come_from_the_manifest_by_the_files_bytes():
@@ -80,16 +82,20 @@ def _cube_collision_at(pitch: float, folder) -> str:
     return str(path)
 
 
-def test_sample_outside_the_pitch_warns_in_one_line_and_strict_exits_2(tmp_path, capsys):
-    scene = _cube_collision_at(0.025, tmp_path)
-    args = ["sample", "--scene-file", scene, "--model", "shapes", "--k", "1", "--horizon", "1"]
+@pytest.mark.parametrize("model, pitch, warning", [
+    ("shapes_d4", 0.025, "shapes_d4.pt was trained at pitch 0.05 m; this scene's pitch is 0.025 m (0.5x)"),
+    ("shapes", 0.0125, "shapes.pt was trained at pitches 0.025-0.08 m; this scene's pitch is 0.0125 m "
+                       "(0.5x the finest)"),
+])
+def test_sample_outside_the_pitch_warns_in_one_line_and_strict_exits_2(model, pitch, warning, tmp_path, capsys):
+    scene = _cube_collision_at(pitch, tmp_path)
+    args = ["sample", "--scene-file", scene, "--model", model, "--k", "1", "--horizon", "1"]
     assert main([*args, "--out", str(tmp_path / "warned")]) == 0
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["hrn-pyg sample: warning: shapes.pt was trained at pitch 0.05 m; "
-                   "this scene's pitch is 0.025 m (0.5x)"]
+    assert err == [f"hrn-pyg sample: warning: {warning}"]
     assert main([*args, "--out", str(tmp_path / "strict"), "--strict"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "pitch is 0.025 m" in err[0] and not (tmp_path / "strict").exists()
+    assert len(err) == 1 and f"pitch is {pitch:g} m" in err[0] and not (tmp_path / "strict").exists()
 
 
 def test_sample_inside_the_domain_says_nothing(tmp_path, capsys):
@@ -98,11 +104,14 @@ def test_sample_inside_the_domain_says_nothing(tmp_path, capsys):
     assert "warning" not in capsys.readouterr().err
 
 
-def test_multi_material_with_shapes_names_cloth(tmp_path, capsys):
-    assert main(["sample", "--scene", "multi_material", "--model", "shapes", "--k", "1", "--horizon", "1",
-                 "--strict", "--out", str(tmp_path / "s")]) == 2
+def test_multi_material_names_cloth_to_the_eight_pass_model_and_not_to_shapes(tmp_path, capsys):
+    assert main(["sample", "--scene", "multi_material", "--model", "shapes_d4", "--k", "1", "--horizon", "1",
+                 "--strict", "--out", str(tmp_path / "d4")]) == 2
     err = capsys.readouterr().err
     assert "this scene has cloth" in err and len(err.strip().splitlines()) == 1
+    assert main(["sample", "--scene", "multi_material", "--model", "shapes", "--k", "1", "--horizon", "1",
+                 "--strict", "--out", str(tmp_path / "s")]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_evaluate_takes_a_name_and_warns(tiny_episodes, tmp_path, capsys):

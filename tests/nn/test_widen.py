@@ -29,7 +29,7 @@ def drop_start():
     return episode_state(episode, start=12, steps=10)
 
 
-@pytest.mark.parametrize("name", ["shapes", "soft_bounce"])
+@pytest.mark.parametrize("name", ["shapes_d4", "soft_bounce"])
 def test_the_widened_model_predicts_as_the_plain_one_at_the_reference_pitch(drop_start, name):
     torch.set_num_threads(1)
     plain = load_model(name).eval()
@@ -44,7 +44,7 @@ def test_the_widened_model_predicts_as_the_plain_one_at_the_reference_pitch(drop
 
 
 def test_only_the_pitch_columns_are_new_and_they_start_at_zero():
-    plain = load_model("shapes")
+    plain = load_model("shapes_d4")
     wide = widen_to_pitch_aware(plain, mirror_average=False)
     assert not wide.config.mirror_average and wide.training == plain.training
     state_dim = plain.config.state_dim
@@ -61,23 +61,25 @@ def test_only_the_pitch_columns_are_new_and_they_start_at_zero():
 
 
 def test_a_pitch_aware_or_foreign_model_is_refused():
-    wide = widen_to_pitch_aware(load_model("shapes"))
+    wide = widen_to_pitch_aware(load_model("shapes_d4"))
     with pytest.raises(ValueError, match="pitch-aware already"):
         widen_to_pitch_aware(wide)
+    with pytest.raises(ValueError, match="pitch-aware already"):
+        widen_to_pitch_aware(load_model("shapes"))  # the shipped generalist reads the pitch
     with pytest.raises(ValueError, match="an HRN is needed"):
         widen_to_pitch_aware(load_model("gns_cube_collision"))
 
 
 def test_train_init_from_a_plain_model_with_pitch_aware_widens_it(tmp_path):
-    """``hrn-pyg train --init-from shapes --model-pitch-aware true --model-mirror-average false``:
+    """``hrn-pyg train --init-from shapes_d4 --model-pitch-aware true --model-mirror-average false``:
     the widened start, one pass, and a step on windows of pitch 0.08 moves the pitch columns."""
     from hrn_pyg.cli import main
 
     coarse, out = tmp_path / "p008", tmp_path / "run"
     assert main(["generate", "--scene", "cube_collision", "--episodes", "2", "--episode-steps", "12",
                  "--pitch", "0.08", "--out", str(coarse), "--no-progress"]) == 0
-    shapes = load_model("shapes")
-    assert main(["train", "--preset", "ours", "--data", str(coarse), "--out", str(out), "--init-from", "shapes",
+    shapes = load_model("shapes_d4")
+    assert main(["train", "--preset", "ours", "--data", str(coarse), "--out", str(out), "--init-from", "shapes_d4",
                  "--model-pitch-aware", "true", "--model-mirror-average", "false", "--model-rigid-fit", "true",
                  "--model-rest-offsets", "true", "--model-ground-contact", "true", "--train-steps", "2",
                  "--batch-size", "2", "--seq-end", "1", "--warmup", "1", "--threads", "1", "--no-progress"]) == 0

@@ -20,6 +20,7 @@ import torch
 
 import hrn_pyg
 from hrn_pyg.checkpoints import CHECKPOINT_DIR, load_model
+from hrn_pyg.data.graph import set_pitch
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
 
@@ -30,6 +31,7 @@ SCENE_OF = {
     "cube_collision_hrn": "cube_collision", "cube_push": "cube_push", "multi_material": "multi_material",
     "soft_bounce": "soft_bounce", "soft_bounce_fine": "soft_bounce", "soft_bounce_hrn": "soft_bounce",
     "tower": "tower", "wedge": "wedge", "shapes": "data/shapes/shapes_drop.toml",
+    "shapes_d4": "data/shapes/shapes_drop.toml",
     "gns_cube_collision": "cube_collision", "gns_soft_bounce": "soft_bounce",
 }
 #: shipped files that are not dynamics models (they have no rollout to keep)
@@ -44,6 +46,9 @@ CROSS_MACHINE_ATOL = 3e-5
 EPISODE_KEYS = ("positions", "forces", "leaf_mass", "leaf_object", "object_material", "object_stiffness",
                 "hierarchy_parent")
 SEED, EPISODE_STEPS, LATE_START, STEPS = 9, 60, 45, 12
+#: the voxel pitch (m) every reference scene is made at (each scene file's default); the stored
+#: episodes do not carry it, and a pitch-aware model reads it from the graph
+PITCH = 0.05
 RL_TASKS = {"cube_push": "cube_push", "tower": "tower"}
 RL_POOL = (10_000, 10_001, 10_002)
 
@@ -65,6 +70,14 @@ def episodes() -> dict[str, dict[str, np.ndarray]]:
 def scene_key(scene: str) -> str:
     """The key of a scene's start states in the file: its name, or a scene file's stem."""
     return Path(scene).stem if scene.endswith(".toml") else scene
+
+
+def start_state(model, episode: dict[str, np.ndarray], start: int):
+    """The graph of ``episode`` at step ``start``; with its pitch when ``model`` reads it."""
+    state = episode_state(episode, start=start, steps=STEPS)
+    if getattr(model.config, "pitch_aware", False):
+        set_pitch(state, PITCH)
+    return state
 
 
 def push(graph, steps: int) -> torch.Tensor:
@@ -89,7 +102,7 @@ def compute(episode_arrays: dict[str, dict[str, np.ndarray]], names: tuple[str, 
         ep = episode_arrays[scene_key(scene)]
         with torch.no_grad():
             for start in (2, LATE_START):
-                state = episode_state(ep, start=start, steps=STEPS)
+                state = start_state(model, ep, start)
                 forces = push(state, STEPS)
                 key = f"{name}/start{start}"
                 out[f"{key}/plain"] = hrn_pyg.rollout(model, state, STEPS, forces, sleep=None).numpy()

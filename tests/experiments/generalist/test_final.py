@@ -45,8 +45,8 @@ def test_the_test_split_is_scored_on_test_folders_and_test_splits():
     assert [test[i + 1] for i, w in enumerate(test) if w == "--unseen"] == [
         str(Path("d") / n) for n in final.TEST_SETS[final.DEFAULT_TEST_SET][0]]
     assert test[test.index("--own-split") + 1] == "test" and baseline[baseline.index("--own-split") + 1] == "test"
-    assert baseline[baseline.index("--model") + 1] == "shapes" and "--no-rest" in baseline
-    assert not any("cloth" in w for w in baseline)   # shapes.pt never moved cloth
+    assert baseline[baseline.index("--model") + 1] == "shapes_d4" and "--no-rest" in baseline
+    assert not any("cloth" in w for w in baseline)   # shapes_d4.pt never moved cloth
     assert not any("val" in w for name in ("test.json", "cloth.json") for w in cmds[name])
     for name, cmd in cmds.items():
         assert cmd[cmd.index("--out") + 1] == str(Path("o") / name)
@@ -167,7 +167,7 @@ def test_a_rerun_scores_nothing_twice_and_judges_every_bar(tmp_path, monkeypatch
         "cube_collision test split / specialist <= 1.5 (position, shape at t+15; at t+50)": "yes",
         "multi_material test split / specialist <= 1.5 (position, shape at t+15; at t+50)": "no",
         "unseen rigid meshes / own test split, position t+15 <= 2.0": "yes",
-        "unseen rigid meshes / shapes.pt, position t+15, t+50 <= 1.2": "no",   # 1.10, 2.00
+        "unseen rigid meshes / shapes_d4.pt, position t+15, t+50 <= 1.2": "no",   # 1.10, 2.00
         "1000 steps from rest: every test episode holds": "no",
         "1000 steps from rest: every test episode that pybullet's own continuation holds": "yes",
         "1000 steps from rest: every pile of 2 holds": "-",   # reported, not judged

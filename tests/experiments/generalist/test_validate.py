@@ -23,7 +23,7 @@ def test_the_commands_score_the_model_on_validation_episodes_only():
     cmds = validate.commands("m.pt", Path("d"), Path("o"), 6)
     assert sorted(cmds) == ["cloth.json", "parity.json", "rest.json", "unseen2.json", "unseen2_shapes.json"]
     for name, cmd in cmds.items():
-        model = "shapes" if name == "unseen2_shapes.json" else "m.pt"   # the one-pass bar's baseline
+        model = "shapes_d4" if name == "unseen2_shapes.json" else "m.pt"   # the one-pass bar's baseline
         assert cmd[cmd.index("--model") + 1] == model and cmd[cmd.index("--out") + 1] == str(Path("o") / name)
         assert not any("test" in word for word in cmd)
     rest, parity = cmds["rest.json"], cmds["parity.json"]
@@ -107,7 +107,7 @@ def test_the_second_mesh_set_runs_when_its_folders_are_there_and_is_summed_up(tm
     assert outs == [str(out / "unseen2.json"), str(out / "unseen2_shapes.json")]
     model, baseline = ran
     assert [model[i + 1] for i, w in enumerate(model) if w == "--unseen"] == [str(data / n) for n in validate.UNSEEN2]
-    assert baseline[baseline.index("--model") + 1] == "shapes" and not any("cloth" in w for w in baseline)
+    assert baseline[baseline.index("--model") + 1] == "shapes_d4" and not any("cloth" in w for w in baseline)
     by_material = {"rigid": {"position@15": 2e-3, "position@50": 6e-3, "ratio_position@15": 0.9},
                    "soft": {"position@15": 1e-3, "position@50": 3e-3}}
     (out / "unseen2.json").write_text(json.dumps({"unseen": {"unseen_by_material": by_material}, "rest": [
@@ -116,14 +116,14 @@ def test_the_second_mesh_set_runs_when_its_folders_are_there_and_is_summed_up(tm
         "rigid": {"position@15": 1e-3, "position@50": 6e-3}, "soft": {"position@15": 1e-3, "position@50": 2e-3}}}}))
     table = validate.summary(out)
     assert "| unseen rigid meshes / own validation split, position t+15 | 0.90 |" in table
-    assert "| unseen rigid meshes / shapes.pt, position t+15, t+50 | 2.00, 1.00 |" in table
-    assert "| unseen soft meshes / shapes.pt, position t+15, t+50 | 1.00, 1.50 |" in table
+    assert "| unseen rigid meshes / shapes_d4.pt, position t+15, t+50 | 2.00, 1.00 |" in table
+    assert "| unseen soft meshes / shapes_d4.pt, position t+15, t+50 | 1.00, 1.50 |" in table
     assert "| rest, unseen_val2_cloth | 0 of 1 hold |" in table
 
 
 def test_the_ratios_to_shapes_pt_compare_the_same_windows():
-    """The model's JSON also holds the cloth scenes' rigid and soft objects, which shapes.pt never
-    ran: its errors are pooled over shapes.pt's folders only, each folder weighted by its finite
+    """The model's JSON also holds the cloth scenes' rigid and soft objects, which shapes_d4.pt never
+    ran: its errors are pooled over shapes_d4.pt's folders only, each folder weighted by its finite
     values."""
     def stats(p15, p50, objects, diverged50=0):
         return {"position@15": p15, "position@50": p50, "objects": objects, "diverged@15": 0,
