@@ -26,6 +26,7 @@ from hrn_pyg.recipe import (
     option_flags,
     parse_recipe,
 )
+from hrn_pyg.recipe.manifest import logged_train_seconds
 from hrn_pyg.recipe.schema import CALIBRATE_FLAGS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -221,6 +222,7 @@ def test_killed_run_continues_and_finished_work_is_not_redone(tmp_path):
                             "seed_offset": 0, "pitch": None}
     assert a["device"] == b["device"] == str(default_device())
     assert b["wall_seconds"] > 0 and b["train_invocations"] == 1
+    assert 0 < b["logged_train_seconds"] <= b["wall_seconds"]  # inside train, without its start-up
 
     # a third run has nothing to do, with other threads too (like the device, not part of a run's identity)
     before = {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
@@ -651,3 +653,18 @@ def test_bad_average_tables_are_refused():
     recipe = json.loads(json.dumps(base))
     recipe["models"]["m"]["average"] = {"stages": [0, 2]}
     assert parse_recipe(recipe).models[0].average == ((0, 0.5), (2, 0.5))
+
+
+def test_logged_training_time_sums_the_sittings_a_kill_left_unrecorded(tmp_path):
+    """Each sitting of ``metrics.csv`` counts its seconds from its own start: a drop starts the
+    next one, and each sitting adds its last value (a killed one's last logged row)."""
+    metrics = tmp_path / "metrics.csv"
+    rows = [(0, 1.0), (1, 2.0), (2, 3.5), (2, 0.4), (3, 1.5), (4, 2.0)]  # killed after step 2, resumed there
+    with open(metrics, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["step", "loss", "seconds"])
+        writer.writerows([(step, 0.1, seconds) for step, seconds in rows])
+    assert logged_train_seconds(metrics) == pytest.approx(3.5 + 2.0)
+    assert logged_train_seconds(tmp_path / "missing.csv") is None
+    metrics.write_text("step,loss\n0,0.1\n")
+    assert logged_train_seconds(metrics) is None

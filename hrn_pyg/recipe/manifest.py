@@ -4,7 +4,8 @@ A run folder's ``recipe.json`` (:data:`RUN_RECORD`) holds what the folder was tr
 identity) and every train invocation (command, device, seconds, exit code). The checkpoints
 folder's ``manifest.json`` (:data:`MANIFEST_NAME`) holds one entry per shipped model: the
 dataset recipe, the exact commands, training steps, device, wall seconds of the training
-invocations, the stages whose weights were averaged (when they were), the calibrated rate and
+invocations that ended, the training seconds the runs' ``metrics.csv`` logged (sittings that were
+killed included), the stages whose weights were averaged (when they were), the calibrated rate and
 modules, and the SHA-256 of the checkpoint. Entries are
 built from the run records (:func:`model_entry`) and written atomically, only when they change
 (:func:`update_manifest`); :func:`copy_atomic` and :func:`sha256` publish the checkpoints
@@ -13,6 +14,7 @@ themselves.
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 import shutil
@@ -36,6 +38,22 @@ def read_json(path: Path) -> dict[str, Any] | None:
         return json.loads(path.read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return None
+
+
+def logged_train_seconds(metrics: Path) -> float | None:
+    """The training time a run's ``metrics.csv`` logged, summed over its sittings: each sitting's
+    ``seconds`` column counts from its own start, so a row whose value is below the row before it
+    starts a new sitting, and a sitting counts its last row's value. A sitting that was killed
+    counts up to its last logged row. None when the file is missing or has no ``seconds``."""
+    try:
+        with open(metrics, newline="") as fh:
+            values = [float(row["seconds"]) for row in csv.DictReader(fh) if row.get("seconds")]
+    except (FileNotFoundError, KeyError, ValueError):
+        return None
+    if not values:
+        return None
+    ends = [a for a, b in zip(values, values[1:]) if b < a]
+    return sum(ends) + values[-1]
 
 
 def sha256(path: Path) -> str:
@@ -72,6 +90,7 @@ def model_entry(model: ModelRecipe, dataset: DatasetRecipe, data_dir: Path, runs
                 for i, d in enumerate(done)]
     steps = [(read_json(f / "config.json") or {}).get("train", {}).get("steps") for f in folders]
     invocations = [i for d in done for i in d]
+    logged = [t for t in (logged_train_seconds(f / "metrics.csv") for f in folders) if t is not None]
     stages = {"stage_commands": commands, "stage_steps": steps} if model.num_stages > 1 else {}
     return {
         "name": model.name,
@@ -83,6 +102,7 @@ def model_entry(model: ModelRecipe, dataset: DatasetRecipe, data_dir: Path, runs
         "device": ",".join(sorted({i["device"] for i in invocations})),
         "wall_seconds": round(sum(i["seconds"] for i in invocations), 3),
         "train_invocations": len(invocations),
+        **({"logged_train_seconds": round(sum(logged), 3)} if logged else {}),
         "sha256": digest,
         **stages,
         **({"averaged": {"stages": [s for s, _ in model.average], "weights": [w for _, w in model.average]}}
