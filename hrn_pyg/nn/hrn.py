@@ -651,8 +651,8 @@ class HRN(nn.Module):
             + (f", rigid_ground_depth={c.rigid_ground_depth}" if c.ground_projection and c.ground_projection_rigid
                and c.rigid_ground_depth else "")
             + (f", rigid_ground_speed={c.rigid_ground_speed}" if c.ground_projection and c.ground_projection_rigid
-               and getattr(c, "rigid_ground_speed", 0.0) else "")
-            + (", ground_lift_velocity=False" if not getattr(c, "ground_lift_velocity", True) else "")
+               and c.rigid_ground_speed else "")
+            + (", ground_lift_velocity=False" if not c.ground_lift_velocity else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )
 
