@@ -39,6 +39,7 @@ from hrn_pyg.version import __version__
 #: sub-command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("hrn_pyg.data.generate", "simulate a scene in pybullet and write episodes"),
+    "check-data": ("hrn_pyg.data.check", "check that a folder of episode files is one training can read"),
     "train": ("hrn_pyg.train", "train an HRN (presets: hrn, ours) or the GNS baseline (preset gns)"),
     "evaluate": ("hrn_pyg.evaluate", "Table 1: rollout errors of HRN vs ours on the test split"),
     "sample": ("hrn_pyg.sampling.cli", "sample K futures with Monte Carlo dropout"),
