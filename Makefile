@@ -26,7 +26,7 @@ test-slow: $(STAMP)
 	HRN_SLOW=1 $(BIN)/python -m pytest -n $(JOBS) tests
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/generate.py
+	$(BIN)/python -m benchmarks.generate
 
 # Remake every shipped checkpoint from data/recipes.toml into hrn_pyg/checkpoints (data/README.md).
 # A rerun continues where a killed one stopped. Options pass through, e.g.

@@ -17,7 +17,7 @@ torch thread unless told). ``--cloth-clearance 0,0.1,0.25`` scores the same weig
 :mod:`hrn_pyg.sim.cloth_contact`; 0: off), one row each, so what the rule buys and what it costs
 are read off one run. Run::
 
-    python benchmarks/cloth_pass_through.py --model multi_material \\
+    python -m benchmarks.cloth_pass_through --model multi_material \\
         --episodes data/unseen_val_cloth --out benchmarks/results/cloth_pass_through_val.json
 
 Prints a markdown table and writes JSON atomically.

@@ -24,7 +24,7 @@ million leaves under 50 ms (28 ms at 250 000 leaves was measured by hand with th
 Without a GPU the script runs on the CPU with the default (smaller) sizes, which checks it end
 to end; the CPU numbers say nothing about the GPU goals.
 
-Run: ``python benchmarks/device_step.py [--device cpu|cuda] [--leaves 250,2000,...]
+Run: ``python -m benchmarks.device_step [--device cpu|cuda] [--leaves 250,2000,...]
 [--repeats 5] [--steps 20] [--threads 1]``. Prints a markdown table and writes
 ``benchmarks/results/device_step_<device type>.json``.
 """
@@ -36,31 +36,28 @@ import math
 import os
 import platform
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from scaling import cubes_scene  # noqa: E402  (a sibling benchmark's scene builder)
-
-from hrn_pyg.data.candidates import build_candidates  # noqa: E402
-from hrn_pyg.data.episodes import simulate_episode  # noqa: E402
-from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_state  # noqa: E402
-from hrn_pyg.nn.hrn import HRN, HRNConfig, StepOptions  # noqa: E402
-from hrn_pyg.nn.normalizer import fit_normalizer  # noqa: E402
-from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402
-from hrn_pyg.sim.fixed_shape import (  # noqa: E402
+from hrn_pyg.data.candidates import build_candidates
+from hrn_pyg.data.episodes import simulate_episode
+from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_state
+from hrn_pyg.nn.hrn import HRN, HRNConfig, StepOptions
+from hrn_pyg.nn.normalizer import fit_normalizer
+from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sim.fixed_shape import (
     FixedShapeConfig,
     FixedShapeSimulator,
     RecordedStep,
     make_step,
 )
-from hrn_pyg.sim.rollout import unroll  # noqa: E402
+from hrn_pyg.sim.rollout import unroll
 from hrn_pyg.sim.step import build_inputs, run_network
-from hrn_pyg.utils.device import resolve_device  # noqa: E402
-from hrn_pyg.utils.files import atomic_write_json  # noqa: E402
+from hrn_pyg.utils.device import resolve_device
+from hrn_pyg.utils.files import atomic_write_json
+
+from benchmarks.common import cubes_scene
 
 PITCH, RADIUS = 0.05, 0.08
 CPU_LEAVES = (250, 2_000, 16_000)

@@ -10,7 +10,7 @@ masks for both settings; sleeping on and off interleaved, median over ``--repeat
 thread. Reported: ms per environment step, the ratio, and the largest difference between the two
 settings' next states (sleeping holds resting objects where the network would let them creep).
 
-Run: ``python benchmarks/env_step.py [--tasks tower,cube_push] [--envs 16] [--repeats 5]``;
+Run: ``python -m benchmarks.env_step [--tasks tower,cube_push] [--envs 16] [--repeats 5]``;
 prints a table and writes ``benchmarks/results/env_step.json``.
 """
 

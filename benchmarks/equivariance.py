@@ -21,7 +21,7 @@ thread. Each ``--model`` is scored as loaded and, when it averages over mirrors,
 
 Run::
 
-    python benchmarks/equivariance.py --model shapes --data data/unseen_val_rigid --split all \\
+    python -m benchmarks.equivariance --model shapes --data data/unseen_val_rigid --split all \\
         --out benchmarks/results/equivariance_shapes.json
 
 Prints a markdown table and writes JSON atomically.

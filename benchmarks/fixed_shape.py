@@ -14,7 +14,7 @@ atomic sums may differ in the last bits).
 On one CPU thread the fixed-shape step does more arithmetic (its candidates include the skin)
 and fewer searches and reads; the reads are what it removes on a GPU.
 
-Run: ``python benchmarks/fixed_shape.py [--scenes tower,cube_collision,...] [--seeds 8,18]
+Run: ``python -m benchmarks.fixed_shape [--scenes tower,cube_collision,...] [--seeds 8,18]
 [--repeats 3] [--device cpu|cuda] [--cuda-graph] [--threads 1]``. Prints a markdown table and
 writes ``benchmarks/results/fixed_shape_<device type>.json``.
 """

@@ -20,7 +20,7 @@ sub-modules timed alone by forward hooks, ``decode``, and the next graph's ``set
 collision search). The weights are random (seeded) with the normaliser fitted on a real
 ``soft_bounce`` window: a step's cost does not depend on the weights.
 
-Run: ``python benchmarks/gating.py [--pitch 0.02] [--steps 10] [--repeats 11] [--threads 1]``.
+Run: ``python -m benchmarks.gating [--pitch 0.02] [--steps 10] [--repeats 11] [--threads 1]``.
 Prints markdown tables and writes ``benchmarks/results/gating.json``.
 """
 

@@ -1,7 +1,7 @@
 """How fast is ground-truth generation? pybullet model steps per second per scene, and the
 graph-building cost per step split by stage (k-means hierarchy, collision edges).
 
-Run: ``python benchmarks/generate.py [--steps 40] [--repeats 3] [--out benchmarks/results/generate.json]``.
+Run: ``python -m benchmarks.generate [--steps 40] [--repeats 3] [--out benchmarks/results/generate.json]``.
 Median over repeats. Prints a markdown table and writes JSON (atomically).
 """
 

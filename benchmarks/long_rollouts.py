@@ -14,7 +14,7 @@ force, which in pybullet leaves every object where it is. Reported per run
 * ``soft_extent``: for soft bodies and cloth, the ratio of the height extent (max z - min z of the
   object's leaves) at the end to the start.
 
-Run: ``python benchmarks/long_rollouts.py --model soft_bounce=hrn_pyg/checkpoints/soft_bounce_ours.pt
+Run: ``python -m benchmarks.long_rollouts --model soft_bounce=hrn_pyg/checkpoints/soft_bounce_ours.pt
 [--model ...] [--seeds 8,18,28] [--steps 1000] [--mirror-average x|xy] [--rigid-fit LABEL]
 [--out benchmarks/results/long_rollouts.json]``.
 Validation seeds (``seed % 10 == 8``) by default, so it can be used for model selection. Prints a

@@ -31,7 +31,7 @@ cost against pybullet is read off before anything is trained at it. Their compil
 difference from the eager ones is recorded too, but says little: with the readout zeroed, every
 position is the free fall's.
 
-Run: ``python benchmarks/pile_step.py [--counts 2,5,10,20,40] [--material rigid] [--model shapes]
+Run: ``python -m benchmarks.pile_step [--counts 2,5,10,20,40] [--material rigid] [--model shapes]
 [--compile] [--sizes 48:4:2] [--out benchmarks/results/pile_step_rigid.json]``. Prints a markdown table and writes JSON
 atomically. Time only on a quiet machine.
 """
@@ -39,49 +39,20 @@ atomically. Time only on a quiet machine.
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
-import hrn_pyg
 from hrn_pyg.checkpoints import load_model, with_applied_options
-from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.scene_file import read_scene_file
 from hrn_pyg.nn.networks import network_from_dict
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
 from hrn_pyg.utils.files import atomic_write_json
 
-DEFAULT_MESHES = ("pybullet_data:duck_vhacd.obj", "pybullet_data:torus/torus_textured.obj")
-#: grid spacing and layer height of the starting arrangement (m); with sizes up to
-#: :data:`MAX_SIZE` and yaw-only turns no two bounding boxes overlap
-SPACING = 0.4
-MAX_SIZE = 0.25
-
-
-def pile_scene_text(count: int, material: str, meshes: tuple[str, ...], pitch: float, steps: int) -> str:
-    """A scene file of ``count`` objects on a grid of layers that fall into a pile."""
-    side = max(1, math.ceil(math.sqrt(count / 2)))  # two layers or more
-    lines = [f"steps = {steps}", f"pitch = {pitch}", "rolling_friction = 0.03", ""]
-    mesh_list = "[" + ", ".join(f'"{m}"' for m in meshes) + "]"
-    for i in range(count):
-        layer, cell = divmod(i, side * side)
-        row, col = divmod(cell, side)
-        x = (col - (side - 1) / 2) * SPACING
-        y = (row - (side - 1) / 2) * SPACING
-        z = 0.15 + layer * SPACING
-        lines += ["[[objects]]", f"mesh = {mesh_list}", f'material = "{material}"',
-                  f"size = {{ min = 0.15, max = {MAX_SIZE} }}", "mass = { min = 0.3, max = 1.5 }",
-                  f"position = [{x:.3f}, {y:.3f}, {z:.3f}]", "yaw = { min = 0, max = 360 }"]
-        if material == "soft":
-            lines.append("stiffness = { min = 0.4, max = 0.7 }")
-        lines.append("")
-    return "\n".join(lines)
+from benchmarks.common import DEFAULT_MESHES, compiled_rollout, pile_scene_text, rollout_seconds, time_pybullet
 
 
 def parse_sizes(text: str) -> list[tuple[int, int, int]]:
@@ -110,63 +81,6 @@ def sized_network(model, width: int, channels: int, layers: int):
         for parameter in network.state.parameters():
             parameter.zero_()
     return network.eval()
-
-
-def time_pybullet(spec, seed: int) -> tuple[dict, float]:
-    """One episode and pybullet's median seconds per model step."""
-    durations: list[float] = []
-
-    def timed(sim) -> None:
-        step = sim.step
-
-        def wrapped(*args, **kwargs):
-            start = time.perf_counter()
-            out = step(*args, **kwargs)
-            durations.append(time.perf_counter() - start)
-            return out
-
-        sim.step = wrapped
-
-    episode = simulate_episode(spec, seed, after_reset=timed)
-    return episode, statistics.median(durations)
-
-
-def rollout_seconds(model, state, steps: int) -> tuple[float, torch.Tensor]:
-    """Seconds per step of one ``steps``-step rollout (sleeping off) and its positions."""
-    with torch.no_grad():
-        start = time.perf_counter()
-        pos = hrn_pyg.rollout(model, state, steps, sleep=None)
-        return (time.perf_counter() - start) / steps, pos
-
-
-def time_rollout(model, state, steps: int, repeats: int) -> tuple[float, torch.Tensor]:
-    """Median seconds per step of ``repeats`` rollouts of ``steps`` steps (after a warm-up)
-    and the last one's positions."""
-    rollout_seconds(model, state, 2)
-    timed = [rollout_seconds(model, state, steps) for _ in range(repeats)]
-    return statistics.median(s for s, _ in timed), timed[-1][1]
-
-
-def compiled_rollout(model, state, steps: int, reset: bool = True):
-    """A compiled fixed-shape simulator of ``model`` on ``state``, the seconds of its first
-    (compiling) rollout, and a function that times one more rollout as :func:`rollout_seconds`.
-    ``reset`` drops what was compiled before, as a new process would start (the simulators of
-    one round must then be made after it: each has steps of its own)."""
-    if reset:
-        torch._dynamo.reset()
-    simulator = FixedShapeSimulator(model, state, FixedShapeConfig(compile=True))
-    with torch.no_grad():
-        start = time.perf_counter()
-        simulator.rollout(steps)
-        first = time.perf_counter() - start
-
-    def timed() -> tuple[float, torch.Tensor]:
-        with torch.no_grad():
-            start = time.perf_counter()
-            pos = simulator.rollout(steps).pos
-            return (time.perf_counter() - start) / steps, pos
-
-    return first, timed
 
 
 def paired_times(bullet: Callable[[], float], runs: dict[str, Callable[[], tuple[float, torch.Tensor]]],

@@ -11,7 +11,7 @@ from the first touch to the end is within ``--tolerance`` (1 %). Also per model:
 step (median over the episodes of the rollout's seconds per step, one thread, sleeping off) and
 the parameter count.
 
-Run: ``python benchmarks/rigid_collisions.py --data data/cube_collision --split test
+Run: ``python -m benchmarks.rigid_collisions --data data/cube_collision --split test
 --model ours=cube_collision_ours --model gns=runs/gns_cube_collision/model.pt
 --model "gns + rigid fit=runs/gns_cube_collision/model.pt" --rigid-fit "gns + rigid fit"
 [--out benchmarks/results/rigid_collisions_cube_collision.json]``. Prints a markdown table and

@@ -9,7 +9,7 @@ inside the window, so the force module runs at one step), dropout on force + col
 rollouts get the scene's declared effects (``scene_effects("soft_bounce")``: one body, so no
 collision search; what ``hrn-pyg sample`` passes) unless ``--no-effects``.
 
-Run: ``python benchmarks/sampling.py [--steps 8] [--repeats 5] [--threads 1] [--profile]
+Run: ``python -m benchmarks.sampling [--steps 8] [--repeats 5] [--threads 1] [--profile]
 [--ks 1,16,64,256] [--out benchmarks/results/sampling.json]``. Median over repeats, one process,
 torch intra-op threads fixed by ``--threads``. Prints a markdown table and writes JSON
 (atomically). Two goals: ``batched k=8 <= 2.5 x k=1``, and from k = 16 on the cost per copy
@@ -32,34 +32,18 @@ import time
 
 import torch
 
-from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.scene_file import scene_effects
-from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.nn.normalizer import fit_normalizer
-from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json
+
+from benchmarks.common import SAMPLING_RATE, SAMPLING_SCENE, SAMPLING_SEED, sampling_setup
 
 KS = (1, 2, 4, 8, 16, 32)
 #: batched k = 8 costs at most this multiple of k = 1
 GOAL_RATIO = 2.5
 #: from this k on, the batched cost per copy must not rise with k
 FLAT_FROM = 16
-#: the dropout rate timed (the paper's soft-cube test rate); rate 0 would skip the masks
-RATE = 0.3
-SCENE, SEED = "soft_bounce", 0
-
-
-def build(steps: int) -> tuple[HRN, object, torch.Tensor]:
-    episode = simulate_episode(SCENE, SEED, steps=steps + 4)
-    window = episode_state(episode, start=2, steps=steps)
-    torch.manual_seed(0)
-    model = HRN(HRNConfig())
-    fit_normalizer([window], model.normalizer)
-    model.eval()
-    forces = window[NODE].force_seq.transpose(0, 1).contiguous()  # [steps, N, 3]
-    return model, window, forces
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -82,12 +66,12 @@ def main(argv: list[str] | None = None) -> dict:
         import hrn_pyg.sim.step as step_module
 
         step_module.copy_groups = lambda inputs: None
-    effects = None if args.no_effects else scene_effects(SCENE)
+    effects = None if args.no_effects else scene_effects(SAMPLING_SCENE)
     if args.repeats < 5:
         raise SystemExit("--repeats must be >= 5 (median of at least 5 runs)")
     torch.set_num_threads(args.threads)
     ks = [int(k) for k in args.ks.split(",") if k]
-    model, window, forces = build(args.steps)
+    model, window, forces = sampling_setup(args.steps)
     if args.compile:
         model.compile()
     n_nodes = window[NODE].num_nodes
@@ -95,14 +79,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     def batched(k: int):
         gen = torch.Generator().manual_seed(0)
-        return lambda: sample(model, window, k, args.steps, RATE, forces=forces, generator=gen, effects=effects)
+        return lambda: sample(model, window, k, args.steps, SAMPLING_RATE, forces=forces, generator=gen, effects=effects)
 
     def sequential(k: int):
         gen = torch.Generator().manual_seed(0)
 
         def run():
             for _ in range(k):  # the baseline: one rollout per sample
-                sample(model, window, 1, args.steps, RATE, forces=forces, generator=gen, effects=effects)
+                sample(model, window, 1, args.steps, SAMPLING_RATE, forces=forces, generator=gen, effects=effects)
 
         return run
 
@@ -137,7 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     ratio8 = next((r.get("batched_over_k1_median_of_rounds") for r in rows if r["k"] == 8), None)
 
     print()
-    print(f"{SCENE} seed {SEED}: {n_leaves} leaves, {n_nodes} nodes; {args.steps} steps; dropout {RATE} "
+    print(f"{SAMPLING_SCENE} seed {SAMPLING_SEED}: {n_leaves} leaves, {n_nodes} nodes; {args.steps} steps; dropout {SAMPLING_RATE} "
           f"on force+collision; torch threads {args.threads}; median of {args.repeats}")
     print()
     print("| k | batched ms/step | batched ms per copy and step | sequential ms/step | batched / batched k=1 "
@@ -177,10 +161,10 @@ def main(argv: list[str] | None = None) -> dict:
 
     result = {
         "what": "time per rollout step of hrn_pyg.sampling.sample, batched k copies vs k sequential rollouts",
-        "scene": SCENE, "seed": SEED, "leaves": n_leaves, "nodes": n_nodes,
+        "scene": SAMPLING_SCENE, "seed": SAMPLING_SEED, "leaves": n_leaves, "nodes": n_nodes,
         "effects": None if effects is None else effects.to_dict(),
         "steps": args.steps, "repeats": args.repeats, "statistic": "median over interleaved rounds (each k once a round), divided by steps; the goal ratio is the median of the per-round ratios",
-        "rate": RATE, "dropout_modules": list(model.config.dropout_modules),
+        "rate": SAMPLING_RATE, "dropout_modules": list(model.config.dropout_modules),
         "compiled": bool(args.compile), "warm_up_seconds": warm_up_seconds,
         "copy_groups": not args.one_pass,
         "model": model.config.to_dict(), "weights": "random init (seed 0), normaliser fitted on the window",

@@ -9,7 +9,7 @@ state (the same masks seed for every rate) and :func:`hrn_pyg.sampling.metrics.r
 gives, per time step and per object, the root-mean-square distance of the object's root (its
 mass-weighted centre) from the samples' mean. The plot shows the mean over the moving objects.
 
-Run: ``python benchmarks/sampling_spread.py [--soft-model PATH] [--tower-model PATH] [--k 16]
+Run: ``python -m benchmarks.sampling_spread [--soft-model PATH] [--tower-model PATH] [--k 16]
 [--steps 30] [--seed 9] [--out benchmarks/results/sampling_spread]`` (checkpoints default to
 ``hrn_pyg/checkpoints/<scene>.pt``). ``--random-init`` runs untrained models: a pipeline check
 whose numbers mean nothing. Writes ``<out>.json`` and ``<out>.png`` atomically.

@@ -30,7 +30,7 @@ allocation and unmapped on free: the resident set then follows the live tensors 
 Python objects and small tensors is below this method's resolution). The shape loss is timed as
 the median of 3 runs (its memory is the point).
 
-Run: ``python benchmarks/scaling.py [--repeats 5] [--steps 3] [--threads 1]
+Run: ``python -m benchmarks.scaling [--repeats 5] [--steps 3] [--threads 1]
 [--sections particles,objects,shape]``. Prints markdown tables, writes
 ``benchmarks/results/scaling.json`` and ``benchmarks/results/scaling.png``. With ``--sections``
 naming some of the three experiments, only those run; the others' rows are kept from the JSON
@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import re
@@ -57,6 +56,8 @@ import numpy as np
 import torch
 
 from hrn_pyg.viz import save_figure
+
+from benchmarks.common import cubes_scene, lattice
 
 #: cube side (m) of the particle-count experiment
 CUBE_SIDE = 0.2
@@ -109,52 +110,6 @@ def median_seconds(fn, repeats: int) -> tuple[float, list[float]]:
         fn()
         runs.append(time.perf_counter() - t0)
     return statistics.median(runs), runs
-
-
-def lattice(n: int) -> np.ndarray:
-    """``[n^3, 3]`` integer lattice coordinates of an ``n x n x n`` block."""
-    g = np.arange(n)
-    return np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-
-
-def octree_parent(idx: np.ndarray, leaf_object: np.ndarray) -> np.ndarray:
-    """Parent array (leaves first, then ancestors; roots -1) of an octree over lattice leaves.
-
-    Level ``k`` groups the leaves whose coordinates agree after dropping ``k`` low bits, per
-    object; a level with one group per object is the roots. Leaf groups hold at most 8 leaves and
-    every ancestor at most 8 children (branching 8, leaf group 8).
-    """
-    n_leaves = len(idx)
-    n_objects = len(np.unique(leaf_object))
-    levels = []  # per level: node id of each leaf's ancestor at that level
-    next_id, shift = n_leaves, 0
-    while not levels or levels[-1].max() + 1 - levels[-1].min() > n_objects:  # about log2 n levels
-        shift += 1
-        _, group = np.unique(np.column_stack([leaf_object, idx >> shift]), axis=0, return_inverse=True)
-        group = group.reshape(-1)
-        levels.append(next_id + group)
-        next_id += int(group.max()) + 1
-    parent = np.full(next_id, -1, dtype=np.int64)
-    parent[np.arange(n_leaves)] = levels[0]
-    for below, above in zip(levels[:-1], levels[1:]):
-        parent[below] = above  # every leaf names the same pair for its two ancestors
-    return parent
-
-
-def cubes_scene(n: int, objects: int, pitch: float, per_row: int | None = None):
-    """Leaf positions ``[L, 3]``, leaf object ``[L]`` and parent ``[N]`` of ``objects`` cubes of
-    ``n^3`` leaves at ``pitch``, on a grid with neighbouring faces one pitch apart."""
-    per_row = per_row or max(1, math.ceil(math.sqrt(objects)))
-    block = lattice(n)
-    step = n * pitch  # (n - 1) pitch of cube plus one pitch of gap
-    pos, obj, idx = [], [], []
-    for o in range(objects):  # a handful of objects
-        offset = np.array([(o % per_row) * step, (o // per_row) * step, 0.5])
-        pos.append(block * pitch + offset)
-        obj.append(np.full(len(block), o))
-        idx.append(block)
-    leaf_object = np.concatenate(obj)
-    return np.concatenate(pos), leaf_object, octree_parent(np.concatenate(idx), leaf_object)
 
 
 def child_step(args: argparse.Namespace) -> dict:
@@ -240,9 +195,10 @@ def child_shape(args: argparse.Namespace) -> dict:
 
 
 def run_child(extra: list[str], args: argparse.Namespace) -> dict:
-    cmd = [sys.executable, __file__, "--threads", str(args.threads), "--repeats", str(args.repeats),
+    cmd = [sys.executable, "-m", "benchmarks.scaling", "--threads", str(args.threads), "--repeats", str(args.repeats),
            "--steps", str(args.steps), *extra]
-    done = subprocess.run(cmd, capture_output=True, text=True, check=False, env={**os.environ, **CHILD_ENV})
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False, env={**os.environ, **CHILD_ENV},
+                          cwd=Path(__file__).resolve().parents[1])  # the checkout, where benchmarks/ is a package
     if done.returncode != 0:
         raise RuntimeError(f"child {' '.join(extra)} failed:\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])

@@ -8,7 +8,7 @@ them (``fixed``), and the gradient is the same. This script times one training s
 drawn from the ``--data`` folders, unrolled ``--seq-len`` steps) both ways, alternating the two
 on the same batches, and checks that the gradients agree.
 
-Run: ``python benchmarks/shape_loss_cost.py --model shapes --data data/shapes_drop
+Run: ``python -m benchmarks.shape_loss_cost --model shapes --data data/shapes_drop
 --data data/shapes_soft [--batch-size 8] [--seq-len 16] [--steps 6]
 [--out benchmarks/results/shape_loss_cost.json]``. One torch thread; medians over the steps.
 Prints a markdown table and writes JSON atomically.

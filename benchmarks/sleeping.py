@@ -31,10 +31,10 @@ the split's mean, as ``hrn-pyg evaluate`` reports it: the ratio of the sleeping 
 error to the awake ones', with a paired bootstrap 95 % interval over the episodes, the median
 per-episode ratio and the count of episodes worse. These rollouts are not timed.
 
-Run: ``python benchmarks/sleeping.py [--seeds 9,19,29] [--repeats 5] [--threads 1] [--model CASE=PATH]
+Run: ``python -m benchmarks.sleeping [--seeds 9,19,29] [--repeats 5] [--threads 1] [--model CASE=PATH]
 [--accuracy-episodes 10]``; a setting of the rule on validation episodes: ``--split val --seeds
 8,18,28 --field-seed 8 --threshold 1e-3 --patience 20``; a smoke run on a busy machine:
-``python benchmarks/sleeping.py --quick`` (one seed, 40-step episodes, three repeats, two
+``python -m benchmarks.sleeping --quick`` (one seed, 40-step episodes, three repeats, two
 episodes of errors). Prints markdown tables and writes ``benchmarks/results/sleeping.json``.
 """
 

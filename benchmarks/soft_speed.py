@@ -11,7 +11,7 @@ declared effects: no collision search for a lone body), pybullet's the median ov
 ``--repeats`` seeds of 20 scripted model steps; both on ``--threads`` torch / one pybullet
 thread. Goal: the learned step at least 5x faster than pybullet.
 
-Run: ``python benchmarks/soft_speed.py [--model hrn_pyg/checkpoints/soft_bounce_fine.pt]
+Run: ``python -m benchmarks.soft_speed [--model hrn_pyg/checkpoints/soft_bounce_fine.pt]
 [--data data/soft_bounce_fine] [--repeats 5] [--threads 1]``. Prints a table and writes
 ``benchmarks/results/soft_speed.json``.
 """
@@ -23,23 +23,21 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 from torch_geometric.data import Batch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy_vs_time import HORIZONS, STRIDE, pybullet_ms_per_step  # noqa: E402
-
 from hrn_pyg.checkpoints import load_model
-from hrn_pyg.data.dataset import EpisodeWindows  # noqa: E402
-from hrn_pyg.data.graph import NODE  # noqa: E402
-from hrn_pyg.data.scene_file import scene_effects  # noqa: E402
-from hrn_pyg.evaluate import evaluate_model, select_windows, summarise  # noqa: E402
-from hrn_pyg.sim.rollout import rollout  # noqa: E402
-from hrn_pyg.utils.files import atomic_write_json  # noqa: E402
+from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.scene_file import scene_effects
+from hrn_pyg.evaluate import evaluate_model, select_windows, summarise
+from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.utils.files import atomic_write_json
+
+from benchmarks.common import HORIZONS, STRIDE, pybullet_ms_per_step
 
 SCENE = "soft_bounce"
 GOAL_SPEEDUP = 5.0

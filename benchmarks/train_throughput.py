@@ -10,7 +10,7 @@ The model is randomly initialised with its normaliser fitted on the windows: a s
 not depend on the weights. Windows come from an episode folder (``hrn-pyg generate`` output), so
 the script needs no pybullet and runs as it is on a GPU machine.
 
-Run: ``python benchmarks/train_throughput.py --data data/soft_bounce [--devices cpu,cuda]
+Run: ``python -m benchmarks.train_throughput --data data/soft_bounce [--devices cpu,cuda]
 [--batch-sizes 4,32,128] [--seq-len 1,6] [--steps 10] [--threads 1]
 [--out benchmarks/results/train_throughput.json]``. Median over the timed steps, one process;
 devices that are not present are skipped and say so. Prints a markdown table, writes JSON

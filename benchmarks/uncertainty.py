@@ -23,7 +23,7 @@ Leaves of static objects are left out of every score.
 * wedge only: fraction of trajectories whose ball centre ends at ``x < 0`` / ``x >= 0``
   (:func:`~hrn_pyg.sampling.metrics.side_fractions`), samples against the ensemble.
 
-Run: ``python benchmarks/uncertainty.py [--scenes wedge,soft_bounce,cube_collision]
+Run: ``python -m benchmarks.uncertainty [--scenes wedge,soft_bounce,cube_collision]
 [--k 16] [--rates 0.05,0.1,0.3] [--members 16] [--steps 20] [--seeds 9,19,29]
 [--out benchmarks/results/uncertainty.json]`` with ``--model-dir`` (default
 ``hrn_pyg/checkpoints``, one ``<scene>.pt`` each); ``--model SCENE=PATH`` (repeatable) scores

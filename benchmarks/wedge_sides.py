@@ -22,7 +22,7 @@ Scores, over the episodes (issue 13's wedge criteria):
 (``data/shapes/unseen/roof_drop.toml``; its ball is object 0 and its ridge runs along y at x = 0).
 
 Select settings with ``--split val`` (seeds with ``seed % 10 == 8``); ``--split test``
-(``== 9``) is the held-out report. Run: ``python benchmarks/wedge_sides.py [--model
+(``== 9``) is the held-out report. Run: ``python -m benchmarks.wedge_sides [--model
 hrn_pyg/checkpoints/wedge.pt] [--data data/wedge_ridge] [--split val] [--episodes 20]
 [--k 32] [--members 16] [--rates 0.05,0.1] [--out benchmarks/results/wedge_sides.json]``.
 Prints markdown tables and writes JSON atomically. The pybullet ensembles (most of the run time)

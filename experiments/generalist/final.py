@@ -4,7 +4,7 @@ Run it on the model chosen on validation (``python -m experiments.generalist.val
 choose one. Each benchmark writes its JSON under ``--out`` and a rerun runs only the missing ones,
 so the test files are scored once and a stopped run continues where it stopped:
 
-1. ``test.json`` (``benchmarks/unseen_shapes.py``): the test folders of ``--test-set``, whose
+1. ``test.json`` (``experiments/generalist/unseen_shapes.py``): the test folders of ``--test-set``, whose
    meshes were fixed in their scene files before any score (``test4``:
    ``data/shapes/unseen/test4_rigid.toml``, ``test4_soft.toml`` and ``test4_cloth.toml``; ``test3``,
    scored once already, ``test3_rigid``, ``test3_soft`` and ``test_cloth``): position and shape error at t+15 and t+50 beside the model's own test split
@@ -15,10 +15,10 @@ so the test files are scored once and a stopped run continues where it stopped:
    rigid and soft test folders, so that the one-pass model's errors read as multiples of its.
 3. ``cloth.json`` (``benchmarks/cloth_pass_through.py``): cloth leaves inside another object a
    step, the first six test cloth episodes, the network alone, pybullet's count beside.
-4. ``pitch.json`` (``benchmarks/accuracy_vs_time.py --model --compile``): the rigid test scene
+4. ``pitch.json`` (``experiments/accuracy_vs_time.py --model --compile``): the rigid test scene
    made at pitch 0.025, 0.035, 0.05 and 0.08 m: time per step (eager and compiled) beside
    pybullet's, errors and their ratio to 0.05 m.
-5. ``many_objects.json`` (``benchmarks/many_objects.py``): piles of 2, 10, 20 and 40 test meshes,
+5. ``many_objects.json`` (``experiments/many_objects.py``): piles of 2, 10, 20 and 40 test meshes,
    errors as multiples of two objects', time per step, and 1000 steps from rest of each pile
    (the piles of 10 are the rest bar; the others are reported).
 6. ``equivariance.json`` (``benchmarks/equivariance.py``): the model under the lattice's eight
@@ -102,29 +102,28 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
     writes under ``out``."""
     folders = TEST_SETS[test_set][0]
     python = [sys.executable]
-    bench = REPO / "benchmarks"
     test = unseen_shapes_command(model, out / "test.json", [data / n for n in folders], data / "shapes_drop", "test",
                                  *specialist_options(data), "--rest-episodes", str(rest_episodes),
                                  "--pybullet-rest", str(pybullet_rest or data / "pybullet_rest"), "--no-time")
     baseline = unseen_shapes_command(BASELINE, out / "test_shapes.json",
                                      [data / n for n in folders if "cloth" not in n],
                                      data / "shapes_drop", "test", "--no-rest", "--no-time")
-    cloth = [*python, str(bench / "cloth_pass_through.py"), "--model", model,
+    cloth = [*python, "-m", "benchmarks.cloth_pass_through", "--model", model,
              "--episodes", str(data / next(n for n in folders if "cloth" in n)), "--limit", "6", "--awake", "--out", str(out / "cloth.json")]
     scene, seed = next(iter(folders.values()))  # the rigid folder
-    pitch = [*python, str(bench / "accuracy_vs_time.py"), "--model", model, "--scene-file", str(REPO / scene),
+    pitch = [*python, "-m", "experiments.accuracy_vs_time", "--model", model, "--scene-file", str(REPO / scene),
              "--first-seed", str(seed), "--compile", "--work", str(data / "final_pitch"), "--out", str(out / "pitch.json")]
-    many = [*python, str(bench / "many_objects.py"), "--model", model, "--counts", "2,10,20,40",
+    many = [*python, "-m", "experiments.many_objects", "--model", model, "--counts", "2,10,20,40",
             "--meshes", test_meshes(test_set), "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
             "--work", str(data / "final_many_objects"), "--out", str(out / "many_objects.json")]
-    equivariance = [*python, str(bench / "equivariance.py"), "--model", model, "--model", BASELINE,
+    equivariance = [*python, "-m", "benchmarks.equivariance", "--model", model, "--model", BASELINE,
                     "--data", str(data / "shapes_drop"), "--split", "val", "--episodes", "4",
                     "--out", str(out / "equivariance.json")]
-    roof = [*python, str(bench / "wedge_sides.py"), "--scene-file", str(REPO / ROOF_SCENE), "--model", model,
+    roof = [*python, "-m", "benchmarks.wedge_sides", "--scene-file", str(REPO / ROOF_SCENE), "--model", model,
             "--split", "test", "--cache", str(data / "final_roof_cache"), "--out", str(out / "roof.json")]
-    pile_rigid = [*python, str(bench / "pile_step.py"), "--counts", "10", "--material", "rigid", "--model", model,
+    pile_rigid = [*python, "-m", "benchmarks.pile_step", "--counts", "10", "--material", "rigid", "--model", model,
                   "--compile", "--out", str(out / "pile_rigid.json")]
-    pile_soft = [*python, str(bench / "pile_step.py"), "--counts", "2,10", "--material", "soft",
+    pile_soft = [*python, "-m", "benchmarks.pile_step", "--counts", "2,10", "--material", "soft",
                  "--meshes", "pybullet_data:duck_vhacd.obj", "--model", model, "--compile",
                  "--out", str(out / "pile_soft.json")]
     return {"test.json": test, "test_shapes.json": baseline, "cloth.json": cloth, "pitch.json": pitch,

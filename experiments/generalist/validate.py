@@ -3,7 +3,7 @@
 Three benchmarks, all on validation episodes (model selection; the test files are scored once,
 for the final table), each the network alone, one torch thread:
 
-1. **Rest** (``benchmarks/unseen_shapes.py``): 1000 steps from the resting end of the first
+1. **Rest** (``experiments/generalist/unseen_shapes.py``): 1000 steps from the resting end of the first
    ``--rest-episodes`` episodes per mesh and material of the unseen validation folders
    (``unseen_val_rigid``, ``unseen_val_soft``, ``unseen_val_cloth``), scored by the package's
    stability check, and pybullet's own continuation of each (the same seed run 1000 steps
@@ -63,9 +63,9 @@ PARITY_KEYS = ("position@15", "shape@15", "position@50", "shape@50")
 
 def unseen_shapes_command(model: str, out: Path, unseen: Sequence[Path] = (), own: Path | None = None,
                           split: str = "val", *options: str) -> list[str]:
-    """``benchmarks/unseen_shapes.py`` on ``model``: each folder of ``unseen`` (``--unseen``), the
+    """``experiments/generalist/unseen_shapes.py`` on ``model``: each folder of ``unseen`` (``--unseen``), the
     ``split`` of ``own`` (``--own``) and the specialists' splits, then ``options``, into ``out``."""
-    return [sys.executable, str(REPO / "benchmarks" / "unseen_shapes.py"), "--model", model,
+    return [sys.executable, "-m", "experiments.generalist.unseen_shapes", "--model", model,
             *[a for folder in unseen for a in ("--unseen", str(folder))],
             *(["--own", str(own)] if own is not None else []), "--own-split", split, *options, "--out", str(out)]
 
@@ -84,7 +84,7 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
                                  "--limit", "2", "--no-time", *rest_options)
     parity = unseen_shapes_command(model, out / "parity.json", (), None, "val", *specialist_options(data),
                                    "--no-rest", "--no-time")
-    cloth = [*python, str(REPO / "benchmarks" / "cloth_pass_through.py"), "--model", model,
+    cloth = [*python, "-m", "benchmarks.cloth_pass_through", "--model", model,
              "--episodes", str(data / "unseen_val_cloth"), "--limit", "6", "--awake",
              "--out", str(out / "cloth.json")]
     unseen2 = unseen_shapes_command(model, out / "unseen2.json", [data / n for n in UNSEEN2], data / "shapes_drop",
@@ -108,7 +108,7 @@ def summary(out: Path) -> str:
 
 
 def rest_lines(rest: dict | None) -> list[str]:
-    """Table rows of ``benchmarks/unseen_shapes.py``'s rest check, one per folder: the episodes
+    """Table rows of ``experiments/generalist/unseen_shapes.py``'s rest check, one per folder: the episodes
     that hold, and with pybullet's continuation those pybullet holds and how many of those the
     model holds."""
     by_folder: dict[str, list[dict]] = {}
@@ -142,7 +142,7 @@ def _folder_names(result: dict | None) -> list[str]:
 
 def pooled_error(result: dict, folders: Sequence[str], material: str, key: str) -> float:
     """The mean ``key`` error (e.g. ``"position@50"``) of ``material``'s objects over the episode
-    folders ``folders`` only, pooled from ``benchmarks/unseen_shapes.py``'s per-folder means
+    folders ``folders`` only, pooled from ``experiments/generalist/unseen_shapes.py``'s per-folder means
     (each weighted by its finite values). Raises ValueError when ``result`` has no per-folder
     errors or no such object in those folders."""
     by_folder = (result.get("unseen") or {}).get("unseen_by_folder")
@@ -161,7 +161,7 @@ def pooled_error(result: dict, folders: Sequence[str], material: str, key: str) 
 
 
 def unseen_ratios(unseen: dict | None, baseline: dict | None) -> tuple[float | None, dict[str, list[float]]]:
-    """From ``benchmarks/unseen_shapes.py``'s JSON of a model (``unseen``) and of ``shapes_d4.pt``
+    """From ``experiments/generalist/unseen_shapes.py``'s JSON of a model (``unseen``) and of ``shapes_d4.pt``
     (``baseline``): the rigid meshes' position error at t+15 as a multiple of the own split's (None
     without rigid meshes), and per material (rigid, soft) the position errors at t+15 and t+50 as
     multiples of ``shapes_d4.pt``'s on the same windows: the model's errors are pooled over the

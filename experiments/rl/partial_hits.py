@@ -21,7 +21,7 @@ update 0, and :func:`partial_hit_table` for a grid of rates and goal tolerances,
 and tolerance with a useful share (say 10-30 % of steps) can be chosen before any training run.
 
 Measure on scenes the agent does not train on:
-:data:`~hrn_pyg.rl.hrn_dynamics.VALIDATION_SEEDS` (``benchmarks/partial_hits.py`` builds its
+:data:`~hrn_pyg.rl.hrn_dynamics.VALIDATION_SEEDS` (``experiments/rl/score_partial_hits.py`` builds its
 learned dynamics on them).
 """
 

@@ -4,11 +4,11 @@ cube_collision episodes."""
 
 from __future__ import annotations
 
+import importlib
 import json
 
 import pytest
 import torch
-from benchmark_script import load_benchmark
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import read_episode
@@ -17,7 +17,7 @@ from hrn_pyg.sampling.ensemble import episode_state
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_benchmark("equivariance")
+    return importlib.import_module("benchmarks.equivariance")
 
 
 def test_the_eight_maps_are_distinct_orthogonal_keep_z_and_form_a_group(bench):

@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
 
 import pytest
 import torch
-from benchmark_script import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[2]
 MESHES = ROOT / "data" / "shapes" / "meshes"
 
 
 def test_rounds_alternate_pybullet_and_every_run():
-    bench = load_benchmark("pile_step")
+    bench = importlib.import_module("benchmarks.pile_step")
     calls: list[str] = []
 
     def bullet() -> float:
@@ -36,7 +36,7 @@ def test_rounds_alternate_pybullet_and_every_run():
 def test_the_ratio_is_the_median_of_paired_ratios():
     """A machine that slows down in the middle round slows both sides of that round: the paired
     ratio stays, where the ratio of the two medians would not."""
-    bench = load_benchmark("pile_step")
+    bench = importlib.import_module("benchmarks.pile_step")
     summary = bench.paired_summary([1.0, 3.0, 1.0, 1.0], [0.9, 2.7, 0.9, 2.0])
     assert summary["x_pybullet"] == pytest.approx(0.9)
     assert summary["x_pybullet_range"] == pytest.approx([0.9, 2.0])
@@ -44,7 +44,7 @@ def test_the_ratio_is_the_median_of_paired_ratios():
 
 
 def test_a_tiny_pile_is_timed_against_pybullet(tmp_path, capsys):
-    bench = load_benchmark("pile_step")
+    bench = importlib.import_module("benchmarks.pile_step")
     out = tmp_path / "pile.json"
     result = bench.main(["--counts", "2", "--steps", "6", "--repeats", "2", "--meshes",
                          str(MESHES / "random_hull_000.obj"), "--model", "shapes", "--model", "shapes_d4",
@@ -65,7 +65,7 @@ def test_a_tiny_pile_is_timed_against_pybullet(tmp_path, capsys):
 
 
 def test_sizes_are_width_channels_layers():
-    bench = load_benchmark("pile_step")
+    bench = importlib.import_module("benchmarks.pile_step")
     assert bench.parse_sizes("48:4:2,32:8:1") == [(48, 4, 2), (32, 8, 1)]
     assert bench.parse_sizes("") == []
     for bad in ("48:4", "48:0:2", "a:4:2", "48:4:2:1"):
@@ -75,7 +75,7 @@ def test_sizes_are_width_channels_layers():
 
 def test_a_sized_network_keeps_the_config_and_normaliser_its_readout_zeroed():
     from hrn_pyg.checkpoints import load_model
-    bench = load_benchmark("pile_step")
+    bench = importlib.import_module("benchmarks.pile_step")
     model = load_model("shapes")
     network = bench.sized_network(model, 16, 2, 1)
     config = network.config
@@ -88,7 +88,7 @@ def test_a_sized_network_keeps_the_config_and_normaliser_its_readout_zeroed():
 
 
 def test_a_tiny_pile_times_the_sizes_too(tmp_path):
-    bench = load_benchmark("pile_step")
+    bench = importlib.import_module("benchmarks.pile_step")
     result = bench.main(["--counts", "2", "--steps", "6", "--repeats", "1", "--meshes",
                          str(MESHES / "random_hull_000.obj"), "--sizes", "16:2:1"])
     (row,) = result["rows"]

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 
 import pytest
-from benchmark_script import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_benchmark("scaling")
+    return importlib.import_module("benchmarks.scaling")
 
 
 def test_the_shape_section_alone_keeps_the_step_rows(bench, tmp_path, monkeypatch):

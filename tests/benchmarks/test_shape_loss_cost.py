@@ -3,16 +3,16 @@ with the same gradients, end to end on tiny cube_collision episodes."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import sys
 
 import pytest
-from benchmark_script import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_benchmark("shape_loss_cost")
+    return importlib.import_module("benchmarks.shape_loss_cost")
 
 
 def test_the_two_ways_agree_and_are_timed(bench, tiny_episodes, tmp_path, monkeypatch, capsys):

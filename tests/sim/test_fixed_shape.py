@@ -199,7 +199,7 @@ def test_the_meta_check_catches_a_host_read(monkeypatch):
 @pytest.mark.parametrize("options", MODEL_OPTIONS, ids=lambda o: ",".join(o) or "default")
 def test_on_cuda_the_step_never_syncs_and_a_cuda_graph_rollout_equals_the_plain_one(options):
     """With ``set_sync_debug_mode("error")`` any synchronising call inside the step raises; the
-    CUDA-graph rollout then gives the plain rollout's positions (run by benchmarks/device_check.sh)."""
+    CUDA-graph rollout then gives the plain rollout's positions (run by benchmarks/device/check.sh)."""
     model = fitted_model(dropout_modules=("force", "collision"), **options)
     graph = set_pitch(toy_scene(), 0.1)  # read by the rigid ground depth
     step_fn, args = _fixed_step_args(model, graph, True, "cuda")

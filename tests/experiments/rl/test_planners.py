@@ -116,7 +116,7 @@ SLOW = pytest.mark.skipif(os.environ.get("HRN_SLOW") != "1", reason="a second po
 @pytest.mark.parametrize("task", [CUBE_PUSH_STOP, pytest.param(CUBE_PUSH_HOLD, marks=SLOW),
                                   pytest.param(TOWER_ASIDE, marks=SLOW)], ids=lambda t: t.name)
 def test_the_planner_length_is_measured_again(task):
-    """The planner's mean in-model length, measured again as ``benchmarks/planners.py`` measured
+    """The planner's mean in-model length, measured again as ``experiments/rl/score_planners.py`` measured
     it (the settings its JSON records), is :data:`PLANNER_LENGTHS` (64 episodes from the pool of
     64 scenes: about 3 s for a cube task, 15 s for the tower)."""
     from hrn_pyg.rl.evaluate import record_episodes

@@ -1,4 +1,4 @@
-"""The one-model mode of ``benchmarks/accuracy_vs_time.py`` end to end on a tiny case: two
+"""The one-model mode of ``experiments/accuracy_vs_time.py`` end to end on a tiny case: two
 pitches of the generalist's validation scene, one short episode each, scored and timed with the
 plain eight-pass ``shapes_d4`` model (warned about the pitch it never saw), with the same model
 widened into a pitch-aware one (the same errors at the reference pitch, others where the pitch
@@ -7,8 +7,7 @@ differs), and with the shipped ``shapes``, which reads the pitch (no warning at 
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
+import importlib
 from pathlib import Path
 
 import pytest
@@ -16,15 +15,10 @@ import pytest
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.nn.widen import widen_to_pitch_aware
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def _benchmark(monkeypatch):
-    spec = importlib.util.spec_from_file_location("accuracy_vs_time", ROOT / "benchmarks" / "accuracy_vs_time.py")
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "accuracy_vs_time", module)  # its dataclasses look themselves up there
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module("experiments.accuracy_vs_time")
 
 
 def _argv(tmp_path: Path, out: str, model: str = "shapes_d4") -> list[str]:

@@ -29,7 +29,7 @@ time is measured:
 
 Run (validation, for model selection; the test files are scored once, at the end)::
 
-    python benchmarks/unseen_shapes.py --model runs/recipe/shapes/model.pt \\
+    python -m experiments.generalist.unseen_shapes --model runs/recipe/shapes/model.pt \\
         --unseen data/unseen_val_rigid --unseen data/unseen_val_soft \\
         --own data/shapes_drop --own data/shapes_push --own data/soft_bounce_shapes --own data/cube_collision \\
         --specialist data/cube_collision=hrn_pyg/checkpoints/cube_collision.pt \\
@@ -227,7 +227,7 @@ def specialist_section(model, specialists: dict[str, str], args) -> dict:
     return out
 
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 #: largest difference (m) between pybullet's continuation and the episode over the episode's own
 #: frames for the continuation to count as the same run
 REPLAY_TOLERANCE = 1e-4

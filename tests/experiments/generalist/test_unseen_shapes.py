@@ -1,8 +1,9 @@
-"""``benchmarks/unseen_shapes.py`` end to end on a tiny scene file: the generalist on two episodes
+"""``experiments/generalist/unseen_shapes.py`` end to end on a tiny scene file: the generalist on two episodes
 of meshes it never saw, against its own (tiny) test split and a specialist."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import sys
@@ -10,13 +11,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from benchmark_script import load_benchmark
 
 from hrn_pyg.cli import main as cli
 from hrn_pyg.data.io import load_episode
 from hrn_pyg.data.scene_file import FileScene, drawn_mesh, read_scene_file
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 MESHES = ROOT / "data" / "shapes" / "meshes"
 
 #: a box thrown at one of two convex procedural meshes (no decomposition to wait for)
@@ -42,7 +42,7 @@ position = [0.0, 0.0, 0.2]
 
 
 def _benchmark():
-    return load_benchmark("unseen_shapes")
+    return importlib.import_module("experiments.generalist.unseen_shapes")
 
 
 def test_unseen_shapes_scores_a_tiny_scene(tmp_path, tiny_episodes, monkeypatch, capsys):

@@ -1,12 +1,12 @@
 """Many objects of meshes a model never saw: its errors and time per step against the object count.
 
 For each object count ``N`` of ``--counts`` (default 2, 10, 20, 40) the scene is the pile of
-``benchmarks/pile_step.py`` (:func:`pile_scene_text`): ``N`` meshes drawn per object from
+``benchmarks/common.py`` (:func:`~benchmarks.common.pile_scene_text`): ``N`` meshes drawn per object from
 ``--meshes`` (default pybullet_data's duck and torus, the generalist's validation meshes; pass
 the test meshes only for the one final score), standing on a grid of layers, turned by a random
 yaw, falling into a pile. ``--episodes`` seeds per count (``--seed``, ``--seed`` + 1, ...) are
 simulated by pybullet and kept under ``--work`` (an episode file there is reused, so a stopped
-run resumes; ``benchmarks/episode_cache.py``).
+run resumes; ``experiments/episode_cache.py``).
 
 **Errors.** The model is rolled out with the package's evaluation
 (:func:`hrn_pyg.evaluate.evaluate_model`: the network alone, no object sleeps, each rollout
@@ -33,7 +33,7 @@ rest by its end is counted as such (give a longer ``--steps``, e.g. 240, for a p
 
 Run (validation meshes; time on a quiet machine)::
 
-    python benchmarks/many_objects.py --model shapes --counts 2,10,20,40 --episodes 4 \\
+    python -m experiments.many_objects --model shapes --counts 2,10,20,40 --episodes 4 \\
         --out benchmarks/results/many_objects_shapes.json
 
 Prints a markdown table and writes JSON atomically.
@@ -44,24 +44,22 @@ from __future__ import annotations
 import argparse
 import hashlib
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from episode_cache import cached_episodes, episode_leaves, windows_of  # noqa: E402
-from pile_step import DEFAULT_MESHES, pile_scene_text, time_rollout  # noqa: E402
+from hrn_pyg.checkpoints import load_model
+from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
+from hrn_pyg.data.io import load_episode
+from hrn_pyg.data.scene_file import read_scene_file
+from hrn_pyg.evaluate import evaluate_model, rest_check, summarise
+from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
-from hrn_pyg.checkpoints import load_model  # noqa: E402
-from hrn_pyg.checkpoints.domain import dataset_domain, report_outside  # noqa: E402
-from hrn_pyg.data.io import load_episode  # noqa: E402
-from hrn_pyg.data.scene_file import read_scene_file  # noqa: E402
-from hrn_pyg.evaluate import evaluate_model, rest_check, summarise  # noqa: E402
-from hrn_pyg.sampling.ensemble import episode_state  # noqa: E402
-from hrn_pyg.utils.files import atomic_write_json, atomic_write_text  # noqa: E402
+from benchmarks.common import DEFAULT_MESHES, pile_scene_text, time_rollout
+from experiments.episode_cache import cached_episodes, episode_leaves, windows_of
 
 ERRORS = ("position", "shape")
 

@@ -7,7 +7,7 @@ every step of ``--episodes`` episodes started from the validation scenes
 (:data:`hrn_pyg.rl.hrn_dynamics.VALIDATION_SEEDS`, apart from the RL training pool), so that a
 rate and a tolerance can be chosen (e.g. 10-30 % of steps) without looking at training scenes.
 
-Run: ``python benchmarks/partial_hits.py --task tower [--model PATH] [--rates 0.1 0.3 0.5]
+Run: ``python -m experiments.rl.score_partial_hits --task tower [--model PATH] [--rates 0.1 0.3 0.5]
 [--tolerances 0.06 0.1] [--episodes 64] [--policy random|planner|clone:PATH] [--noise 0.1]
 [--out benchmarks/results/partial_hits_tower.json]`` (the model defaults to
 ``hrn_pyg/checkpoints/<scene>.pt``; the output to ``partial_hits_<task>.json`` for the random
@@ -26,13 +26,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: experiments/ beside the package
 
 from experiments.rl.clone import ActorPolicy, load_policy_actor
 from experiments.rl.partial_hits import partial_hit_table

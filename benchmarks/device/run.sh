@@ -11,7 +11,7 @@ CALIB_S=${CALIB_S:-45}
 python3 -c "import torch, torch_geometric; print('torch', torch.__version__, 'pyg', torch_geometric.__version__, torch.cuda.get_device_name(0))"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 for p in data/device/packs/*.pack.npz; do
-  python3 data/device/pack.py unpack "$p" "data/$(basename "$p" .pack.npz)" || exit 1
+  python3 benchmarks/device/pack.py unpack "$p" "data/$(basename "$p" .pack.npz)" || exit 1
 done
 ls data
 
@@ -51,14 +51,14 @@ wait
 echo "== training $(date +%T)"
 for job in "${JOBS[@]}"; do
   IFS='|' read -r name data preset opts <<< "$job"
-  steps=$(python3 data/device/steps_for_budget.py "calib/$name/metrics.csv" "$BUDGET_S" 200 50)
+  steps=$(python3 benchmarks/device/steps_for_budget.py "calib/$name/metrics.csv" "$BUDGET_S" 200 50)
   echo "$name: $steps steps"
   launch "$name" "$data" "$preset" "$steps" "$(python3 -c "print(($BUDGET_S+30)/60)")" $opts
 done
 wait
 echo "== done $(date +%T)"
 for job in "${JOBS[@]}"; do IFS='|' read -r name _ <<< "$job"; tail -n 2 "runs/$name.log"; done
-python3 benchmarks/train_throughput.py --data data/soft_bounce --devices ${BENCH_DEVICES:-cuda,cpu} --batch-sizes ${BENCH_BATCHES:-4,32,128} \
+python3 -m benchmarks.train_throughput --data data/soft_bounce --devices ${BENCH_DEVICES:-cuda,cpu} --batch-sizes ${BENCH_BATCHES:-4,32,128} \
   --cpu-max-batch 4 --seq-len 1,6 --steps 5 --warmup 2 --out "$OUT/train_throughput.json"
 tar czf "$OUT/runs.tar.gz" runs/*/model.pt runs/*/last.pt runs/*/metrics.csv runs/*/config.json runs/*.log \
   calib/*/metrics.csv calib/*.log 2>/dev/null

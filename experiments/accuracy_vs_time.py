@@ -28,7 +28,7 @@ with each other, not with Table 1).
 
 Run (the reduced sweep of docs/performance.md)::
 
-    python benchmarks/accuracy_vs_time.py --budget 300 --episodes 40 --threads 1 --pitches 0.1,0.0333
+    python -m experiments.accuracy_vs_time --budget 300 --episodes 40 --threads 1 --pitches 0.1,0.0333
 
 Prints a markdown table, writes ``benchmarks/results/accuracy_vs_time.json`` and the Pareto plot
 ``benchmarks/results/accuracy_vs_time.png`` (time against error, Pareto front drawn).
@@ -38,7 +38,7 @@ trained: the one model is scored on the same scenes made at each pitch of ``--pi
 0.025, 0.035, 0.05, 0.08 m). The scenes are ``--episodes`` seeds (from ``--first-seed``) of one
 scene file (``--scene-file``, default the generalist's validation drop of two unseen meshes,
 ``data/shapes/unseen/validation_rigid.toml``), simulated by pybullet at each pitch and kept under
-``--work`` (an episode file there is reused: ``benchmarks/episode_cache.py``). At each pitch:
+``--work`` (an episode file there is reused: ``experiments/episode_cache.py``). At each pitch:
 the position and shape MSE at each of ``--horizons`` (default 15 and 50), mean and standard error
 over windows from step 2 and then every ``--stride`` steps
 (:func:`hrn_pyg.evaluate.evaluate_model`, the network alone); the model's time per step (median
@@ -51,7 +51,7 @@ when 0.05 is swept. A model reads
 the pitch from every graph (a pitch-aware model uses it; a plain one does not), and the model's
 domain check runs at each pitch: a pitch it was not trained at is warned about and recorded. Run::
 
-    python benchmarks/accuracy_vs_time.py --model shapes --pitches 0.025,0.035,0.05,0.08 \\
+    python -m experiments.accuracy_vs_time --model shapes --pitches 0.025,0.035,0.05,0.08 \\
         --out benchmarks/results/accuracy_vs_pitch_shapes.json
 
 prints its own table (pitch, leaves, pybullet and model ms per step, errors, ratios to pitch
@@ -66,7 +66,6 @@ import os
 import platform
 import shutil
 import statistics
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,7 +81,7 @@ from hrn_pyg.data.graph import NODE
 from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy
 from hrn_pyg.data.io import load_episode, save_episode
 from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
-from hrn_pyg.data.scene_file import builtin_scene, make_scene, read_scene_file
+from hrn_pyg.data.scene_file import builtin_scene, read_scene_file
 from hrn_pyg.evaluate import evaluate_model, select_windows, summarise
 from hrn_pyg.nn.hrn import HRNConfig
 from hrn_pyg.sampling.ensemble import episode_state
@@ -92,12 +91,11 @@ from hrn_pyg.train import TrainConfig, train
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.viz import save_figure
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from episode_cache import cached_episodes, episode_leaves, scene_digest, windows_of  # noqa: E402
-from pile_step import compiled_rollout  # noqa: E402
+from benchmarks.common import HORIZONS, STRIDE, compiled_rollout, pybullet_ms_per_step
+from experiments.episode_cache import cached_episodes, episode_leaves, scene_digest, windows_of
+
 
 SCENES = ("soft_bounce", "cube_collision")
-HORIZONS = (5, 15)
 #: the base point every sweep varies one knob of
 BASE_PITCH = 0.05
 BASE_HIDDEN = 64
@@ -105,8 +103,6 @@ BASE_HIDDEN = 64
 HIERARCHIES = ((8, 8), (2, 2), (1000, 1000))
 HIDDENS = (32, 64, 128)
 KS = (1, 4, 16)
-#: window starts this many steps apart in a test episode (evaluate's default)
-STRIDE = 10
 #: the one-model mode's defaults: scene file, pitches, horizons, episodes and first seed (the seeds
 #: the scene file's own comment generates its validation folder with)
 PITCH_SCENE = "data/shapes/unseen/validation_rigid.toml"
@@ -190,22 +186,6 @@ def make_dataset(work: Path, point: Point, episodes: int, steps: int) -> Path:
     atomic_write_json(done, {"episodes": episodes, "steps": steps, "pitch": point.pitch,
                              "branching": point.branching, "leaf_group_size": point.leaf_group})
     return folder
-
-
-def pybullet_ms_per_step(scene: str, pitch: float, repeats: int, steps: int = 20) -> tuple[float, int]:
-    """Median wall time (ms) of one model step of pybullet itself, and the leaf count."""
-    times, leaves = [], 0
-    for r in range(repeats):
-        sim = make_scene(builtin_scene(scene, pitch=pitch), r)
-        try:
-            leaves = len(sim.reset())
-            start = time.perf_counter()
-            for t in range(steps):  # model steps, each `substeps` physics steps
-                sim.step(*sim.scripted_action(t))
-            times.append((time.perf_counter() - start) / steps)
-        finally:
-            sim.close()
-    return 1e3 * statistics.median(times), leaves
 
 
 # ---------------------------------------------------------------------------------------------

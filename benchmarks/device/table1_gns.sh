@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Table 1's GNS rows from the shipped checkpoints, in one command (docs/gns.md):
-#   bash benchmarks/table1_gns.sh            # both scenes
-#   SCENES=cube_collision bash benchmarks/table1_gns.sh
+#   bash benchmarks/device/table1_gns.sh            # both scenes
+#   SCENES=cube_collision bash benchmarks/device/table1_gns.sh
 # Needs the datasets (hrn-pyg generate --scene <scene> --episodes 200 --out data/<scene>, as
 # data/recipes.toml). Scores the test split (seed % 10 == 9) at t+5/15 (windows 10 steps apart)
 # and t+50/100 (one per episode), 1000 steps from rest on validation seeds, and on cube_collision

@@ -6,8 +6,8 @@ differences of the bits, summed back on arrival); rest phases compress to almost
 ``unpack``: the folder again, each episode written with :func:`hrn_pyg.data.io.save_episode`.
 No pickle anywhere (``allow_pickle=False``).
 
-Usage: ``python data/device/pack.py pack data/soft_bounce OUT.pack.npz`` /
-``python data/device/pack.py unpack OUT.pack.npz data/soft_bounce``.
+Usage: ``python benchmarks/device/pack.py pack data/soft_bounce OUT.pack.npz`` /
+``python benchmarks/device/pack.py unpack OUT.pack.npz data/soft_bounce``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GNS baseline on a lent GPU machine (run from the repository root, $OUT set by the device
-# tool): unpack the carried cube_collision and soft_bounce episode packs (data/device/pack.py),
+# tool): unpack the carried cube_collision and soft_bounce episode packs (benchmarks/device/pack.py),
 # calibrate each job's step rate on the machine (both jobs at once, as they will run), train both
 # for a fixed wall budget with checkpoints, and bring everything back as $OUT/gns_runs.tar.gz
 # (in 15 MiB parts, see the end).
@@ -22,7 +22,7 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>
 for scene in cube_collision soft_bounce; do
   pack="data/device/packs/$scene.pack.npz"
   if [ -f "$pack" ]; then
-    python3 data/device/pack.py unpack "$pack" "data/$scene" || exit 1
+    python3 benchmarks/device/pack.py unpack "$pack" "data/$scene" || exit 1
   fi
   [ -d "data/$scene" ] || { echo "no data/$scene and no $pack"; exit 1; }
   echo "$scene: $(ls data/$scene | grep -c '^episode_') episodes"
@@ -52,7 +52,7 @@ wait
 echo "== training $(date +%T)"
 for job in "${JOBS[@]}"; do
   IFS='|' read -r name data opts <<< "$job"
-  steps=$(python3 data/device/steps_for_budget.py "calib/$name/metrics.csv" "$BUDGET_S" 250 250)
+  steps=$(python3 benchmarks/device/steps_for_budget.py "calib/$name/metrics.csv" "$BUDGET_S" 250 250)
   echo "$name: $steps steps"
   rm -rf "runs/$name"
   python3 -m hrn_pyg.cli train --data "data/$data" --out "runs/$name" --train-steps "$steps" \

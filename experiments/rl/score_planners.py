@@ -12,7 +12,7 @@ states), from the same scenes and goals: what the policy can do in physics, apar
 open-loop replay's drift. The planner's mean in-model length ``L`` sets the task's thresholds
 (:func:`experiments.rl.planners.length_thresholds`).
 
-Run: ``python benchmarks/planners.py --task tower_aside [--episodes 64]
+Run: ``python -m experiments.rl.score_planners --task tower_aside [--episodes 64]
 [--out benchmarks/results/planners_tower_aside.json]``. Prints a table and writes JSON atomically.
 """
 
@@ -21,13 +21,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: experiments/ beside the package
 
 from experiments.rl.planners import (
     PLANNERS,

@@ -22,14 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from pile_step import time_pybullet  # noqa: E402  (a sibling benchmark's timed episode)
+from hrn_pyg.data.dataset import EpisodeWindows
+from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode
+from hrn_pyg.data.io import save_episode
+from hrn_pyg.evaluate import select_windows
+from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
-from hrn_pyg.data.dataset import EpisodeWindows  # noqa: E402
-from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode  # noqa: E402
-from hrn_pyg.data.io import save_episode  # noqa: E402
-from hrn_pyg.evaluate import select_windows  # noqa: E402
-from hrn_pyg.utils.files import atomic_write_json, atomic_write_text  # noqa: E402
+from benchmarks.common import time_pybullet
 
 
 def scene_digest(spec) -> str:

@@ -3,7 +3,7 @@
 The step rate is read after the first five rows (start-up); the answer is 85 % of the budget at
 that rate, rounded down to a multiple of ``round_to`` and at least ``minimum``.
 
-Usage: ``python data/device/steps_for_budget.py calib/<job>/metrics.csv BUDGET_S MINIMUM ROUND_TO``.
+Usage: ``python benchmarks/device/steps_for_budget.py calib/<job>/metrics.csv BUDGET_S MINIMUM ROUND_TO``.
 """
 
 from __future__ import annotations

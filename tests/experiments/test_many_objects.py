@@ -1,13 +1,13 @@
-"""``benchmarks/many_objects.py`` end to end on a tiny case: piles of 2 and 3 procedural meshes,
+"""``experiments/many_objects.py`` end to end on a tiny case: piles of 2 and 3 procedural meshes,
 one short episode each, scored and timed; a second run reuses the episodes it finds."""
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
 
 import pytest
-from benchmark_script import load_benchmark
 
 from hrn_pyg import evaluate
 
@@ -16,7 +16,7 @@ MESHES = ROOT / "data" / "shapes" / "meshes"
 
 
 def _benchmark():
-    return load_benchmark("many_objects")
+    return importlib.import_module("experiments.many_objects")
 
 
 def test_many_objects_scores_and_times_tiny_piles(tmp_path, capsys):

@@ -20,7 +20,7 @@ For one task and one clone checkpoint:
 
 Failed episodes count as ``max_steps`` long.
 
-Run: ``python benchmarks/clone.py --task cube_push_stop --policy benchmarks/results/clones/cube_push_stop.pt
+Run: ``python -m experiments.rl.score_clone --task cube_push_stop --policy benchmarks/results/clones/cube_push_stop.pt
 [--rates 0 0.1 0.3] [--episodes 64] [--eval-scenes 32] [--out benchmarks/results/clone_<task>.json]``.
 Prints tables and writes JSON atomically.
 """
@@ -31,25 +31,21 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: experiments/ beside the package
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from planners import closed_loop_rates  # noqa: E402  (a sibling benchmark's closed loop)
 
-from experiments.rl.clone import ActorPolicy, load_policy_actor  # noqa: E402
-from experiments.rl.partial_hits import partial_hit_share  # noqa: E402
-from experiments.rl.planners import PLANNERS, planner_policy  # noqa: E402
-from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, VALIDATION_SEEDS, HRNDynamics  # noqa: E402
-from hrn_pyg.rl.success_curve import EvalConfig, evaluate_point, evaluation_env  # noqa: E402
-from hrn_pyg.rl.tasks import get_task  # noqa: E402
-from hrn_pyg.sim.sleeping import DEFAULT_SLEEP  # noqa: E402
-from hrn_pyg.utils.checkpoint import load_checkpoint  # noqa: E402
-from hrn_pyg.utils.files import atomic_write_json, file_sha256  # noqa: E402
+from experiments.rl.clone import ActorPolicy, load_policy_actor
+from experiments.rl.partial_hits import partial_hit_share
+from experiments.rl.planners import PLANNERS, planner_policy
+from experiments.rl.score_planners import closed_loop_rates
+from hrn_pyg.rl.hrn_dynamics import POOL_SEEDS, VALIDATION_SEEDS, HRNDynamics
+from hrn_pyg.rl.success_curve import EvalConfig, evaluate_point, evaluation_env
+from hrn_pyg.rl.tasks import get_task
+from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
+from hrn_pyg.utils.checkpoint import load_checkpoint
+from hrn_pyg.utils.files import atomic_write_json, file_sha256
 
 
 def evaluation_scenes(task, dynamics, policy_module, planner_fn, scenes: int) -> dict:
