@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 
-from hrn_pyg.data.kinds import CLOTH, MATERIALS, RIGID, SOFT, STATIC  # noqa: F401  the material codes, here too
+from hrn_pyg.data.kinds import CLOTH, HISTORY, MATERIALS, RIGID, SOFT, STATIC  # noqa: F401  the material codes, here too
 from hrn_pyg.data.radius import collision_edges
 
 #: The only node type: leaves and their ancestors.
@@ -33,8 +33,6 @@ LEAF_TO_ANCESTOR = (NODE, "leaf_to_ancestor", NODE)
 WITHIN_SIBLINGS = (NODE, "within_siblings", NODE)
 ANCESTOR_TO_DESCENDANT = (NODE, "ancestor_to_descendant", NODE)
 EDGE_TYPES = (CHILD_TO_PARENT, COLLISION, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
-#: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
-HISTORY = 2
 #: The graph-level attribute holding the voxel pitch (m) the scene was made at, ``(B,)`` float64.
 PITCH = "pitch"
 

@@ -1,7 +1,8 @@
 """A scene's vocabulary without torch: the material names and codes, and :class:`SceneEffects`.
 
 Reading and checking a scene file (:mod:`hrn_pyg.data.scene_file`) needs these and nothing of
-torch, so a bad file is answered before torch is imported. :mod:`hrn_pyg.data.graph` and
+torch, so a bad file is answered before torch is imported; so do the command line's ``--help`` pages
+(the history length, the built-in scenes' names). :mod:`hrn_pyg.data.graph` and
 :mod:`hrn_pyg.data.effects` use the same names.
 """
 
@@ -15,6 +16,10 @@ MATERIALS = ("rigid", "soft", "cloth", "static")
 #: Material codes: the value of ``object_material`` and the column of ``graph['particle'].material``
 #: (static objects never move).
 RIGID, SOFT, CLOTH, STATIC = (MATERIALS.index(name) for name in ("rigid", "soft", "cloth", "static"))
+#: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
+HISTORY = 2
+#: the package's own scenes (``--scene``), one file each under ``hrn_pyg/data/builtin_scenes``
+SCENES: tuple[str, ...] = ("soft_bounce", "cube_collision", "wedge", "multi_material", "cube_push", "tower")
 
 
 @dataclass(frozen=True)

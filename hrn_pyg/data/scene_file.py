@@ -90,7 +90,7 @@ from hrn_pyg.data.expressions import (
     evaluate,
     names_in,
 )
-from hrn_pyg.data.kinds import CLOTH, MATERIALS, RIGID, SOFT, STATIC, SceneEffects
+from hrn_pyg.data.kinds import CLOTH, MATERIALS, RIGID, SCENES, SOFT, STATIC, SceneEffects  # noqa: F401  SCENES, here too
 from hrn_pyg.data.meshes import (
     PRIMITIVE_PROPORTIONS,
     PRIMITIVES,
@@ -160,9 +160,8 @@ MAX_STEPS = 10_000
 MAX_SUBSTEPS = 1_000
 #: where convex decompositions are cached (``HRN_PYG_CACHE`` overrides it)
 CACHE_DIR = Path(os.environ.get("HRN_PYG_CACHE", Path.home() / ".cache" / "hrn_pyg")) / "convex_parts"
-#: the package's own scenes, one file each
+#: the package's own scenes (their names: :data:`~hrn_pyg.data.kinds.SCENES`), one file each
 BUILTIN_DIR = Path(__file__).with_name("builtin_scenes")
-SCENES: tuple[str, ...] = ("soft_bounce", "cube_collision", "wedge", "multi_material", "cube_push", "tower")
 
 #: a fixed value or a ``{min, max}`` range as ``(low, high)`` arrays, or an expression
 Value = tuple[np.ndarray, np.ndarray] | str
