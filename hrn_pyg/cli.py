@@ -52,6 +52,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
     "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),
     "models": ("hrn_pyg.checkpoints.cli", "list the shipped models and what each was trained on"),
+    "view": ("hrn_pyg.export.view", "ground truth and sampled futures in 3D in the browser (one HTML file, served on 127.0.0.1)"),
 }
 
 #: what each option name shared by two or more commands means (one meaning per name)
@@ -62,6 +63,7 @@ MEANINGS: dict[str, str] = {
     "--episode-seed": "the pybullet episode simulated",
     "--eval-every": "updates or optimiser steps between evaluations",
     "--first-seed": "the first of consecutive seeds, one per episode or run",
+    "--fps": "frames per second of an animation",
     "--horizon": "model steps predicted from a start",
     "--k": "sampled futures per start",
     "--lr": "the optimiser's learning rate",

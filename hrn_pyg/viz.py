@@ -114,13 +114,14 @@ def _bulk(samples: np.ndarray) -> np.ndarray:
     return np.stack([np.min([c[0] for c in corners], axis=0), np.max([c[1] for c in corners], axis=0)])
 
 
-def _axes(fig, rows: int, cols: int, index: int, limits: np.ndarray):
-    """A 3-D panel with the box to scale, no ticks or panes, the ground grid drawn first."""
+def _axes(fig, rows: int, cols: int, index: int, limits: np.ndarray, view: tuple[float, float] = VIEW):
+    """A 3-D panel with the box to scale, no ticks or panes, the ground grid drawn first;
+    ``view`` is the camera's (elevation, azimuth) in degrees."""
     ax = fig.add_subplot(rows, cols, index, projection="3d")
     ax.computed_zorder = False  # draw in call order: ground, static, samples, truth on top
     ax.set_xlim(*limits[0]); ax.set_ylim(*limits[1]); ax.set_zlim(*limits[2])
     ax.set_box_aspect(tuple(limits[:, 1] - limits[:, 0]), zoom=ZOOM)
-    ax.view_init(elev=VIEW[0], azim=VIEW[1])
+    ax.view_init(elev=view[0], azim=view[1])
     ax.set_axis_off()
     for value in np.linspace(limits[0, 0], limits[0, 1], GROUND_LINES):
         ax.plot([value, value], limits[1], [0.0, 0.0], color=GROUND_COLOR, lw=0.5)
@@ -214,8 +215,30 @@ def _overlay(ax, truth_t: np.ndarray, samples_t: np.ndarray, colors, static: np.
     _note_out_of_view(ax, left_out, samples_t.shape[0] * int(moving.sum()))
 
 
+def _samples_legend(fig, colors, static: np.ndarray) -> None:
+    """A legend of the sample pictures: the ground truth dark, the sampled futures light (in
+    the first moving object's colour), static objects grey."""
+    from matplotlib.lines import Line2D
+
+    colors = np.asarray(colors)
+    moving = colors[~static] if colors.ndim == 1 and colors.shape[0] == len(static) else colors.reshape(-1)
+    light = str(moving[0]) if moving.size else PALETTE[0]
+    handles = [Line2D([], [], ls="", marker="o", ms=5, color=TRUTH_COLOR, label="ground truth"),
+               Line2D([], [], ls="", marker="o", ms=5, color=light, alpha=0.35, label="sampled futures")]
+    if static.any():
+        handles.append(Line2D([], [], ls="", marker="o", ms=5, color=STATIC_COLOR, label="static"))
+    fig.legend(handles=handles, loc="lower right", fontsize=7, frameon=False, ncol=len(handles))
+
+
+def figure_inches(size: tuple[int, int] | None, default: tuple[float, float], dpi: float) -> tuple[float, float]:
+    """A figure's size in inches: ``size`` (width, height) in pixels at ``dpi``, or ``default``."""
+    return default if size is None else (size[0] / dpi, size[1] / dpi)
+
+
 def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int], colors,
-                   path: str | os.PathLike, title: str = "", static: np.ndarray | None = None) -> None:
+                   path: str | os.PathLike, title: str = "", static: np.ndarray | None = None,
+                   size: tuple[int, int] | None = None, view: tuple[float, float] = VIEW,
+                   legend: bool = True) -> None:
     """Ground truth dark, each sampled future light, overlaid per time column (Fig. 6).
 
     Static leaves (``static``, or those coloured :data:`STATIC_COLOR`) are drawn once, light
@@ -231,20 +254,25 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
     limits = scene_limits(truth[list(times)], _bulk(samples[:, list(times)][:, :, ~static]), pad=SAMPLES_PAD)
     extent = limits[:, 1] - limits[:, 0]
     width = 2.2 * float(np.clip(extent[0] / max(extent[1], extent[2]) * 0.7, 1.0, 1.6))
-    fig = plt.figure(figsize=(width * len(times), 2.4), dpi=100)
+    fig = plt.figure(figsize=figure_inches(size, (width * len(times), 2.4), 100), dpi=100)
     for c, t in enumerate(times):
-        ax = _axes(fig, 1, len(times), c + 1, limits)
+        ax = _axes(fig, 1, len(times), c + 1, limits, view)
         _overlay(ax, truth[t], samples[:, t], colors, static, limits)
         ax.set_title(f"t+{t}" if t else "t", fontsize=9)
     if title:
         fig.suptitle(title, fontsize=10)
+    if legend:
+        _samples_legend(fig, colors, static)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.8, wspace=0.0)
     save_figure(fig, path)
 
 
-def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fps: int = 10,
-              samples: np.ndarray | None = None, static: np.ndarray | None = None) -> None:
-    """An animated GIF with one panel per named rollout; optional light sample clouds on top.
+def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fps: float = 10,
+              samples: np.ndarray | None = None, static: np.ndarray | None = None,
+              size: tuple[int, int] | None = None, view: tuple[float, float] = VIEW, legend: bool = True) -> None:
+    """An animated GIF (or, for a path ending in ``.mp4``, an H.264 video through imageio-ffmpeg)
+    with one panel per named rollout; optional light sample clouds on top, with a legend.
+    ``size`` is each frame's (width, height) in pixels (a video's rounded down to even numbers).
 
     Limits come from the first rollout (the ground truth) over all its frames and, with
     ``samples``, the central part of the moving samples (as in :func:`samples_figure`).
@@ -264,18 +292,32 @@ def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fp
     T = min(a.shape[0] for a in arrays)
     images = []
     for t in range(T):  # one picture per time step
-        fig = plt.figure(figsize=(3.2 * len(frames), 2.6), dpi=80)
+        fig = plt.figure(figsize=figure_inches(size, (3.2 * len(frames), 2.6), 80), dpi=80)
         for c, (name, pos) in enumerate(frames.items()):
-            ax = _axes(fig, 1, len(frames), c + 1, limits)
+            ax = _axes(fig, 1, len(frames), c + 1, limits, view)
             if samples is not None and c == 0:
                 _overlay(ax, pos[t], samples[:, t], colors, static, limits)
             else:
                 _note_out_of_view(ax, _draw(ax, pos[t], colors, limits), pos.shape[1])
             ax.set_title(f"{name}  t+{t}", fontsize=8)
         fig.subplots_adjust(left=0, right=1, bottom=0, top=0.9, wspace=0)
+        if legend and samples is not None:
+            _samples_legend(fig, colors, static)
         fig.canvas.draw()
         images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
         plt.close(fig)
+    if str(path).endswith(".mp4"):
+        import imageio_ffmpeg
+
+        height, width = (d - d % 2 for d in images[0].shape[:2])  # H.264 in yuv420p wants even sides
+        with atomic_path(path, suffix=".mp4") as tmp:
+            writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, codec="libx264",
+                                                 macro_block_size=1, output_params=["-f", "mp4"])
+            writer.send(None)  # start the encoder
+            for image in images:
+                writer.send(np.ascontiguousarray(image[:height, :width]))
+            writer.close()
+        return
     with atomic_path(path, suffix=".gif") as tmp:
         imageio.mimsave(tmp, images, format="GIF", duration=1.0 / fps, loop=0)
 

@@ -3,7 +3,10 @@
 The initial state comes from a test episode of a dataset folder (``--data``) or from a fresh
 pybullet episode (``--episode-seed``); the model's K sampled futures are drawn light, the simulator's
 ground truth dark, in a PNG of a few time columns and an animated GIF. Also writes
-``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]`` from the start state on).
+``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]`` from the start state on, and the
+scene: ``leaf_object``, ``object_material``, ``pitch``, ``dt``, its meshes at rest,
+:meth:`hrn_pyg.export.SceneMeshes.to_arrays`). ``--export glb,ply,obj,vtk`` also writes the
+futures as the scene's own meshes (:mod:`hrn_pyg.export`); ``hrn-pyg view`` shows them in 3D.
 
 Without ``--rate`` the model's own rate is used: the one ``hrn-pyg calibrate`` chose (its config's
 ``dropout_rate``), or :data:`UNCALIBRATED_RATE` for a model never calibrated (rate 0 in its
@@ -151,6 +154,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the network through torch.compile (Module.compile): a compile of "
                              "tens of seconds first, then fused steps while the graph's shapes hold; with "
                              "--fixed-shape each kind of whole step is compiled (FixedShapeConfig.compile)")
+    pictures = parser.add_argument_group("pictures and exports")
+    pictures.add_argument("--frames", default=None,
+                          help="steps drawn as the PNG's columns, comma-separated, e.g. 0,10,30 (default: 0, "
+                               "a quarter, half, three quarters and all of the horizon)")
+    pictures.add_argument("--size", default=None,
+                          help="WIDTHxHEIGHT in pixels of the PNG and of each animation frame, e.g. 1600x400 "
+                               "(default: 220 x 240 a column; 256 x 208 a frame)")
+    pictures.add_argument("--fps", type=float, default=10.0, help="frames per second of the GIF and the MP4")
+    pictures.add_argument("--camera", default="18,-72",
+                          help="the pictures' camera: elevation,azimuth in degrees")
+    pictures.add_argument("--mp4", action="store_true",
+                          help="also write samples.mp4 (needs imageio-ffmpeg: pip install 'hrn_pyg[viewer]')")
+    pictures.add_argument("--export", default=None,
+                          help="also write the futures as the scene's meshes: any of glb, ply, obj, vtk, "
+                               "comma-separated (hrn_pyg.export; --rate 0 --k 1 exports a deterministic rollout)")
     add_no_progress(parser)
     add_renamed(parser, "--steps", "--horizon")
     add_renamed(parser, "--seed", "--episode-seed")
@@ -171,6 +189,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--cuda-graph needs a CUDA device, got {device}")
     if args.scene_file and not args.model:
         raise ValueError("--scene-file needs --model (the shipped checkpoints each know one built-in scene)")
+    from hrn_pyg.export.options import check_picture_options
+
+    pictures = check_picture_options(args)
     source = scene_source(args)
     name = args.scene or source.name
     model_path = resolve_model(name, args.model)
@@ -210,18 +231,24 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("runs") / "sample" / name
     out.mkdir(parents=True, exist_ok=True)
     colors = object_colors(np.asarray(leaf_object), static=np.asarray(store.is_static[leaf]))  # static light grey
-    times = sorted({int(round(f * steps)) for f in FIGURE_COLUMNS})
+    times = pictures.times(steps, FIGURE_COLUMNS)
     title = f"{name}: {args.k} samples, dropout {rate:g}"
     bar.update()
     bar.set_postfix_str("figure")
-    samples_figure(truth, paths, times, colors, out / "samples.png", title=title)
+    samples_figure(truth, paths, times, colors, out / "samples.png", title=title, size=pictures.size,
+                   view=pictures.camera)
     bar.update()
     bar.set_postfix_str("animation")
-    write_gif({"truth (dark) + samples": truth}, colors, out / "samples.gif", samples=paths)
+    for suffix in ("gif", "mp4") if args.mp4 else ("gif",):
+        write_gif({"truth (dark) + samples": truth}, colors, out / f"samples.{suffix}", samples=paths,
+                  fps=pictures.fps, size=pictures.size, view=pictures.camera)
+    from hrn_pyg.export.options import result_meshes
+
+    meshes = result_meshes(args, source, np.asarray(leaf_object), steps, origin)
 
     def write_npz(f) -> None:
         buffer = io.BytesIO()
-        np.savez_compressed(buffer, samples=samples, truth=truth)
+        np.savez_compressed(buffer, samples=samples, truth=truth, **meshes.to_arrays())
         f.write(buffer.getvalue())
 
     atomic_write(out / "samples.npz", write_npz)
@@ -231,6 +258,12 @@ def run(args: argparse.Namespace) -> int:
         "device": str(device), "compiled": bool(args.compile),
         "fixed_shape": None if fixed is None else asdict(fixed), **origin,
     })
+    if pictures.export:
+        from hrn_pyg.export import export_trajectories, sample_trajectories
+
+        written = export_trajectories(meshes, sample_trajectories(truth, paths), out, pictures.export)
+        print(f"exported {', '.join(pictures.export)}: {', '.join(str(p) for p in written[:3])}"
+              + (f" and {len(written) - 3} more" if len(written) > 3 else ""))
     bar.update()
     bar.close()
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "
