@@ -40,6 +40,7 @@ from hrn_pyg.version import __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("hrn_pyg.data.generate", "simulate a scene in pybullet and write episodes"),
     "check-data": ("hrn_pyg.data.check", "check that a folder of episode files is one training can read"),
+    "import": ("hrn_pyg.data.tracks", "turn point tracks (npz, learning_to_simulate) into episode files"),
     "train": ("hrn_pyg.train", "train an HRN (presets: hrn, ours) or the GNS baseline (preset gns)"),
     "evaluate": ("hrn_pyg.evaluate", "Table 1: rollout errors of HRN vs ours on the test split"),
     "sample": ("hrn_pyg.sampling.cli", "sample K futures with Monte Carlo dropout"),
@@ -71,6 +72,7 @@ MEANINGS: dict[str, str] = {
     "--no-progress": "draw no progress bar",
     "--no-sleep": "every object runs at every step (no sleeping objects at rest)",
     "--out": "where the output goes (a folder or a file, as each command says)",
+    "--pitch": "the spacing of the leaves on the lattice, in m",
     "--scene": "a built-in scene's name",
     "--scene-file": "a scene file (TOML)",
     "--seed": "seeds a run's own random draws (initialisation, batches, noise)",
