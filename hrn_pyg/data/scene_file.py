@@ -16,6 +16,7 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
     size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor;
                                    # a primitive also takes extents = [x, y, z] (m; a round one
                                    # takes its diameter from x)
+    up = "z"                       # the mesh file's up axis: x, y or z (a Y-up OBJ: "y"); turned to z
     mass = 0.5                     # kg
     position = [0.0, 0.0, 0.3]     # m, the centre of the bounding box (a wedge: of its base)
     yaw = { min = 0, max = 360 }   # degrees; or orientation = [x, y, z, w]
@@ -120,7 +121,7 @@ p = import_pybullet()
 TOP_SETTINGS = tuple(f.name for f in dataclasses.fields(SceneConfig))
 #: keys of the file's top level, of an object, of a push and of a random push schedule
 SCENE_KEYS = (*TOP_SETTINGS, "effects", "pass_through", "overlap", "settings", "draw", "objects", "pushes")
-OBJECT_KEYS = ("mesh", "material", "size", "scale", "extents", "mass", "position", "orientation", "yaw", "velocity",
+OBJECT_KEYS = ("mesh", "material", "up", "size", "scale", "extents", "mass", "position", "orientation", "yaw", "velocity",
                "spin", "stiffness", "log10_mu", "log10_spring_k", "friction")
 PUSH_KEYS = ("object", "steps", "every", "force", "velocity", "towards", "spin", "random")
 RANDOM_KEYS = ("force", "hold", "pause", "aim", "aim_noise")
@@ -130,6 +131,10 @@ OBJECT_FIELDS: dict[str, int | None] = {
     "velocity": 3, "spin": 3, "stiffness": None, "log10_mu": None, "log10_spring_k": None, "friction": None}
 #: a cloth is a square sheet of side ``size``
 SHEET = "sheet"
+#: a mesh's ``up`` axis -> the rotation that turns it to +z (the package's up): y up turns
+#: +90 degrees about x, x up -90 degrees about y; z is the default and changes nothing
+UP_ROTATIONS = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
+                "x": np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])}
 #: a mesh named ``pybullet_data:<path>`` is one of the meshes that ship with pybullet
 PYBULLET_DATA = "pybullet_data:"
 #: draws of one seed tried before objects that overlap at the start are an error
@@ -280,6 +285,7 @@ class ObjectSpec:
 
     meshes: tuple[str, ...]
     material: str
+    up: str = "z"
     size: Value | None = None
     scale: Value | None = None
     extents: Value | None = None
@@ -662,7 +668,10 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
     values = _read_values(raw, OBJECT_FIELDS, known, where)
     if material in ("soft", "cloth") and own not in raw and "stiffness" not in raw:
         values["stiffness"] = (np.array(0.5), np.array(0.5))
-    spec = ObjectSpec(meshes=meshes, material=material, **values)
+    up = raw.get("up", "z")
+    if up not in UP_ROTATIONS:
+        raise ValueError(f"{where}.up: the mesh's up axis is one of {', '.join(sorted(UP_ROTATIONS))}, got {up!r}")
+    spec = ObjectSpec(meshes=meshes, material=material, up=up, **values)
     fixed = {k: v for k, v in values.items() if not isinstance(v, str)}
     for key in ("size", "scale", "mass"):
         if key in fixed and fixed[key][0] <= 0:
@@ -783,15 +792,22 @@ def _push(raw: Any, where: str, objects: tuple[ObjectSpec, ...], steps: int, kno
 
 def posed_mesh(obj: ObjectSpec, drawn: dict) -> trimesh.Trimesh | None:
     """The object's mesh at its drawn ``size``, ``scale`` or ``extents``, in its body frame: the
-    bounding box centred (a wedge: the middle of its base at the origin). None: a sheet."""
+    bounding box centred (a wedge: the middle of its base at the origin), its ``up`` axis turned
+    to z. None: a sheet."""
     mesh = drawn_mesh(obj, drawn)
     if mesh == SHEET:
         return None
     if mesh in PRIMITIVES:
-        return primitive_mesh(mesh, primitive_extents(mesh, drawn))
-    if "size" in drawn:
-        return sized_mesh(base_mesh(mesh), size=float(drawn["size"]))
-    return sized_mesh(base_mesh(mesh), scale=float(drawn["scale"]))
+        posed = primitive_mesh(mesh, primitive_extents(mesh, drawn))
+    elif "size" in drawn:
+        posed = sized_mesh(base_mesh(mesh), size=float(drawn["size"]))
+    else:
+        posed = sized_mesh(base_mesh(mesh), scale=float(drawn["scale"]))
+    if obj.up == "z":
+        return posed
+    turn = np.eye(4)
+    turn[:3, :3] = UP_ROTATIONS[obj.up]  # a quarter turn: the centred box stays centred
+    return posed.copy().apply_transform(turn)
 
 
 def primitive_extents(mesh: str, drawn: dict) -> np.ndarray:
