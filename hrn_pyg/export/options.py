@@ -58,6 +58,8 @@ def check_picture_options(args: argparse.Namespace) -> PictureOptions:
         frames = _numbers(args.frames, "--frames", None, int)
         if min(frames) < 0:
             raise ValueError(f"--frames: steps are >= 0, got {args.frames!r}")
+        if getattr(args, "steps", None) is not None and max(frames) > args.steps:
+            raise ValueError(f"--frames: step {max(frames)} is past the horizon ({args.steps})")
     size = None
     if args.size is not None:
         parts = str(args.size).lower().split("x")
