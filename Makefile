@@ -3,7 +3,7 @@ PY      ?= python3.11
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
-OUT     ?= out/demo
+OUT     ?= runs/demo
 JOBS    ?= 2
 
 .PHONY: demo test test-slow bench checkpoints mutation clean-venv

@@ -30,8 +30,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from types import ModuleType
 
 from hrn_pyg.utils.options import HelpFormatter, run_reporting_errors
 from hrn_pyg.version import __version__
@@ -96,8 +98,24 @@ RENAMED: dict[str, dict[str, str]] = {
 }
 
 
+def arguments_module(command: str) -> ModuleType:
+    """The module defining ``command``'s arguments: ``hrn_pyg.commands.<command>`` (no torch, so
+    ``--help`` answers at once) where there is one, else the command's own module."""
+    light = f"hrn_pyg.commands.{command.replace('-', '_')}"
+    return importlib.import_module(light if importlib.util.find_spec(light) else COMMANDS[command][0])
+
+
+def deferred_run(module_name: str) -> Callable[[argparse.Namespace], int]:
+    """``run`` of ``module_name``, imported when the command runs rather than when it is parsed."""
+    def run(args: argparse.Namespace) -> int:
+        return importlib.import_module(module_name).run(args)
+
+    return run
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The parser; only ``command``'s module is imported (the others load torchrl, pybullet, ...)."""
+    """The parser; only ``command``'s arguments are imported (its work loads torch, pybullet, ...
+    when it runs)."""
     parser = argparse.ArgumentParser(prog="hrn-pyg", description=__doc__.splitlines()[0],
                                      formatter_class=HelpFormatter)
     parser.add_argument("--version", action="version", version=f"hrn-pyg {__version__}")
@@ -106,9 +124,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=HelpFormatter)
         if name != command:
             continue
-        module = importlib.import_module(module_name)
-        module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+        arguments_module(name).add_arguments(p)
+        p.set_defaults(_run=deferred_run(module_name))
     return parser
 
 

@@ -27,10 +27,11 @@ from types import ModuleType
 import hrn_pyg.evaluate as evaluate_command
 import hrn_pyg.sampling.cli as sample_command
 from hrn_pyg.checkpoints import CHECKPOINT_DIR
+from hrn_pyg.commands.demo import add_arguments  # noqa: F401  the command's arguments, here too
 from hrn_pyg.rl.showcase import showcase_policy
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_text
-from hrn_pyg.utils.options import HelpFormatter, add_no_progress
+from hrn_pyg.utils.options import HelpFormatter
 
 #: test-split seeds (seed % 10 == 9) used for the demo's held-out episodes, far from the
 #: seeds of the shipped training data (0..199)
@@ -66,14 +67,6 @@ def run_command(name: str, module: ModuleType, argv: list[str]) -> int:
 def _note(lines: list[str], text: str) -> None:
     print(text, flush=True)
     lines.append(text)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/demo", help="output folder")
-    parser.add_argument("--k", type=int, default=16, help="sampled futures per scene")
-    parser.add_argument("--device", default=None,
-                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
-    add_no_progress(parser)
 
 
 def run(args: argparse.Namespace) -> int:

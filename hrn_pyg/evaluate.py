@@ -47,6 +47,7 @@ from torch_geometric.utils import scatter
 
 from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
+from hrn_pyg.commands.evaluate import DEFAULT_LONG_HORIZONS, add_arguments  # noqa: F401  the command's arguments, here too
 from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
@@ -57,12 +58,10 @@ from hrn_pyg.sim.stability import StabilityLimits, stability_report
 from hrn_pyg.sim.step import NEXT_POS
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
-from hrn_pyg.utils.options import add_no_progress, progress_bar
+from hrn_pyg.utils.options import progress_bar
 
 METRICS = ("position", "velocity", "shape")
 DEFAULT_HORIZONS = (5, 15)
-#: Long horizons of the second table (read at the episode's end where an episode is shorter).
-DEFAULT_LONG_HORIZONS = (50, 100)
 #: The rest metrics of each model, in table order.
 REST_METRICS = ("ground_depth", "rest_height_error", "rest_drift")
 
@@ -425,35 +424,6 @@ def rest_check(model, episode: Mapping[str, Any], steps: int,
             return {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, help="episode folder; its test split is used")
-    parser.add_argument("--model", action="append", required=True, metavar="NAME=PATH",
-                        help="a checkpoint to score, e.g. --model hrn=runs/hrn/model.pt, or a shipped "
-                             "model by name: --model shapes or --model ours=shapes (repeatable)")
-    parser.add_argument("--strict", action="store_true",
-                        help="data outside what a model was trained on is an error (exit 2), not a "
-                             "one-line warning")
-    parser.add_argument("--rigid-fit", action="append", default=[], metavar="NAME",
-                        help="score model NAME with the rigid fit applied to its rigid objects after the "
-                             "network, e.g. a GNS trained without it: --model gns_rigid=runs/gns/model.pt "
-                             "--rigid-fit gns_rigid (repeatable)")
-    parser.add_argument("--out", required=True, help="folder for table.md, results.json and the figure")
-    parser.add_argument("--horizons", default="5,15", help="comma-separated steps ahead")
-    parser.add_argument("--long-horizons", default=",".join(map(str, DEFAULT_LONG_HORIZONS)),
-                        help="comma-separated steps ahead of the long-rollout table, one rollout per "
-                             "episode from its start; read at the episode's end when shorter "
-                             "('' for the rest metrics only)")
-    parser.add_argument("--device", default=None,
-                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
-    parser.add_argument("--stride", type=int, default=10, help="steps between window starts in an episode")
-    parser.add_argument("--limit", type=int, default=None, help="score at most this many trajectories")
-    parser.add_argument("--split", default="test", choices=("test", "val", "all"),
-                        help="held-out split to score (val for model selection, test for reporting; all: "
-                             "every episode, for a dataset not split by seed such as a scene file's)")
-    parser.add_argument("--no-figure", action="store_true", help="draw no rollout figure")
-    add_no_progress(parser)
-
-
 def _parse_models(specs: list[str]) -> dict[str, str]:
     models = {}
     for spec in specs:
@@ -511,7 +481,7 @@ def run(args: argparse.Namespace) -> int:
                f"leaf moved < {REST_SPEED * 1e3:g} mm/step over the last {REST_STEPS} steps of the ground "
                f"truth; ground truth below ground: {truth_depth['mean']:.3g} m.")
     table = markdown_table(summaries, horizons, scene) + "\n" + caption + "\n\n" + long_table(long_summaries, scene)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else Path("runs") / "evaluate" / scene
     atomic_write_text(out / "table.md", table)
     atomic_write_json(out / "results.json", {
         "scene": scene, "data": str(args.data), "split": args.split, "device": str(device),

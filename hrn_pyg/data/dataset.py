@@ -179,7 +179,8 @@ class EpisodeWindows(Dataset):
         chosen = [(seed, path) for seed, path in found if split == ALL or split_of_seed(seed) == split]
         if not chosen:
             raise ValueError(f"no episodes of split {split!r} among the {len(found)} in "
-                             f"{', '.join(str(f) for f in folders)}")
+                             f"{', '.join(str(f) for f in folders)} (seeds ending in 9 are test, 8 validation; "
+                             "--split all takes every episode, as for a dataset not split by seed)")
         self.seeds = [seed for seed, _ in chosen]
         self.paths = [path for _, path in chosen]
 

@@ -28,32 +28,8 @@ from tqdm import tqdm
 
 from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode
 from hrn_pyg.data.io import save_episode
-from hrn_pyg.data.scene_file import SCENES, builtin_scene, check_scene_name, read_scene_file
+from hrn_pyg.data.scene_file import builtin_scene, check_scene_name, read_scene_file
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
-from hrn_pyg.utils.options import add_no_progress, add_renamed
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--scene", help=f"a built-in scene: {', '.join(SCENES)}")
-    source.add_argument("--scene-file", help="a scene file (TOML: objects from meshes, materials, pushes)")
-    parser.add_argument("--episodes", type=int, required=True, help="episodes in the dataset")
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes")
-    parser.add_argument("--shard", default="0/1", help="i/N: this machine's share of the episodes")
-    parser.add_argument("--episode-steps", type=int, default=None, dest="steps",
-                        help="model steps per episode (default: the scene's)")
-    parser.add_argument("--first-seed", type=int, default=0, dest="seed_offset", metavar="SEED",
-                        help="seed of episode 0 (episode i: first seed + i)")
-    parser.add_argument("--substeps", type=int, default=None, help="physics steps per model step (default: the scene's)")
-    parser.add_argument("--physics-hz", type=float, default=None, help="physics rate in Hz (default: the scene's)")
-    parser.add_argument("--pitch", type=float, default=None, help="voxel size of the leaves in m (default: the scene's)")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
-                        help="any other setting of the scene (its file's top level or [settings]), VALUE as "
-                             "JSON, e.g. offset_range=[-0.003,0.003] (repeatable)")
-    add_no_progress(parser)
-    add_renamed(parser, "--steps", "--episode-steps")
-    add_renamed(parser, "--seed-offset", "--first-seed")
 
 
 #: settings of a scene that have an option of their own, and its name
@@ -178,8 +154,8 @@ def run(args: argparse.Namespace) -> int:
     # pybullet keeps part of its soft-body state per process, and a reset does not clear it: an
     # episode with soft bodies or cloth then depends on the episodes run before it in the same
     # process. Each such episode gets an interpreter of its own, so a seed gives the same episode
-    # whatever the workers, shards or resume point.
-    isolate = spec.uses_deformables
+    # whatever the workers, shards or resume point. MuJoCo keeps nothing between its models.
+    isolate = spec.uses_deformables and spec.engine == "pybullet"
     try:
         if tasks and (isolate or (args.workers > 1 and len(tasks) > 1)):
             # spawn: a fresh interpreter per worker (per episode when isolating), each with its

@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -74,6 +74,8 @@ from hrn_pyg.rl.tasks import (
 )
 from hrn_pyg.sampling.sample import draw_masks
 from hrn_pyg.utils.checks import check_rate
+from hrn_pyg.utils.device import resolve_device
+from hrn_pyg.utils.files import atomic_write_json
 
 #: the ways to score a candidate from its K futures
 SCORES = ("deterministic", "mean", "risk")
@@ -601,7 +603,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episode-seed", type=int, default=10_000, help="the pybullet episode simulated")
     parser.add_argument("--seed", type=int, default=0, help="seeds the planner's candidates and masks")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument("--out", default="runs/plan/episode.png", help="the picture (PNG)")
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
+    parser.add_argument("--out", default=None,
+                        help="output folder: episode.png (the picture) and episode.json (default: runs/plan/<task>)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -620,7 +625,8 @@ def run(args: argparse.Namespace) -> int:
         task = replace(task, max_steps=min(args.control_steps, task.max_steps),
                        hold_steps=min(task.hold_steps, args.control_steps))
     torch.set_num_threads(args.threads)
-    dynamics = HRNDynamics.from_checkpoint(args.model, task, pool_seeds=(args.episode_seed,))
+    device = resolve_device(args.device)
+    dynamics = HRNDynamics.from_checkpoint(args.model, task, device, pool_seeds=(args.episode_seed,))
     planner = MPCPlanner(dynamics, config, seed=args.seed)
     goal = episode_goal(task, dynamics, 0, args.episode_seed)
     result = plan_episode(planner, args.episode_seed, goal)
@@ -629,11 +635,17 @@ def run(args: argparse.Namespace) -> int:
           f"(score {config.score}{', refined' if config.refine_steps else ''}, rate {planner.rate:g})")
     print(f"planning per control step: {sum(plan_s) / len(plan_s):.3f} s "
           f"(max {max(plan_s):.3f} s); pybullet step: {sum(physics_s) / len(physics_s) * 1e3:.2f} ms")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    episode_figure(result, task, out, title=f"{task.name}, model {args.model}, score {config.score}"
+    out = Path(args.out) if args.out else Path("runs") / "plan" / task.name
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "episode.json", {
+        "task": task.name, "model": str(args.model), "episode_seed": args.episode_seed, "seed": args.seed,
+        "device": str(device), "success": bool(result["success"]), "steps": int(result["steps"]),
+        "rate": float(planner.rate), "plan_seconds": [float(s) for s in plan_s],
+        "physics_seconds": [float(s) for s in physics_s], "planner": asdict(config)})
+    picture = out / "episode.png"
+    episode_figure(result, task, picture, title=f"{task.name}, model {args.model}, score {config.score}"
                    f"{' + refine' if config.refine_steps else ''}, N={config.candidates}, "
                    f"H={config.horizon}x{config.action_repeat}, K={config.num_futures}, rate {planner.rate:g}")
-    print(f"picture: {out}")
+    print(f"picture: {picture}; record: {out / 'episode.json'}")
     return 0
 

@@ -44,6 +44,7 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.checkpoints import load_model, resolve_model
+from hrn_pyg.commands.calibrate import DEFAULT_RATES, DEFAULT_SEEDS, add_arguments  # noqa: F401  the command's arguments, here too
 from hrn_pyg.data.dataset import (
     EPISODE_PATTERN,
     SPLIT_MODULUS,
@@ -52,7 +53,7 @@ from hrn_pyg.data.dataset import (
     read_episode,
 )
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scene_file import SCENES, check_scene_name
+from hrn_pyg.data.scene_file import check_scene_name
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
@@ -63,12 +64,7 @@ from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
-from hrn_pyg.utils.options import add_no_progress, add_renamed
 
-#: candidate dropout rates tried by default
-DEFAULT_RATES = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
-#: validation seeds used when neither ``--episode-seeds`` nor ``--data`` is given
-DEFAULT_SEEDS = (8, 18, 28)
 #: default output: ``<stem>.calibrated.pt`` beside the input
 CALIBRATED_SUFFIX = ".calibrated.pt"
 #: key of the calibration record in a checkpoint's JSON config
@@ -387,42 +383,6 @@ def allowed_modules(model: HRN, record: dict | None) -> tuple[str, ...]:
 
 
 # ----------------------------------------------------------------------------- CLI
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", default=None,
-                        help="built-in scene the model simulates (picks the default checkpoint); may be left "
-                             "out with --data, whose meta.json names the scene (a scene file's too): "
-                             f"{', '.join(SCENES)}")
-    parser.add_argument("--model", default=None,
-                        help="checkpoint: a path or a shipped model's name (default: the shipped model of --scene)")
-    source = parser.add_mutually_exclusive_group()
-    source.add_argument("--data", action="append", default=None,
-                        help="episode folder from `hrn-pyg generate`: its validation episodes are the starts "
-                             "(repeatable: a model of many scenes is calibrated on all of them)")
-    source.add_argument("--episode-seeds", default=None, dest="seeds", metavar="SEEDS",
-                        help="comma-separated validation seeds (seed %% 10 == 8) simulated fresh "
-                             f"(default without --data: {','.join(map(str, DEFAULT_SEEDS))})")
-    parser.add_argument("--starts", type=int, default=4,
-                        help="with --data: at most this many validation episodes per folder")
-    parser.add_argument("--rates", default=",".join(f"{r:g}" for r in DEFAULT_RATES),
-                        help="comma-separated candidate dropout rates, each in [0, 1)")
-    parser.add_argument("--module-sets", nargs="+", default=None, metavar="SET", dest="modules",
-                        help="candidate module sets, each comma-separated, e.g. force force,collision "
-                             "(default: all the model's dropout_modules, then each alone)")
-    parser.add_argument("--k", type=int, default=16, help="sampled futures per candidate and start")
-    parser.add_argument("--members", type=int, default=16, help="ground-truth ensemble members per start")
-    parser.add_argument("--horizon", type=int, default=20, dest="steps", help="predicted steps; scored at the last")
-    parser.add_argument("--position-std", type=float, default=PerturbationConfig().position_std,
-                        help="ensemble start perturbation in metres")
-    parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
-    target = parser.add_mutually_exclusive_group()
-    target.add_argument("--out", default=None, help="calibrated checkpoint to write (default: <model>.calibrated.pt)")
-    target.add_argument("--in-place", action="store_true", help="write the choice into --model itself")
-    parser.add_argument("--device", default=None,
-                        help="torch device, e.g. cpu, cuda (default: cuda if available, else cpu)")
-    add_no_progress(parser)
-    add_renamed(parser, "--steps", "--horizon")
-    add_renamed(parser, "--seeds", "--episode-seeds")
-    add_renamed(parser, "--modules", "--module-sets")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -436,7 +396,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--horizon must be >= 1, got {args.steps}")
     if args.starts < 1:
         raise ValueError(f"--starts must be >= 1, got {args.starts}")
-    perturbation = PerturbationConfig(position_std=args.position_std)
+    perturbation = PerturbationConfig() if args.position_std is None else PerturbationConfig(position_std=args.position_std)
     seeds = parse_seeds(args.seeds) if args.seeds is not None else list(DEFAULT_SEEDS) if args.data is None else None
     if args.scene is None and (args.data is None or args.model is None):
         raise ValueError("--scene is required unless --data folders name their scenes and --model is given")

@@ -61,9 +61,21 @@ def test_models_command_prints_every_model_and_json(capsys):
     assert main(["models"]) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in read_manifest()) and "pitch (m)" in out
+    assert max(len(line) for line in out.splitlines()) <= 100  # one terminal's width
     assert main(["models", "--json"]) == 0
     records = json.loads(capsys.readouterr().out)
     assert {r["name"] for r in records} == set(read_manifest())
+
+
+def test_models_name_prints_every_dataset_of_one_model(capsys):
+    shapes = next(m for m in shipped_models() if m.name == "shapes")
+    assert main(["models", "shapes"]) == 0
+    out = capsys.readouterr().out
+    assert f"trained on:         {', '.join(shapes.datasets)}" in out and str(shapes.path) in out
+    assert main(["models", "soft_bounce"]) == 0  # an alias
+    assert "model:              soft_bounce_ours" in capsys.readouterr().out
+    assert main(["models", "no_such_model"]) == 2
+    assert "no shipped model 'no_such_model'" in capsys.readouterr().err
 
 
 def test_version_comes_from_the_metadata(capsys):

@@ -57,8 +57,8 @@ def test_resume_after_kill(tmp_path):
     args = ["generate", "--scene", "cube_collision", "--episodes", str(n), "--out", str(out),
             "--episode-steps", "15", "--no-progress"]
     # the generate module alone (the full CLI imports every sub-command: slow to start)
-    script = ("import argparse, sys; from hrn_pyg.data import generate as g; "
-              "p = argparse.ArgumentParser(); g.add_arguments(p); "
+    script = ("import argparse, sys; from hrn_pyg.data import generate as g; from hrn_pyg.commands import generate as a; "
+              "p = argparse.ArgumentParser(); a.add_arguments(p); "
               "sys.exit(g.run(p.parse_args(sys.argv[1:])))")
     proc = subprocess.Popen([sys.executable, "-c", script, *args[1:]],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

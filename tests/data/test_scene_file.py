@@ -265,7 +265,8 @@ def test_any_model_samples_and_scores_a_scene_file_dataset(tmp_path, capsys):
     assert result["split"] == "all" and result["long_trajectories"] == 2
     assert main(["evaluate", "--data", str(data), "--model", f"a={checkpoint}", "--out", str(tmp_path / "e2"),
                  "--no-figure"]) == 2  # the default test split of seeds 0, 1 is empty: one clear line
-    assert "no episodes of split 'test'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "no episodes of split 'test'" in err and "--split all" in err
     samples = tmp_path / "samples"
     assert main(["sample", "--scene-file", str(path), "--model", str(checkpoint), "--k", "2", "--rate", "0.2",
                  "--horizon", "3", "--episode-seed", "1", "--out", str(samples), "--device", "cpu"]) == 0

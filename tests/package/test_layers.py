@@ -7,7 +7,7 @@ imports a computed name imports every package module it names in a string, as ``
 command table does). The order, bottom first; a module may import from its own layer or below
 (the package root is a layer entry for itself only, not for its submodules):
 
-    utils, version -> data, viz -> nn -> checkpoints -> sim -> train, losses, evaluate, metrics_rest,
+    utils, version -> data, viz, commands (a command's arguments, no torch) -> nn -> checkpoints -> sim -> train, losses, evaluate, metrics_rest,
     sampling -> rl -> recipe, demo, cli, the package root
 """
 
@@ -25,7 +25,7 @@ import hrn_pyg
 ROOT = Path(hrn_pyg.__file__).resolve().parent
 LAYERS = (
     ("hrn_pyg.utils", "hrn_pyg.version"),
-    ("hrn_pyg.data", "hrn_pyg.viz"),
+    ("hrn_pyg.data", "hrn_pyg.viz", "hrn_pyg.commands"),
     ("hrn_pyg.nn",),
     ("hrn_pyg.checkpoints",),
     ("hrn_pyg.sim",),

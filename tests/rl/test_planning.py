@@ -1,6 +1,7 @@
 """The model-predictive planner: one batched graph of candidates x futures, the CEM search, the
 three scores, gradient refinement, determinism, bad input, and ``hrn-pyg plan`` end to end."""
 
+import json
 import math
 
 import pytest
@@ -177,18 +178,20 @@ def test_bad_rollouts_and_returns_raise(dynamics):
 
 
 def test_plan_command_runs_one_short_closed_loop_episode(tmp_path, capsys):
-    out = tmp_path / "episode.png"
+    out = tmp_path / "plan"
     rc = main(["plan", "--task", "cube_push_stop", "--model", "cube_push", "--score", "risk", "--refine",
                "--refine-steps", "1", "--candidates", "4", "--elites", "2", "--iterations", "1",
-               "--horizon", "2", "--k", "2", "--control-steps", "2", "--out", str(out)])
+               "--horizon", "2", "--k", "2", "--control-steps", "2", "--device", "cpu", "--out", str(out)])
     text = capsys.readouterr().out
-    assert rc == 0 and out.stat().st_size > 0
+    assert rc == 0 and (out / "episode.png").stat().st_size > 0
+    record = json.loads((out / "episode.json").read_text())
+    assert record["steps"] == 2 and record["device"] == "cpu" and len(record["plan_seconds"]) == 2
     assert "after 2 steps" in text and "planning per control step" in text and "pybullet step" in text
 
 
 def test_plan_command_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     rc = main(["plan", "--task", "cube_push_stop", "--model", "cube_push", "--candidates", "0",
-               "--out", str(tmp_path / "x.png")])
+               "--out", str(tmp_path / "x")])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "candidates" in err
 
