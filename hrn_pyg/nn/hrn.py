@@ -157,6 +157,11 @@ class HRNConfig(NetworkConfig):
             package's rollout loop (:func:`hrn_pyg.sim.rollout.iterate`) applies it; the
             fixed-shape simulator (:mod:`hrn_pyg.sim.fixed_shape`) cannot, and refuses such a
             model on a scene whose cloth can land on another object.
+        energy_limit: no step ends with more energy than it started with plus the work of the
+            scene's pushes, per scene copy (:mod:`hrn_pyg.sim.energy`): the objects that gained
+            energy in a step that created some move by the fraction of their predicted step
+            that closes the balance. A rule applied after the network like ``cloth_clearance``
+            (:mod:`hrn_pyg.sim.rules`), on every path; the weights do not change.
         material_heads: the next-state module has one output network per material (rigid,
             soft, cloth) instead of one for all (:class:`~hrn_pyg.nn.state.NextStateModule`); a
             model without them starts one with them from its weights, every head a copy of its
@@ -201,6 +206,7 @@ class HRNConfig(NetworkConfig):
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
+    energy_limit: bool = False
     material_heads: bool = False
     equivariant: bool = False
     vector_channels: int = 8
@@ -313,11 +319,13 @@ class StepOptions:
         collisions: whether the next graph gets a collision search at :math:`x_{t+1}`
             (:func:`hrn_pyg.sim.step.step`; a rollout's ``EffectPlan.collisions``); False: nothing
             in the scene can touch, so the next graph has no collision edges and no search is made.
-        position_projection: ``(graph, prediction, movable) -> prediction``, a rule applied to
-            the step's :class:`~hrn_pyg.sim.step.Prediction` before the graph advances (a rollout's
-            :class:`~hrn_pyg.sim.cloth_contact.ClothContact` under ``HRNConfig.cloth_clearance``),
-            on the whole graph also when objects sleep (``movable``: the awake rows, else None);
-            None: none.
+        rules: ``(graph, prediction, force, movable) -> prediction``, the rules after the network
+            of the scene the step runs on (:class:`~hrn_pyg.sim.rules.StepRules`: cloth clearance,
+            the energy limit, failed copies held), applied to the step's
+            :class:`~hrn_pyg.sim.step.Prediction` on the whole graph before it advances, also when
+            objects sleep (``movable``: the awake rows, else None). None: the step makes the
+            model's rules of its graph itself (:func:`~hrn_pyg.sim.rules.step_rules`, a host pass
+            per step); a rollout makes them once.
         hierarchy: the :class:`HierarchyConstants` of the graph the step runs on
             (:func:`hrn_pyg.sim.step.hierarchy_constants`: the same for every graph of a rollout
             without sleeping), which the pass then reads instead of recomputing them; None:
@@ -331,8 +339,8 @@ class StepOptions:
     fixed_shape: bool = False
     collisions: bool = True
     hierarchy: HierarchyConstants | None = None
-    # (graph, Prediction, movable) -> Prediction; the step module, above this one, defines Prediction
-    position_projection: Callable[[HeteroData, tuple, Tensor | None], tuple] | None = None
+    # (graph, Prediction, force, movable) -> Prediction; the sim package, above this one, defines both
+    rules: Callable[[HeteroData, tuple, Tensor | None, Tensor | None], tuple] | None = None
 
 
 class HRNInputs(NamedTuple):

@@ -46,6 +46,7 @@ from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.rl.dynamics import ROOT_DIM
 from hrn_pyg.rl.tasks import TaskConfig, get_task
 from hrn_pyg.sampling.sample import draw_masks, model_device
+from hrn_pyg.sim.rules import step_rules
 from hrn_pyg.sim.sleeping import (
     DEFAULT_SLEEP,
     Objects,
@@ -266,6 +267,10 @@ class HRNDynamics:
         # every copy is pushed by its action: the force module runs (a zero row adds nothing)
         options = StepOptions(force_active=True, objects=(objs.of_node, objs.count))
         prediction = predict_held(self.model, graph, graph[NODE].force, masks, held, options)
+        # the rules after the network, as every rollout applies them; a copy that fails is held
+        rules = step_rules(self.model, graph, options.objects, hold_failed=True)
+        if rules is not None:
+            prediction = rules(graph, prediction, graph[NODE].force, None if held is None else ~held)
         leaf = graph[NODE].is_leaf
         since = (leaf_pos[:, 2] if prediction.prev_pos is None
                  else prediction.prev_pos[leaf].reshape(n, self.num_leaves, 3))

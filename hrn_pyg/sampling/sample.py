@@ -12,6 +12,7 @@ loop over samples.
 from __future__ import annotations
 
 import copy
+import warnings
 from collections.abc import Mapping
 
 import torch
@@ -23,7 +24,7 @@ from hrn_pyg.data.graph import NODE, replicate
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.nn.mlp import dropout_mask
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig, fixed_shape_rollout
-from hrn_pyg.sim.rollout import rollout
+from hrn_pyg.sim.rollout import iterate
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 from hrn_pyg.sim.step import MasksFn
 from hrn_pyg.utils.checks import check_count, check_rate
@@ -193,6 +194,11 @@ def sample(
             inside a step, optionally CUDA graphs); the same futures as with ``sleep=None``,
             which it needs.
 
+    A future whose prediction stops being finite (a blow-up) does not stop the others: it is
+    held from that step (:mod:`hrn_pyg.sim.rules`), returned as NaN from then on, and a
+    RuntimeWarning says how many failed. The model's rules after the network (cloth clearance,
+    the energy limit) apply to every future as to any rollout.
+
     Returns:
         Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps``. Only leaves are returned
         (they are the scene's particles); ancestors are mass-weighted means of their leaves
@@ -219,7 +225,43 @@ def sample(
     masks_fn = make_masks_fn(model, k, rate, generator, modules)
     if fixed_shape is not None:
         pos = fixed_shape_rollout(model, batched, steps, copies_forces, masks_fn, effects, fixed_shape).pos
+        failed_at = None
     else:
         with torch.no_grad():
-            pos = rollout(model, batched, steps, copies_forces, masks_fn, sleep, effects)  # [steps, k N, 3]
-    return pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()
+            pos, failed_at = _rollout_holding_failed(model, batched, steps, copies_forces, masks_fn, sleep, effects, k)
+    futures = pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()
+    if failed_at is not None and bool((failed_at < steps).any()):
+        futures = mark_failed(futures, failed_at)
+    return futures
+
+
+#: what a failed future holds from the step it failed on
+FAILED = float("nan")
+
+
+def _rollout_holding_failed(model: HRN, batched: HeteroData, steps: int, forces: Tensor | None,
+                            masks_fn: MasksFn | None, sleep: SleepConfig | None, effects: SceneEffects | None,
+                            k: int) -> tuple[Tensor, Tensor]:
+    """The rollout of the ``k`` copies with failed copies held (:mod:`hrn_pyg.sim.rules`):
+    positions ``[steps, k N, 3]`` and ``[k]`` long, the step each copy failed at (``steps``: never)."""
+    out, failed_at = [], torch.full((k,), steps, dtype=torch.long, device=batched[NODE].pos.device)
+    for t, result in enumerate(iterate(model, batched, steps, forces, masks_fn, sleep, effects, hold_failed=True)):
+        out.append(result.pos)
+        if result.failed is not None:
+            newly = result.failed[:k] & (failed_at == steps)
+            failed_at = torch.where(newly, torch.full_like(failed_at, t), failed_at)
+    return torch.stack(out), failed_at
+
+
+def mark_failed(futures: Tensor, failed_at: Tensor) -> Tensor:
+    """``futures`` ``[k, steps, L, 3]`` with every future that failed (``failed_at`` ``[k]``: the
+    step of its first non-finite prediction, ``steps`` if none) set to NaN from that step on, and
+    one warning line saying how many failed."""
+    k, steps = futures.shape[:2]
+    bad = failed_at < steps
+    count = int(bad.sum())
+    at = ", ".join(str(int(t) + 1) for t in failed_at[bad].tolist())
+    warnings.warn(f"{count} of {k} sampled futures failed (not finite from step {at}); the others are "
+                  "complete, the failed ones NaN from then on", RuntimeWarning, stacklevel=3)
+    after = torch.arange(steps, device=futures.device)[None, :] >= failed_at[:, None]  # [k, steps]
+    return torch.where(after[:, :, None, None], torch.full_like(futures, FAILED), futures)

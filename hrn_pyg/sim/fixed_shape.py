@@ -62,7 +62,7 @@ from hrn_pyg.data.effects import SceneEffects, plan_effects
 from hrn_pyg.data.graph import COLLISION, NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
-from hrn_pyg.sim.cloth_contact import cloth_contact
+from hrn_pyg.sim.rules import StepRules, step_rules
 from hrn_pyg.sim.rollout import check_forces
 from hrn_pyg.sim.step import NEXT_POS, MasksFn, hierarchy_constants, object_of, predict, require_state
 from hrn_pyg.utils.checks import non_finite_error
@@ -144,6 +144,8 @@ def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float
             weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
         prediction = predict(model, current, force, dict(zip(mask_names, masks)) or None,
                              replace(options, collision_weight=weight))
+        if options.rules is not None:
+            prediction = options.rules(current, prediction, force, None)
         next_pos = prediction.pos
         step = next_pos - pos
         speed = (step * step).sum(dim=-1).amax().sqrt()
@@ -246,11 +248,14 @@ class FixedShapeSimulator:
         self.model, self.config = model, config
         self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
         self.objects = object_of(self.graph) if model.config.rigid_fit else None
-        clearance = float(getattr(model.config, "cloth_clearance", 0.0))
-        if clearance > 0 and cloth_contact(self.graph, clearance, objects=self.objects) is not None:
+        rules = step_rules(model, self.graph, self.objects)
+        if rules is not None and rules.cloth is not None:
             raise ValueError(f"fixed_shape_rollout: this model keeps cloth out of solids (cloth_clearance="
-                             f"{clearance:g}), a rule whose sizes depend on the contacts, which fixed-shape steps "
-                             "do not run; roll this scene out with hrn_pyg.sim.rollout")
+                             f"{model.config.cloth_clearance:g}), a rule whose sizes depend on the contacts, which "
+                             "fixed-shape steps do not run; roll this scene out with hrn_pyg.sim.rollout")
+        # the energy limit without host reads: computed on every row, the unchanged ones selected
+        self.rules = None if rules is None else StepRules(None, rules.energy, rules.objects, rules.rigid_from_rest,
+                                                          host_reads=False)
         self.hierarchy = hierarchy_constants(model, self.graph)
         self._steps: dict[tuple, StepFn] = {}
 
@@ -258,7 +263,8 @@ class FixedShapeSimulator:
         # a recorded CUDA graph has the sizes it was recorded with; a compiled step takes any list size
         key = (force_active, names, radius, size if self.config.cuda_graph else None)
         if key not in self._steps:
-            options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy)
+            options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy,
+                                  rules=self.rules)
             fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
             if self.config.compile:
                 fn = torch.compile(own_code(fn), dynamic=None, options={"guard_filter_fn": step_input_guards})

@@ -24,7 +24,7 @@ from hrn_pyg.data.graph import NODE, set_state
 from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim import sleeping
-from hrn_pyg.sim.cloth_contact import cloth_contact
+from hrn_pyg.sim.rules import StepRules, step_rules
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 from hrn_pyg.sim.step import MasksFn, Step, hierarchy_constants, object_of, require_state, step
 from hrn_pyg.utils.checks import check_finite
@@ -54,6 +54,7 @@ def iterate(
     masks_fn: MasksFn | None = None,
     sleep: SleepConfig | None = DEFAULT_SLEEP,
     effects: SceneEffects | None = None,
+    hold_failed: bool = False,
 ) -> Iterator[Step]:
     """Feed the model its own predictions for ``steps`` steps, yielding each :class:`Step`.
 
@@ -68,8 +69,11 @@ def iterate(
     every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
     ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.data.effects.SceneEffects`;
     None: what the data show): a scene in which nothing can touch gets no collision search at
-    all. A model with ``cloth_clearance`` keeps the scene's cloth out of the other objects
-    (:mod:`hrn_pyg.sim.cloth_contact`, set up here once). The arguments are checked, and the
+    all. The model's rules after the network (:mod:`hrn_pyg.sim.rules`: cloth clearance, the
+    energy limit) are made here once and applied at every step. ``hold_failed``: a copy of a
+    batch whose prediction is not finite is held where it is and the others go on (each
+    :class:`Step`'s ``failed`` says which copies have failed so far); else such a step is an
+    error. The arguments are checked, and the
     plan, the start graph and the objects made, when
     this is called; the steps run as they are taken from the iterator.
     """
@@ -87,9 +91,8 @@ def iterate(
         objects = object_of(graph) if model.config.rigid_fit else None
     # what every step is told rather than finds out: inputs checked here, the objects, the plan
     options = StepOptions(check=False, objects=objects, collisions=plan.collisions)
-    clearance = float(getattr(model.config, "cloth_clearance", 0.0))
-    if clearance > 0 and plan.collisions:  # cloth kept out of the objects it falls on
-        options = replace(options, position_projection=cloth_contact(graph, clearance, objects=objects))
+    # the rules after the network (cloth clearance, the energy limit, failed copies held), made once
+    options = replace(options, rules=step_rules(model, graph, objects, hold_failed, plan.collisions))
     search = None
     if sleeper is None:  # every step runs on the whole graph: its hierarchy's constants are found once
         options = replace(options, hierarchy=hierarchy_constants(model, graph))
@@ -121,6 +124,8 @@ def _steps(model: HRN, graph: HeteroData, steps: int, forces: Tensor | None, mas
             result = sleeper.step(model, graph, force, masks, step_options)
         else:
             result = step(model, graph, force, masks, step_options, search=search)
+        if isinstance(options.rules, StepRules) and options.rules.hold_failed:
+            result = result._replace(failed=options.rules.failed)
         yield result
         graph = result.graph
 
@@ -133,9 +138,10 @@ def unroll(
     masks_fn: MasksFn | None = None,
     sleep: SleepConfig | None = DEFAULT_SLEEP,
     effects: SceneEffects | None = None,
+    hold_failed: bool = False,
 ) -> list[Step]:
     """Every :class:`Step` of :func:`iterate` (same arguments), in order."""
-    return list(iterate(model, graph, steps, forces, masks_fn, sleep, effects))
+    return list(iterate(model, graph, steps, forces, masks_fn, sleep, effects, hold_failed))
 
 
 def rollout(

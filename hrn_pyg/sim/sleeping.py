@@ -331,8 +331,8 @@ def sleeping_step(
         result = step(model, graph, force, masks, options)
         return result._replace(asleep=graph[NODE].is_static), state
     prediction = predict_held(model, graph, force, masks, asleep_node, options)
-    if options.position_projection is not None:
-        prediction = options.position_projection(graph, prediction, ~asleep_node)
+    if options.rules is not None:
+        prediction = options.rules(graph, prediction, force, ~asleep_node)
     pos, local, velocity, since = prediction
     nxt = advance(graph, asleep_node, pos, collision_radius_of(model.config, graph) if options.collisions else None,
                   since)

@@ -98,6 +98,9 @@ class Step(NamedTuple):
             all its held position).
         asleep: ``[N]`` bool, the nodes held still in this step because their object was asleep
             (:mod:`hrn_pyg.sim.sleeping`); None when sleeping is off.
+        failed: ``[R]`` bool, row ``b``: batch copy ``b`` has failed (a non-finite prediction,
+            held since) at this step or before (:class:`~hrn_pyg.sim.rules.StepRules`); None
+            when failed copies are an error.
     """
 
     pos: Tensor
@@ -105,6 +108,7 @@ class Step(NamedTuple):
     velocity: Tensor
     graph: HeteroData
     asleep: Tensor | None = None
+    failed: Tensor | None = None
 
 
 def require_state(graph: HeteroData, check: bool = True) -> None:
@@ -534,13 +538,14 @@ def step(
     search (False: no collision edges). ``search(graph, pos)`` (optional) gives the collision
     edges of the graph's leaves at ``pos``, as :func:`~hrn_pyg.data.graph.leaf_collision_edges`
     at the model's radius does (a rollout's :class:`~hrn_pyg.data.candidates.VerletSearch`);
-    None searches; ``options.position_projection`` (optional) is applied to the prediction
-    before the graph advances. The new positions are always checked for NaN / inf.
+    None searches; ``options.rules`` (the model's rules of the scene,
+    :func:`~hrn_pyg.sim.rules.step_rules`; None: only the decoder's) are applied to the
+    prediction before the graph advances. The new positions are always checked for NaN / inf.
     """
     options = _with_legacy(options, legacy, "step")
     prediction = predict(model, graph, force, masks, options)
-    if options.position_projection is not None:
-        prediction = options.position_projection(graph, prediction, None)
+    if options.rules is not None:
+        prediction = options.rules(graph, prediction, node_force(graph, force, check=False), None)
     pos, local, velocity, since = prediction
     if options.collisions and search is not None:
         check_next_pos(pos)

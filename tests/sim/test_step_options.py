@@ -44,8 +44,8 @@ def passes(monkeypatch):
     return seen
 
 
-def unchanged_prediction(graph, prediction, movable):
-    """A position projection that moves nothing."""
+def unchanged_prediction(graph, prediction, force, movable):
+    """Rules that move nothing."""
     return prediction
 
 
@@ -60,7 +60,7 @@ def every_option_set(graph) -> StepOptions:
         fixed_shape=True,
         collisions=False,
         hierarchy=hierarchy_constants(fitted_model(), graph),
-        position_projection=unchanged_prediction,
+        rules=unchanged_prediction,
     )
     default = StepOptions()
     unset = [f.name for f in dataclasses.fields(StepOptions) if getattr(options, f.name) is getattr(default, f.name)]
@@ -68,21 +68,22 @@ def every_option_set(graph) -> StepOptions:
     return options
 
 
-def test_a_position_projection_moves_the_step_before_the_graph_advances():
-    """``position_projection`` gets the graph at t and the prediction (no ``movable`` in a plain
-    step); what it returns is the step's result and the next graph's state."""
+def test_the_rules_move_the_step_before_the_graph_advances():
+    """``rules`` get the graph at t, the prediction and the step's force (no ``movable`` in a
+    plain step); what they return is the step's result and the next graph's state."""
     model = fitted_model(rigid_fit=True)
     graph = toy_scene()
     calls = []
     lift = torch.tensor([0.0, 0.0, 0.01])
 
-    def lifted(g, prediction, movable):
+    def lifted(g, prediction, force, movable):
         calls.append((g, movable))
+        assert force.shape == g[NODE].pos.shape
         return prediction._replace(pos=prediction.pos + lift, velocity=prediction.velocity + lift)
 
     with torch.no_grad():
         plain = step(model, graph)
-        moved = step(model, graph, options=StepOptions(position_projection=lifted))
+        moved = step(model, graph, options=StepOptions(rules=lifted))
     assert len(calls) == 1 and calls[0][0] is graph and calls[0][1] is None
     assert torch.allclose(moved.pos, plain.pos + lift) and torch.equal(moved.graph[NODE].pos, moved.pos)
     assert torch.allclose(moved.velocity, plain.velocity + lift)

@@ -1,0 +1,118 @@
+r"""The rules after the network, in one place: what every path applies to a step's prediction.
+
+:func:`~hrn_pyg.sim.step.decode` ends with the rules of the decoder (the rigid fit, the ground
+projection); the rules here need the scene or the step's force, so they are made once per scene
+(:func:`step_rules`) and applied by every step that path takes, the same way in each: the rollout
+loop (:func:`~hrn_pyg.sim.rollout.iterate`), the sleeping step, the fixed-shape simulator, the
+sampler and the RL dynamics (environment and planner). In order:
+
+1. **Failed copies held** (``hold_failed``): a copy of a batch whose prediction holds NaN or inf
+   stays where it is, with zero velocity, and is recorded in :attr:`StepRules.failed`; the
+   other copies go on. Without it a non-finite prediction is an error of the step.
+2. **Cloth clearance** (``HRNConfig.cloth_clearance``, :mod:`hrn_pyg.sim.cloth_contact`): a cloth
+   leaf left inside another object is moved back out.
+3. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
+   with more energy than it started with plus the work of its pushes.
+
+**Shapes.** A :class:`StepRules` maps a :class:`~hrn_pyg.sim.step.Prediction` of a graph of
+``N`` nodes (each tensor ``(N, 3)``) to another; ``failed`` is ``(R,)`` bool over the graph's
+``R`` objects, indexed by batch copy (the first ``B`` rows: one per copy).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from hrn_pyg.data.graph import NODE
+from hrn_pyg.sim.cloth_contact import ClothContact, cloth_contact
+from hrn_pyg.sim.energy import copy_of_objects, limit_energy
+from hrn_pyg.sim.step import Prediction, object_of
+
+
+class StepRules:
+    """The rules of one model on one scene (module docstring), made by :func:`step_rules`.
+
+    Call it as ``rules(graph, prediction, force, movable)``: ``graph`` the step's graph at
+    :math:`t` (the whole scene, with the structure the rules were made for), ``force`` ``[N, 3]``
+    the step's external force (N) or None, ``movable`` ``[N]`` bool the rows that may move (a
+    step with sleeping objects) or None.
+
+    Attributes:
+        cloth: the cloth rule's constants, or None (no moving cloth near a solid, or off).
+        energy: whether the energy limit applies.
+        objects: ``([N] long, R)``, every node's object (:func:`~hrn_pyg.sim.step.object_of`).
+        rigid_from_rest: the energy limit's rigid refit reads the rest shape.
+        hold_failed: a copy whose prediction is not finite is held rather than an error.
+        host_reads: the rules may read the device to skip work (False: a fixed-shape step, which
+            then has only the energy limit).
+        failed: ``[R]`` bool, row ``b``: copy ``b`` has failed at some step (``hold_failed``).
+    """
+
+    def __init__(self, cloth: ClothContact | None, energy: bool, objects: tuple[Tensor, int],
+                 rigid_from_rest: bool = False, hold_failed: bool = False, host_reads: bool = True) -> None:
+        if not host_reads and (cloth is not None or hold_failed):
+            raise ValueError("StepRules: cloth clearance and failed copies held need host reads")
+        self.cloth, self.energy, self.objects = cloth, energy, objects
+        self.rigid_from_rest, self.hold_failed, self.host_reads = rigid_from_rest, hold_failed, host_reads
+        self.failed = torch.zeros(objects[1], dtype=torch.bool, device=objects[0].device)
+
+    @property
+    def active(self) -> bool:
+        """Whether any rule can change a prediction."""
+        return self.cloth is not None or self.energy or self.hold_failed
+
+    def __repr__(self) -> str:
+        return (f"StepRules(cloth={self.cloth is not None}, energy={self.energy}, "
+                f"hold_failed={self.hold_failed})")
+
+    def __call__(self, graph: HeteroData, prediction: Prediction, force: Tensor | None = None,
+                 movable: Tensor | None = None) -> Prediction:
+        if self.hold_failed:
+            prediction = self.hold_non_finite(graph, prediction)
+        if self.cloth is not None:
+            prediction = self.cloth(graph, prediction, movable)
+        if self.energy:
+            prediction = limit_energy(graph, prediction, self.objects, force, movable, self.rigid_from_rest,
+                                      self.host_reads)
+        return prediction
+
+    def hold_non_finite(self, graph: HeteroData, prediction: Prediction) -> Prediction:
+        """``prediction`` with every copy that has a non-finite row held at :math:`x_t` (zero
+        velocity); such copies are added to :attr:`failed`. One host read."""
+        group, count = self.objects
+        bad_row = ~torch.isfinite(prediction.pos).all(-1)
+        copy = copy_of_objects(graph, self.objects)[group]  # [N]
+        bad = torch.zeros(count, dtype=torch.bool, device=group.device).index_fill_(0, copy[bad_row], True)
+        self.failed = self.failed | bad
+        if not bool(bad.any()):
+            return prediction
+        held = bad[copy].unsqueeze(-1)
+        store = graph[NODE]
+        zero = torch.zeros_like(store.pos)
+        since = None if prediction.prev_pos is None else torch.where(held, store.pos, prediction.prev_pos)
+        return Prediction(torch.where(held, store.pos, prediction.pos),
+                          torch.where(held, zero, prediction.local_velocity),
+                          torch.where(held, zero, prediction.velocity), since)
+
+    def failed_copies(self, copies: int) -> Tensor:
+        """``[copies]`` bool: which of the first ``copies`` copies have failed."""
+        return self.failed[:copies]
+
+
+def step_rules(model: torch.nn.Module, graph: HeteroData, objects: tuple[Tensor, int] | None = None,
+               hold_failed: bool = False, collisions: bool = True) -> StepRules | None:
+    """The :class:`StepRules` of ``model`` on the scene ``graph`` (a one-scene graph or a batch
+    of copies), or None when no rule has anything to do. ``objects``: :func:`object_of` of
+    ``graph`` if the caller has it; ``collisions=False``: nothing in the scene touches, so the
+    cloth rule has nothing to do. One host pass over the objects when the model keeps cloth out."""
+    config = model.config
+    clearance = float(getattr(config, "cloth_clearance", 0.0))
+    energy = bool(getattr(config, "energy_limit", False))
+    if not (clearance > 0 and collisions) and not energy and not hold_failed:
+        return None
+    objects = object_of(graph) if objects is None else objects
+    cloth = cloth_contact(graph, clearance, objects=objects) if clearance > 0 and collisions else None
+    rules = StepRules(cloth, energy, objects, bool(getattr(config, "rigid_fit_rest", False)), hold_failed)
+    return rules if rules.active else None
