@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from hrn_pyg.data import mujoco_scene  # noqa: F401  registers the mujoco engine of scene files
 from hrn_pyg.data.hierarchy import build_hierarchy
 from hrn_pyg.data.scene_file import SceneSpec, scene_spec
 from hrn_pyg.data.scenes import Scene
@@ -89,6 +90,8 @@ def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None
         record = {"params": sim.params, "config": spec.settings_dict()}
         if not isinstance(scene, str):
             record["scene_file"] = spec.text
+        if spec.engine != "pybullet":
+            record["engine"] = spec.engine
         episode = {
             "positions": positions,
             "forces": forces,

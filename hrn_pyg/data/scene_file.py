@@ -3,6 +3,7 @@ r"""Scenes from files: a TOML file of objects (any mesh, any material) and scrip
 .. code-block:: toml
 
     steps = 150                    # model steps per episode
+    engine = "pybullet"            # optional: the engine that simulates it, pybullet or mujoco
     pitch = 0.02                   # optional: voxel size of the leaves (m), substeps, physics_hz,
                                    # friction, rolling_friction (the ground's)
 
@@ -120,7 +121,7 @@ p = import_pybullet()
 #: the settings of a scene's top level (:class:`~hrn_pyg.data.scenes.SceneConfig`'s fields)
 TOP_SETTINGS = tuple(f.name for f in dataclasses.fields(SceneConfig))
 #: keys of the file's top level, of an object, of a push and of a random push schedule
-SCENE_KEYS = (*TOP_SETTINGS, "effects", "pass_through", "overlap", "settings", "draw", "objects", "pushes")
+SCENE_KEYS = (*TOP_SETTINGS, "engine", "effects", "pass_through", "overlap", "settings", "draw", "objects", "pushes")
 OBJECT_KEYS = ("mesh", "material", "up", "size", "scale", "extents", "mass", "position", "orientation", "yaw", "velocity",
                "spin", "stiffness", "log10_mu", "log10_spring_k", "friction")
 PUSH_KEYS = ("object", "steps", "every", "force", "velocity", "towards", "spin", "random")
@@ -165,6 +166,11 @@ MAX_STEPS = 10_000
 MAX_SUBSTEPS = 1_000
 #: where convex decompositions are cached (``HRN_PYG_CACHE`` overrides it)
 CACHE_DIR = Path(os.environ.get("HRN_PYG_CACHE", Path.home() / ".cache" / "hrn_pyg")) / "convex_parts"
+#: the engines a scene file may name (``engine = ...``); the first is the default
+ENGINES = ("pybullet", "mujoco")
+#: engine -> its scene class (called as ``cls(spec, seed)``); an engine's module adds itself
+#: (:mod:`hrn_pyg.data.mujoco_scene`), the pybullet one is :class:`FileScene` below
+ENGINE_SCENES: dict[str, Any] = {}
 #: the package's own scenes (their names: :data:`~hrn_pyg.data.kinds.SCENES`), one file each
 BUILTIN_DIR = Path(__file__).with_name("builtin_scenes")
 
@@ -349,6 +355,7 @@ class SceneSpec:
     declared_effects: dict[str, bool] = field(default_factory=dict)
     source: str = ""
     text: str = field(default="", repr=False)
+    engine: str = ENGINES[0]
 
     @property
     def effects(self) -> SceneEffects:
@@ -387,8 +394,15 @@ class SceneSpec:
         return dataclasses.replace(self, config=config, settings=settings)
 
     def make_scene(self, seed: int) -> FileScene:
-        """The pybullet scene of seed ``seed`` (call ``reset()`` to start it)."""
-        return FileScene(self, seed)
+        """The scene of seed ``seed`` in the spec's engine (call ``reset()`` to start it)."""
+        if self.engine not in ENGINE_SCENES:
+            raise ValueError(f"{self.name}: the {self.engine} engine is not loaded (import "
+                             f"hrn_pyg.data.{self.engine}_scene, or use hrn_pyg.data.episodes)")
+        return ENGINE_SCENES[self.engine](self, seed)
+
+    def with_engine(self, engine: str | None) -> SceneSpec:
+        """A copy simulated by ``engine`` (one of :data:`ENGINES`; None: unchanged)."""
+        return self if engine is None else dataclasses.replace(self, engine=_engine(engine, self.name))
 
     def names(self) -> dict[str, Any]:
         """What an expression may read before the draws: the settings and the scene's constants."""
@@ -599,7 +613,14 @@ def parse_scene(table: dict, name: str = "scene", base: Path = Path("."), source
     return SceneSpec(name=name, config=config, objects=specs, pushes=push_specs, settings=settings,
                      draws=tuple(draws), pass_through=_pairs(table.get("pass_through", []), len(specs), name),
                      allow_overlap=_overlap_rule(table.get("overlap", "redraw"), name),
-                     declared_effects=_effects(table.get("effects", {}), name), source=source, text=text)
+                     declared_effects=_effects(table.get("effects", {}), name), source=source, text=text,
+                     engine=_engine(table.get("engine", ENGINES[0]), name))
+
+
+def _engine(raw: Any, name: str) -> str:
+    if raw not in ENGINES:
+        raise ValueError(f"{name}: engine: one of {', '.join(ENGINES)}, got {raw!r}")
+    return raw
 
 
 def _table(table: dict, key: str, name: str) -> dict:
@@ -1049,6 +1070,9 @@ class FileScene(Scene):
         if obj.material in (SOFT, CLOTH):
             x = self._object_positions(obj)
             obj.velocity = velocity + np.cross(spin, x - x.mean(axis=0))
+
+
+ENGINE_SCENES[ENGINES[0]] = FileScene
 
 
 def stiffness_exponent(drawn: dict, log10_range: tuple[float, float]) -> float:
