@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     trajectories, meshes, dt = load_result(args.result)
     out = Path(args.out) if args.out else result_file(args.result).parent / VIEWER_NAME
     write_viewer(out, trajectories, meshes, dt=dt, fps=args.fps,
-                 title=f"{Path(args.result).name}: ground truth (dark) and {len(trajectories) - 1} futures (light); "
+                 title=f"{result_file(args.result).parent.resolve().name}: ground truth (dark) and {len(trajectories) - 1} futures (light); "
                        "click a legend entry to hide it")
     print(f"wrote {out} (opens from disk too)")
     if args.no_serve:

@@ -138,7 +138,7 @@ def viewer_html(trajectories: Mapping[str, np.ndarray], meshes: SceneMeshes | No
                       "buttons": [{"label": "play", "method": "animate", "args": [None, play]},
                                   {"label": "pause", "method": "animate",
                                    "args": [[None], {"frame": {"duration": 0, "redraw": False}, "mode": "immediate"}]}]}],
-        sliders=[{"active": 0, "x": 0.12, "len": 0.85, "y": 0.0, "yanchor": "top",
+        sliders=[{"active": 0, "x": 0.16, "len": 0.82, "y": 0.0, "yanchor": "top",
                   "currentvalue": {"prefix": f"step{seconds}: "},
                   "steps": [{"label": str(t), "method": "animate",
                              "args": [[str(t)], {"frame": {"duration": 0, "redraw": True}, "mode": "immediate",
@@ -146,6 +146,7 @@ def viewer_html(trajectories: Mapping[str, np.ndarray], meshes: SceneMeshes | No
     )
     figure = go.Figure(data=data, layout=layout, frames=frames)
     return figure.to_html(include_plotlyjs=True, full_html=True, div_id=VIEWER_DIV, auto_play=False,
+                          default_width="100%", default_height="96vh",
                           config={"displaylogo": False, "responsive": True})
 
 

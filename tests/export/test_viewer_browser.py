@@ -74,8 +74,15 @@ def test_the_viewer_draws_and_a_future_can_be_hidden(pybullet_run, tmp_path):
                 page.goto(f"http://{host}:{port}/{VIEWER_NAME}")
                 wait_for_plot(page)
                 plot = page.locator(f"#{VIEWER_DIV}")
-                shown = plot.screenshot()
-                assert coloured_share(pixels(shown)) > 0.01, "the 3D scene drew nothing"
+                first = plot.screenshot()
+                assert coloured_share(pixels(first)) > 0.01, "the 3D scene drew nothing"
+                page.evaluate(f"""() => {{ const gd = document.getElementById("{VIEWER_DIV}");
+                    return Plotly.animate(gd, [gd._transitionData._frames.at(-1).name],
+                                          {{frame: {{duration: 0, redraw: true}}, mode: "immediate"}}); }}""")
+                page.wait_for_timeout(800)
+                shown = plot.screenshot()  # the last frame: the futures apart from the truth
+                moved = (np.abs(pixels(first) - pixels(shown)).max(axis=2) > 30).mean()
+                assert moved > 0.002, f"the last frame differs from the first in {moved:.2%} of the picture"
                 page.locator(f"#{VIEWER_DIV} g.legend g.traces").nth(1).click()  # hide future_00
                 page.wait_for_function(f"""() => document.getElementById("{VIEWER_DIV}")
                     ._fullData.some(t => t.name === "future_00" && t.visible === "legendonly")""", timeout=5_000)
