@@ -64,6 +64,28 @@ step "hrn-pyg generate, sample, evaluate (a shipped model by name)"
 step "hrn-pyg demo"
 "$BIN/hrn-pyg" demo --k 2 --out demo
 
+step "the viewer extra: sample --export glb,ply,vtk, then hrn-pyg view's static page"
+"$BIN/python" -m pip install -q -c "$REPO/constraints.txt" "$WHEEL[viewer]"
+"$BIN/hrn-pyg" sample --scene soft_bounce --k 2 --horizon 3 --export glb,ply,vtk --out exported --no-progress
+test -s exported/rollout.glb && test -s exported/vtk/future_01.pvd && test -s exported/ply/future_01/frame_0003.ply
+"$BIN/hrn-pyg" view exported --no-serve
+grep -q "Plotly.newPlot" exported/viewer.html
+if command -v chromium >/dev/null 2>&1; then  # the page from disk, no server: Chromium's own screenshot
+    timeout 120 chromium --headless --no-sandbox --disable-gpu --no-first-run --disable-background-networking \
+        --disable-component-update --disable-sync --disable-quic --user-data-dir="$TMP/chromium" \
+        --window-size=900,600 --virtual-time-budget=8000 --screenshot="$TMP/work/viewer.png" \
+        "file://$TMP/work/exported/viewer.html" >/dev/null 2>&1
+    "$BIN/python" - "$TMP/work/viewer.png" <<'PY'
+import sys
+import numpy as np
+from PIL import Image
+image = np.asarray(Image.open(sys.argv[1]).convert("RGB")).astype(int)
+coloured = float(((image.max(axis=2) - image.min(axis=2)) > 60).mean())
+assert coloured > 0.01, f"the static viewer drew nothing ({coloured:.2%} coloured pixels)"
+print(f"static viewer from disk: {coloured:.1%} of the screenshot coloured")
+PY
+fi
+
 if [ -n "$(find "$TMP/venv" -path '*site-packages/hrn_pyg/*' -newer "$TMP/installed" -type f ! -name '*.pyc' | head -1)" ]; then
     echo "wheel check: commands wrote into the installed package:"; find "$TMP/venv" -path '*site-packages/hrn_pyg/*' -newer "$TMP/installed" -type f ! -name '*.pyc'
     exit 1
