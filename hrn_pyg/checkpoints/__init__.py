@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import os
 import shlex
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -26,8 +26,9 @@ import torch
 
 from hrn_pyg.checkpoints.domain import Domain, dataset_domain, with_pitch_range
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.nn.networks import NetworkConfig, applied_options, config_from_dict, network_from_dict
-from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from hrn_pyg.nn.networks import (NetworkConfig, applied_options, build_network, config_from_dict,
+                                 network_from_dict)
+from hrn_pyg.utils.checkpoint import CheckpointError, bounded_json, load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import file_sha256
 
@@ -43,6 +44,18 @@ POLICY_NAMES = ("cube_push_policy",)
 APPLIED_OPTIONS = ("mirror_average", "mirror_planes", "ground_projection", "ground_projection_rigid",
                    "rigid_ground_depth", "rigid_ground_speed", "ground_lift_velocity", "rigid_leaf_siblings",
                    "corotated_rest", "cloth_clearance", "rigid_fit_rest", "energy_limit")
+
+
+#: the most hidden layers per MLP a checkpoint's config may ask for (the shipped models have 2)
+MAX_DEPTH = 16
+#: the most message-passing steps (a GNS's processor; the shipped GNS has 10)
+MAX_PASSES = 64
+#: the largest any other whole-number size of a config may be (widths, channels, embeddings;
+#: the shipped models' widest is 128)
+MAX_WIDTH = 4096
+#: the most parameters a checkpoint's config may describe, counted before any weight is made
+#: (about 30 times the largest shipped model, a GNS of 1.6 M; 200 MB as float32)
+MAX_PARAMETERS = 50_000_000
 
 
 @dataclass(frozen=True)
@@ -135,10 +148,11 @@ def load_model(path: str | os.PathLike, device: str | torch.device | None = None
     path = model_path(path)
     ckpt = load_checkpoint(path)
     try:
-        config = json.loads(ckpt["config"])
-        model = network_from_dict(config["model"])  # an HRN, or a GNS (its config says so)
+        config = config_from_dict(json.loads(ckpt["config"])["model"])  # an HRN's, or a GNS's
+        check_model_size(config)
+        model = build_network(config)
         model.load_state_dict(ckpt["model"])
-    except (KeyError, TypeError, RuntimeError) as exc:
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise _not_a_model(path, exc) from None
     model.domain = checkpoint_domain(path, ckpt)
     model.checkpoint_name = display_name(path)
@@ -152,16 +166,47 @@ def checkpoint_config(path: str | os.PathLike) -> NetworkConfig:
     file when it holds no model config."""
     path = model_path(path)
     try:
-        return config_from_dict(json.loads(load_checkpoint(path)["config"])["model"])
+        config = config_from_dict(json.loads(load_checkpoint(path)["config"])["model"])
+        check_model_size(config)
+        return config
     except (KeyError, TypeError, ValueError) as exc:
         raise _not_a_model(path, exc) from None
 
 
+def check_model_size(config: NetworkConfig) -> None:
+    """ValueError naming the field when ``config`` asks for more than the limits allow: a depth
+    past :data:`MAX_DEPTH`, passes past :data:`MAX_PASSES`, another size past :data:`MAX_WIDTH`,
+    or more than :data:`MAX_PARAMETERS` parameters. The fields are compared first; then the
+    network is built on the ``meta`` device (shapes only, no memory for weights) and its
+    parameters counted, so a checkpoint's config is believed only once it is small enough."""
+    for field in fields(config):
+        if field.type not in (int, "int"):
+            continue
+        name, value = field.name, getattr(config, field.name)
+        limit = {"depth": MAX_DEPTH, "message_passing_steps": MAX_PASSES}.get(name, MAX_WIDTH)
+        if not isinstance(value, int) or value > limit:
+            raise ValueError(f"config field {name} = {value!r}; the limit is a whole number up to {limit}")
+    count = parameter_count(config)
+    if count > MAX_PARAMETERS:
+        raise ValueError(f"config describes {count} parameters, more than the limit {MAX_PARAMETERS}")
+
+
+def parameter_count(config: NetworkConfig) -> int:
+    """The parameters of :func:`~hrn_pyg.nn.networks.build_network` ``(config)``, counted on the
+    ``meta`` device (no weight is allocated)."""
+    with torch.device("meta"):
+        network = build_network(config)
+    return sum(parameter.numel() for parameter in network.parameters())
+
+
 def _not_a_model(path: Path, exc: Exception) -> CheckpointError:
-    """The one-line error for a file that holds no model: its path, the error's type and first line."""
-    text = str(exc).strip()
+    """The one-line error for a file that holds no model: its path, the error's type and its
+    first line (for a state dict that does not fit, the first line that names a key)."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    if len(lines) > 1 and lines[0].endswith(":"):  # torch's "Error(s) in loading state_dict for HRN:"
+        lines = [f"{lines[0]} {lines[1]}"]
     return CheckpointError(f"{path} is not an hrn_pyg model checkpoint "
-                           f"({type(exc).__name__}: {text.splitlines()[0] if text else ''})")
+                           f"({type(exc).__name__}: {lines[0] if lines else ''})")
 
 
 def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = None) -> Domain | None:
@@ -171,7 +216,7 @@ def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = Non
     ckpt = load_checkpoint(model_path(path)) if ckpt is None else ckpt
     if isinstance(ckpt.get("domain"), str):
         try:
-            return Domain.from_dict(json.loads(ckpt["domain"]))
+            return Domain.from_dict(bounded_json(ckpt["domain"], "domain"))
         except ValueError as exc:
             raise CheckpointError(f"{path}: {exc}") from None
     entry = _manifest_by_sha256().get(file_sha256(model_path(path)))

@@ -24,6 +24,14 @@ from hrn_pyg.utils.files import atomic_write
 #: Keys every checkpoint written by hrn_pyg carries.
 REQUIRED_KEYS = ("format", "model", "config")
 FORMAT = "hrn_pyg.checkpoint.v1"
+#: the deepest nesting of lists and objects in a checkpoint's JSON text (a config is three
+#: levels deep); deeper text is refused before a parser recurses into it
+MAX_JSON_DEPTH = 32
+#: the most characters of a checkpoint's JSON text (a config or a domain is a few kB)
+MAX_JSON_CHARS = 1_000_000
+#: a JSON string, escapes included (brackets inside one do not nest); an unclosed one runs to
+#: the end, so that every character is read once
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"?', re.DOTALL)
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> None:
@@ -36,13 +44,44 @@ class CheckpointError(ValueError):
     """A file that is not a usable hrn_pyg checkpoint; the message is one line naming the file."""
 
 
+def json_depth(text: str) -> int:
+    """The deepest nesting of ``[`` and ``{`` in JSON ``text``, brackets inside strings not
+    counted; read off the raw characters (a cumulative sum of +1 per opening and -1 per
+    closing bracket), so nothing recurses however deep the text is."""
+    bare = _JSON_STRING.sub("", text).encode("utf-8", "replace")
+    codes = np.frombuffer(bare, dtype=np.uint8)
+    steps = np.isin(codes, (ord("["), ord("{"))).astype(np.int64) - np.isin(codes, (ord("]"), ord("}")))
+    return int(np.cumsum(steps).max(initial=0))
+
+
+def check_json_size(text: str, what: str = "JSON") -> None:
+    """ValueError naming ``what`` when ``text`` has more than :data:`MAX_JSON_CHARS` characters
+    or is nested more than :data:`MAX_JSON_DEPTH` deep (:func:`json_depth`)."""
+    if len(text) > MAX_JSON_CHARS:
+        raise ValueError(f"{what} is {len(text)} characters of JSON, more than {MAX_JSON_CHARS}")
+    depth = json_depth(text)
+    if depth > MAX_JSON_DEPTH:
+        raise ValueError(f"{what} is JSON nested {depth} deep, more than {MAX_JSON_DEPTH}")
+
+
+def bounded_json(text: str, what: str = "JSON") -> Any:
+    """``json.loads(text)`` after :func:`check_json_size`; a ValueError (a ``JSONDecodeError``
+    for text that is not JSON) otherwise."""
+    check_json_size(text, what)
+    return json.loads(text)
+
+
 def _unreadable_reason(exc: BaseException) -> str:
     """A short description of why ``torch.load(weights_only=True)`` failed (torch's own
     messages run to a paragraph that suggests ``weights_only=False``, which is not an option)."""
     text = str(exc)
-    refused = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+    refused = re.search(r"(?:Unsupported global: GLOBAL|unsupported GLOBAL) ([\w.]+)", text)
     if refused:
         return f"it holds a pickled {refused.group(1)}, which a weights-only load refuses"
+    if re.search(r"Unsupported operand \d+", text):  # random bytes, or opcodes torch.save never writes
+        return "not a file written by torch.save"
+    if "Weights only load failed" in text:
+        return "a pickle that a weights-only load refuses"
     if "zip archive" in text or "PytorchStreamReader" in text:
         return "truncated or damaged zip archive"
     if isinstance(exc, EOFError):
@@ -66,19 +105,28 @@ def _foreign_reason(ckpt: object) -> str | None:
         return f"format {ckpt['format']!r}, expected {FORMAT!r}"
     if not isinstance(ckpt["model"], dict):
         return f"'model' is a {type(ckpt['model']).__name__}, not a state dict"
-    if not _is_json_object(ckpt["config"]):
-        return "'config' is not JSON text of an object"
+    for key in ("config", "domain"):  # JSON text, read with bounds before anyone parses it
+        if key == "config" or isinstance(ckpt.get(key), str):
+            reason = _json_object_reason(ckpt[key], repr(key))
+            if reason is not None:
+                return reason
     return None
 
 
-def _is_json_object(text: object) -> bool:
-    """Whether ``text`` is a string holding one JSON object (how configs are stored)."""
+def _json_object_reason(text: object, what: str) -> str | None:
+    """Why ``text`` is not a string holding one bounded JSON object (how configs and domains
+    are stored), or None when it is one."""
     if not isinstance(text, str):
-        return False
+        return f"{what} is a {type(text).__name__}, not JSON text"
     try:
-        return isinstance(json.loads(text), dict)
+        check_json_size(text, what)
+    except ValueError as exc:
+        return str(exc)
+    try:
+        value = json.loads(text)
     except json.JSONDecodeError:
-        return False
+        value = None
+    return None if isinstance(value, dict) else f"{what} is not JSON text of an object"
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:

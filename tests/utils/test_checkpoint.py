@@ -104,3 +104,27 @@ def test_cli_prints_one_line_and_exits_2(make, tiny_episodes, tmp_path, capsys):
     assert len(lines) == 1, captured.err
     assert re.fullmatch(rf"hrn-pyg evaluate: error: {re.escape(str(bad))} is not a readable checkpoint \(.+\)",
                         lines[0]), lines[0]
+
+
+def test_json_depth_counts_brackets_outside_strings():
+    from hrn_pyg.utils.checkpoint import json_depth
+
+    assert json_depth('{"a": [1, {"b": "[[[[\\"[["}]}') == 3
+    assert json_depth("") == 0
+    assert json_depth("[" * 100_000 + "]" * 100_000) == 100_000
+    assert json_depth('"\\' * 200_000) == 0  # an unclosed string runs to the end, read once
+
+
+def test_deeply_nested_config_and_domain_are_refused_before_parsing(tmp_path):
+    deep = "[" * 200_000 + "]" * 200_000
+    save_checkpoint(tmp_path / "config.pt", {"model": {}, "config": deep})
+    _raises_one_line(tmp_path / "config.pt", r"\('config' is JSON nested 200000 deep, more than 32\)$")
+    save_checkpoint(tmp_path / "domain.pt", {"model": {}, "config": "{}", "domain": '{"a": ' + deep + "}"})
+    _raises_one_line(tmp_path / "domain.pt", r"\('domain' is JSON nested 200001 deep, more than 32\)$")
+
+
+def test_pickles_refused_in_any_wording_name_what_was_refused(tmp_path):
+    # a protocol-0 pickle of os.system: torch words this refusal apart from "Unsupported global"
+    path = tmp_path / "system.pt"
+    path.write_bytes(b"cos\nsystem\n(S'echo hi'\ntR.")
+    _raises_one_line(path, r"\(it holds a pickled os\.system, which a weights-only load refuses\)$")
