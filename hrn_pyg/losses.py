@@ -1,12 +1,10 @@
-"""Training losses of the HRN: local and global velocity errors, two shape terms and a scoring rule.
+"""Training losses of the HRN: local and global velocity errors, two shape terms and the rest term.
 
 The group shape loss is the baseline HRN's (distances between siblings of one parent only); the
 fully-connected shape loss is the seed paper's (distances between all leaf pairs of an object),
 computed object by object in row chunks, each chunk's gradient formed with its value, so its memory
 stays bounded by ``chunk_size`` times the size of the largest object (and a few numbers per pair of
 each object under 64 leaves), in the forward and the backward pass.
-:func:`fair_energy_score` scores K sampled futures against the one observed future (the
-stochastic training mode of :mod:`hrn_pyg.train`, ``sample_copies``).
 """
 
 from __future__ import annotations
@@ -23,8 +21,6 @@ from hrn_pyg.nn.normalizer import Normalizer
 DEFAULT_CHUNK_SIZE = 512
 #: objects of fewer leaves are padded and taken together by :func:`full_shape_loss`
 SMALL_GROUP = 64
-#: smoothing length of the norm in :func:`fair_energy_score` (in the units of its inputs)
-ENERGY_EPSILON = 1e-6
 
 
 def _zero(like: Tensor) -> Tensor:
@@ -109,67 +105,6 @@ def rest_velocity_loss(
     resting = scored & ~is_static & (true_velocity.norm(dim=-1) < threshold)
     err = ((pred_velocity - true_velocity) / scale)[resting]
     return err.abs().mean() if err.numel() else _zero(pred_velocity)
-
-
-def contact_loss(pred_pos: Tensor, true_pos: Tensor, collision_edges: Tensor,
-                 scale: Tensor | float = 1.0, floor: Tensor | float | None = None) -> Tensor:
-    r"""Mean shortfall of the predicted distance of touching leaf pairs under the true distance.
-
-    .. math::
-        \mathcal{L}_{contact} = \frac{1}{|\mathcal{C}|} \sum_{(i, j) \in \mathcal{C}}
-            \frac{\max\bigl(0,\ \min(\lVert x_i - x_j \rVert, f_{ij}) - \lVert \hat x_i - \hat x_j \rVert\bigr)}{\sigma}
-
-    over :math:`\mathcal{C}`, the collision pairs (leaves of different objects within the
-    collision radius) of the predicted state. A pair the model brings closer than the truth has it
-    is one leaf on its way into the other's object, which is how a cloth ends up inside what it
-    falls on; the squared position errors see a shortfall of a fraction of a pitch hardly at all,
-    and see it no differently from the same error sideways. The term is zero for pairs the model
-    keeps at least as far apart as the truth, and zero when nothing touches. Without a floor
-    (:math:`f = \infty`) every touching pair is held to its true distance, which pushes pairs
-    apart on average (the term is one-sided); a ``floor`` :math:`f_{ij}` (metres, per pair or one
-    number) asks only that a pair be no closer than its true distance or :math:`f_{ij}`,
-    whichever is smaller, so pairs the model keeps farther than the floor cost nothing.
-
-    **Shapes:** pred_pos, true_pos :math:`(N, 3)`; collision_edges :math:`(2, E)`; floor a
-    number or :math:`(E,)`; returns a scalar.
-    """
-    if collision_edges.numel() == 0:
-        return _zero(pred_pos)
-    i, j = collision_edges
-    pred_distance = safe_norm(pred_pos[i] - pred_pos[j], keepdim=False)
-    target = (true_pos[i] - true_pos[j]).norm(dim=-1)
-    if floor is not None:
-        target = torch.minimum(target, torch.as_tensor(floor, dtype=target.dtype, device=target.device))
-    return (torch.relu(target - pred_distance) / scale).mean()
-
-
-def ground_loss(pred_pos: Tensor, true_pos: Tensor, moving_leaf: Tensor, floor: Tensor | float,
-                scale: Tensor | float = 1.0) -> Tensor:
-    r"""Mean depth by which the predicted leaves sink under a floor near the ground plane.
-
-    .. math::
-        \mathcal{L}_{ground} = \frac{1}{|\mathcal{M}|} \sum_{i \in \mathcal{M}}
-            \frac{\max\bigl(0,\ \min(z_i, f_i) - \hat z_i\bigr)}{\sigma}
-
-    over :math:`\mathcal{M}`, the moving leaves, with :math:`z` the true and :math:`\hat z` the
-    predicted height above the ground plane :math:`z = 0` and :math:`f_i` the floor (metres, per
-    leaf or one number; 0 is the plane itself, a negative floor lies under it). A leaf is held from
-    below to its true height or the floor, whichever is lower, so the term is zero for every leaf
-    the model keeps at least that high, and a leaf well above the floor is free to move down to
-    it. It is one-sided and absolute: a soft body at rest whose leaves creep into the ground by a
-    tenth of a millimetre a step (a squared error hardly sees it) feels a constant pull up. A
-    floor above the resting leaves' true heights holds every one of them from below and lifts
-    resting objects on average (their small errors count on one side only); a floor at or under
-    the plane asks only that no leaf end in the ground. Zero when no leaf sinks.
-
-    **Shapes:** pred_pos, true_pos :math:`(N, 3)`; moving_leaf :math:`(N,)` bool; floor a number
-    or :math:`(N,)`; returns a scalar.
-    """
-    floor = torch.as_tensor(floor, dtype=true_pos.dtype, device=true_pos.device).expand(true_pos.size(0))
-    true_z, pred_z, floor = true_pos[moving_leaf, 2], pred_pos[moving_leaf, 2], floor[moving_leaf]
-    if true_z.numel() == 0:
-        return _zero(pred_pos)
-    return (torch.relu(torch.minimum(true_z, floor) - pred_z) / scale).mean()
 
 
 def group_shape_loss(
@@ -351,43 +286,3 @@ def _smooth_distance(diff: Tensor, eps: float) -> Tensor:
     return torch.sqrt(diff.pow(2).sum(dim=-1) + eps * eps) - eps
 
 
-def fair_energy_score(
-    samples: Tensor,
-    truth: Tensor,
-    scale: Tensor | float = 1.0,
-    eps: float = ENERGY_EPSILON,
-) -> Tensor:
-    r"""Fair (unbiased) energy score of ``K >= 2`` samples against one observation (lower is better).
-
-    With :math:`X_k` the samples and :math:`y` the observation, both divided by ``scale``
-    :math:`\sigma` (a number or a per-axis ``(D,)`` tensor, e.g. the velocity scale):
-
-    .. math::
-        \mathrm{ES} = \frac{1}{K} \sum_{k=1}^{K} \lVert X_k - y \rVert
-            \; - \; \frac{1}{2K(K-1)} \sum_{k \ne l} \lVert X_k - X_l \rVert
-
-    This is the unbiased estimate of :math:`E\lVert X - y\rVert - \tfrac12 E\lVert X - X'\rVert` for
-    :math:`X, X' \sim F` independent: its expectation over the samples is the energy score of
-    their distribution :math:`F` itself, which is proper: in expectation over :math:`y \sim G`
-    it is smallest for :math:`F = G`, so a model trained on it is pulled towards the spread of the
-    data. (The plug-in form with :math:`1/(2K^2)`, :func:`hrn_pyg.sampling.metrics.energy_score`,
-    under-weights the spread by :math:`(K-1)/K` and so rewards too-narrow samples at small K.)
-    The norms are smoothed, :math:`\sqrt{\lVert d\rVert^2 + \epsilon^2} - \epsilon`, so the gradient is
-    finite (zero) where two samples or a sample and the observation coincide; the value moves by
-    less than ``eps`` per norm. Vectorised: every index of the middle dimensions is scored on
-    its own (e.g. one 3-D score per particle).
-
-    **Shapes:** samples ``(K, *, D)``, truth ``(*, D)``, scale a number or ``(D,)``; returns ``(*)``.
-    """
-    if samples.dim() < 2 or samples.shape[0] < 2:
-        raise ValueError(f"fair_energy_score: samples must be [K>=2, ..., D], got {tuple(samples.shape)}")
-    if truth.shape != samples.shape[1:]:
-        raise ValueError(
-            f"fair_energy_score: truth must be {tuple(samples.shape[1:])} (one observation), got {tuple(truth.shape)}"
-        )
-    k = samples.shape[0]
-    x, y = samples / scale, truth / scale
-    to_truth = _smooth_distance(x - y.unsqueeze(0), eps).mean(dim=0)
-    # the diagonal k = l is 0 and drops out of the sum; each unordered pair counted twice
-    pairs = _smooth_distance(x.unsqueeze(0) - x.unsqueeze(1), eps).sum(dim=(0, 1))
-    return to_truth - pairs / (2 * k * (k - 1))

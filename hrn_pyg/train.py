@@ -21,14 +21,6 @@ uninterrupted run would have had. Under ``torchrun --nproc_per_node N`` the same
 data-parallel (nccl on CUDA, gloo on CPU): each rank draws its own windows and gradients are
 averaged. ``--device`` (default CUDA when available) places the model and every batch;
 ``--workers N`` assembles the batches in N background processes.
-
-``--sample-copies K`` (K >= 2, with ``--train-dropout`` > 0) trains the distribution of the
-futures, not only their mean: every window of the batch is replicated K times into one batched
-graph (the layout of :func:`hrn_pyg.sampling.sample`), each copy unrolled with its own dropout
-mask per step, and the fair energy score of the K copies' leaf positions against the one true
-future (:func:`hrn_pyg.losses.fair_energy_score`) is added with weight ``w_energy`` to the
-usual terms, which are averaged over the copies. The default ``K = 0`` is the seed paper's
-plain dropout training.
 """
 
 from __future__ import annotations
@@ -53,15 +45,12 @@ from tqdm import tqdm
 
 from hrn_pyg.checkpoints import APPLIED_OPTIONS, checkpoint_config, load_model, training_domain, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
-from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, RIGID, WITHIN_SIBLINGS, node_pitch, set_state
+from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, RIGID, WITHIN_SIBLINGS, set_state
 from hrn_pyg.data.symmetry import apply_vertical_symmetry, random_vertical_symmetries
 from hrn_pyg.losses import (
     DEFAULT_CHUNK_SIZE,
-    contact_loss,
-    fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
-    ground_loss,
     group_shape_loss,
     local_velocity_loss,
     rest_velocity_loss,
@@ -85,7 +74,7 @@ from hrn_pyg.utils.checkpoint import (
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog
-from hrn_pyg.utils.options import add_no_progress, add_renamed, attribute_help, shown_default
+from hrn_pyg.utils.options import add_no_progress, add_removed, add_renamed, attribute_help, shown_default
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
 from hrn_pyg.utils.weight_average import WeightAverage
 from hrn_pyg.viz import plot_curves
@@ -98,11 +87,13 @@ REST_ROLLOUT_DRAWS = ("uniform", "log")
 NORMALIZER_WINDOWS = 256
 #: validation windows scored at every evaluation
 VAL_WINDOWS = 8
-#: columns of ``metrics.csv`` (read by name; ``energy`` is empty unless ``sample_copies`` >= 2,
-#: ``rest`` unless ``w_rest`` > 0, ``contact`` unless ``w_contact`` > 0, ``ground`` unless ``w_ground`` > 0;
-#: ``acceleration`` is the ``gns`` preset's loss, the HRN terms are empty there)
-LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "energy", "rest", "val_loss", "seconds",
-              "acceleration", "contact", "ground"]
+#: columns of ``metrics.csv`` (read by name; ``rest`` is empty unless ``w_rest`` > 0; ``acceleration``
+#: is the ``gns`` preset's loss, the HRN terms are empty there)
+LOG_FIELDS = ["step", "seq_len", "lr", "loss", "local", "global", "shape", "rest", "val_loss", "seconds", "acceleration"]
+#: options of earlier releases that no recipe or shipped model used; given, they warn and are
+#: ignored, for one release
+REMOVED_OPTIONS = ("--sample-copies", "--w-energy", "--w-contact", "--contact-floor", "--w-ground", "--ground-floor",
+                   "--rest-leaves")
 
 
 @dataclass(frozen=True)
@@ -155,17 +146,9 @@ class TrainConfig:
         augment_symmetry: map every training window by a random turn about the vertical axis
             (and a mirror half the time), one per copy, and give the normaliser the symmetric
             statistics (no horizontal mean): :mod:`hrn_pyg.data.symmetry`.
-        sample_copies: K >= 2 trains on K dropout-masked copies of every window, scored with the
-            fair energy score against the one true future (needs ``train_dropout`` > 0); 0: off
-            (plain dropout training, the seed paper's). Costs about K times the compute.
-        w_energy: weight of the energy-score term (per unrolled step, mean over the moving
-            leaves, in positions divided by the velocity scale); used when ``sample_copies`` >= 2.
         w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
             of the objects the ground truth has at rest (0: off, the seed paper's loss).
-        rest_threshold: metres per step under which a root's (with ``rest_leaves``, a node's) true
-            velocity counts as rest.
-        rest_leaves: the rest term also scores the leaves the truth has still, not only the
-            objects' roots (a soft body at rest keeps its centre yet its shape creeps).
+        rest_threshold: metres per step under which a root's true velocity counts as rest.
         rest_rollout: R >= 1 starts every window whose scene is at rest from the model's own
             rollout of 1 to R steps (drawn per batch, no gradient) and trains it to hold the state
             it reached (:func:`held_rest_sequence`), so the slow creep of a long rollout from rest
@@ -173,16 +156,6 @@ class TrainConfig:
         rest_rollout_draw: how R is drawn from 1..rest_rollout each batch: uniform, or log
             (log-uniform, as many draws in 1-16 as in 16-256, so long rollouts are seen without
             paying for one every batch).
-        w_ground: weight of :func:`~hrn_pyg.losses.ground_loss`, how deep the moving leaves sink
-            under their true height or the floor, whichever is lower (0: off).
-        ground_floor: the ground term's floor in voxel pitches above the ground plane (0: the
-            plane; negative: under it; the episodes must record their pitch). A floor above the
-            resting leaves lifts resting objects.
-        w_contact: weight of :func:`~hrn_pyg.losses.contact_loss`, how much closer than the truth
-            the model brings the touching leaf pairs of different objects (0: off).
-        contact_floor: the contact term's floor in voxel pitches (a pair need be no farther apart
-            than its true distance or this many pitches of its scene, whichever is smaller; the
-            episodes must record their pitch); 0: no floor (every pair held to its true distance).
         init_from: a model checkpoint (``model.pt``) to start from instead of a fresh network:
             its weights, normaliser and model settings are kept, the optimiser starts anew
             (fine-tuning); "" : a fresh network. Ignored when a run resumes.
@@ -228,17 +201,10 @@ class TrainConfig:
     stop_at: int = 0
     time_limit: float = 0.0
     augment_symmetry: bool = False
-    sample_copies: int = 0
-    w_energy: float = 1.0
     w_rest: float = 0.0
     rest_threshold: float = 1e-3
-    rest_leaves: bool = False
     rest_rollout: int = 0
     rest_rollout_draw: str = "uniform"
-    w_ground: float = 0.0
-    ground_floor: float = 0.0
-    w_contact: float = 0.0
-    contact_floor: float = 0.0
     init_from: str = ""
     extra_data: str = ""
     data_weights: str = ""
@@ -270,10 +236,9 @@ class TrainConfig:
             raise ValueError(f"input_noise must be a finite number >= 0, got {self.input_noise}")
         if not 0.0 <= self.input_noise_ratio < math.inf:
             raise ValueError(f"input_noise_ratio must be a finite number >= 0, got {self.input_noise_ratio}")
-        if self.preset == "gns" and (self.sample_copies or self.w_rest or self.w_contact or self.w_ground
-                                     or self.rest_rollout or self.seq_end != 1):
-            raise ValueError("the gns preset trains one step on the acceleration loss: sample_copies, w_rest, "
-                             "w_contact, w_ground, rest_rollout and seq_end > 1 are options of the HRN presets")
+        if self.preset == "gns" and (self.w_rest or self.rest_rollout or self.seq_end != 1):
+            raise ValueError("the gns preset trains one step on the acceleration loss: w_rest, rest_rollout "
+                             "and seq_end > 1 are options of the HRN presets")
         if self.rest_rollout < 0:
             raise ValueError(f"rest_rollout must be >= 0 (0: off), got {self.rest_rollout}")
         if self.rest_rollout_draw not in REST_ROLLOUT_DRAWS:
@@ -290,24 +255,8 @@ class TrainConfig:
             raise ValueError(f"ema_decay must be in [0, 1) (0: off), got {self.ema_decay}")
         if self.seq_start > self.seq_end:
             raise ValueError(f"seq_start ({self.seq_start}) must be <= seq_end ({self.seq_end})")
-        if self.sample_copies < 0 or self.sample_copies == 1:
-            raise ValueError(f"sample_copies must be 0 (off) or >= 2 (copies scored against each other), "
-                             f"got {self.sample_copies}")
-        if self.sample_copies >= 2 and self.train_dropout == 0:
-            raise ValueError(f"sample_copies={self.sample_copies} needs train_dropout > 0: the copies differ "
-                             f"only by their dropout masks")
-        if not 0.0 <= self.w_energy < math.inf:
-            raise ValueError(f"w_energy must be a finite number >= 0, got {self.w_energy}")
         if not 0.0 <= self.w_rest < math.inf:
             raise ValueError(f"w_rest must be a finite number >= 0, got {self.w_rest}")
-        if not 0.0 <= self.w_contact < math.inf:
-            raise ValueError(f"w_contact must be a finite number >= 0, got {self.w_contact}")
-        if not 0.0 <= self.contact_floor < math.inf:
-            raise ValueError(f"contact_floor must be a finite number >= 0 (voxel pitches), got {self.contact_floor}")
-        if not 0.0 <= self.w_ground < math.inf:
-            raise ValueError(f"w_ground must be a finite number >= 0, got {self.w_ground}")
-        if not math.isfinite(self.ground_floor):
-            raise ValueError(f"ground_floor must be a finite number (voxel pitches), got {self.ground_floor}")
         if not 0.0 < self.rest_threshold < math.inf:
             raise ValueError(f"rest_threshold must be a finite number > 0 (metres per step), got {self.rest_threshold}")
 
@@ -343,8 +292,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
 
     .. math::
         \mathcal{L} = \sum_{k=1}^{T} w_{loc}\mathcal{L}_{loc}^{(k)} + w_{glob}\mathcal{L}_{glob}^{(k)}
-            + w_{shape}\mathcal{L}_{shape}^{(k)} \; [+\, w_{energy}\mathcal{L}_{ES}^{(k)}]
-            \; [+\, w_{rest}\mathcal{L}_{rest}^{(k)}] \; [+\, w_{contact}\mathcal{L}_{contact}^{(k)}]
+            + w_{shape}\mathcal{L}_{shape}^{(k)} \; [+\, w_{rest}\mathcal{L}_{rest}^{(k)}]
 
     Step ``k`` starts from the model's own prediction of step ``k-1`` (ground truth for
     ``k = 1``). The local term compares velocities in the parent's frame, the global term the
@@ -353,21 +301,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     pairwise-distance error. With ``seq_len = 1`` this is the baseline HRN's one-step loss.
     With ``config.w_rest > 0``, :func:`~hrn_pyg.losses.rest_velocity_loss` adds the absolute
     velocity error of the objects at rest in the truth (step ``k``'s own prediction against the
-    true displacement ``x_{k+1} - x_k``). With ``config.w_contact > 0``,
-    :func:`~hrn_pyg.losses.contact_loss` adds how much closer than the truth step ``k`` brings
-    the touching leaf pairs of its predicted state (its collision edges), with
-    ``config.contact_floor`` times each scene's pitch as the floor when it is set. With
-    ``config.w_ground > 0``, :func:`~hrn_pyg.losses.ground_loss` adds how deep step ``k`` sinks
-    the moving leaves under their true height or the floor (``config.ground_floor`` pitches),
-    whichever is lower. ``config.rest_leaves`` makes the rest term score the resting leaves too.
-
-    With ``config.sample_copies = K >= 2`` the window is replicated K times (copy-major:
-    :func:`replicate_windows`), the input noise drawn once per window and shared by its copies,
-    and each of the ``K B`` copies gets its own dropout mask row at every step; the three terms
-    above are then means over the copies, and
-    :math:`\mathcal{L}_{ES}^{(k)}` is the mean over the moving leaves of all windows of
-    :func:`~hrn_pyg.losses.fair_energy_score` of the leaf's K predicted positions against its true
-    one, divided by the velocity scale. The parts returned then include ``energy``.
+    true displacement ``x_{k+1} - x_k``).
 
     A :class:`~hrn_pyg.nn.gns.GNS` is scored by :func:`acceleration_loss` instead.
     """
@@ -384,15 +318,6 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     inputs = seq[:, :3]
     if config.input_noise > 0:
         inputs = inputs + input_noise(window, config.input_noise, noise_generator)
-    n_samples = config.sample_copies
-    if n_samples >= 2:  # K copies of every window, sharing its (noisy) inputs and its truth
-        one_window_nodes = store.num_nodes
-        moving_leaves = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
-        truth_leaves = seq[moving_leaves]  # [L', T+3, 3]
-        window = replicate_windows(window, n_samples)
-        store = window[NODE]
-        seq, forces = store.pos_seq, store.force_seq
-        inputs = inputs.repeat(n_samples, 1, 1)
     radius = collision_radius_of(model.config, window)  # one per window when their pitches differ
     graph = set_state(window, inputs[:, 0], inputs[:, 1], inputs[:, 2], radius=radius)
     norm = model.normalizer
@@ -404,22 +329,8 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
     fixed_shape = store.material[leaf_index, RIGID].bool() if getattr(model.config, "rigid_fit", False) else None
     copies = _batch_size_of(window)
     parts = {"local": seq.new_zeros(()), "global": seq.new_zeros(()), "shape": seq.new_zeros(())}
-    if n_samples >= 2:
-        parts["energy"] = seq.new_zeros(())
     if config.w_rest > 0:
         parts["rest"] = seq.new_zeros(())
-    if config.w_contact > 0:
-        parts["contact"] = seq.new_zeros(())
-    # the ground and contact terms' floors at each node, in metres (its scene's pitches)
-    pitch = node_pitch(window) if config.w_ground > 0 or (config.w_contact > 0 and config.contact_floor > 0) else None
-    if config.w_ground > 0:
-        parts["ground"] = seq.new_zeros(())
-        ground_floor = config.ground_floor * pitch
-        moving_leaf = store.is_leaf & ~store.is_static
-    rest_scored = (store.is_root | store.is_leaf) if config.rest_leaves else store.is_root
-    floor_by_node = None
-    if config.w_contact > 0 and config.contact_floor > 0:
-        floor_by_node = config.contact_floor * pitch
     total = seq.new_zeros(())
     masks_fn = None
     if config.train_dropout > 0:  # one mask per copy per step, drawn as the step starts
@@ -442,26 +353,10 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         parts["global"] = parts["global"] + loss_global.detach()
         parts["shape"] = parts["shape"] + loss_shape.detach()
         if config.w_rest > 0:  # objects the truth has still: their own velocity error, absolute
-            loss_rest = rest_velocity_loss(result.pos - graph[NODE].pos, true_next - seq[:, k + 2], rest_scored,
+            loss_rest = rest_velocity_loss(result.pos - graph[NODE].pos, true_next - seq[:, k + 2], store.is_root,
                                            store.is_static, config.rest_threshold, vel_scale)
             total = total + config.w_rest * loss_rest
             parts["rest"] = parts["rest"] + loss_rest.detach()
-        if config.w_contact > 0:  # touching pairs of the predicted state, no closer than the truth
-            touching = result.graph[COLLISION].edge_index
-            floor = None if floor_by_node is None else floor_by_node[touching[0]]
-            loss_contact = contact_loss(result.pos, true_next, touching, shape_scale, floor)
-            total = total + config.w_contact * loss_contact
-            parts["contact"] = parts["contact"] + loss_contact.detach()
-        if config.w_ground > 0:  # moving leaves no lower than their true height or the floor
-            loss_ground = ground_loss(result.pos, true_next, moving_leaf, ground_floor, shape_scale)
-            total = total + config.w_ground * loss_ground
-            parts["ground"] = parts["ground"] + loss_ground.detach()
-        if n_samples >= 2 and moving_leaves.numel():
-            # copy c of window b holds rows c N + (b's rows): one [K, L', 3] block of samples
-            samples = result.pos.reshape(n_samples, one_window_nodes, 3)[:, moving_leaves]
-            loss_energy = fair_energy_score(samples, truth_leaves[:, k + 3], vel_scale).mean()
-            total = total + config.w_energy * loss_energy
-            parts["energy"] = parts["energy"] + loss_energy.detach()
         graph = result.graph
     # one host transfer for the logged parts
     values = torch.stack(list(parts.values())).tolist()
@@ -580,25 +475,6 @@ def acceleration_loss(model: GNS, window: HeteroData, config: TrainConfig,
     error = (result.pos - graph[NODE].pos) - (seq[:, 3] - seq[:, 2])
     loss = (error[moving] / model.acceleration_std).square().mean()
     return loss, {"acceleration": float(loss.detach())}
-
-
-def replicate_windows(window: HeteroData, k: int) -> Batch:
-    """``k`` copies of a (batched) window as one batched graph, copy-major: with ``B`` windows of
-    ``N`` nodes in all, copy ``c`` of window ``b`` is graph ``c B + b`` and holds rows
-    ``c N + (rows of b)`` (so ``x.view(k, N, ...)`` splits any node tensor by copy). Copies share
-    topology; every node attribute (``pos_seq``, ``force_seq``, ...) is repeated.
-
-    **Shapes:** ``N`` nodes in ``B`` graphs -> ``k N`` nodes in ``k B`` graphs.
-    """
-    if int(k) < 1:
-        raise ValueError(f"k must be >= 1, got {k}")
-    if isinstance(window, Batch):
-        windows = window.to_data_list()
-    elif "batch" in window[NODE] and bool((window[NODE].batch != 0).any()):
-        raise ValueError("replicate_windows: a batched window must be a torch_geometric Batch")
-    else:
-        windows = [window]
-    return Batch.from_data_list(windows * int(k))
 
 
 def input_noise(window: HeteroData, std: float, generator: torch.Generator | None = None,
@@ -1139,14 +1015,13 @@ def preset_model_config(preset: str, model_config: NetworkConfig | None) -> Netw
 
 @torch.no_grad()
 def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len: int, config: TrainConfig) -> float:
-    """Mean unrolled loss on fixed validation windows (no dropout, so no copies: the
-    deterministic model's loss, comparable between plain and ``sample_copies`` runs)."""
+    """Mean unrolled loss on fixed validation windows (no dropout, no input noise, no rest term:
+    the deterministic model's loss, comparable between runs of different settings)."""
     was_training = model.training
     model.eval()
     device = next(model.parameters()).device
     batch = Batch.from_data_list([dataset[i] for i in ids]).to(device)
-    scored = replace(config, train_dropout=0.0, input_noise=0.0, sample_copies=0, w_rest=0.0, w_contact=0.0,
-                     w_ground=0.0, rest_rollout=0)
+    scored = replace(config, train_dropout=0.0, input_noise=0.0, w_rest=0.0, rest_rollout=0)
     loss, _ = window_loss(model, batch, seq_len, scored)
     model.train(was_training)
     return float(loss) / seq_len
@@ -1156,28 +1031,46 @@ def validation_loss(model: HRN, dataset: EpisodeWindows, ids: list[int], seq_len
 # command line
 
 
+#: the groups of ``hrn-pyg train --help``, each TrainConfig field in one (``model`` also holds the
+#: ``--model-*`` options of the network's config)
+OPTION_GROUPS: dict[str, tuple[str, ...]] = {
+    "data": ("data", "extra_data", "data_weights", "batch_size", "input_noise", "input_noise_ratio",
+             "augment_symmetry"),
+    "model": ("init_from", "train_dropout"),
+    "loss": ("shape_loss", "shape_chunk", "w_local", "w_global", "w_shape", "w_rest", "rest_threshold",
+             "rest_rollout", "rest_rollout_draw"),
+    "schedule": ("steps", "lr", "warmup", "grad_clip", "seq_start", "seq_end", "grow_until", "ema_decay", "stop_at"),
+    "run": ("out", "seed", "device", "threads", "workers", "checkpoint_every", "eval_every", "snapshot_every",
+            "time_limit"),
+}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.usage = "%(prog)s --preset {hrn,ours,gns} --data FOLDER [options]"
     parser.add_argument("--preset", choices=PRESETS, required=True,
                         help="hrn (baseline), ours, or gns (the flat GNS baseline)")
-    parser.add_argument("--data", required=True, help="episode folder from `hrn-pyg generate`")
-    parser.add_argument("--out", required=True, help="run folder")
-    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    add_no_progress(parser)
+    groups = {name: parser.add_argument_group(name) for name in OPTION_GROUPS}
+    groups["data"].add_argument("--data", required=True, help="episode folder from `hrn-pyg generate`")
+    groups["run"].add_argument("--out", default=None, help="run folder (default: runs/train/<data's name>_<preset>)")
+    groups["run"].add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    add_no_progress(groups["run"])
     helps = attribute_help(TrainConfig)
+    group_of = {name: group for group, names in OPTION_GROUPS.items() for name in names}
     for f in fields(TrainConfig):
         if f.name in ("preset", "data", "out"):
             continue
-        parser.add_argument(train_flag(f.name), type=_option_type(f.default), default=None, dest=f.name,
-                            help=f"{helps.get(f.name, f.name)} ({preset_defaults(f.name)})")
+        groups[group_of[f.name]].add_argument(train_flag(f.name), type=_option_type(f.default), default=None,
+                                              dest=f.name, help=f"{helps.get(f.name, f.name)} ({preset_defaults(f.name)})")
     model_helps = attribute_help(GNSConfig) | attribute_help(HRNConfig)
     for f in _model_fields():
-        parser.add_argument(f"--model-{f.name.replace('_', '-')}", type=_option_type(f.default), default=None,
-                            dest=f"model_{f.name}",
-                            help=f"{model_helps.get(f.name, f.name)} (default: {shown_default(f.default)})")
-    parser.add_argument("--dropout-modules", default=None,
-                        help="comma-separated modules that take dropout masks (default: force,collision; "
-                             "gns: processor)")
+        groups["model"].add_argument(f"--model-{f.name.replace('_', '-')}", type=_option_type(f.default), default=None,
+                                     dest=f"model_{f.name}",
+                                     help=f"{model_helps.get(f.name, f.name)} (default: {shown_default(f.default)})")
+    groups["model"].add_argument("--dropout-modules", default=None,
+                                 help="comma-separated modules that take dropout masks (default: force,collision; "
+                                      "gns: processor)")
     add_renamed(parser, "--steps", "--train-steps")
+    add_removed(parser, REMOVED_OPTIONS, "no recipe or shipped model used it")
 
 
 #: TrainConfig fields whose option is not ``--<field>``
@@ -1228,7 +1121,8 @@ def given_model_options(args: argparse.Namespace) -> frozenset[str]:
 def config_from_args(args: argparse.Namespace) -> tuple[TrainConfig, NetworkConfig]:
     overrides = {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)
                  if f.name not in ("preset", "data", "out")}
-    config = TrainConfig.for_preset(args.preset, data=args.data, out=args.out, **overrides)
+    out = args.out or str(Path("runs") / "train" / f"{Path(args.data).name}_{args.preset}")
+    config = TrainConfig.for_preset(args.preset, data=args.data, out=out, **overrides)
     model_class = GNSConfig if args.preset == "gns" else HRNConfig
     model_kwargs = {f.name: getattr(args, f"model_{f.name}") for f in _model_fields()
                     if getattr(args, f"model_{f.name}", None) is not None}

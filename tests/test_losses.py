@@ -4,11 +4,8 @@ from toy_scene import toy_scene
 
 from hrn_pyg.losses import (
     SMALL_GROUP,
-    contact_loss,
-    fair_energy_score,
     full_shape_loss,
     global_velocity_loss,
-    ground_loss,
     group_shape_loss,
     local_velocity_loss,
     shape_groups,
@@ -151,77 +148,6 @@ def test_full_shape_covers_more_pairs_than_group_shape():
     assert full_shape_loss(pred[leaf], s.pos[leaf], group).item() > 1e-5
 
 
-def test_fair_energy_score_hand_case():
-    # one 3-D point: samples (0,0,0) and (3,4,0), truth (3,0,0)
-    # mean distance to the truth (3 + 4) / 2 = 3.5; the one pair at distance 5 counted twice:
-    # 2 * 5 / (2 * 2 * 1) = 2.5; ES = 1.0
-    samples = torch.tensor([[[0.0, 0, 0]], [[3.0, 4, 0]]])  # [K=2, 1, 3]
-    truth = torch.tensor([[3.0, 0, 0]])
-    assert fair_energy_score(samples, truth).tolist() == pytest.approx([1.0], abs=1e-5)
-    assert fair_energy_score(samples, truth, scale=2.0).tolist() == pytest.approx([0.5], abs=1e-5)
-    # per-axis scale divides each coordinate: x / 1, y / 4 -> samples (0,0,0), (3,1,0), truth (3,0,0):
-    # (3 + 1) / 2 - sqrt(10) / 2
-    scaled = fair_energy_score(samples, truth, scale=torch.tensor([1.0, 4.0, 1.0]))
-    assert scaled.item() == pytest.approx(2.0 - 10 ** 0.5 / 2, abs=1e-5)
-    # K = 3 on a line, two middle indices scored on their own: X = 0, 1, 3 and y = 2 -> 4/3 - 12/12
-    line = torch.tensor([0.0, 1.0, 3.0])[:, None, None] * torch.tensor([1.0, 0, 0])
-    both = torch.cat([line, samples.new_zeros(3, 1, 3)], dim=1)  # index 1: all at the origin, y there
-    es = fair_energy_score(both, torch.tensor([[2.0, 0, 0], [0.0, 0, 0]]))
-    assert es.shape == (2,) and es.tolist() == pytest.approx([1.0 / 3.0, 0.0], abs=1e-5)
-
-
-def test_fair_energy_score_is_the_plug_in_score_with_the_unbiased_spread():
-    from hrn_pyg.sampling.metrics import energy_score
-
-    gen = torch.Generator().manual_seed(0)
-    samples, truth = torch.randn(5, 7, 3, generator=gen), torch.randn(7, 3, generator=gen)
-    pair_sum = (samples[:, None] - samples[None]).norm(dim=-1).sum(dim=(0, 1))
-    k = 5
-    expected = energy_score(samples, truth[None]) + pair_sum / (2 * k * k) - pair_sum / (2 * k * (k - 1))
-    torch.testing.assert_close(fair_energy_score(samples, truth), expected, rtol=1e-5, atol=1e-5)
-
-
-def test_fair_energy_score_is_minimised_by_the_true_distribution():
-    # truth y ~ N(0, I_3); K = 4 samples ~ N(0, s^2 I_3). In expectation
-    # E|X - y| = sqrt(1 + s^2) c and E|X - X'| = sqrt(2) s c with c = E|N(0, I_3)| = 2 sqrt(2 / pi),
-    # so ES(s) = c (sqrt(1 + s^2) - s / sqrt(2)): smallest at s = 1 (the truth's own spread)
-    n, k = 40_000, 4
-    gen = torch.Generator().manual_seed(0)
-    truth = torch.randn(n, 3, generator=gen)
-    noise = torch.randn(k, n, 3, generator=gen)  # the same draws at every width (less variance)
-    c = 2 * (2 / torch.pi) ** 0.5
-    score = {}
-    for s in (0.5, 1.0, 2.0):
-        score[s] = fair_energy_score(s * noise, truth).mean().item()
-        assert score[s] == pytest.approx(c * ((1 + s * s) ** 0.5 - s / 2 ** 0.5), rel=0.02), s
-    assert score[1.0] < score[0.5] - 0.03 and score[1.0] < score[2.0] - 0.05
-    # the plug-in (biased) form under-weights the spread by (K-1)/K and so prefers narrow samples
-    from hrn_pyg.sampling.metrics import energy_score
-
-    plug_in = {s: energy_score(s * noise, truth[None]).mean().item() for s in (0.5, 1.0)}
-    assert plug_in[0.5] < plug_in[1.0]
-
-
-def test_fair_energy_score_gradient_is_finite_where_samples_coincide():
-    truth = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
-    samples = torch.stack([torch.tensor([[1.0, 2.0, 3.0], [1.0, 0.0, 0.0]])] * 3).requires_grad_(True)
-    es = fair_energy_score(samples, truth, scale=torch.tensor([0.5, 1.0, 2.0]))
-    es.sum().backward()
-    assert torch.isfinite(samples.grad).all()
-    # index 0: every sample on the truth: ES = 0, gradient 0; index 1: all three at (1,0,0), one
-    # away from the truth: ES = |1 / 0.5| = 2, gradient of the mean distance (1/K) * (1/0.5) on x
-    assert es.tolist() == pytest.approx([0.0, 2.0], abs=1e-5)
-    torch.testing.assert_close(samples.grad[:, 0], torch.zeros(3, 3))
-    torch.testing.assert_close(samples.grad[:, 1], torch.tensor([[2.0 / 3.0, 0.0, 0.0]] * 3))
-
-
-def test_fair_energy_score_bad_input_says_which():
-    with pytest.raises(ValueError, match=r"samples must be \[K>=2"):
-        fair_energy_score(torch.zeros(1, 4, 3), torch.zeros(4, 3))
-    with pytest.raises(ValueError, match="one observation"):
-        fair_energy_score(torch.zeros(3, 4, 3), torch.zeros(2, 4, 3))
-
-
 def test_rest_velocity_loss_counts_only_the_objects_at_rest():
     from hrn_pyg.losses import rest_velocity_loss
 
@@ -241,53 +167,3 @@ def test_rest_velocity_loss_counts_only_the_objects_at_rest():
     assert nothing_rests.item() == 0.0
 
 
-def test_contact_loss_is_the_shortfall_of_touching_pairs_and_pushes_them_apart():
-    true = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.2, 0.0]])
-    edges = torch.tensor([[0, 1, 0], [1, 0, 2]])  # both directions of pair (0, 1), one of (0, 2)
-    assert contact_loss(true, true, edges).item() == 0.0
-    apart = true * 1.5  # every pair farther than the truth: nothing to pay
-    assert contact_loss(apart, true, edges).item() == 0.0
-    pred = true.clone()
-    pred[1, 0] = 0.04  # pair (0, 1) 0.06 closer than the truth, pair (0, 2) as true
-    pred.requires_grad_(True)
-    loss = contact_loss(pred, true, edges, scale=0.5)
-    assert loss.item() == pytest.approx((0.06 + 0.06 + 0.0) / 3 / 0.5, rel=1e-5)
-    loss.backward()
-    assert pred.grad[1, 0] < 0 and pred.grad[0, 0] > 0  # descent moves leaf 1 away from leaf 0
-    assert pred.grad[2].abs().sum() == 0
-    nothing = contact_loss(pred, true, torch.zeros(2, 0, dtype=torch.long))
-    assert nothing.item() == 0.0 and nothing.requires_grad
-    # a floor of 0.05: pair (0, 1) at 0.04 is 0.01 short of it, pair (0, 2) is past it
-    floored = contact_loss(pred.detach(), true, edges, scale=0.5, floor=0.05)
-    assert floored.item() == pytest.approx((0.01 + 0.01 + 0.0) / 3 / 0.5, rel=1e-4)
-    per_pair = contact_loss(pred.detach(), true, edges, floor=torch.tensor([0.02, 0.02, 1.0]))
-    assert per_pair.item() == pytest.approx(0.0, abs=1e-7)  # both pairs kept past their floors
-
-
-def test_ground_loss_is_the_depth_under_the_true_height_or_the_floor():
-    # leaf 0 truly at 0.01 (near the ground), leaf 1 at 0.5 (high), leaf 2 static, leaf 3 not a moving leaf
-    true = torch.tensor([[0.0, 0.0, 0.01], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    moving_leaf = torch.tensor([True, True, False, False])
-    assert ground_loss(true, true, moving_leaf, 0.05).item() == 0.0
-    lifted = true.clone()
-    lifted[:, 2] += 0.3  # lifting a leaf costs nothing: the term is one-sided
-    assert ground_loss(lifted, true, moving_leaf, 0.05).item() == 0.0
-    pred = true.clone()
-    pred[0, 2] = -0.02  # 0.03 under its true height
-    pred[1, 2] = 0.04  # 0.01 under the floor of 0.05 (its true height does not matter up there)
-    pred[2, 2] = -1.0  # static: ignored
-    pred[3, 2] = -1.0  # not a moving leaf: ignored
-    pred.requires_grad_(True)
-    loss = ground_loss(pred, true, moving_leaf, 0.05, scale=0.5)
-    assert loss.item() == pytest.approx((0.03 + 0.01) / 2 / 0.5, rel=1e-5)  # mean over the moving leaves
-    loss.backward()
-    assert pred.grad[0, 2] < 0 and pred.grad[1, 2] < 0  # descent lifts both leaves
-    assert pred.grad[:, :2].abs().sum() == 0 and pred.grad[2:].abs().sum() == 0
-    # per-leaf floors: a floor of 0.03 for leaf 1 makes its 0.04 free
-    per_leaf = ground_loss(pred.detach(), true, moving_leaf, torch.tensor([0.05, 0.03, 0.05, 0.05]))
-    assert per_leaf.item() == pytest.approx(0.03 / 2, rel=1e-5)
-    # a floor under the plane: only the depth past it counts (leaf 0 is 0.01 past -0.01)
-    under = ground_loss(pred.detach(), true, moving_leaf, -0.01)
-    assert under.item() == pytest.approx(0.01 / 2, rel=1e-4)
-    nothing = ground_loss(pred, true, torch.zeros(4, dtype=torch.bool), 0.05)
-    assert nothing.item() == 0.0 and nothing.requires_grad

@@ -290,113 +290,6 @@ def test_an_equivariant_network_trains_with_an_isotropic_normaliser_and_resumes(
               dataclasses.replace(SMALL, vector_channels=5), progress=False)
 
 
-def _energy_column(out):
-    with open(out / "metrics.csv") as fh:
-        return [r["energy"] for r in csv.DictReader(fh)]
-
-
-def test_sample_copies_train_seeded_resume_identical_and_log_energy(tiny_episodes, tmp_path):
-    kw = dict(seq_end=3, train_dropout=0.2, sample_copies=3)
-    train(_config(tiny_episodes, tmp_path / "full", **kw), SMALL, progress=False)
-    cfg_part = _config(tiny_episodes, tmp_path / "part", **kw)
-    train(cfg_part, SMALL, progress=False, stop_after=3)
-    train(cfg_part, SMALL, progress=False, resume=True)
-    full, part = _losses(tmp_path / "full"), _losses(tmp_path / "part")
-    # steps 0-2 of the two runs are two seeded runs; steps 3-5 of `part` come after a resume
-    assert [s for s, _ in part] == [s for s, _ in full] == list(range(6))
-    for (s1, l1), (s2, l2) in zip(full, part):
-        assert l1 == pytest.approx(l2, rel=1e-5), f"step {s1}"
-    with open(tmp_path / "full" / "metrics.csv") as fh:
-        rows = list(csv.DictReader(fh))
-    for r in rows:  # the energy term is logged and enters the loss with weight 1
-        assert 0 < float(r["energy"]) < float("inf")
-        parts = sum(float(r[name]) for name in ("local", "global", "shape", "energy"))
-        assert float(r["loss"]) == pytest.approx(parts, rel=1e-4)
-    saved = json.loads((tmp_path / "full" / "config.json").read_text())["train"]
-    assert (saved["sample_copies"], saved["w_energy"]) == (3, 1.0)
-    # plain dropout training (the default) leaves the column empty
-    train(_config(tiny_episodes, tmp_path / "plain", steps=2, seq_end=1, train_dropout=0.2), SMALL, progress=False)
-    assert _energy_column(tmp_path / "plain") == ["", ""]
-
-
-def test_sample_copies_work_with_noise_symmetry_and_rigid_fit(tiny_episodes, tmp_path):
-    rigid = HRNConfig(hidden=16, depth=1, effect_dim=16, rigid_fit=True)
-    kw = dict(steps=3, seq_end=2, train_dropout=0.2, sample_copies=2, w_energy=0.5, input_noise=1e-3,
-              augment_symmetry=True)
-    train(_config(tiny_episodes, tmp_path / "a", **kw), rigid, progress=False)
-    train(_config(tiny_episodes, tmp_path / "b", **kw), rigid, progress=False)
-    assert _losses(tmp_path / "a") == _losses(tmp_path / "b")
-    assert all(0 < float(e) < float("inf") for e in _energy_column(tmp_path / "a"))
-    assert load_model(tmp_path / "a" / "model.pt").config.rigid_fit
-
-
-def test_sample_copies_layout_one_mask_row_per_copy(tiny_episodes):
-    """With every copy given the same (all-ones) mask, the copies are the deterministic model:
-    the usual terms equal the plain loss and the energy score is the mean leaf distance."""
-    from torch_geometric.data import Batch
-
-    from hrn_pyg.data.dataset import EpisodeWindows
-    from hrn_pyg.data.graph import NODE, set_state
-    from hrn_pyg.nn.hrn import HRN
-    from hrn_pyg.nn.normalizer import fit_normalizer
-    from hrn_pyg.sim.step import step as model_step
-    from hrn_pyg.train import window_loss
-
-    windows = EpisodeWindows(str(tiny_episodes), "train", horizon=2)
-    torch.manual_seed(0)
-    model = HRN(SMALL)
-    fit_normalizer((windows[i] for i in range(16)), model.normalizer)
-    batch = Batch.from_data_list([windows[2], windows[9]])
-    rows = []
-
-    def same_masks(n, rate=None, generator=None):
-        rows.append(n)
-        return {m: torch.ones(n, SMALL.hidden) for m in SMALL.dropout_modules}
-
-    plain = TrainConfig(data="unused", out="unused")
-    copies = TrainConfig(data="unused", out="unused", train_dropout=0.2, sample_copies=3)
-    _, plain_parts = window_loss(model, batch, 2, plain)
-    model.sample_masks = same_masks
-    _, parts = window_loss(model, batch, 2, copies)
-    assert rows == [6, 6]  # B = 2 windows x K = 3 copies, one row each, at each of the 2 steps
-    for name in ("local", "global", "shape"):
-        assert parts[name] == pytest.approx(plain_parts[name], rel=1e-5), name
-
-    _, one_step = window_loss(model, batch, 1, copies)
-    store = batch[NODE]
-    seq = store.pos_seq
-    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
-    pred = model_step(model, graph, store.force_seq[:, 0], None).pos
-    moving = store.is_leaf & ~store.is_static
-    distance = ((pred - seq[:, 3]) / model.normalizer.velocity_std)[moving].norm(dim=-1).mean()
-    assert one_step["energy"] == pytest.approx(distance.item(), rel=1e-4)
-
-
-def test_sample_copies_need_two_copies_and_dropout(tiny_episodes, tmp_path, capsys):
-    with pytest.raises(ValueError, match=r"sample_copies must be 0 \(off\) or >= 2"):
-        TrainConfig(sample_copies=1, train_dropout=0.2)
-    with pytest.raises(ValueError, match=r"sample_copies must be 0 \(off\) or >= 2"):
-        TrainConfig(sample_copies=-2, train_dropout=0.2)
-    with pytest.raises(ValueError, match="sample_copies=4 needs train_dropout > 0"):
-        TrainConfig.for_preset("ours", sample_copies=4)
-    with pytest.raises(ValueError, match="w_energy must be a finite number >= 0"):
-        TrainConfig(sample_copies=2, train_dropout=0.2, w_energy=-1.0)
-    # the flags come from the dataclass; a bad combination is a one-line CLI error
-    base = ["train", "--preset", "ours", "--data", str(tiny_episodes), "--out", str(tmp_path / "o")]
-    assert main([*base, "--sample-copies", "2", "--no-progress"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "needs train_dropout > 0" in err[0]
-    import argparse
-
-    from hrn_pyg.train import add_arguments, config_from_args
-
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
-    config, _ = config_from_args(parser.parse_args(
-        base[1:] + ["--sample-copies", "4", "--train-dropout", "0.1", "--w-energy", "0.5"]))
-    assert (config.sample_copies, config.train_dropout, config.w_energy) == (4, 0.1, 0.5)
-
-
 def _untrained_model_and_batch(tiny_episodes):
     """A seeded small HRN with its normaliser fitted, and every one-step training window of the
     tiny episodes in one batch (the loss-term tests recompute their parts from these by hand)."""
@@ -439,99 +332,6 @@ def test_rest_term_is_the_absolute_error_of_the_resting_roots(tiny_episodes):
         TrainConfig(w_rest=-1.0)
     with pytest.raises(ValueError, match="rest_threshold must be a finite number > 0"):
         TrainConfig(rest_threshold=0.0)
-
-
-def test_contact_term_is_logged_and_adds_its_weight_times_the_shortfall(tiny_episodes, tmp_path):
-    """``w_contact``: the logged ``contact`` part of a one-step loss is the shortfall of the
-    predicted state's touching pairs, recomputed by hand; the total grows by exactly ``w_contact``
-    times it; a short run logs the column; bad settings are refused."""
-    from hrn_pyg.data.graph import COLLISION, NODE, set_state
-    from hrn_pyg.losses import contact_loss
-    from hrn_pyg.sim.rollout import iterate
-    from hrn_pyg.train import window_loss
-
-    model, batch = _untrained_model_and_batch(tiny_episodes)
-    seq = batch[NODE].pos_seq
-    plain, _ = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused"))
-    total, parts = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_contact=3.0))
-    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
-    result = next(iterate(model, graph, 1, batch[NODE].force_seq.transpose(0, 1), None, sleep=None))
-    touching = result.graph[COLLISION].edge_index
-    assert touching.size(1) > 0
-    by_hand = contact_loss(result.pos, seq[:, 3], touching, model.normalizer.velocity_std.mean())
-    assert by_hand.item() > 0  # an untrained model brings some pairs closer than the truth
-    assert parts["contact"] == pytest.approx(by_hand.item(), rel=1e-5)
-    assert total.item() == pytest.approx(plain.item() + 3.0 * by_hand.item(), rel=1e-5)
-    # a floor of a tenth of a pitch: only pairs the model brings under it (or under the truth) count
-    from hrn_pyg.data.graph import node_pitch
-    _, floored = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_contact=3.0,
-                                                          contact_floor=0.1))
-    floor = 0.1 * node_pitch(batch)[touching[0]]
-    by_hand_floored = contact_loss(result.pos, seq[:, 3], touching, model.normalizer.velocity_std.mean(), floor)
-    assert floored["contact"] == pytest.approx(by_hand_floored.item(), rel=1e-5, abs=1e-9)
-    assert floored["contact"] <= parts["contact"]
-
-    out = tmp_path / "contact"
-    train(_config(tiny_episodes, out, steps=2, w_contact=1.0), SMALL)
-    rows = list(csv.DictReader(open(out / "metrics.csv")))
-    assert rows and all(float(r["contact"]) >= 0 for r in rows)
-    with pytest.raises(ValueError, match="w_contact must be a finite number >= 0"):
-        TrainConfig(w_contact=-1.0)
-    with pytest.raises(ValueError, match="contact_floor must be a finite number >= 0"):
-        TrainConfig(contact_floor=-0.5)
-    with pytest.raises(ValueError, match="w_contact"):
-        TrainConfig.for_preset("gns", w_contact=1.0)
-
-
-def test_ground_term_and_resting_leaves_are_logged_and_add_what_they_say(tiny_episodes, tmp_path):
-    """``w_ground``: the logged ``ground`` part of a one-step loss equals the depth of the predicted
-    leaves under their true height, recomputed by hand, and the total grows by ``w_ground`` times
-    it; ``rest_leaves`` makes the rest term score the resting leaves too (by hand); a short run logs
-    the column; bad settings are refused."""
-    from hrn_pyg.data.graph import NODE, node_pitch, set_state
-    from hrn_pyg.losses import ground_loss
-    from hrn_pyg.sim.step import step as model_step
-    from hrn_pyg.train import window_loss
-
-    model, batch = _untrained_model_and_batch(tiny_episodes)
-    store = batch[NODE]
-    seq = store.pos_seq
-    graph = set_state(batch, seq[:, 0], seq[:, 1], seq[:, 2], radius=model.config.collision_radius)
-    pred = model_step(model, graph, store.force_seq[:, 0], None).pos
-    moving_leaf = store.is_leaf & ~store.is_static
-    floor = 2.0 * node_pitch(batch)
-    assert bool((seq[:, 3, 2][moving_leaf] < floor[moving_leaf]).any())  # some leaves are near the ground
-    scale = model.normalizer.velocity_std.mean()
-    by_hand = ground_loss(pred, seq[:, 3], moving_leaf, floor, scale)
-    assert by_hand.item() > 0  # an untrained model sinks some leaf under its true height
-    plain, _ = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused"))
-    total, parts = window_loss(model, batch, 1, TrainConfig(data="unused", out="unused", w_ground=4.0,
-                                                            ground_floor=2.0))
-    assert parts["ground"] == pytest.approx(by_hand.item(), rel=1e-5)
-    assert total.item() == pytest.approx(plain.item() + 4.0 * by_hand.item(), rel=1e-5)
-
-    true_v, pred_v = seq[:, 3] - seq[:, 2], pred - seq[:, 2]
-    threshold = float(true_v[moving_leaf].norm(dim=-1).median())  # half the leaves rest
-    roots_only = TrainConfig(data="unused", out="unused", w_rest=1.0, rest_threshold=threshold)
-    with_leaves = dataclasses.replace(roots_only, rest_leaves=True)
-    _, rest_roots = window_loss(model, batch, 1, roots_only)
-    _, rest_all = window_loss(model, batch, 1, with_leaves)
-    resting = (store.is_root | store.is_leaf) & ~store.is_static & (true_v.norm(dim=-1) < threshold)
-    assert bool((resting & store.is_leaf).any())
-    by_hand_rest = ((pred_v - true_v) / model.normalizer.velocity_std)[resting].abs().mean()
-    assert rest_all["rest"] == pytest.approx(by_hand_rest.item(), rel=1e-5)
-    assert rest_all["rest"] != pytest.approx(rest_roots["rest"], rel=1e-3)
-
-    out = tmp_path / "ground"
-    train(_config(tiny_episodes, out, steps=2, w_ground=1.0, rest_leaves=True, w_rest=1.0), SMALL)
-    rows = list(csv.DictReader(open(out / "metrics.csv")))
-    assert rows and all(float(r["ground"]) >= 0 for r in rows)
-    with pytest.raises(ValueError, match="w_ground must be a finite number >= 0"):
-        TrainConfig(w_ground=-1.0)
-    with pytest.raises(ValueError, match="ground_floor must be a finite number"):
-        TrainConfig(ground_floor=float("nan"))
-    with pytest.raises(ValueError, match="w_ground"):
-        TrainConfig.for_preset("gns", w_ground=1.0)
 
 
 def test_rest_rollout_starts_resting_scenes_from_the_models_own_rollout(tiny_episodes, tmp_path):
@@ -826,3 +626,24 @@ def test_rigid_bodies_under_the_rigid_fit_leave_the_shape_gradient_as_it_was(mon
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
     assert parts["shape"] < parts_all["shape"]  # the noisy input's rigid distances are off the truth
     assert any(g.abs().sum() > 0 for g in skipping)
+
+
+def test_train_help_is_in_groups_and_removed_options_warn_and_are_ignored(capsys):
+    """``--help`` lists the options under data, model, loss, schedule and run; an option of an
+    earlier release that no recipe used warns in one line and changes nothing."""
+    import argparse
+
+    from hrn_pyg.train import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser(prog="hrn-pyg train")
+    add_arguments(parser)
+    titles = {g.title: {a.dest for a in g._group_actions} for g in parser._action_groups}
+    assert {"data", "model", "loss", "schedule", "run"} <= set(titles)
+    assert {"data", "batch_size"} <= titles["data"] and {"lr", "steps", "seq_end"} <= titles["schedule"]
+    assert {"w_rest", "shape_loss"} <= titles["loss"] and "model_hidden" in titles["model"]
+    assert {"out", "device", "seed"} <= titles["run"]
+    args = parser.parse_args(["--preset", "ours", "--data", "data/x", "--w-contact", "2", "--rest-leaves"])
+    err = capsys.readouterr().err
+    assert "--w-contact was removed" in err and "--rest-leaves was removed" in err
+    config, _ = config_from_args(args)
+    assert config == TrainConfig.for_preset("ours", data="data/x", out=os.path.join("runs", "train", "x_ours"))

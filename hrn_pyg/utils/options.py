@@ -80,6 +80,27 @@ def add_moved(parser: argparse.ArgumentParser, options: Sequence[str], where: st
         parser.add_argument(option, action=Moved, where=where, dest=f"moved_{option.strip('-').replace('-', '_')}")
 
 
+class Removed(argparse.Action):
+    """An option that was removed: hidden from ``--help``; given (with or without a value), it
+    warns in one line on stderr that it is ignored and goes in the next release."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, why: str = "", **kwargs: Any) -> None:
+        kwargs.update(help=argparse.SUPPRESS, default=argparse.SUPPRESS, nargs="?")
+        super().__init__(option_strings, dest, **kwargs)
+        self.why = why
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        print(f"{parser.prog}: warning: {option_string} was removed ({self.why}) and is ignored; "
+              "it is refused from the next release", file=sys.stderr)
+
+
+def add_removed(parser: argparse.ArgumentParser, options: Sequence[str], why: str) -> None:
+    """Let ``options``, which were removed, warn and be ignored for one release (:class:`Removed`)."""
+    for option in options:
+        parser.add_argument(option, action=Removed, why=why, dest=f"removed_{option.strip('-').replace('-', '_')}")
+
+
 def add_renamed(parser: argparse.ArgumentParser, old: str, new: str) -> None:
     """Let ``old`` spell the option ``new`` that ``parser`` already has (same destination, type,
     count and choices; in the same mutually exclusive group), with :class:`Renamed`'s warning."""
