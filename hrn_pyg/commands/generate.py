@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
                         help="any other setting of the scene (its file's top level or [settings]), VALUE as "
                              "JSON, e.g. offset_range=[-0.003,0.003] (repeatable)")
+    parser.add_argument("--engine", default=None,
+                        help="the engine that simulates the scene: pybullet or mujoco (default: the scene file's "
+                             "engine, else pybullet)")
     add_no_progress(parser)
     add_renamed(parser, "--steps", "--episode-steps")
     add_renamed(parser, "--seed-offset", "--first-seed")

@@ -78,16 +78,16 @@ def rejected_path(out: str, seed: int) -> str:
     return os.path.join(out, f"episode_{seed:06d}.rejected")
 
 
-def _generate_one(task: tuple[str, str, int, dict, str]) -> tuple[int, bool]:
+def _generate_one(task: tuple[str, str, int, dict, str, str | None]) -> tuple[int, bool]:
     """Worker: simulate one episode and write it; ``(seed, written)``. ``kind`` is ``"scene"``
     (``source`` a built-in scene's name) or ``"file"`` (``source`` a scene file); ``settings``
-    replace the scene's own."""
-    kind, source, seed, settings, path = task
+    replace the scene's own, ``engine`` (None: the scene's) simulates it."""
+    kind, source, seed, settings, path, engine = task
     if os.path.exists(path):
         return seed, False
     spec = read_scene_file(source) if kind == "file" else builtin_scene(source)
     try:
-        episode = simulate_episode(spec.with_settings(**settings), seed)
+        episode = simulate_episode(spec.with_settings(**settings).with_engine(engine), seed)
     except DivergedEpisode as lost:
         atomic_write_text(path.removesuffix(".npz") + ".rejected", f"{lost}\n")
         print(f"rejected: {lost}", file=sys.stderr, flush=True)
@@ -107,27 +107,31 @@ def run(args: argparse.Namespace) -> int:
     if args.seed_offset < 0:
         raise ValueError(f"--first-seed: must be >= 0, got {args.seed_offset}")
     shard_index, shard_count = parse_shard(args.shard)
+    engine = getattr(args, "engine", None)  # None: the scene's own
     settings = {k: v for k, v in (dict(steps=args.steps, substeps=args.substeps, physics_hz=args.physics_hz,
                                        pitch=args.pitch) | parse_overrides(getattr(args, "overrides", []))).items()
                 if v is not None}
     if getattr(args, "scene_file", None) is not None:
         kind, source = "file", str(Path(args.scene_file).resolve())
-        spec = read_scene_file(args.scene_file).with_settings(**settings)
+        spec = read_scene_file(args.scene_file).with_settings(**settings).with_engine(engine)
         record = {"scene_file": str(args.scene_file), "scene_text": spec.text}
     else:
         kind, source = "scene", args.scene
-        spec = builtin_scene(args.scene, **settings)
+        spec = builtin_scene(args.scene, **settings).with_engine(engine)
         record = {}
     spec.check(args.seed_offset)  # overlaps and leaf counts fail here, before anything is written
     name, fields = spec.name, settings
     record["config"] = spec.settings_dict()
+    if spec.engine != "pybullet":
+        record["engine"] = spec.engine
 
     os.makedirs(args.out, exist_ok=True)
     meta_path = os.path.join(args.out, "meta.json")
     if os.path.exists(meta_path):
         with open(meta_path) as f:
             old = json.load(f)
-        if old.get("scene") != name or any(old.get(k) != v for k, v in record.items()):
+        if (old.get("scene") != name or any(old.get(k) != v for k, v in record.items())
+                or old.get("engine", "pybullet") != spec.engine):
             raise ValueError(f"out: {args.out} holds a dataset with another scene/config "
                              "(see its meta.json); choose a new --out")
     seeds = [args.seed_offset + i for i in range(args.episodes) if i % shard_count == shard_index]
@@ -146,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     }
     atomic_write_json(meta_path, meta)
 
-    tasks = [(kind, source, s, fields, episode_path(args.out, s)) for s in todo]
+    tasks = [(kind, source, s, fields, episode_path(args.out, s), engine) for s in todo]
     start = time.perf_counter()
     bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), unit="ep",
                desc=f"generate {name}", disable=args.no_progress)

@@ -3,6 +3,7 @@ a rigid push slides as far as pybullet's, a soft cube lands and keeps its shape,
 flat, pushes are recorded as the format says, datasets pass the validator, and what MuJoCo cannot
 do is one line."""
 
+import json
 import re
 import textwrap
 
@@ -13,6 +14,7 @@ pytest.importorskip("mujoco")
 
 from hrn_pyg.cli import main  # noqa: E402
 from hrn_pyg.data.episodes import simulate_episode  # noqa: E402
+from hrn_pyg.data.io import load_episode  # noqa: E402
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC  # noqa: E402
 from hrn_pyg.data.mujoco_scene import LIMITS, MujocoScene  # noqa: E402
 from hrn_pyg.data.scene_file import read_scene_file  # noqa: E402
@@ -145,3 +147,17 @@ def test_what_mujoco_cannot_do_is_one_line(tmp_path):
     scene.reset()
     with pytest.raises(ValueError, match=re.escape(LIMITS["nudge"])):
         scene.nudge(np.zeros((4, 3)))
+
+
+def test_generate_engine_runs_a_pybullet_scene_in_mujoco(tmp_path):
+    """``--engine mujoco`` on a scene file without an engine; meta.json says so, and the same
+    folder refuses the other engine."""
+    path = tmp_path / "scene.toml"
+    path.write_text("steps = 8\npitch = 0.05\n" + textwrap.dedent(PUSHED_CUBE))
+    out = tmp_path / "d"
+    args = ["generate", "--scene-file", str(path), "--episodes", "1", "--out", str(out), "--no-progress"]
+    assert main([*args, "--engine", "mujoco"]) == 0
+    assert json.loads((out / "meta.json").read_text())["engine"] == "mujoco"
+    assert json.loads(str(load_episode(out / "episode_000000.npz")["params"]))["engine"] == "mujoco"
+    assert main(args) == 2  # the pybullet default into the mujoco folder
+    assert main([*args[:-2], str(tmp_path / "e"), "--no-progress", "--engine", "ode"]) == 2
