@@ -74,6 +74,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -164,6 +165,12 @@ MAX_MESH_CHOICES = 256
 #: have 150 and 8)
 MAX_STEPS = 10_000
 MAX_SUBSTEPS = 1_000
+#: the deepest a scene file's tables, lists and dotted keys may nest (the package's scenes: 3),
+#: counted on the raw text before it is parsed (:func:`toml_nesting`)
+MAX_NESTING = 32
+#: what :func:`toml_nesting` stops at: a string's opening quotes, a comment, a bracket, a dot and
+#: what ends a key
+_TOML_SIGN = re.compile(r'"""|\'\'\'|["\'#\[\]{}.=,\n]')
 #: where convex decompositions are cached (``HRN_PYG_CACHE`` overrides it)
 CACHE_DIR = Path(os.environ.get("HRN_PYG_CACHE", Path.home() / ".cache" / "hrn_pyg")) / "convex_parts"
 #: the engines a scene file may name (``engine = ...``); the first is the default
@@ -552,10 +559,16 @@ def read_scene_file(path: str | os.PathLike) -> SceneSpec:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene file not found: {path}")
-    with path.open() as f:
-        text = f.read(MAX_FILE_CHARS + 1)  # never more than the limit in memory
+    try:
+        with path.open(encoding="utf-8") as f:
+            text = f.read(MAX_FILE_CHARS + 1)  # never more than the limit in memory
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x}: {exc.reason})") from None
     if len(text) > MAX_FILE_CHARS:
         raise LimitError(f"{path}: a scene file of more than {MAX_FILE_CHARS} characters")
+    nesting = toml_nesting(text)
+    if nesting > MAX_NESTING:
+        raise LimitError(f"{path}: tables, lists and dotted keys nested {nesting} deep, more than {MAX_NESTING}")
     try:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -563,6 +576,43 @@ def read_scene_file(path: str | os.PathLike) -> SceneSpec:
     except RecursionError:
         raise LimitError(f"{path}: lists or tables nested too deeply") from None
     return parse_scene(table, name=path.stem, base=path.parent, source=str(path), text=text)
+
+
+def toml_nesting(text: str) -> int:
+    """How deep one key, table header or value of TOML ``text`` nests at most, read off the raw
+    characters (so that the parser never meets a file past :data:`MAX_NESTING`): outside
+    strings and comments, the open ``[`` and ``{`` plus the dots of the key being read
+    (``a.b.c = 1``: two dots, three tables). The dot of a number counts too (the count resets
+    at ``=``, ``,``, a bracket and the end of a line, so a value adds at most one)."""
+    deepest = depth = dots = 0
+    position = 0
+    while (match := _TOML_SIGN.search(text, position)) is not None:
+        sign, position = match.group(), match.end()
+        if sign in ("\"", "'", '"""', "'''"):  # skip to the string's end (escapes in basic strings)
+            end = position
+            while (end := text.find(sign, end)) >= 0 and sign[0] == '"' and _escaped(text, end):
+                end += 1
+            if end < 0:
+                break  # an unclosed string: the parser says so
+            position = end + len(sign)
+        elif sign == "#":
+            end = text.find("\n", position)
+            position = len(text) if end < 0 else end
+        elif sign == ".":
+            dots += 1
+        else:
+            depth = depth + 1 if sign in "[{" else max(depth - 1, 0) if sign in "]}" else depth
+            dots = 0
+        deepest = max(deepest, depth + dots)
+    return deepest
+
+
+def _escaped(text: str, index: int) -> bool:
+    """Whether the character at ``index`` follows an odd run of backslashes."""
+    run = index
+    while run > 0 and text[run - 1] == "\\":
+        run -= 1
+    return (index - run) % 2 == 1
 
 
 def parse_scene(table: dict, name: str = "scene", base: Path = Path("."), source: str = "", text: str = "") -> SceneSpec:

@@ -22,6 +22,7 @@ from hrn_pyg.data.scene_file import (
     MAX_FILE_CHARS,
     MAX_LEAVES,
     MAX_MESH_CHOICES,
+    MAX_NESTING,
     MAX_OBJECTS,
     MAX_PUSHES,
     MAX_SETTINGS,
@@ -30,7 +31,10 @@ from hrn_pyg.data.scene_file import (
     check_sheet,
     parse_scene,
     read_scene_file,
+    toml_nesting,
 )
+
+BUILTIN = Path(hrn_pyg.data.generate.__file__).parent / "builtin_scenes"
 
 BOX = {"mesh": "box", "material": "rigid", "size": 0.1, "position": [0.0, 0.0, 0.05]}
 #: a one-box scene whose [draw] holds one expression
@@ -71,7 +75,30 @@ def test_file_length_limit(tmp_path: Path) -> None:
 
 def test_deeply_nested_toml_is_one_line(tmp_path: Path) -> None:
     path = write(tmp_path, "steps = 2\nx = " + "[" * 2000 + "]" * 2000 + "\n")
-    with pytest.raises(LimitError, match="nested too deeply"):
+    with pytest.raises(LimitError, match=f"nested 2000 deep, more than {MAX_NESTING}"):
+        read_scene_file(path)
+
+
+@pytest.mark.parametrize("parts", [5000, 60000])
+def test_dotted_keys_count_as_nesting_before_parsing(tmp_path: Path, parts: int) -> None:
+    """A key of many dotted parts nests a table per part: the parser took 9.5 GB on 60000."""
+    path = write(tmp_path, TEMPLATE.format(expression="1") + "[settings]\n" + ".".join(["a"] * parts) + " = 1\n")
+    start = time.perf_counter()
+    with pytest.raises(LimitError, match=f"nested {parts - 1} deep, more than {MAX_NESTING}"):
+        read_scene_file(path)
+    assert time.perf_counter() - start < SECONDS
+
+
+def test_toml_nesting_skips_strings_and_comments() -> None:
+    assert toml_nesting('a = "x.y.z.w[[[["  # [[[[.....\nb = \'[[[\'\nc = """\\""".[[["""') == 0
+    assert toml_nesting("a.b.c = [[1.5, 2.5], {d.e = 3}]") == 3
+    assert max(toml_nesting(p.read_text()) for p in BUILTIN.glob("*.toml")) <= 3
+
+
+def test_a_file_that_is_not_utf8_names_itself(tmp_path: Path) -> None:
+    path = tmp_path / "latin.toml"
+    path.write_bytes(b"steps = 2\n# caf\xe9\n")
+    with pytest.raises(ValueError, match=r"latin\.toml: not UTF-8 text \(byte 0xe9"):
         read_scene_file(path)
 
 
