@@ -18,9 +18,10 @@ The world is one MJCF model made per seed from what the seed drew (:class:`Mujoc
   (:func:`~hrn_pyg.data.scene_file.soft_lattice`), linear elastic with Young's modulus and
   Poisson ratio of pybullet's Neo-Hookean :math:`\mu` and :math:`\lambda = 2\mu`:
   :math:`\nu = \lambda / (2(\lambda + \mu)) = 1/3`, :math:`E = 2\mu(1 + \nu)`;
-* a **cloth** is a 2-D flex on the same sheet or surface mesh, a shell of thickness
-  :data:`CLOTH_THICKNESS` whose membrane stiffness :math:`E t` is pybullet's spring constant
-  :math:`k`;
+* a **cloth** is a 2-D flex on the same sheet or surface mesh whose edges keep their length
+  (MuJoCo's edge equality constraints): the discrete integrator that flex elasticity needs
+  applies no 2-D elasticity and refuses edge stiffness, so a MuJoCo cloth is inextensible and
+  its stiffness (pybullet's spring constant) is recorded, not simulated;
 * a push on a rigid body is a force on its centre of mass for the whole step; on a soft body or
   cloth it is the same change of velocity of its nodes (a rigid field, with the push's spin) that
   the pybullet scene makes, recorded as :math:`m_i \Delta v_i / \Delta t`.
@@ -80,10 +81,6 @@ YOUNG_OVER_MU = 2.0 * (1.0 + POISSON)
 FLEX_DAMPING = 0.002
 #: a flex node's contact radius (m): pybullet's soft collision margin
 FLEX_RADIUS = SOFT_COLLISION_MARGIN
-#: a cloth shell's thickness (m); Young's modulus is pybullet's spring constant over it
-CLOTH_THICKNESS = 1e-3
-#: the cloth's Poisson ratio (a mass-spring lattice has none of its own)
-CLOTH_POISSON = 0.3
 #: the ground's contact time constant in physics steps (MuJoCo's ``solref``; 2 is the stiffest it
 #: keeps stable): a 0.1 m cube dropped 0.1 m sinks 1.4 cm into the ground on impact at MuJoCo's
 #: default 0.02 s, 0.9 cm at two steps of 1/240 s
@@ -98,6 +95,7 @@ LIMITS = {
     "friction": "pybullet multiplies two bodies' friction, mujoco takes the larger: each mujoco body gets its "
                 "product with the ground's, so ground contacts match and contacts between bodies differ",
     "static_concave": "mujoco collides a concave static mesh as its convex parts, pybullet as its triangles",
+    "cloth_stiffness": "mujoco's cloth is inextensible (edge equality constraints): its stiffness is recorded, not simulated",
     "soft_model": "mujoco's flex is linear elastic (it can collapse where pybullet's Neo-Hookean body stands)",
 }
 
@@ -214,8 +212,7 @@ class MujocoScene(FileScene):
                     nodes, elements = surface_leaves(mesh, where), np.asarray(mesh.faces)
                 log10_k = (drawn["log10_spring_k"] if "log10_spring_k" in drawn
                            else stiffness_exponent(drawn, CLOTH_LOG10_K_RANGE))
-                elastic = (f'<elasticity young="{10.0 ** log10_k / CLOTH_THICKNESS:.10g}" poisson="{CLOTH_POISSON}" '
-                           f'thickness="{CLOTH_THICKNESS}" damping="{FLEX_DAMPING:.10g}"/>')
+                elastic = '<edge equality="true"/>'  # the discrete integrator has no 2-D elasticity
                 stiffness = float(np.clip((log10_k - CLOTH_LOG10_K_RANGE[0]) / np.ptp(CLOTH_LOG10_K_RANGE), 0, 1))
                 dim = 2
             mass = float(drawn["mass"])
