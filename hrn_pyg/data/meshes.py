@@ -57,6 +57,18 @@ FINER_RESOLUTION = 4
 #: an open mesh encloses a volume when some lattice point has a winding number this large (a
 #: surface that bounds nothing, a sheet or a cap, stays near 0.5 even right beside itself)
 ENCLOSED_WINDING = 0.75
+#: the largest mesh file read (bytes; pybullet_data's duck is 0.3 MB): trimesh parses 16 MB of
+#: OBJ in about a second and 150 MB, and the file's size is known before it is opened
+MAX_MESH_BYTES = 16 * 2**20
+#: the most faces and vertices of one mesh (the duck, the largest mesh the package's scenes and
+#: tests use, has 4,212 faces and 2,277 vertices); counted before the voxeliser, the inside test
+#: or pybullet sees the mesh
+MAX_FACES = 100_000
+MAX_VERTICES = 100_000
+#: the most point-face pairs of the inside test of an open mesh (:func:`winding_numbers`; its
+#: lattice cells times its faces, estimated from the bounding box before a lattice is built):
+#: a few million pairs a second on one core, so at most about half a minute
+MAX_INSIDE_PAIRS = 5 * 10**7
 
 
 class MeshWarning(UserWarning):
@@ -67,11 +79,17 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     """The mesh in ``path`` (any format trimesh reads; the pieces of a scene are concatenated).
 
     Raises FileNotFoundError for a missing file and ValueError naming the file for one that is
-    not a mesh, is empty, or has NaN or infinite vertices.
+    not a mesh, is empty, has NaN or infinite vertices, or is past a limit (a file of more than
+    :data:`MAX_MESH_BYTES`, checked before it is read; more than :data:`MAX_FACES` faces or
+    :data:`MAX_VERTICES` vertices, counted before the mesh is processed).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
+    size = path.stat().st_size
+    if size > MAX_MESH_BYTES:
+        raise ValueError(f"{path}: a mesh file of {size} bytes, more than {MAX_MESH_BYTES}; "
+                         f"simplify the mesh to at most {MAX_FACES} faces")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many kinds for a file it cannot read
@@ -83,9 +101,14 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
 
 
 def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> None:
-    """Raise ValueError naming ``name`` if ``mesh`` has no faces or non-finite vertices."""
+    """Raise ValueError naming ``name`` if ``mesh`` has no faces, more than :data:`MAX_FACES`
+    faces or :data:`MAX_VERTICES` vertices, or non-finite vertices."""
     if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
         raise ValueError(f"{name}: empty mesh (no vertices or no faces)")
+    for what, count, limit in (("faces", len(mesh.faces), MAX_FACES), ("vertices", len(mesh.vertices), MAX_VERTICES)):
+        if count > limit:
+            raise ValueError(f"{name}: a mesh of {count} {what}, more than {limit}; simplify it "
+                             "(e.g. trimesh's simplify_quadric_decimation, or Blender's Decimate)")
     if not np.all(np.isfinite(mesh.vertices)):
         raise ValueError(f"{name}: vertices contain NaN or infinite values")
 
@@ -187,6 +210,34 @@ def too_many_leaves(count: float, pitch: float, max_leaves: int, name: str) -> V
                       f"a pitch of {fits:.3g} m fits")
 
 
+def leaf_estimate(mesh: trimesh.Trimesh, pitch: float) -> float:
+    """About how many leaves ``mesh`` has at ``pitch``, from its measures alone (before a
+    lattice is built): its volume (a closed mesh) or its bounding box's (an open one) over
+    :math:`\text{pitch}^3`, or half its area over :math:`\text{pitch}^2` when that is more (the
+    voxels a flat or thin surface passes through), and never more than the cells of its
+    bounding box."""
+    extents = np.asarray(mesh.extents, dtype=np.float64)
+    volume = float(mesh.volume) if mesh.is_watertight else float(np.prod(extents))
+    box_cells = float(np.prod(np.floor(extents / pitch) + 1))
+    return min(max(volume / pitch**3, 0.5 * float(mesh.area) / pitch**2), box_cells)
+
+
+def inside_test_pairs(mesh: trimesh.Trimesh, pitch: float) -> float:
+    """The point-face pairs of the inside test of an open mesh at ``pitch``: its bounding box's
+    lattice cells times its faces (:func:`winding_numbers` runs over every pair)."""
+    return float(np.prod(np.floor(np.asarray(mesh.extents) / pitch) + 1)) * len(mesh.faces)
+
+
+def _surface_voxels(mesh: trimesh.Trimesh, pitch: float, name: str) -> trimesh.voxel.VoxelGrid:
+    """``mesh.voxelized(pitch)``, its failures (trimesh's ``max_iter exceeded!`` when a face
+    needs too many subdivisions) as a ValueError naming ``name``."""
+    try:
+        return mesh.voxelized(pitch)
+    except ValueError as exc:
+        raise ValueError(f"{name}: cannot be voxelised at pitch {pitch} m (trimesh: {exc}); "
+                         "use a larger pitch") from None
+
+
 def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh",
                  max_leaves: int | None = None) -> tuple[np.ndarray, str]:
     """The leaf lattice of a mesh: ``(points [L, 3], how)``, ``how`` one of ``"fill"`` (a closed
@@ -197,20 +248,27 @@ def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh",
     through, and a :class:`MeshWarning` says so).
 
     Raises ValueError when fewer than :data:`MIN_LEAVES` lattice points are found, or more than
-    ``max_leaves`` (checked on the volume, or the bounding box of an open mesh, before the
-    lattice is built), naming a pitch that would do.
+    ``max_leaves`` (checked on :func:`leaf_estimate` before the lattice is built), naming a
+    pitch that would do, and when the inside test of an open mesh would take more than
+    :data:`MAX_INSIDE_PAIRS` point-face pairs (:func:`inside_test_pairs`).
     """
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"pitch must be a finite number > 0, got {pitch}")
     check_mesh(mesh, name)
     if max_leaves is not None:
-        estimate = (mesh.volume if mesh.is_watertight else float(np.prod(mesh.extents))) / pitch**3
+        estimate = leaf_estimate(mesh, pitch)
         if estimate > max_leaves:
             raise too_many_leaves(estimate, pitch, max_leaves, name)
     if mesh.is_watertight:
         how, points = "fill", _filled(mesh, pitch, name)
     else:
-        grid = mesh.voxelized(pitch)  # the voxels the surface passes through (any mesh)
+        pairs = inside_test_pairs(mesh, pitch)
+        if pairs > MAX_INSIDE_PAIRS:
+            fits = pitch * (pairs / MAX_INSIDE_PAIRS) ** (1 / 3)
+            raise ValueError(f"{name} is open (it has holes), and its inside test at pitch {pitch} m would take "
+                             f"{pairs:.3g} point-face pairs, more than {MAX_INSIDE_PAIRS:.3g}; close the mesh, "
+                             f"simplify it, or use a pitch of about {fits:.3g} m")
+        grid = _surface_voxels(mesh, pitch, name)  # the voxels the surface passes through (any mesh)
         shell = grid.matrix
         # the other cells of the box: their centres lie off the surface, where w is well defined
         cells = np.argwhere(~shell)
@@ -233,7 +291,10 @@ def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh",
 def _filled(mesh: trimesh.Trimesh, pitch: float, name: str) -> np.ndarray:
     try:
         points = voxelise(mesh, pitch)
-    except ValueError:
+    except ValueError as exc:
+        if "max_iter" in str(exc):  # trimesh's answer to a face that needs too many subdivisions
+            raise ValueError(f"{name}: cannot be voxelised at pitch {pitch} m (trimesh: {exc}); "
+                             "use a larger pitch") from None
         points = np.zeros((0, 3))
     if len(points) < MIN_LEAVES:
         raise ValueError(f"{name}: {len(points)} leaf at pitch {pitch} m, a body needs {MIN_LEAVES}; its longest "

@@ -1054,7 +1054,10 @@ class FileScene(Scene):
         c = self._client
         mesh = posed_mesh(obj, drawn)
         leaves = self._leaves(mesh, where)
-        shape = self._collision_shape(obj, mesh, drawn, static)
+        try:
+            shape = self._collision_shape(obj, mesh, drawn, static)
+        except p.error as exc:  # pybullet's own refusal of a mesh, one line
+            raise ValueError(f"{self.spec.name}: {where}: pybullet could not make its collision shape ({exc})") from None
         mass = STATIC_DENSITY * float(mesh.volume) if static else float(drawn["mass"])
         pose = {"baseOrientation": q} if (q := quaternion(drawn)) is not None else {}
         body = p.createMultiBody(0.0 if static else mass, shape, basePosition=list(drawn["position"]),
