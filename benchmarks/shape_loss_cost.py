@@ -24,7 +24,7 @@ import time
 import torch
 from torch_geometric.data import Batch
 
-import hrn_pyg.train as train_module
+import hrn_pyg.train.loss as train_module
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.losses import full_shape_loss

@@ -12,7 +12,7 @@ import torch
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.cli import main
 from hrn_pyg.nn.hrn import HRNConfig
-from hrn_pyg.train import TrainConfig, _draw_windows, parse_data_weights, train, window_draw_weights
+from hrn_pyg.train import TrainConfig, draw_windows, parse_data_weights, train, window_draw_weights
 
 SMALL = HRNConfig(hidden=16, depth=1, effect_dim=16)
 
@@ -119,11 +119,12 @@ import sys
 
 import torch
 
-import hrn_pyg.train as train_module
+import hrn_pyg.train.loader as loader
+import hrn_pyg.train.loop as loop
 from hrn_pyg.cli import main
 
 seen = {"windows": [], "before": [], "after": [], "model": None}
-draw_windows, average_gradients = train_module._draw_windows, train_module._average_gradients
+draw_windows, average_gradients = loader.draw_windows, loop.average_gradients
 
 
 def flat_gradients(model):
@@ -144,8 +145,8 @@ def recording_average(model):
     seen["after"].append(flat_gradients(model))
 
 
-train_module._draw_windows = recording_draw
-train_module._average_gradients = recording_average
+loader.draw_windows = recording_draw  # where the loader draws each step's windows
+loop.average_gradients = recording_average  # where the loop averages the ranks' gradients
 code = main(sys.argv[2:])
 torch.save({"windows": seen["windows"], "before": torch.stack(seen["before"]), "after": torch.stack(seen["after"]),
             "weights": seen["model"].state_dict()}, os.path.join(sys.argv[1], f"rank{os.environ['RANK']}.pt"))
@@ -588,23 +589,23 @@ def test_data_weights_draw_a_folder_in_proportion_and_uniform_draws_stay_as_they
 
     assert window_draw_weights(windows, folders, [1.0, 1.0]) is None
     n = len(windows)
-    assert _draw_windows(n, 8, 0, 3, 0) == _draw_windows(n, 8, 0, 3, 0, None)  # runs without weights unchanged
+    assert draw_windows(n, 8, 0, 3, 0) == draw_windows(n, 8, 0, 3, 0, None)  # runs without weights unchanged
 
     weight = 4.0
     cumulative = window_draw_weights(windows, folders, [1.0, weight])
-    drawn = torch.as_tensor([i for step in range(500) for i in _draw_windows(n, 8, 0, step, 0, cumulative)])
+    drawn = torch.as_tensor([i for step in range(500) for i in draw_windows(n, 8, 0, step, 0, cumulative)])
     assert int(drawn.min()) >= 0 and int(drawn.max()) < n
     expected = weight * share / (weight * share + 1 - share)
     observed = float(from_small[drawn].double().mean())
     assert abs(observed - expected) < 0.03, (observed, expected, share)  # 4000 draws: 3 sigma < 0.025
-    assert _draw_windows(n, 8, 0, 7, 0, cumulative) == _draw_windows(n, 8, 0, 7, 0, cumulative)  # seeded
+    assert draw_windows(n, 8, 0, 7, 0, cumulative) == draw_windows(n, 8, 0, 7, 0, cumulative)  # seeded
 
 
 def test_rigid_bodies_under_the_rigid_fit_leave_the_shape_gradient_as_it_was(monkeypatch):
     """The full shape loss skips the pairs of rigid bodies when the model fits rigid motions
     (their distances are the input's): every parameter's gradient is the one of the loss that
     computes them, and the logged shape part is lower by their constant error."""
-    import hrn_pyg.train as train_module
+    import hrn_pyg.train.loss as train_module
     from hrn_pyg.losses import full_shape_loss
     from hrn_pyg.train import window_loss
     from toy_scene import toy_model, toy_window
