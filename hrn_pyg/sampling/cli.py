@@ -144,6 +144,9 @@ def run(args: argparse.Namespace) -> int:
     report_outside(model, Domain.from_dict(origin["domain"]), strict=args.strict, prefix="hrn-pyg sample: warning: ")
     store = graph[NODE]
     steps = int(store.force_seq.shape[1]) if args.steps is None else int(args.steps)
+    from hrn_pyg.export.options import result_meshes
+
+    meshes = result_meshes(args, source, np.asarray(store.object[store.is_leaf]), steps, origin)  # before any sampling
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device
@@ -178,9 +181,6 @@ def run(args: argparse.Namespace) -> int:
     for suffix in ("gif", "mp4") if args.mp4 else ("gif",):
         write_gif({"truth (dark) + samples": truth}, colors, out / f"samples.{suffix}", samples=paths,
                   fps=pictures.fps, size=pictures.size, view=pictures.camera)
-    from hrn_pyg.export.options import result_meshes
-
-    meshes = result_meshes(args, source, np.asarray(leaf_object), steps, origin)
 
     def write_npz(f) -> None:
         buffer = io.BytesIO()

@@ -87,3 +87,30 @@ def test_the_picture_options_apply(result):
     assert Image.open(result / "samples.png").size == (640, 240)
     gif = Image.open(result / "samples.gif")
     assert gif.size == (640, 240) and gif.n_frames == HORIZON + 1
+
+
+def test_a_dataset_window_exports_the_meshes_its_episode_drew(tmp_path, capsys):
+    """With ``--data`` the meshes come from the draws the episode file records (a size and a
+    yaw drawn per seed), and data of another scene is one line, exit code 2."""
+    scene = SCENE.with_name("duck_throw.toml")
+    data = tmp_path / "data"
+    assert main(["generate", "--scene-file", str(scene), "--episodes", "1", "--first-seed", "3", "--out", str(data),
+                 "--no-progress"]) == 0
+    out = tmp_path / "sample"
+    assert main(["sample", "--scene-file", str(scene), "--model", "shapes", "--data", str(data), "--split", "all",
+                 "--k", "2", "--horizon", "2", "--export", "ply", "--out", str(out), "--no-progress"]) == 0
+    with np.load(out / "samples.npz") as result:
+        meshes = SceneMeshes.from_arrays(result)
+        truth = result["truth"]
+    from hrn_pyg.data.io import load_episode
+    from hrn_pyg.export import rig
+
+    episode = load_episode(data / "episode_000003.npz")
+    np.testing.assert_allclose(meshes.rest_leaves, episode["positions"][0], atol=1e-6)  # the recorded draws
+    frames = rig(meshes).animate(truth)
+    points = meshio.read(out / "ply" / "truth" / "frame_0001.ply").points
+    np.testing.assert_allclose(points, np.concatenate([f.vertices[1] for f in frames]), atol=1e-5)
+    assert main(["sample", "--scene-file", str(SCENE), "--model", "shapes", "--data", str(data), "--split", "all",
+                 "--k", "2", "--horizon", "2", "--out", str(tmp_path / "other"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "was the data made from this scene?" in err, err
