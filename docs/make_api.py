@@ -68,7 +68,7 @@ MODULES = (
     "hrn_pyg.losses",
     "hrn_pyg.train",
     "hrn_pyg.evaluate",
-    "hrn_pyg.metrics_rest",
+    "hrn_pyg.evaluate.rest",
     "hrn_pyg.sampling.sample",
     "hrn_pyg.sampling.metrics",
     "hrn_pyg.sampling.ensemble",

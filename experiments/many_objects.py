@@ -25,7 +25,7 @@ The model's domain check runs on each count's episodes; its warning (e.g. more o
 was trained with) is printed and kept in the JSON.
 
 **Rest.** With ``--rest-steps N`` (0: off) every episode of a count that ends with every object at
-rest (:func:`hrn_pyg.metrics_rest.objects_at_rest` of pybullet's positions) is rolled out ``N``
+rest (:func:`hrn_pyg.evaluate.rest.objects_at_rest` of pybullet's positions) is rolled out ``N``
 steps from its last state, the network alone, and judged by the package's stability check
 (:func:`hrn_pyg.evaluate.rest_check`: finite, within 50 m, no leaf more than one pitch
 under the ground, rigid shapes within 1 %, drift under 5 cm). An episode that has not come to

@@ -24,7 +24,7 @@ from hrn_pyg.evaluate import (
     summarise,
     summarise_long,
 )
-from hrn_pyg.metrics_rest import (
+from hrn_pyg.evaluate.rest import (
     REST_SPEED,
     REST_STEPS,
     ground_depth,

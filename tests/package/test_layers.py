@@ -7,7 +7,7 @@ imports a computed name imports every package module it names in a string, as ``
 command table does). The order, bottom first; a module may import from its own layer or below
 (the package root is a layer entry for itself only, not for its submodules):
 
-    utils, version -> data, viz, commands (a command's arguments, no torch) -> nn -> checkpoints -> sim -> train, losses, evaluate, metrics_rest,
+    utils, version -> data, viz, commands (a command's arguments, no torch) -> nn -> checkpoints -> sim -> train, losses, evaluate,
     sampling -> rl -> recipe, demo, cli, the package root
 """
 
@@ -29,7 +29,7 @@ LAYERS = (
     ("hrn_pyg.nn",),
     ("hrn_pyg.checkpoints",),
     ("hrn_pyg.sim",),
-    ("hrn_pyg.train", "hrn_pyg.losses", "hrn_pyg.evaluate", "hrn_pyg.metrics_rest", "hrn_pyg.sampling"),
+    ("hrn_pyg.train", "hrn_pyg.losses", "hrn_pyg.evaluate", "hrn_pyg.sampling"),
     ("hrn_pyg.rl",),
     ("hrn_pyg.recipe", "hrn_pyg.demo", "hrn_pyg.cli", "hrn_pyg"),
 )

@@ -289,7 +289,7 @@ def test_rigid_objects_keep_their_shape_for_a_thousand_steps(scene):
 @slow
 @pytest.mark.parametrize("scene", _xfail_unless(RESTING_SCENES, REST_DRIFT_FAILURES))
 def test_objects_at_rest_stay_at_rest_for_a_thousand_steps(scene):
-    from hrn_pyg.metrics_rest import object_centroids
+    from hrn_pyg.evaluate.rest import object_centroids
 
     traj, store, leaves = _resting_rollout(scene)
     num_objects = int(store.object.max()) + 1

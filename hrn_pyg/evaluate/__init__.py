@@ -25,7 +25,7 @@ the mean over the trajectories that stayed finite with the count of those that d
 **Long rollouts.** A second table scores one rollout per held-out episode, started at the
 earliest possible step (``t = 2``) and run to the episode's end, at the long horizons (default
 ``t+50`` and ``t+100``; a horizon past an episode's end is read at the end and labelled e.g.
-``t+47 (end)``), plus the rest metrics of :mod:`hrn_pyg.metrics_rest`: how far movable leaves get
+``t+47 (end)``), plus the rest metrics of :mod:`hrn_pyg.evaluate.rest`: how far movable leaves get
 below the ground, and for objects at rest at the end of the ground truth the error of the
 predicted resting height and the predicted horizontal drift. The short-horizon Table 1 keeps its
 own windows (``--stride`` apart, horizon ``max(--horizons)``), so its numbers are unchanged.
@@ -51,7 +51,7 @@ from hrn_pyg.commands.evaluate import DEFAULT_LONG_HORIZONS, add_arguments  # no
 from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
-from hrn_pyg.metrics_rest import REST_SPEED, REST_STEPS, objects_at_rest, rest_metrics
+from hrn_pyg.evaluate.rest import REST_SPEED, REST_STEPS, objects_at_rest, rest_metrics
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.rollout import iterate, rollout
 from hrn_pyg.sim.stability import StabilityLimits, stability_report
@@ -252,7 +252,7 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
     """Roll ``model`` over whole-episode windows (:func:`episode_start_windows`) and score them.
 
     Windows of equal length are rolled out together as one batched graph. Horizon ``h`` is read
-    at step ``min(h, T_e)`` of window ``e``; the rest metrics (:func:`hrn_pyg.metrics_rest.rest_metrics`)
+    at step ``min(h, T_e)`` of window ``e``; the rest metrics (:func:`hrn_pyg.evaluate.rest.rest_metrics`)
     use the whole rollout, which ends at the episode's end. ``model`` must already be on
     ``device``; results come back to the CPU.
 
@@ -408,7 +408,7 @@ def rest_check(model, episode: Mapping[str, Any], steps: int,
     """:func:`hrn_pyg.sim.stability.stability_report` of ``steps`` steps of ``model`` alone (no
     object sleeps, no force) from the last state of ``episode`` (an episode file's arrays,
     :func:`hrn_pyg.data.io.load_episode`); None when pybullet's objects are not all at rest
-    there (:func:`hrn_pyg.metrics_rest.objects_at_rest`). A rollout that leaves the finite numbers
+    there (:func:`hrn_pyg.evaluate.rest.objects_at_rest`). A rollout that leaves the finite numbers
     is reported as not finite and not holding, with its ``error``."""
     truth = torch.as_tensor(episode["positions"], dtype=torch.float32)
     obj = torch.as_tensor(episode["leaf_object"], dtype=torch.long)
