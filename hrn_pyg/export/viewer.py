@@ -54,14 +54,14 @@ def _mesh_trace(go, frame: tuple, name: str, truth: bool, objects) -> object:
     string per face, keep the page small)."""
     vertices, faces, _, face_object = frame
     vertices = vertices.astype(np.float32)  # a page's size is mostly vertices: float32 halves it
-    ids = sorted({o.object.index for o in objects})
-    band = {index: n for n, index in enumerate(ids)}
+    ordered = sorted(objects, key=lambda o: o.object.index)
+    band = np.zeros(ordered[-1].object.index + 1)  # object id -> its band of the colour scale
     scale = []
-    for n, o in enumerate(sorted(objects, key=lambda o: o.object.index)):
+    for n, o in enumerate(ordered):
+        band[o.object.index] = n
         colour = _colour(object_rgba(o.object.index, o.object.material, truth))
-        scale += [[n / len(ids), colour], [(n + 1) / len(ids), colour]]
-    intensity = (np.array([band[int(o)] for o in np.unique(face_object)])[np.searchsorted(np.unique(face_object), face_object)]
-                 + 0.5) / len(ids)
+        scale += [[n / len(ordered), colour], [(n + 1) / len(ordered), colour]]
+    intensity = (band[face_object] + 0.5) / len(ordered)
     return go.Mesh3d(x=vertices[:, 0], y=vertices[:, 1], z=vertices[:, 2], i=faces[:, 0], j=faces[:, 1],
                      k=faces[:, 2], intensity=intensity, intensitymode="cell", colorscale=scale, cmin=0.0, cmax=1.0,
                      showscale=False, name=name, showlegend=True, opacity=1.0 if truth else 0.45, flatshading=True,
