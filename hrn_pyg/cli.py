@@ -40,7 +40,7 @@ from hrn_pyg.version import __version__
 
 #: sub-command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "generate": ("hrn_pyg.data.generate", "simulate a scene in pybullet and write episodes"),
+    "generate": ("hrn_pyg.data.generate", "simulate a scene in pybullet (or MuJoCo: --engine mujoco) and write episodes"),
     "check-data": ("hrn_pyg.data.check", "check that a folder of episode files is one training can read"),
     "import": ("hrn_pyg.data.tracks", "turn point tracks (npz, learning_to_simulate) into episode files"),
     "train": ("hrn_pyg.train", "train an HRN (presets: hrn, ours) or the GNS baseline (preset gns)"),
