@@ -4,7 +4,13 @@ Episode ``i`` (``0 <= i < --episodes``) has seed ``--first-seed + i`` and is wri
 ``<out>/episode_<seed:06d>.npz`` (:func:`hrn_pyg.data.io.save_episode`, atomic). A rerun skips
 files that exist, so a killed run loses at most the episodes in flight. ``--shard i/N`` keeps
 the episodes whose index is ``i`` modulo ``N``, so N machines can split one dataset.
-``<out>/meta.json`` (atomic) records the scene, its settings and the counts. ``--scene-file
+``<out>/meta.json`` (atomic) records the scene, its settings and the counts, and under
+``shards`` each shard's counts. Writers of one folder hold ``<out>/.lock``
+(:class:`~hrn_pyg.utils.files.FolderLock`): a writer whose scene or settings differ from those
+of meta.json stops with one line, however close together two start; writers of the same
+dataset (shards) run together and each adds its own record; the first writer of an idle folder
+removes the temporaries a killed one left. A run that fails leaves meta.json as it found it (none,
+when it made the folder's first). ``--scene-file
 FILE`` simulates a scene read from a TOML file (:mod:`hrn_pyg.data.scene_file`) instead of a
 built-in one; its meta.json keeps the file's text. ``--set NAME=VALUE`` changes a setting of
 either. An episode of a scene with soft bodies or cloth runs in a process of its own, so its
@@ -24,12 +30,11 @@ import sys
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode
 from hrn_pyg.data.io import save_episode
 from hrn_pyg.data.scene_file import builtin_scene, check_scene_name, read_scene_file
-from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
+from hrn_pyg.utils.files import LOCK_NAME, FolderLock, atomic_write_json, atomic_write_text, remove_temporaries
+from hrn_pyg.utils.options import progress_bar
 
 
 #: settings of a scene that have an option of their own, and its name
@@ -125,35 +130,51 @@ def run(args: argparse.Namespace) -> int:
     if spec.engine != "pybullet":
         record["engine"] = spec.engine
 
+    made = not os.path.exists(args.out)
     os.makedirs(args.out, exist_ok=True)
+    try:
+        with FolderLock(args.out) as lock:
+            if lock.alone:
+                remove_temporaries(args.out)  # a killed writer's half-written episodes
+                lock.shared()
+            return _write(args, lock, spec, kind, source, name, record, fields, engine, (shard_index, shard_count))
+    except BaseException:
+        if made and set(os.listdir(args.out)) <= {LOCK_NAME}:  # a failed first run leaves no folder
+            Path(args.out, LOCK_NAME).unlink(missing_ok=True)
+            os.rmdir(args.out)
+        raise
+
+
+def _write(args: argparse.Namespace, lock: FolderLock, spec, kind: str, source: str, name: str, record: dict,
+           fields: dict, engine: str | None, shard: tuple[int, int]) -> int:
+    """The episodes of one shard, written into ``args.out`` under ``lock``, with meta.json."""
+    shard_index, shard_count = shard
     meta_path = os.path.join(args.out, "meta.json")
-    if os.path.exists(meta_path):
-        with open(meta_path) as f:
-            old = json.load(f)
-        if (old.get("scene") != name or any(old.get(k) != v for k, v in record.items())
-                or old.get("engine", "pybullet") != spec.engine):
+    seeds = [args.seed_offset + i for i in range(args.episodes) if i % shard_count == shard_index]
+    with lock.exclusive():  # the check and the first record, with no other writer between them
+        old = _read_meta(meta_path)
+        if old is not None and (old.get("scene") != name or any(old.get(k) != v for k, v in record.items())
+                                or old.get("engine", "pybullet") != spec.engine):
             raise ValueError(f"out: {args.out} holds a dataset with another scene/config "
                              "(see its meta.json); choose a new --out")
-    seeds = [args.seed_offset + i for i in range(args.episodes) if i % shard_count == shard_index]
-    todo = [s for s in seeds if not os.path.exists(episode_path(args.out, s))
-            and not os.path.exists(rejected_path(args.out, s))]
-    meta = {
-        "scene": name,
-        **record,
-        "episodes": args.episodes,
-        "seed_offset": args.seed_offset,
-        "shard": f"{shard_index}/{shard_count}",
-        "shard_seeds": len(seeds),
-        "already_done": len(seeds) - len(todo),
-        "written": 0,
-        "complete": False,
-    }
-    atomic_write_json(meta_path, meta)
+        todo = [s for s in seeds if not os.path.exists(episode_path(args.out, s))
+                and not os.path.exists(rejected_path(args.out, s))]
+        shard_record = {"shard_seeds": len(seeds), "already_done": len(seeds) - len(todo), "written": 0,
+                        "complete": False}
+        meta = {
+            "scene": name,
+            **record,
+            "episodes": args.episodes,
+            "seed_offset": args.seed_offset,
+            "shard": f"{shard_index}/{shard_count}",
+            **shard_record,
+        }
+        _record_shard(meta_path, meta, meta["shard"], shard_record, old)
 
     tasks = [(kind, source, s, fields, episode_path(args.out, s), engine) for s in todo]
     start = time.perf_counter()
-    bar = tqdm(total=len(seeds), initial=len(seeds) - len(todo), unit="ep",
-               desc=f"generate {name}", disable=args.no_progress)
+    bar = progress_bar(len(seeds), f"generate {name}", "ep", enabled=not args.no_progress)
+    bar.update(len(seeds) - len(todo))
     written = 0
     # pybullet keeps part of its soft-body state per process, and a reset does not clear it: an
     # episode with soft bodies or cloth then depends on the episodes run before it in the same
@@ -174,10 +195,46 @@ def run(args: argparse.Namespace) -> int:
             for _, did in map(_generate_one, tasks):
                 written += did
                 bar.update(1)
+    except BaseException:
+        with lock.exclusive():
+            _undo_record(meta_path, old, meta["shard"], args.out)
+        raise
     finally:
         bar.close()
     rejected = sum(os.path.exists(rejected_path(args.out, s)) for s in seeds)
-    meta.update(written=written, rejected=rejected, complete=True,
-                seconds=round(time.perf_counter() - start, 3))
-    atomic_write_json(meta_path, meta)
+    shard_record.update(written=written, rejected=rejected, complete=True,
+                        seconds=round(time.perf_counter() - start, 3))
+    meta.update(shard_record)
+    with lock.exclusive():
+        _record_shard(meta_path, meta, meta["shard"], shard_record, _read_meta(meta_path))
     return 0
+
+
+def _read_meta(path: str) -> dict | None:
+    """meta.json as a dict; None when there is none."""
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+def _record_shard(path: str, meta: dict, shard: str, shard_record: dict, current: dict | None) -> None:
+    """Write ``meta`` to ``path`` with ``shard``'s record added to the ``shards`` of ``current``
+    (what is on disk now: other writers' records stay)."""
+    shards = dict((current or {}).get("shards", {}))
+    shards[shard] = shard_record
+    atomic_write_json(path, {**meta, "shards": shards})
+
+
+def _undo_record(path: str, old: dict | None, shard: str, out: str) -> None:
+    """After a failed run: meta.json as it was before (``old``), with the other writers' records
+    kept; removed when there was none and the folder holds no episode."""
+    current = _read_meta(path) or {}
+    others = {k: v for k, v in current.get("shards", {}).items() if k != shard}
+    if old is not None:
+        atomic_write_json(path, {**old, "shards": {**old.get("shards", {}), **others}})
+    elif others or any(name.startswith("episode_") for name in os.listdir(out)):
+        current.get("shards", {}).pop(shard, None)
+        atomic_write_json(path, current)  # says complete: false; a rerun finishes it
+    else:
+        Path(path).unlink(missing_ok=True)

@@ -1,9 +1,10 @@
-"""Files: atomic writing (a reader never sees half a file, a killed writer leaves none behind), a
-file's SHA-256, and silencing C-level prints."""
+"""Files: atomic writing (a reader never sees half a file, a killed writer leaves none behind), the
+lock of a folder that several processes write, a file's SHA-256, and silencing C-level prints."""
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import math
@@ -16,6 +17,8 @@ from typing import IO, Any
 
 #: permissions of every file written here (what a plain ``open`` gives under a 022 umask)
 FILE_MODE = 0o644
+#: the lock file of a folder written by several processes (:class:`FolderLock`)
+LOCK_NAME = ".lock"
 
 
 @contextlib.contextmanager
@@ -56,6 +59,62 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+class FolderLock:
+    """This process as one writer of a folder, among others that may write it at the same time.
+
+    Two POSIX record locks (``fcntl.lockf``) on the folder's :data:`LOCK_NAME` file: byte 1 is
+    held shared by every writer for as long as it writes, and byte 0 exclusively for a short
+    read-check-write of a shared record (:meth:`exclusive`). :attr:`alone` says whether this
+    writer took byte 1 exclusively at the start, i.e. no other writer was active: only then are
+    temporaries a killed writer left (:func:`remove_temporaries`) safe to remove. The kernel
+    drops both locks when the process ends, however it ends. Use as a context manager.
+    """
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.path = Path(folder) / LOCK_NAME
+        self._fd: int | None = None
+        self.alone = False
+
+    def __enter__(self) -> FolderLock:
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, FILE_MODE)
+        try:
+            fcntl.lockf(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB, 1, 1)
+            self.alone = True
+        except OSError:
+            self.alone = False
+            fcntl.lockf(self._fd, fcntl.LOCK_SH, 1, 1)
+        return self
+
+    def shared(self) -> None:
+        """Let other writers in (after this one has tidied the folder, when :attr:`alone`)."""
+        fcntl.lockf(self._fd, fcntl.LOCK_SH, 1, 1)
+
+    @contextlib.contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """The block runs while no other writer of the folder runs its own (waits for it)."""
+        fcntl.lockf(self._fd, fcntl.LOCK_EX, 1, 0)
+        try:
+            yield
+        finally:
+            fcntl.lockf(self._fd, fcntl.LOCK_UN, 1, 0)
+
+    def __exit__(self, *exc: object) -> None:
+        os.close(self._fd)  # releases both locks
+        self._fd = None
+
+
+def remove_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries :func:`atomic_path` left in ``folder`` when its writer was killed
+    (``.<name>.<random>.tmp``); the removed paths. Call it only when no writer of the folder is
+    running (:attr:`FolderLock.alone`)."""
+    removed = []
+    for path in Path(folder).glob(".*.tmp"):
+        if path.is_file():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
 
 
 def json_safe(obj: Any) -> Any:

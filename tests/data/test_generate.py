@@ -168,7 +168,7 @@ def test_a_lost_episode_is_marked_skipped_and_counted(tmp_path, capsys):
     out = tmp_path / "out"
     args = ["generate", "--scene-file", str(scene), "--episodes", "2", "--out", str(out), "--no-progress"]
     assert main(args) == 0
-    assert sorted(os.listdir(out)) == ["episode_000000.rejected", "episode_000001.rejected", "meta.json"]
+    assert sorted(os.listdir(out)) == [".lock", "episode_000000.rejected", "episode_000001.rejected", "meta.json"]
     assert "under the ground" in (out / "episode_000000.rejected").read_text()
     assert capsys.readouterr().err.count("rejected: buried seed") == 2
     meta = json.loads((out / "meta.json").read_text())
@@ -177,3 +177,71 @@ def test_a_lost_episode_is_marked_skipped_and_counted(tmp_path, capsys):
     assert main(args) == 0  # a rerun skips them
     assert os.stat(out / "episode_000001.rejected").st_mtime_ns == stamp
     assert json.loads((out / "meta.json").read_text())["rejected"] == 2
+
+
+def test_each_shard_keeps_its_record(tmp_path):
+    assert _generate(tmp_path, "--shard", "0/2") == 0
+    assert _generate(tmp_path, "--shard", "1/2") == 0
+    shards = json.loads((tmp_path / "meta.json").read_text())["shards"]
+    assert sorted(shards) == ["0/2", "1/2"]
+    assert shards["0/2"]["written"] == 2 and shards["1/2"]["written"] == 1 and shards["1/2"]["complete"]
+
+
+def test_a_killed_writers_temporaries_are_removed_by_the_next_run(tmp_path):
+    stale = tmp_path / ".episode_000001.npz.x1y2z3.npz.tmp"
+    stale.write_bytes(b"half an episode")
+    assert _generate(tmp_path) == 0
+    assert not stale.exists() and not list(tmp_path.glob(".*.tmp"))
+
+
+_HOLD_LOCK = ("import sys, time\nfrom hrn_pyg.utils.files import FolderLock\n"
+              "with FolderLock(sys.argv[1]) as lock, lock.exclusive():\n"
+              "    print(lock.alone, flush=True)\n    time.sleep(float(sys.argv[2]))\n")
+
+
+def test_a_second_writer_with_other_settings_stops_with_one_line(tmp_path, capsys):
+    """The check of meta.json and its first record are made under the folder's lock: a writer
+    that comes while another holds it waits, then finds the other's settings."""
+    assert _generate(tmp_path) == 0
+    capsys.readouterr()
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK, str(tmp_path), "1.0"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "True"  # it took the folder alone
+        stale = tmp_path / ".episode_000009.npz.abc.npz.tmp"
+        stale.write_bytes(b"in flight")
+        start = time.perf_counter()
+        code = main(["generate", "--scene", "cube_collision", "--episodes", "3", "--out", str(tmp_path),
+                     "--episode-steps", "5", "--no-progress"])
+        waited = time.perf_counter() - start
+    finally:
+        holder.wait()
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "another scene/config" in err
+    assert waited > 0.5  # it waited for the lock before reading meta.json
+    assert stale.exists()  # another writer was running: its temporaries are not touched
+
+
+def test_a_failed_first_run_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    import hrn_pyg.data.generate as generate
+
+    def fail(*_):
+        raise ValueError("pybullet could not make its collision shape")
+
+    monkeypatch.setattr(generate, "simulate_episode", fail)
+    out = tmp_path / "new"
+    assert _generate(out) == 2
+    assert "collision shape" in capsys.readouterr().err and not out.exists()
+    monkeypatch.undo()
+    assert _generate(tmp_path / "old") == 0
+    before = (tmp_path / "old" / "meta.json").read_text()
+    monkeypatch.setattr(generate, "simulate_episode", fail)
+    (tmp_path / "old" / "episode_000002.npz").unlink()
+    assert _generate(tmp_path / "old") == 2
+    assert (tmp_path / "old" / "meta.json").read_text() == before  # as the failed run found it
+
+
+def test_no_bar_is_drawn_into_a_redirected_stderr(tmp_path, capsys):
+    assert main(["generate", "--scene", "cube_collision", "--episodes", "2", "--out", str(tmp_path),
+                 "--episode-steps", "4"]) == 0
+    assert capsys.readouterr().err == ""
