@@ -14,7 +14,6 @@ import argparse
 import functools
 import http.server
 import os
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -101,13 +100,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
     host, port = server.server_address[:2]
     print(f"serving http://{host}:{port}/{out.name}  (Ctrl-C stops)", flush=True)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
     try:
-        thread.join()
+        server.serve_forever()
     except KeyboardInterrupt:
         pass
     finally:
-        server.shutdown()
         server.server_close()
     return 0
