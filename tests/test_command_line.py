@@ -153,9 +153,8 @@ def test_the_formatter_shows_defaults_but_not_none_or_false():
 def _draws_progress(module: str) -> bool:
     """Whether a module's source makes a tqdm bar (directly or through progress_bar)."""
     path = ROOT.joinpath(*module.split(".")[1:]).with_suffix(".py")
-    if not path.exists():
-        path = path.with_suffix("") / "__init__.py"
-    names = {n.id if isinstance(n, ast.Name) else n.attr for n in ast.walk(ast.parse(path.read_text()))
+    paths = [path] if path.exists() else sorted(path.with_suffix("").glob("*.py"))  # a package: its modules
+    names = {n.id if isinstance(n, ast.Name) else n.attr for p in paths for n in ast.walk(ast.parse(p.read_text()))
              if isinstance(n, (ast.Name, ast.Attribute))}
     return bool(names & {"tqdm", "progress_bar"})
 

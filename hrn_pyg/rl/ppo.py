@@ -104,7 +104,7 @@ from hrn_pyg.utils.checkpoint import (
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, file_sha256, json_safe
 from hrn_pyg.utils.metrics import CSVLog
-from hrn_pyg.utils.options import add_moved, add_no_progress
+from hrn_pyg.utils.options import add_moved, add_no_progress, progress_bar
 from hrn_pyg.utils.schedules import LinearSchedule
 from hrn_pyg.utils.stop import StopRequest
 from hrn_pyg.viz import plot_curves
@@ -527,11 +527,9 @@ def _episode_stats(batch: TensorDictBase, k: int) -> dict[str, float | int | str
 
 
 def _progress(total: int, desc: str, enabled: bool):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="upd", leave=False)
+    """The run's progress (:func:`~hrn_pyg.utils.options.progress_bar`: a bar on a terminal, lines
+    in a log), or None with ``--no-progress``."""
+    return progress_bar(total, desc, "upd") if enabled else None
 
 
 

@@ -64,6 +64,7 @@ from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
+from hrn_pyg.utils.options import progress_bar
 
 #: default output: ``<stem>.calibrated.pt`` beside the input
 CALIBRATED_SUFFIX = ".calibrated.pt"
@@ -317,11 +318,8 @@ def calibrate(model: HRN, starts: list[Start], rates: tuple[float, ...], module_
               k: int, steps: int, sample_seed: int = 0, progress: bool = False) -> list[dict]:
     """Score every (rate, module set) on every start; one :func:`summarise` row per candidate,
     in the order module set, then rate."""
-    from tqdm import tqdm
-
     pairs = [(rate, modules) for modules in module_sets for rate in rates]
-    bar = tqdm(total=len(pairs) * len(starts), desc="calibrate", unit="rollout", disable=not progress,
-               file=sys.stderr, leave=False)
+    bar = progress_bar(len(pairs) * len(starts), "calibrate", "rollout", enabled=progress)
     candidates = []
     try:
         for rate, modules in pairs:

@@ -14,7 +14,6 @@ import torch.distributed as dist
 from torch import Tensor
 from torch.utils.data import DataLoader
 from torch_geometric.data import HeteroData
-from tqdm import tqdm
 
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.nn.gns import GNSConfig
@@ -35,6 +34,7 @@ from hrn_pyg.train.loss import validation_loss, window_loss
 from hrn_pyg.utils.checkpoint import rng_state, save_checkpoint
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.utils.metrics import CSVLog
+from hrn_pyg.utils.options import progress_bar
 from hrn_pyg.utils.schedules import SequenceLengthSchedule, cosine_lr_factor
 from hrn_pyg.utils.weight_average import WeightAverage
 from hrn_pyg.viz import plot_curves
@@ -101,15 +101,16 @@ class _Run:
         was running when an exception came is not counted as done).
         """
         config = self.config
-        bar = tqdm(zip(range(start, end), batches), initial=start, total=config.steps,
-                   disable=not progress or self.place.rank != 0, desc=f"train {config.preset}", dynamic_ncols=True)
+        bar = progress_bar(config.steps, f"train {config.preset}", "step", initial=start,
+                           enabled=progress and self.place.rank == 0)
         self.model.train()
         step_index = start
         try:
-            for step_index, batch in bar:
+            for step_index, batch in zip(range(start, end), batches):
                 seq_len = self.seq_schedule(step_index)
                 loss, parts = self.update(on_device(batch, self.place.device, turns), seq_len, noise, step_index)
                 row = self.log_row(step_index, seq_len, loss, parts)
+                bar.update(1)
                 bar.set_postfix(loss=f"{row['loss']:.4g}", T=seq_len)
                 self.summary = row
                 if (step_index + 1) % config.checkpoint_every == 0:
@@ -122,6 +123,7 @@ class _Run:
             else:
                 step_index = end
         finally:
+            bar.close()
             self.close(step_index)
         return step_index
 

@@ -134,12 +134,70 @@ def add_no_progress(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="draw no progress bar on stderr")
 
 
-def progress_bar(total: int, desc: str, unit: str, enabled: bool = True) -> Any:
-    """A tqdm bar on stderr, drawn only when stderr is a terminal (``enabled`` False: never), so
-    logs and captured output keep their lines."""
+class LineProgress:
+    """A progress bar's interface written as lines on stderr, for a log rather than a terminal:
+    ``<desc>: <n>/<total> <unit> (<postfix>)`` when a stage begins (:meth:`set_postfix_str` with
+    a new text), at each tenth of a ``total`` over 10 (a long loop) and at the end."""
+
+    def __init__(self, total: int, desc: str, unit: str, initial: int = 0, stream: Any = None) -> None:
+        self.total, self.desc, self.unit, self.n = int(total), desc, unit, int(initial)
+        self.postfix, self.stream, self._said = "", stream, ""
+        self._tenth = self._tenths()
+
+    def _tenths(self) -> int:
+        return 10 * self.n // self.total if self.total > 0 else 0
+
+    def _say(self) -> None:
+        text = f"{self.desc}: {self.n}/{self.total} {self.unit}" + (f" ({self.postfix})" if self.postfix else "")
+        if text != self._said:
+            print(text, file=self.stream or sys.stderr, flush=True)
+            self._said = text
+
+    def update(self, n: int = 1) -> None:
+        self.n += int(n)
+        if self.total > 10 and self._tenths() != self._tenth:
+            self._tenth = self._tenths()
+            self._say()
+
+    def set_postfix_str(self, text: str, refresh: bool = True) -> None:
+        if text != self.postfix:
+            self.postfix = text
+            self._say()
+
+    def set_postfix(self, **values: Any) -> None:
+        self.postfix = ", ".join(f"{k}={v}" for k, v in values.items())
+
+    def close(self) -> None:
+        self._say()
+
+
+class _NoProgress:
+    """A progress bar that draws nothing (``--no-progress``)."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix_str(self, text: str, refresh: bool = True) -> None:
+        pass
+
+    def set_postfix(self, **values: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def progress_bar(total: int, desc: str, unit: str, enabled: bool = True, initial: int = 0) -> Any:
+    """A command's progress on stderr: a tqdm bar where stderr is a terminal, else
+    :class:`LineProgress` (one line per stage and per tenth, never a bar drawn into a log file);
+    nothing when ``enabled`` is False."""
+    if not enabled:
+        return _NoProgress()
+    if not sys.stderr.isatty():
+        return LineProgress(total, desc, unit, initial)
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, disable=True if not enabled else None, leave=False)
+    return tqdm(total=total, desc=desc, unit=unit, initial=initial, leave=False, dynamic_ncols=True)
 
 
 def attribute_help(cls: type) -> dict[str, str]:
