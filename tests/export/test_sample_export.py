@@ -114,3 +114,23 @@ def test_a_dataset_window_exports_the_meshes_its_episode_drew(tmp_path, capsys):
                  "--k", "2", "--horizon", "2", "--out", str(tmp_path / "other"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "was the data made from this scene?" in err, err
+
+
+def test_a_deterministic_rollout_exports_too(tmp_path):
+    """``--rate 0`` draws no dropout mask: every future is the model's one rollout."""
+    out = tmp_path / "rollout"
+    assert main(["sample", "--scene-file", str(SCENE), "--model", "shapes", "--k", "2", "--rate", "0",
+                 "--horizon", str(HORIZON), "--export", "glb,ply", "--out", str(out), "--no-progress"]) == 0
+    names = {n.name for n in pygltflib.GLTF2().load(str(out / GLB_NAME)).nodes}
+    assert {"truth", "future_00", "future_01"} <= names
+    last = f"frame_{HORIZON:04d}.ply"
+    np.testing.assert_array_equal(meshio.read(out / "ply" / "future_00" / last).points,
+                                  meshio.read(out / "ply" / "future_01" / last).points)
+
+
+def test_one_trajectory_without_a_truth_is_a_rollout():
+    from hrn_pyg.export import sample_trajectories
+
+    leaves = np.zeros((1, 3, 4, 3))
+    assert list(sample_trajectories(None, leaves)) == ["rollout"]
+    assert list(sample_trajectories(leaves[0], leaves)) == ["truth", "future_00"]
