@@ -18,15 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from hrn_pyg.commands.view import DEFAULT_HOST, DEFAULT_PORT, VIEWER_NAME, add_arguments  # noqa: F401  here too
 from hrn_pyg.export.files import sample_trajectories
 from hrn_pyg.export.scene_meshes import SceneMeshes
-from hrn_pyg.export.viewer import DEFAULT_FPS, write_viewer
-
-#: the page's name beside the result
-VIEWER_NAME = "viewer.html"
-#: where the page is served unless told otherwise: this machine only
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 8765
+from hrn_pyg.export.viewer import write_viewer
 
 
 def result_file(result: str | os.PathLike) -> Path:
@@ -70,15 +65,6 @@ def serve(folder: str | os.PathLike, host: str = DEFAULT_HOST, port: int = DEFAU
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
     def log_message(self, format: str, *args) -> None:  # one line a request would drown the URL
         pass
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("result", help="a folder written by `hrn-pyg sample` (or its samples.npz)")
-    parser.add_argument("--out", default=None, help=f"the page (default: {VIEWER_NAME} beside the result)")
-    parser.add_argument("--fps", type=float, default=DEFAULT_FPS, help="frames per second of the play button")
-    parser.add_argument("--host", default=DEFAULT_HOST, help="address to serve on")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="port to serve on (0: any free port)")
-    parser.add_argument("--no-serve", action="store_true", help="write the page and stop (open it from disk)")
 
 
 def run(args: argparse.Namespace) -> int:

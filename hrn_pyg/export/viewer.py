@@ -17,6 +17,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from hrn_pyg.commands.view import DEFAULT_FPS
 from hrn_pyg.data.kinds import STATIC
 from hrn_pyg.export.animate import rig
 from hrn_pyg.export.gltf import object_rgba
@@ -28,8 +29,6 @@ __all__ = ["viewer_html", "write_viewer", "VIEWER_DIV", "require_plotly"]
 
 #: the id of the page's plot element (the browser test finds it by this)
 VIEWER_DIV = "hrn-viewer"
-#: playback rate of the page's play button (frames per second) unless the caller gives one
-DEFAULT_FPS = 10
 #: camera of the page: where the eye sits, relative to the scene's box
 CAMERA_EYE = (1.4, -1.6, 0.9)
 
