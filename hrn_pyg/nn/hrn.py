@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -38,8 +38,6 @@ STATE_LAYOUT = (
     ("gravity", 3),    # unit gravity direction on roots, zero elsewhere (HRN: gravity enters the root)
 )
 STATE_DIM = sum(d for _, d in STATE_LAYOUT)
-#: the columns ``(start, stop)`` of the material's one-hot code in the state vector
-MATERIAL_COLUMNS = (sum(d for _, d in STATE_LAYOUT[:3]), sum(d for _, d in STATE_LAYOUT[:4]))
 #: the extra state column of ``HRNConfig.ground_contact``: height clipped at the collision radius
 GROUND_CONTACT_DIM = 1
 
@@ -162,10 +160,6 @@ class HRNConfig(NetworkConfig):
             energy in a step that created some move by the fraction of their predicted step
             that closes the balance. A rule applied after the network like ``cloth_clearance``
             (:mod:`hrn_pyg.sim.rules`), on every path; the weights do not change.
-        material_heads: the next-state module has one output network per material (rigid,
-            soft, cloth) instead of one for all (:class:`~hrn_pyg.nn.state.NextStateModule`); a
-            model without them starts one with them from its weights, every head a copy of its
-            one head (:func:`hrn_pyg.nn.widen.with_material_heads`).
         equivariant: build the network of :mod:`hrn_pyg.nn.equivariant`: its MLPs read only
             quantities that no turn about z and no mirror in a vertical plane changes (heights,
             vertical components, horizontal lengths and dot products), its horizontal outputs
@@ -175,7 +169,7 @@ class HRNConfig(NetworkConfig):
             maps among them): no average over passes, and no direction of its own to drift in.
             Its normaliser must be isotropic in the horizontal
             (:func:`hrn_pyg.nn.normalizer.isotropic_horizontal`; training makes it so). Not
-            with ``mirror_average`` or ``material_heads``.
+            with ``mirror_average``.
         vector_channels: :math:`C`, the horizontal vectors each effect carries (``equivariant``).
         collision_force: the collision module also reads the external force on both ends of a
             collision edge, so that two bodies pushed into each other resist in the step of the
@@ -207,8 +201,10 @@ class HRNConfig(NetworkConfig):
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
     energy_limit: bool = False
-    material_heads: bool = False
     equivariant: bool = False
+    #: fields of earlier releases a saved config may hold, at the value that builds this network
+    #: (:meth:`~hrn_pyg.nn.mlp.NetworkConfig.from_dict` drops them)
+    REMOVED_FIELDS: ClassVar[dict[str, Any]] = {"material_heads": False}
     vector_channels: int = 8
     collision_force: bool = False
 
@@ -240,9 +236,9 @@ class HRNConfig(NetworkConfig):
             raise ValueError(f"HRNConfig.cloth_clearance must be in [0, 1) pitches, got {self.cloth_clearance}")
         if self.vector_channels < 1:
             raise ValueError(f"HRNConfig.vector_channels must be >= 1, got {self.vector_channels}")
-        if self.equivariant and (self.mirror_average or self.material_heads):
+        if self.equivariant and self.mirror_average:
             raise ValueError("HRNConfig.equivariant is exact in one pass and has one output network: "
-                             "not with mirror_average or material_heads")
+                             "not with mirror_average")
         if not 0.0 < self.reference_pitch < float("inf"):
             raise ValueError(f"HRNConfig.reference_pitch must be a finite number > 0, got {self.reference_pitch}")
 
@@ -513,7 +509,7 @@ class HRN(nn.Module):
         self.l2a = PropagationModule(s, d, mlp, name="l2a", rest_offsets=rest)
         self.ws = PropagationModule(s, d, mlp, name="ws", rest_offsets=rest)
         self.a2d = PropagationModule(s, d, mlp, name="a2d", rest_offsets=rest)
-        self.state = NextStateModule(s, d, mlp, MATERIAL_COLUMNS if config.material_heads else None)
+        self.state = NextStateModule(s, d, mlp)
 
     def _build_equivariant(self, config: HRNConfig) -> None:
         """The modules of :mod:`hrn_pyg.nn.equivariant`, under the same names (one state column
@@ -600,7 +596,7 @@ class HRN(nn.Module):
         for name, edges, d, r in propagation_phases(inputs):
             phase = getattr(self, name)
             effect = effect + phase(s, effect, x, edges, masks.get(name), b, rest, degree=d, rest_offset=r)
-        return self.state(s, effect, inputs.is_static, masks.get("state"), b, dense=options.fixed_shape)
+        return self.state(s, effect, inputs.is_static, masks.get("state"), b)
 
     def _equivariant_pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
         """One pass of the equivariant modules: the same phases as :meth:`_pass`, each adding to
@@ -651,7 +647,6 @@ class HRN(nn.Module):
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
             + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")
-            + (", material_heads=True" if getattr(c, "material_heads", False) else "")
             + (f", equivariant=True, vector_channels={c.vector_channels}" if getattr(c, "equivariant", False) else "")
             + (", collision_force=True" if getattr(c, "collision_force", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")

@@ -71,9 +71,20 @@ class NetworkConfig:
         d["dropout_modules"] = list(self.dropout_modules)
         return d
 
+    #: fields of earlier releases that a saved config may still hold, each at the value that builds
+    #: the network this release builds (a subclass names its own)
+    REMOVED_FIELDS: dict[str, Any] = {}
+
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Any:
-        return cls(**dict(d))
+        """The config a saved dict describes; a field of :data:`REMOVED_FIELDS` is dropped at its
+        value, and is an error at any other (the network it describes is not built any more)."""
+        d = dict(d)
+        for name, value in cls.REMOVED_FIELDS.items():
+            if name in d and d.pop(name) != value:
+                raise ValueError(f"{cls.__name__}: this config sets {name}, which hrn_pyg no longer builds; "
+                                 "an earlier release reads it")
+        return cls(**d)
 
 
 def dropout_mask(

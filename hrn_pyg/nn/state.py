@@ -21,17 +21,10 @@ class NextStateModule(nn.Module):
     :math:`(\mu, \sigma)` for roots (global frame) and for the other nodes (parent frame). Static
     particles (``is_static``) get an exact zero.
 
-    With ``material_columns`` (the columns of the material's one-hot code in :math:`s_i`) there
-    is one head per material, :math:`\hat u_i = \psi_{m(i)}(s_i, e_i)` for rigid, soft and cloth
-    (a static particle's row is zero whichever head it meets): each material gets an output
-    network of its own while the modules before it stay shared, and a scene of one material runs
-    one head on every row, as the single head would.
-
     Args:
         state_dim: size :math:`S` of a particle's state vector.
         effect_dim: size :math:`D` of the effect.
         mlp: shape of :math:`\psi`.
-        material_columns: ``(start, stop)`` of the material code in the state, or None (one head).
 
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, effect :math:`(|\mathcal{V}|, D)`,
@@ -40,26 +33,14 @@ class NextStateModule(nn.Module):
         - **output:** normalised local velocity :math:`(|\mathcal{V}|, 3)`
     """
 
-    #: the materials with a head of their own, in the order of the state's one-hot code
-    HEADS = 3
-
-    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig(),
-                 material_columns: tuple[int, int] | None = None) -> None:
+    def __init__(self, state_dim: int, effect_dim: int, mlp: MLPConfig = MLPConfig()) -> None:
         super().__init__()
         self.state_dim = state_dim
         self.effect_dim = effect_dim
-        self.material_columns = material_columns
-        if material_columns is None:
-            self.psi = MLP(state_dim + effect_dim, 3, mlp)
-        else:
-            self.heads = nn.ModuleList(MLP(state_dim + effect_dim, 3, mlp) for _ in range(self.HEADS))
+        self.psi = MLP(state_dim + effect_dim, 3, mlp)
 
     def reset_parameters(self) -> None:
-        for head in self._heads():
-            head.reset_parameters()
-
-    def _heads(self) -> list[MLP]:
-        return [self.psi] if self.material_columns is None else list(self.heads)
+        self.psi.reset_parameters()
 
     def forward(
         self,
@@ -68,7 +49,6 @@ class NextStateModule(nn.Module):
         is_static: Tensor | None = None,
         mask: Tensor | None = None,
         batch: Tensor | None = None,
-        dense: bool = False,
     ) -> Tensor:
         n = state.size(0)
         if state.dim() != 2 or state.size(1) != self.state_dim:
@@ -76,38 +56,13 @@ class NextStateModule(nn.Module):
         if effect.shape != (n, self.effect_dim):
             raise ValueError(f"NextStateModule: effect must be [N, {self.effect_dim}], got {tuple(effect.shape)}")
         x = torch.cat([state, effect], dim=-1)
-        if self.material_columns is None:
-            out = self.psi(x, mask, batch)
-        else:
-            out = self._by_material(x, state, mask, batch, dense)
+        out = self.psi(x, mask, batch)
         if is_static is not None:
             out = torch.where(is_static.unsqueeze(-1), torch.zeros_like(out), out)
         return out
 
-    def _by_material(self, x: Tensor, state: Tensor, mask: Tensor | None, batch: Tensor | None,
-                     dense: bool) -> Tensor:
-        """Each row through the head of its material (static rows: the last head's, zeroed by the
-        caller). ``dense``: every head on every row, then the rows picked (no size depends on
-        the data); else each head on its own rows (one host read), or on all of them when the
-        rows are of one material."""
-        start, stop = self.material_columns
-        material = state[:, start:stop].argmax(dim=1).clamp_max(self.HEADS - 1)
-        if dense:
-            outs = torch.stack([head(x, mask, batch) for head in self.heads])  # [M, N, 3]
-            return outs.gather(0, material.view(1, -1, 1).expand(1, -1, 3)).squeeze(0)
-        low, high = (int(v) for v in torch.aminmax(material))
-        if low == high:
-            return self.heads[low](x, mask, batch)
-        out = x.new_zeros(x.size(0), 3)
-        for m in range(low, high + 1):
-            rows = torch.nonzero(material == m).flatten()
-            if rows.numel():
-                out = out.index_copy(0, rows, self.heads[m](x[rows], mask, None if batch is None else batch[rows]))
-        return out
-
     def __repr__(self) -> str:
-        heads = "psi" if self.material_columns is None else f"{self.HEADS} heads by material, each"
-        return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, {heads}={self._heads()[0]})"
+        return f"{self.__class__.__name__}(state_dim={self.state_dim}, effect_dim={self.effect_dim}, psi={self.psi})"
 
 
 def to_local_velocity(velocity: Tensor, child_to_parent: Tensor) -> Tensor:

@@ -1,7 +1,6 @@
 r"""A trained model's weights as the start of a larger one: a pitch-aware model from a plain
-one (:func:`widen_to_pitch_aware`), one with a next-state head per material from one with a
-single head (:func:`with_material_heads`), or one whose collision module reads the force from
-one whose does not (:func:`with_collision_force`).
+one (:func:`widen_to_pitch_aware`), or one whose collision module reads the force from one whose
+does not (:func:`with_collision_force`).
 
 **Pitch-aware.** A pitch-aware HRN (``HRNConfig.pitch_aware``, :mod:`hrn_pyg.nn.pitch`) reads one more state
 column than the plain model it may start from: :math:`\log_2(p / p_{ref})`, appended to the
@@ -69,24 +68,6 @@ def widen_to_pitch_aware(model: HRN, **changes: Any) -> HRN:
         weights[key] = widen_state_blocks(weights[key], grown // (new_state - old_state), old_state, new_state)
     wide.load_state_dict(weights)  # strict: any other size that changed is an error here
     return wide.train(model.training)
-
-
-def with_material_heads(model: HRN, **changes: Any) -> HRN:
-    """An :class:`HRN` with ``HRNConfig.material_heads`` holding ``model``'s weights: every
-    material's head a copy of ``model``'s one next-state head, so it predicts what ``model`` does,
-    bit for bit, until training makes the heads differ. ``changes``: other fields of the new
-    config that keep every layer's size. The result is in ``model``'s training mode."""
-    config = _grown_config(model, "with_material_heads", "material_heads", "has material heads already", changes)
-    grown = HRN(config)
-    weights = {}
-    for key, value in model.state_dict().items():
-        if key.startswith("state.psi."):
-            for head in range(len(grown.state.heads)):
-                weights[key.replace("state.psi.", f"state.heads.{head}.", 1)] = value.clone()
-        else:
-            weights[key] = value
-    grown.load_state_dict(weights)  # strict: every other weight as it was
-    return grown.train(model.training)
 
 
 def _grown_config(model: HRN, caller: str, option: str, already: str, changes: dict[str, Any]) -> Any:

@@ -16,7 +16,7 @@ from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.nn.networks import Network, NetworkConfig, build_network, network_from_dict
 from hrn_pyg.nn.normalizer import fit_normalizer, isotropic_horizontal
 from hrn_pyg.nn.pitch import is_pitch_aware
-from hrn_pyg.nn.widen import widen_to_pitch_aware, with_collision_force, with_material_heads
+from hrn_pyg.nn.widen import widen_to_pitch_aware, with_collision_force
 from hrn_pyg.train.config import TrainConfig
 from hrn_pyg.utils.checkpoint import load_checkpoint, set_rng_state
 from hrn_pyg.utils.weight_average import WeightAverage
@@ -83,9 +83,7 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig, given: frozenset[s
     ``model_config`` with ``pitch_aware`` from a plain checkpoint starts a pitch-aware model from
     its weights (:func:`hrn_pyg.nn.widen.widen_to_pitch_aware`, the new column's weights zero);
     that new model takes the applied options of ``model_config`` as given (e.g. one pass, where
-    the checkpoint averaged over mirrors). One with ``material_heads`` from a checkpoint without
-    them starts every material's head as a copy of the checkpoint's one head
-    (:func:`hrn_pyg.nn.widen.with_material_heads`); one with ``collision_force`` from a checkpoint
+    the checkpoint averaged over mirrors). One with ``collision_force`` from a checkpoint
     without it starts the collision module's weights on the force at zero
     (:func:`hrn_pyg.nn.widen.with_collision_force`).
     """
@@ -96,8 +94,6 @@ def _fine_tuned_start(path: str, model_config: NetworkConfig, given: frozenset[s
     if getattr(model_config, "pitch_aware", False) and not model.config.pitch_aware:
         applied = {k: getattr(model_config, k) for k in APPLIED_OPTIONS}
         model = widen_to_pitch_aware(model, reference_pitch=model_config.reference_pitch, **applied)
-    if getattr(model_config, "material_heads", False) and not model.config.material_heads:
-        model = with_material_heads(model)
     if getattr(model_config, "collision_force", False) and not model.config.collision_force:
         model = with_collision_force(model)
     saved, wanted, default = model.config.to_dict(), model_config.to_dict(), type(model_config)().to_dict()

@@ -20,7 +20,7 @@ from hrn_pyg.utils.options import add_no_progress, add_removed, add_renamed, att
 #: options of earlier releases that no recipe or shipped model used; given, they warn and are
 #: ignored, for one release
 REMOVED_OPTIONS = ("--sample-copies", "--w-energy", "--w-contact", "--contact-floor", "--w-ground", "--ground-floor",
-                   "--rest-leaves")
+                   "--rest-leaves", "--model-material-heads")
 
 
 #: the groups of ``hrn-pyg train --help``, each TrainConfig field in one (``model`` also holds the

@@ -153,3 +153,14 @@ def test_with_collision_force_a_push_reaches_the_other_body_in_the_same_step(equ
         assert (changed > 1e-6) == reaches, (reads, float(changed))
     config = HRNConfig(collision_force=True)
     assert HRNConfig.from_dict(config.to_dict()) == config and "collision_force=True" in repr(HRN(config))
+
+
+def test_a_saved_config_with_a_removed_field_loads_at_its_old_default_only():
+    """A checkpoint's config from before ``material_heads`` went holds it as False and still
+    builds the same network; True describes a network this release does not build: one line."""
+    from hrn_pyg.nn.networks import config_from_dict
+
+    saved = {**HRNConfig(hidden=16).to_dict(), "material_heads": False}
+    assert config_from_dict(saved) == HRNConfig(hidden=16)
+    with pytest.raises(ValueError, match="material_heads, which hrn_pyg no longer builds"):
+        config_from_dict({**saved, "material_heads": True})

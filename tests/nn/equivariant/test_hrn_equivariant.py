@@ -129,7 +129,6 @@ def test_skipping_idle_modules_changes_nothing():
 
 @pytest.mark.parametrize("kw,words", [
     ({"mirror_average": True}, "mirror_average"),
-    ({"material_heads": True}, "material_heads"),
     ({"vector_channels": 0}, "vector_channels"),
 ])
 def test_bad_settings_say_what_is_wrong(kw, words):
