@@ -73,7 +73,7 @@ MEANINGS: dict[str, str] = {
     "--model": "a model checkpoint: a path or a shipped model's name (evaluate: NAME=PATH, repeatable)",
     "--no-progress": "draw no progress bar",
     "--no-sleep": "every object runs at every step (no sleeping objects at rest)",
-    "--out": "where the output goes (a folder or a file, as each command says)",
+    "--out": "the output folder, by default under runs/<command>/ (generate: the dataset; calibrate: a checkpoint file)",
     "--pitch": "the spacing of the leaves on the lattice, in m",
     "--scene": "a built-in scene's name",
     "--scene-file": "a scene file (TOML)",
