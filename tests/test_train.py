@@ -36,6 +36,8 @@ def test_presets_set_loss_and_schedule():
         TrainConfig(preset="big")
     with pytest.raises(ValueError, match="lr"):
         TrainConfig.for_preset("ours", lr=-1.0)
+    with pytest.raises(ValueError, match=r"threads must be >= 0 \(0: torch's default\), got -1"):
+        TrainConfig.for_preset("ours", threads=-1)
 
 
 def test_seeded_runs_are_identical(tiny_episodes, tmp_path):

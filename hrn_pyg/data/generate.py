@@ -37,6 +37,10 @@ from hrn_pyg.utils.files import LOCK_NAME, FolderLock, atomic_write_json, atomic
 from hrn_pyg.utils.options import progress_bar
 
 
+#: the most episodes of one dataset (a file each; the package's largest has a few thousand)
+MAX_EPISODES = 1_000_000
+#: the most worker processes (each holds an interpreter and a pybullet client, about 300 MB)
+MAX_WORKERS = 256
 #: settings of a scene that have an option of their own, and its name
 OWN_OPTIONS = {"steps": "--episode-steps", "substeps": "--substeps", "physics_hz": "--physics-hz", "pitch": "--pitch"}
 
@@ -105,10 +109,10 @@ def run(args: argparse.Namespace) -> int:
     # --- validate everything before touching the disk --------------------------------------
     if getattr(args, "scene_file", None) is None:
         check_scene_name(args.scene)
-    if args.episodes < 1:
-        raise ValueError(f"episodes: must be >= 1, got {args.episodes}")
-    if args.workers < 1:
-        raise ValueError(f"workers: must be >= 1, got {args.workers}")
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ValueError(f"episodes: must be in [1, {MAX_EPISODES}], got {args.episodes}")
+    if not 1 <= args.workers <= MAX_WORKERS:
+        raise ValueError(f"workers: must be in [1, {MAX_WORKERS}], got {args.workers}")
     if args.seed_offset < 0:
         raise ValueError(f"--first-seed: must be >= 0, got {args.seed_offset}")
     shard_index, shard_count = parse_shard(args.shard)

@@ -30,7 +30,7 @@ from hrn_pyg.checkpoints.domain import Domain, episode_domain, report_outside
 from hrn_pyg.commands.sample import UNCALIBRATED_RATE, add_arguments  # noqa: F401  the command's arguments, here too
 from hrn_pyg.data.io import load_episode
 from hrn_pyg.data.graph import HISTORY, NODE
-from hrn_pyg.data.scene_file import check_scene_name, scene_effects
+from hrn_pyg.data.scene_file import MAX_STEPS, check_scene_name, scene_effects
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
@@ -43,6 +43,10 @@ from hrn_pyg.utils.options import progress_bar
 if TYPE_CHECKING:
     from hrn_pyg.data.scene_file import SceneSpec
 
+#: the most futures one command samples (the package's docs use at most 32)
+MAX_K = 1024
+#: the most memory the futures of one command may need (:func:`check_memory`)
+MAX_SAMPLE_BYTES = 4 * 2**30
 #: columns of the PNG, as fractions of the horizon (t = 0 is the start state)
 FIGURE_COLUMNS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
@@ -110,6 +114,31 @@ def scene_source(args: argparse.Namespace) -> str | SceneSpec:
     return read_scene_file(args.scene_file)
 
 
+def check_sizes(k: int, last_step: int) -> None:
+    """ValueError for more than :data:`MAX_K` futures or an episode past the scene files'
+    ``MAX_STEPS`` (``last_step``: ``--start`` plus ``--horizon``), before anything is simulated."""
+    if k > MAX_K:
+        raise ValueError(f"--k {k}: at most {MAX_K} futures (each is simulated and drawn)")
+    if last_step > MAX_STEPS:
+        raise ValueError(f"--start plus --horizon is {last_step} steps, more than {MAX_STEPS}")
+
+
+def check_memory(k: int, steps: int, graph: HeteroData, width: int) -> None:
+    r"""ValueError when ``k`` futures of ``steps`` steps of ``graph`` need more than
+    :data:`MAX_SAMPLE_BYTES`, estimated before any is sampled as
+
+    .. math:: k \bigl(3 \cdot 12\,(T + 1) L + 32\, w\, (N + E)\bigr)
+
+    bytes: the futures' float32 positions (three copies: the samples, their array and the
+    paths drawn) and a network pass's activations (eight of width :math:`w` per node and edge
+    of each of the :math:`k` copies of the graph)."""
+    leaves = int(graph[NODE].is_leaf.sum())
+    size = k * (36 * (steps + 1) * leaves + 32 * width * (graph[NODE].num_nodes + graph.num_edges))
+    if size > MAX_SAMPLE_BYTES:
+        raise ValueError(f"--k {k} futures of {steps} steps of {leaves} leaves need about {size / 2**30:.1f} GB, "
+                         f"more than {MAX_SAMPLE_BYTES / 2**30:.0f} GB; ask for fewer futures or steps")
+
+
 def run(args: argparse.Namespace) -> int:
     check_scene_name(args.scene)
     if args.k < 1:
@@ -118,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--rate must be in [0, 1), got {args.rate}")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--horizon must be >= 1, got {args.steps}")
+    check_sizes(args.k, args.start + (args.steps or 0))
     if args.cuda_graph and not args.fixed_shape:
         raise ValueError("--cuda-graph needs --fixed-shape")
     device = resolve_device(args.device)
@@ -147,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
     from hrn_pyg.export.options import result_meshes
 
     meshes = result_meshes(args, source, np.asarray(store.object[store.is_leaf]), steps, origin)  # before any sampling
+    check_memory(args.k, steps, graph, model.config.hidden)
     forces = store.force_seq.transpose(0, 1)[:steps]  # [steps, N, 3]
     modules = tuple(m for m in args.modules.split(",") if m) if args.modules else None
     generator = torch.Generator(device=device).manual_seed(int(args.sample_seed))  # draws on the device

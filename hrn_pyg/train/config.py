@@ -167,6 +167,8 @@ class TrainConfig:
                              "and seq_end > 1 are options of the HRN presets")
         if self.rest_rollout < 0:
             raise ValueError(f"rest_rollout must be >= 0 (0: off), got {self.rest_rollout}")
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0 (0: torch's default), got {self.threads}")
         if self.rest_rollout_draw not in REST_ROLLOUT_DRAWS:
             raise ValueError(f"rest_rollout_draw must be one of {REST_ROLLOUT_DRAWS}, got {self.rest_rollout_draw!r}")
         if not 0 <= self.stop_at <= self.steps:

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["default_device", "resolve_device"]
+__all__ = ["DEVICE_TYPES", "default_device", "resolve_device"]
+
+#: the kinds of device the package runs on (``meta`` has no data, ``mps`` and the others are untested)
+DEVICE_TYPES = ("cpu", "cuda")
 
 
 def default_device() -> torch.device:
@@ -20,10 +23,11 @@ def default_device() -> torch.device:
 def resolve_device(name: str | None) -> torch.device:
     """The device named by ``name`` (``None`` or ``""`` gives :func:`default_device`).
 
-    Accepts anything :class:`torch.device` parses (``"cpu"``, ``"cuda"``, ``"cuda:1"``, ...).
+    Accepts what :class:`torch.device` parses of the :data:`DEVICE_TYPES` (``"cpu"``, ``"cuda"``, ``"cuda:1"``).
 
     Raises:
-        ValueError: ``name`` is not a device string torch knows; CUDA is asked for but
+        ValueError: ``name`` is not a device string torch knows, or names a device type not in
+            :data:`DEVICE_TYPES`; CUDA is asked for but
             ``torch.cuda.is_available()`` is False; or a CUDA index past the visible devices.
     """
     if name is None or not str(name).strip():
@@ -33,6 +37,8 @@ def resolve_device(name: str | None) -> torch.device:
         device = torch.device(text)
     except (RuntimeError, ValueError, TypeError):
         raise ValueError(f"unknown device {text!r}; expected e.g. 'cpu', 'cuda' or 'cuda:0'") from None
+    if device.type not in DEVICE_TYPES:
+        raise ValueError(f"device {text!r}: the package runs on {' or '.join(DEVICE_TYPES)} devices only")
     if device.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError("cuda requested but torch.cuda.is_available() is False")

@@ -94,6 +94,8 @@ def test_resume_after_kill(tmp_path):
         (["--scene", "wedge", "--shard", "x"], "shard"),
         (["--scene", "wedge", "--episode-steps", "0"], "steps"),
         (["--scene", "wedge", "--episodes", "0"], "episodes"),
+        (["--scene", "wedge", "--episodes", "1000001"], "episodes: must be in [1, 1000000]"),
+        (["--scene", "wedge", "--workers", "100000"], "workers: must be in [1, 256]"),
         (["--scene", "wedge", "--set", "offset_range"], "NAME=VALUE"),
         (["--scene", "wedge", "--set", "offset_range=[0.1,"], "must be JSON"),
         (["--scene", "wedge", "--set", "colour=3"], "unknown setting 'colour'; the settings are"),
