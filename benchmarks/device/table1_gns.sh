@@ -19,18 +19,18 @@ for scene in $SCENES; do
     $HRN evaluate --data data/cube_collision --split test --stride 10 --no-progress \
       --model GNS=$gns --model "GNS + rigid fit=$gns" --rigid-fit "GNS + rigid fit" \
       --out docs/results/table1_gns_cube_collision
-    $PY benchmarks/rigid_collisions.py --data data/cube_collision --split test \
+    $PY -m benchmarks.rigid_collisions --data data/cube_collision --split test \
       --model HRN=cube_collision_hrn --model "ours + rigid fit=cube_collision_ours" \
       --model GNS=$gns --model "GNS + rigid fit=$gns" --rigid-fit "GNS + rigid fit" \
       --out benchmarks/results/rigid_collisions_cube_collision.json
-    $PY benchmarks/long_rollouts.py --model "cube_collision=$gns:GNS" \
+    $PY -m benchmarks.long_rollouts --model "cube_collision=$gns:GNS" \
       --model "cube_collision=$gns:GNS + rigid fit" --rigid-fit "GNS + rigid fit" \
       --model "cube_collision=cube_collision_ours:ours + rigid fit" --seeds 8,18 \
       --out docs/results/stability/long_rollouts_cube_collision_gns.json
   else
     $HRN evaluate --data data/$scene --split test --stride 10 --no-progress --model GNS=$gns \
       --out docs/results/table1_gns_$scene
-    $PY benchmarks/long_rollouts.py --model "$scene=$gns:GNS" --model "$scene=${scene}_ours:ours (shipped)" \
+    $PY -m benchmarks.long_rollouts --model "$scene=$gns:GNS" --model "$scene=${scene}_ours:ours (shipped)" \
       --seeds 8,18,28 --out docs/results/stability/long_rollouts_${scene}_gns.json
   fi
 done
