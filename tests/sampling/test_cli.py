@@ -90,16 +90,15 @@ def test_device_cpu_runs_and_is_recorded(checkpoint, tmp_path, monkeypatch):
     assert json.loads((out / "samples.json").read_text())["device"] == "cpu"
 
 
-def test_device_meta_puts_the_model_there(checkpoint, tmp_path, monkeypatch):
-    """``--device meta`` (a device the default never is): the model is loaded onto it and the
-    run stops with the error only meta tensors give (no data to sample), writing nothing."""
+def test_device_meta_is_refused_before_a_model_is_loaded(checkpoint, tmp_path, monkeypatch, capsys):
+    """``--device meta`` (a device with no data, which the package does not run on): one line,
+    no model loaded, nothing written."""
     devices = _spy_on_model_loading(monkeypatch)
     out = tmp_path / "out"
-    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
-        main(["sample", "--scene", "wedge", "--k", "2", "--episode-seed", "5", "--horizon", "2",
-              "--model", str(checkpoint), "--out", str(out), "--device", "meta"])
-    assert devices == [torch.device("meta")]
-    assert not out.exists()
+    assert main(["sample", "--scene", "wedge", "--k", "2", "--episode-seed", "5", "--horizon", "2",
+                 "--model", str(checkpoint), "--out", str(out), "--device", "meta"]) == 2
+    assert "runs on cpu or cuda devices only" in capsys.readouterr().err
+    assert devices == [] and not out.exists()
 
 
 def test_unknown_device_is_a_one_line_error(checkpoint, tmp_path, capsys):
