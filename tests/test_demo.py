@@ -51,7 +51,13 @@ class _Stop(Exception):
 
 
 def test_demo_passes_on_a_device_other_than_the_default(tiny_checkpoints, tmp_path, monkeypatch):
-    """``--device meta`` (a device the default never is) reaches the sampling step as asked."""
+    """``--device cuda:0`` on a machine made to have no default CUDA device reaches the sampling
+    step as asked."""
+    import hrn_pyg.utils.device
+
+    monkeypatch.setattr(hrn_pyg.utils.device, "default_device", lambda: torch.device("cpu"))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     calls = []
 
     def record(name, module, argv):
@@ -60,8 +66,8 @@ def test_demo_passes_on_a_device_other_than_the_default(tiny_checkpoints, tmp_pa
 
     monkeypatch.setattr(hrn_pyg.demo, "run_command", record)
     with pytest.raises(_Stop):
-        main(["demo", "--out", str(tmp_path / "demo"), "--k", "2", "--device", "meta"])
-    assert [c[0] for c in calls] == ["sample"] and calls[0][-2:] == ["--device", "meta"]
+        main(["demo", "--out", str(tmp_path / "demo"), "--k", "2", "--device", "cuda:0"])
+    assert [c[0] for c in calls] == ["sample"] and calls[0][-2:] == ["--device", "cuda:0"]
 
 
 def test_demo_unknown_device_is_a_one_line_error(tiny_checkpoints, tmp_path, capsys):
