@@ -281,6 +281,7 @@ def _main(kind: str, folder: str) -> None:
     import hrn_pyg.sampling.cli  # noqa: F401
     import trimesh  # noqa: F401
 
+    Path(folder).mkdir(parents=True, exist_ok=True)
     _cap_memory()
     {"checkpoint": fuzz_checkpoint, "mesh": fuzz_mesh, "scene": fuzz_scene}[kind](Path(folder))
     print("fuzzed", kind)
