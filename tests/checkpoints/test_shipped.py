@@ -101,7 +101,7 @@ def _cube_collision_at(pitch: float, folder) -> str:
 ])
 def test_sample_outside_the_pitch_warns_in_one_line_and_strict_exits_2(model, pitch, warning, tmp_path, capsys):
     scene = _cube_collision_at(pitch, tmp_path)
-    args = ["sample", "--scene-file", scene, "--model", model, "--k", "1", "--horizon", "1"]
+    args = ["sample", "--scene-file", scene, "--model", model, "--k", "1", "--horizon", "1", "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "warned")]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"hrn-pyg sample: warning: {warning}"]

@@ -244,6 +244,10 @@ def test_a_failed_first_run_leaves_no_folder(tmp_path, capsys, monkeypatch):
 
 
 def test_no_bar_is_drawn_into_a_redirected_stderr(tmp_path, capsys):
+    """stderr is no terminal here: the progress is a plain line, no bar's carriage returns."""
     assert main(["generate", "--scene", "cube_collision", "--episodes", "2", "--out", str(tmp_path),
                  "--episode-steps", "4"]) == 0
+    assert capsys.readouterr().err.splitlines() == ["generate cube_collision: 2/2 ep"]
+    assert main(["generate", "--scene", "cube_collision", "--episodes", "3", "--out", str(tmp_path / "quiet"),
+                 "--episode-steps", "4", "--no-progress"]) == 0
     assert capsys.readouterr().err == ""
