@@ -20,8 +20,9 @@ For one task and one clone checkpoint:
 
 Failed episodes count as ``max_steps`` long.
 
-Run: ``python -m experiments.rl.score_clone --task cube_push_stop --policy benchmarks/results/clones/cube_push_stop.pt
-[--rates 0 0.1 0.3] [--episodes 64] [--eval-scenes 32] [--out benchmarks/results/clone_<task>.json]``.
+Run: ``python -m experiments.rl.score_clone --task cube_push_stop --policy runs/clones/cube_push_stop.pt
+[--rates 0 0.1 0.3] [--episodes 64] [--eval-scenes 32] [--out benchmarks/results/clone_<task>.json]``, the
+policy made by ``python -m experiments.rl.clone --task cube_push_stop --out runs/clones/cube_push_stop.pt``.
 Prints tables and writes JSON atomically.
 """
 
