@@ -43,7 +43,8 @@ POLICY_NAMES = ("cube_push_policy",)
 #: fine-tuning or a benchmark may set them on a trained model (:func:`with_applied_options`)
 APPLIED_OPTIONS = ("mirror_average", "mirror_planes", "ground_projection", "ground_projection_rigid",
                    "rigid_ground_depth", "rigid_ground_speed", "ground_lift_velocity", "rigid_leaf_siblings",
-                   "corotated_rest", "cloth_clearance", "rigid_fit_rest", "energy_limit")
+                   "corotated_rest", "cloth_clearance", "rigid_fit_rest", "energy_limit",
+                   "solid_clearance")
 
 
 #: the most hidden layers per MLP a checkpoint's config may ask for (the shipped models have 2)

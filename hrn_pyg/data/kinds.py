@@ -1,4 +1,5 @@
-"""A scene's vocabulary without torch: the material names and codes, and :class:`SceneEffects`.
+"""A scene's vocabulary without torch: the material names and codes, gravity and the default
+model step, and :class:`SceneEffects`.
 
 Reading and checking a scene file (:mod:`hrn_pyg.data.scene_file`) needs these and nothing of
 torch, so a bad file is answered before torch is imported; so do the command line's ``--help`` pages
@@ -18,6 +19,10 @@ MATERIALS = ("rigid", "soft", "cloth", "static")
 RIGID, SOFT, CLOTH, STATIC = (MATERIALS.index(name) for name in ("rigid", "soft", "cloth", "static"))
 #: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
 HISTORY = 2
+#: Gravity (m/s^2), along -z in every scene.
+GRAVITY = 9.81
+#: A scene's default model step: this many physics steps at this rate (1/30 s).
+SUBSTEPS, PHYSICS_HZ = 8, 240.0
 #: the package's own scenes (``--scene``), one file each under ``hrn_pyg/data/builtin_scenes``
 SCENES: tuple[str, ...] = ("soft_bounce", "cube_collision", "wedge", "multi_material", "cube_push", "tower")
 

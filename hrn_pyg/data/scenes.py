@@ -42,7 +42,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC, SceneEffects
+from hrn_pyg.data.kinds import CLOTH, GRAVITY, PHYSICS_HZ, RIGID, SOFT, STATIC, SUBSTEPS, SceneEffects
 from hrn_pyg.data.voxelise import (
     write_obj,
     write_tetrahedral_vtk,
@@ -51,7 +51,6 @@ from hrn_pyg.utils.files import import_pybullet, quiet_stdout
 
 p = import_pybullet()
 
-GRAVITY = 9.81
 #: Nominal density (kg/m^3) giving a static body's leaves a mass: they never move, but the
 #: hierarchy and the model's mass feature need a positive value.
 STATIC_DENSITY = 1000.0
@@ -90,8 +89,8 @@ class SceneConfig:
     """
 
     steps: int = 150
-    substeps: int = 8
-    physics_hz: float = 240.0
+    substeps: int = SUBSTEPS
+    physics_hz: float = PHYSICS_HZ
     pitch: float = 0.05
     friction: float = 0.5
     rolling_friction: float = 0.0

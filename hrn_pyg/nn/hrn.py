@@ -155,6 +155,10 @@ class HRNConfig(NetworkConfig):
             package's rollout loop (:func:`hrn_pyg.sim.rollout.iterate`) applies it; the
             fixed-shape simulator (:mod:`hrn_pyg.sim.fixed_shape`) cannot, and refuses such a
             model on a scene whose cloth can land on another object.
+        solid_clearance: the rule of ``cloth_clearance`` for the leaves of soft bodies and rigid
+            objects: a leaf that a step leaves inside another object (rigid, soft or static) is
+            moved back out to this many pitches in front of its surface leaves, a rigid object
+            as a whole by the longest push its leaves need (0: off).
         energy_limit: no step ends with more energy than it started with plus the work of the
             scene's pushes, per scene copy (:mod:`hrn_pyg.sim.energy`): the objects that gained
             energy in a step that created some move by the fraction of their predicted step
@@ -200,6 +204,7 @@ class HRNConfig(NetworkConfig):
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
     cloth_clearance: float = 0.0
+    solid_clearance: float = 0.0
     energy_limit: bool = False
     equivariant: bool = False
     #: fields of earlier releases a saved config may hold, at the value that builds this network
@@ -232,8 +237,9 @@ class HRNConfig(NetworkConfig):
         if not 0.0 <= self.rigid_ground_speed < float("inf"):
             raise ValueError(f"HRNConfig.rigid_ground_speed must be a finite number of pitches >= 0, "
                              f"got {self.rigid_ground_speed}")
-        if not 0.0 <= self.cloth_clearance < 1.0:
-            raise ValueError(f"HRNConfig.cloth_clearance must be in [0, 1) pitches, got {self.cloth_clearance}")
+        for name in ("cloth_clearance", "solid_clearance"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"HRNConfig.{name} must be in [0, 1) pitches, got {getattr(self, name)}")
         if self.vector_channels < 1:
             raise ValueError(f"HRNConfig.vector_channels must be >= 1, got {self.vector_channels}")
         if self.equivariant and self.mirror_average:

@@ -1,9 +1,15 @@
-r"""Cloth kept out of the objects it falls on: a projection of each step's cloth leaves.
+r"""Cloth and soft bodies kept out of the objects they fall on: a projection of each step's
+deformable leaves.
 
-The network predicts how a cloth drapes over an object from the collision edges between them,
-and nothing stops a leaf of the cloth from ending a step inside the object. This rule, applied
-after the network like the ground projection (:attr:`~hrn_pyg.nn.hrn.HRNConfig.cloth_clearance`),
-moves such a leaf back out.
+The network predicts how a cloth drapes over an object, or a soft body lands on one, from the
+collision edges between them, and nothing stops a leaf from ending a step inside the object. This
+rule, applied after the network like the ground projection
+(:attr:`~hrn_pyg.nn.hrn.HRNConfig.cloth_clearance` for cloth leaves,
+:attr:`~hrn_pyg.nn.hrn.HRNConfig.solid_clearance` for the leaves of soft bodies and rigid
+objects), moves such a leaf back out. Below, "cloth leaf" reads "projected leaf": a moving leaf of
+a cloth, or of a soft body or a rigid object when ``solid_clearance`` is on; the object it is kept
+out of is any other object but a cloth. A rigid object is not bent: it moves as a whole, by the
+longest push any of its leaves needs.
 
 **Surface and normals.** Every object that is not cloth is a set of leaves on a lattice of pitch
 :math:`p`. At rest, a leaf :math:`j` whose neighbours within :math:`\sqrt{3}\,p` (its lattice
@@ -27,7 +33,9 @@ of every such leaf,
 .. math::
     s_{cj} = (x_c - x_j) \cdot n_j < \delta \quad \forall j \in o,\ \lVert x_c - x_j \rVert < \rho,
 
-and is then moved along the normal of the nearest of them to :math:`\delta` in front of its plane:
+and is then moved along the normal of the nearest of them to :math:`\delta` in front of its plane
+(:math:`\rho` grows by the length of the leaf's step, so a leaf that crossed the surface fast is
+still seen):
 :math:`x_c \leftarrow x_c + (\delta - s_{cj^*})\, n_{j^*}` (:math:`\delta` =
 ``cloth_clearance`` pitches). The plane of the outermost leaf centres is the surface of the solid
 that :mod:`hrn_pyg.sim.penetration` counts cloth leaves inside, so a leaf that the rule leaves
@@ -55,7 +63,7 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, leaf_to_ancestor_mean, node_pitch
-from hrn_pyg.data.kinds import CLOTH, STATIC
+from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.rigid import rigid_motion
 from hrn_pyg.nn.state import to_local_velocity
 from hrn_pyg.sim.step import Prediction, object_of
@@ -95,8 +103,11 @@ class ClothContact:
 
     ``rest`` ``[N, 3]`` the rest positions the normals belong to; ``normal`` ``[N, 3]`` the rest
     normal of every surface leaf (zero elsewhere); ``surface``, ``cloth``, ``static``, ``leaf``
-    ``[N]`` bool: the surface leaves of objects that are not cloth, the moving cloth leaves, the
-    rows of static objects, the leaves; ``group`` ``[N]`` long and ``count``: every node's object;
+    ``[N]`` bool: the surface leaves of objects that are not cloth, the leaves projected (moving
+    leaves of cloth, and of soft bodies and rigid objects under a solid clearance), the rows of
+    static objects, the leaves; ``rigid`` ``[N]`` bool: the projected leaves of rigid objects,
+    which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
+    object; ``group`` ``[N]`` long and ``count``: every node's object;
     ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and :math:`\\delta` in metres at each node's
     pitch.
     """
@@ -107,6 +118,8 @@ class ClothContact:
     cloth: Tensor
     static: Tensor
     leaf: Tensor
+    rigid: Tensor
+    rigid_rows: Tensor
     group: Tensor
     count: int
     reach: Tensor
@@ -139,7 +152,9 @@ class ClothContact:
         c, j = cloth_end[keep], solid_end[keep]
         arm = pos[c] - pos[j]
         distance = arm.norm(dim=-1)
-        near = distance < self.reach[c]
+        # a leaf that moved far in the step may be that far in: the reach grows by its step
+        reach = self.reach[c] + (pos[c] - graph[NODE].pos[c]).norm(dim=-1)
+        near = distance < reach
         c, j, arm, distance = c[near], j[near], arm[near], distance[near]
         if c.numel() == 0:
             return pos
@@ -157,7 +172,17 @@ class ClothContact:
         first = c.new_full((pos.size(0),), c.numel()).scatter_reduce(0, c[chosen], chosen, "amin")
         picked = first[first < c.numel()]
         push = (self.clearance[c[picked]] - height[picked]).unsqueeze(-1) * normal[picked]
-        return leaf_to_ancestor_mean(pos.index_add(0, c[picked], push), graph)
+        leaf_rows = c[picked]
+        whole = self.rigid[leaf_rows]
+        if bool(whole.any()):  # a rigid object moves as a whole, by its leaves' longest push
+            owner, length = self.group[leaf_rows[whole]], push[whole].norm(dim=-1)
+            longest = length.new_zeros(self.count).scatter_reduce(0, owner, length, "amax")
+            chosen = torch.nonzero(length == longest[owner]).flatten()
+            shift = push.new_zeros(self.count, 3).index_copy(0, owner[chosen], push[whole][chosen])
+            moved = self.rigid_rows & (longest > 0)[self.group]
+            pos = torch.where(moved.unsqueeze(-1), pos + shift[self.group], pos)
+            leaf_rows, push = leaf_rows[~whole], push[~whole]
+        return leaf_to_ancestor_mean(pos.index_add(0, leaf_rows, push), graph)
 
     def __call__(self, graph: HeteroData, prediction: Prediction, movable: Tensor | None = None) -> Prediction:
         """A step's :class:`~hrn_pyg.sim.step.Prediction` after :meth:`project`: a moved node's
@@ -178,19 +203,27 @@ class ClothContact:
 
 
 def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
-                  objects: tuple[Tensor, int] | None = None) -> ClothContact | None:
+                  objects: tuple[Tensor, int] | None = None, solid_clearance: float = 0.0,
+                  project_cloth: bool = True) -> ClothContact | None:
     """The :class:`ClothContact` of ``graph`` (rest shape: its ``rest_pos``, else its ``pos``),
-    with ``clearance`` :math:`\\delta` and ``reach`` :math:`\\rho` in pitches of each node's graph
-    (one host pass over the objects); None when the scene has no moving cloth or no other object
-    with a surface, so the rule has nothing to do. Needs the graph's pitch. ``objects``:
-    :func:`~hrn_pyg.sim.step.object_of` of ``graph``, if the caller has it."""
-    if not clearance >= 0 or not reach > 0:
-        raise ValueError(f"cloth_contact: clearance must be >= 0 and reach > 0, got {clearance}, {reach}")
+    with ``clearance`` :math:`\\delta` for cloth leaves, ``solid_clearance`` for the leaves of soft
+    bodies and rigid objects (0: they are not projected) and ``reach`` :math:`\\rho`, in pitches
+    of each node's graph (one host pass over the objects); None when the scene has no leaf to
+    project or no other object with a surface, so the rule has nothing to do. Needs the graph's
+    pitch. ``objects``: :func:`~hrn_pyg.sim.step.object_of` of ``graph``, if the caller has it;
+    ``project_cloth=False``: cloth leaves are left alone (only the solid clearance applies)."""
+    if not clearance >= 0 or not solid_clearance >= 0 or not reach > 0:
+        raise ValueError(f"cloth_contact: clearances must be >= 0 and reach > 0, got {clearance}, "
+                         f"{solid_clearance}, {reach}")
     store = graph[NODE]
     material = store.material.argmax(dim=1)
     leaf = store.is_leaf
-    cloth = leaf & (material == CLOTH) & ~store.is_static
-    if not bool(cloth.any()):
+    moving = leaf & ~store.is_static
+    cloth = moving & (material == CLOTH) if project_cloth else torch.zeros_like(leaf)
+    rigid_rows = moving & (material == RIGID)
+    solid = moving & ((material == SOFT) | (material == RIGID)) if solid_clearance > 0 else torch.zeros_like(leaf)
+    projected = cloth | solid
+    if not bool(projected.any()):
         return None
     pitch = node_pitch(graph).to(store.pos.dtype)
     rest = store.rest_pos if "rest_pos" in store else store.pos
@@ -199,15 +232,17 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
     solid_leaf = leaf & (material != CLOTH)
     points = rest.detach().double().cpu().numpy()
     groups = group.cpu().numpy()
-    solid = solid_leaf.cpu().numpy()
+    has_solid = solid_leaf.cpu().numpy()
     pitches = pitch.double().cpu().numpy()
-    for obj in np.unique(groups[solid]):
-        rows = np.flatnonzero((groups == obj) & solid)
+    for obj in np.unique(groups[has_solid]):
+        rows = np.flatnonzero((groups == obj) & has_solid)
         found = surface_normals(points[rows], float(pitches[rows[0]]))
         normal[torch.from_numpy(rows).to(rest.device)] = torch.from_numpy(found).to(rest)
     surface = solid_leaf & (normal.norm(dim=-1) > 0)
     if not bool(surface.any()):
         return None
     static = store.is_static | (material == STATIC)
-    return ClothContact(rest=rest, normal=normal, surface=surface, cloth=cloth, static=static, leaf=leaf, group=group,
-                        count=count, reach=reach * pitch, clearance=clearance * pitch)
+    gap = torch.where(material == CLOTH, torch.full_like(pitch, clearance), torch.full_like(pitch, solid_clearance))
+    return ClothContact(rest=rest, normal=normal, surface=surface, cloth=projected, static=static, leaf=leaf,
+                        rigid=projected & rigid_rows, rigid_rows=rigid_rows, group=group, count=count,
+                        reach=reach * pitch, clearance=gap * pitch)

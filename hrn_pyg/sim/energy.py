@@ -23,8 +23,10 @@ surplus :math:`S > 0`, the objects that gained energy (set :math:`G`) move by a 
     E_G(\alpha) = P + \alpha A + \alpha^2 B, \quad
     A = \sum_{i \in G} m_i g\, d_{i,z}, \quad B = \sum_{i \in G} \tfrac{m_i}{2} \lVert d_i \rVert^2 / \Delta t^2,
 
-the largest :math:`\alpha` with :math:`E_G(\alpha) \le E_G(1) - S`, the root
-:math:`\alpha = 2C / (A + \sqrt{A^2 + 4BC})` with :math:`C = A + B - S` (0 when :math:`C \le 0`).
+the largest :math:`\alpha` with :math:`E_G(\alpha) - \alpha W_G \le E_G(1) - W_G - S`
+(:math:`W_G` the work of the pushes on :math:`G`, which shrinks with their step; 0 when the
+copy's pushes do no work), the root :math:`\alpha = 2C / (A' + \sqrt{A'^2 + 4BC})` with
+:math:`A' = A - W_G` and :math:`C = A' + B - S` (0 when :math:`C \le 0`).
 Every point of the segment from :math:`x(t)` to the prediction is as far from the ground as its
 ends, so the rule keeps what the ground projection made; a rigid object that moved by a fraction
 of a turn is fitted rigid again (:func:`~hrn_pyg.sim.step.rigid_leaf_positions`). The rule is a
@@ -47,12 +49,12 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import CHILD_TO_PARENT, NODE, RIGID, leaf_to_ancestor_mean
-from hrn_pyg.data.scenes import GRAVITY, SceneConfig
+from hrn_pyg.data.kinds import GRAVITY, PHYSICS_HZ, SUBSTEPS
 from hrn_pyg.nn.state import to_local_velocity
 from hrn_pyg.sim.step import Prediction, rigid_leaf_positions
 
 #: the model step (s) of every scene whose graph records none (``graph.dt``): the scenes' default
-STEP_SECONDS = SceneConfig().dt
+STEP_SECONDS = SUBSTEPS / PHYSICS_HZ
 #: the graph-level attribute that records a scene's model step (s), one per copy of a batch
 DT = "dt"
 
@@ -154,6 +156,11 @@ def limit_energy(graph: HeteroData, prediction: Prediction, objects: tuple[Tenso
     w = torch.where(gainer, balance.weight, torch.zeros_like(balance.weight))
     a = torch.zeros_like(gained).index_add(0, node_copy, w * balance.g * balance.step[:, 2])
     b = torch.zeros_like(gained).index_add(0, node_copy, 0.5 * w * balance.inv_dt2 * balance.step.square().sum(-1))
+    # the pushes' work moves with the gainers' fraction too: W(alpha) = W_others + alpha W_gainers
+    pushed = (torch.zeros_like(gained).index_add(0, copy, torch.zeros_like(gained).index_add(
+        0, group, balance.work)) > 0)[node_copy]
+    a = a - torch.zeros_like(gained).index_add(0, node_copy, torch.where(gainer & pushed, balance.work,
+                                                                          torch.zeros_like(balance.work)))
     c = a + b - surplus
     root = (a.square() + 4.0 * b * c.clamp_min(0.0)).sqrt()
     fraction = torch.where(c > 0, 2.0 * c.clamp_min(0.0) / (a + root).clamp_min(torch.finfo(torch.float64).tiny),

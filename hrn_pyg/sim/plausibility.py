@@ -37,8 +37,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from hrn_pyg.data.io import episode_pitch
-from hrn_pyg.data.kinds import CLOTH, STATIC
-from hrn_pyg.data.scenes import GRAVITY
+from hrn_pyg.data.kinds import CLOTH, GRAVITY, STATIC
 from hrn_pyg.data.voxelise import KUHN_TETS
 from hrn_pyg.sim.energy import STEP_SECONDS, scene_energy
 from hrn_pyg.sim.penetration import INSIDE_TOLERANCE, lattice_cells

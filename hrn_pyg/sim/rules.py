@@ -9,8 +9,9 @@ sampler and the RL dynamics (environment and planner). In order:
 1. **Failed copies held** (``hold_failed``): a copy of a batch whose prediction holds NaN or inf
    stays where it is, with zero velocity, and is recorded in :attr:`StepRules.failed`; the
    other copies go on. Without it a non-finite prediction is an error of the step.
-2. **Cloth clearance** (``HRNConfig.cloth_clearance``, :mod:`hrn_pyg.sim.cloth_contact`): a cloth
-   leaf left inside another object is moved back out.
+2. **Clearance** (``HRNConfig.cloth_clearance``, ``HRNConfig.solid_clearance``,
+   :mod:`hrn_pyg.sim.cloth_contact`): a leaf of a cloth (or of a soft body or a rigid object) left
+   inside another object is moved back out.
 3. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
    with more energy than it started with plus the work of its pushes.
 
@@ -109,10 +110,13 @@ def step_rules(model: torch.nn.Module, graph: HeteroData, objects: tuple[Tensor,
     cloth rule has nothing to do. One host pass over the objects when the model keeps cloth out."""
     config = model.config
     clearance = float(getattr(config, "cloth_clearance", 0.0))
+    solid_clearance = float(getattr(config, "solid_clearance", 0.0))
+    clear = (clearance > 0 or solid_clearance > 0) and collisions
     energy = bool(getattr(config, "energy_limit", False))
-    if not (clearance > 0 and collisions) and not energy and not hold_failed:
+    if not clear and not energy and not hold_failed:
         return None
     objects = object_of(graph) if objects is None else objects
-    cloth = cloth_contact(graph, clearance, objects=objects) if clearance > 0 and collisions else None
+    cloth = (cloth_contact(graph, clearance, objects=objects, solid_clearance=solid_clearance,
+                           project_cloth=clearance > 0) if clear else None)
     rules = StepRules(cloth, energy, objects, bool(getattr(config, "rigid_fit_rest", False)), hold_failed)
     return rules if rules.active else None

@@ -29,7 +29,7 @@ LAYERS = (
     ("hrn_pyg.nn",),
     ("hrn_pyg.checkpoints",),
     ("hrn_pyg.sim",),
-    ("hrn_pyg.train", "hrn_pyg.losses", "hrn_pyg.evaluate", "hrn_pyg.sampling"),
+    ("hrn_pyg.train", "hrn_pyg.losses", "hrn_pyg.evaluate", "hrn_pyg.sampling", "hrn_pyg.export"),
     ("hrn_pyg.rl",),
     ("hrn_pyg.recipe", "hrn_pyg.demo", "hrn_pyg.cli", "hrn_pyg"),
 )

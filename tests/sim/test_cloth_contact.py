@@ -15,7 +15,7 @@ from toy_scene import toy_model, toy_window
 
 from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import NODE, build_structure, set_pitch, set_state
-from hrn_pyg.data.kinds import CLOTH, RIGID, STATIC
+from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.sim.cloth_contact import cloth_contact, surface_normals
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
@@ -241,3 +241,40 @@ def test_fixed_shape_steps_refuse_the_rule_where_it_acts_and_run_without_cloth()
         fixed = fixed_shape_rollout(kept, no_cloth, 3).pos
         plain = rollout(kept, no_cloth, 3, sleep=None)
     assert torch.equal(fixed, plain)
+
+
+def box_and_small_cube(material: int, offset) -> tuple:
+    """The 4x4x4 box of :func:`box_and_cloth`, static (object 0), and a 2x2x2 cube of ``material``
+    (object 1) whose corner leaf sits at ``offset``: the graph at rest, its pitch set."""
+    box, small = lattice(BOX_SIDE), lattice(2, offset)
+    n_box = len(box)
+    n = n_box + len(small)
+    parent = torch.tensor([n] * n_box + [n + 1] * len(small) + [-1, -1])
+    mass = torch.full((n,), 0.1)
+    obj = torch.tensor([0] * n_box + [1] * len(small))
+    rest = torch.cat([box, small])
+    graph = build_structure(parent, mass, obj, torch.tensor([STATIC, material]), torch.tensor([1.0, 0.5]),
+                            rest_pos=rest, pitch=PITCH)
+    return set_state(graph, rest, rest, rest, radius=1.6 * PITCH), n_box
+
+
+@pytest.mark.parametrize("material", [RIGID, SOFT])
+def test_solid_clearance_keeps_soft_and_rigid_leaves_out_and_moves_a_rigid_body_whole(material):
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(material, (0.1, 0.1, top + 0.2))
+    assert cloth_contact(graph, clearance=0.3) is None  # no cloth, no solid clearance: nothing to do
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    pos[n_box:n_box + 8] -= torch.tensor([0.0, 0.0, 0.2 + 0.03])  # its lower leaves 3 cm under the top plane
+    pos[n_box + 2] += torch.tensor([0.0, 0.0, 0.01])  # one of them only 2 cm under
+    graph = set_state(graph, pos, pos, pos, radius=1.6 * PITCH)
+    moved = contact.project(graph, pos)
+    small = moved[n_box:n_box + 8] - pos[n_box:n_box + 8]
+    lower = pos[n_box:n_box + 8, 2] < top
+    assert torch.equal(moved[:n_box], pos[:n_box])  # a static box never moves
+    assert bool((moved[n_box:n_box + 8][lower, 2] >= top + 0.2 * PITCH - 1e-6).all())  # every lower leaf out
+    if material == RIGID:  # one move for all, the longest push: 3 cm + the clearance
+        assert torch.allclose(small, torch.tensor([0.0, 0.0, 0.03 + 0.2 * PITCH]).expand(8, 3), atol=1e-6)
+    else:  # each leaf by its own push; the upper ones stay
+        assert torch.allclose(small[~lower], torch.zeros(int((~lower).sum()), 3))
+        assert float(small[2, 2]) == pytest.approx(0.02 + 0.2 * PITCH, abs=1e-6)
