@@ -196,9 +196,13 @@ def test_a_killed_writers_temporaries_are_removed_by_the_next_run(tmp_path):
     assert not stale.exists() and not list(tmp_path.glob(".*.tmp"))
 
 
+#: a writer of the folder: holds its record's lock for a second, then writes on until told to stop
 _HOLD_LOCK = ("import sys, time\nfrom hrn_pyg.utils.files import FolderLock\n"
-              "with FolderLock(sys.argv[1]) as lock, lock.exclusive():\n"
-              "    print(lock.alone, flush=True)\n    time.sleep(float(sys.argv[2]))\n")
+              "with FolderLock(sys.argv[1]) as lock:\n"
+              "    lock.shared()\n"
+              "    with lock.exclusive():\n"
+              "        print(lock.alone, flush=True)\n        time.sleep(float(sys.argv[2]))\n"
+              "    sys.stdin.readline()\n")
 
 
 def test_a_second_writer_with_other_settings_stops_with_one_line(tmp_path, capsys):
@@ -207,7 +211,7 @@ def test_a_second_writer_with_other_settings_stops_with_one_line(tmp_path, capsy
     assert _generate(tmp_path) == 0
     capsys.readouterr()
     holder = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK, str(tmp_path), "1.0"],
-                              stdout=subprocess.PIPE, text=True)
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "True"  # it took the folder alone
         stale = tmp_path / ".episode_000009.npz.abc.npz.tmp"
@@ -217,7 +221,7 @@ def test_a_second_writer_with_other_settings_stops_with_one_line(tmp_path, capsy
                      "--episode-steps", "5", "--no-progress"])
         waited = time.perf_counter() - start
     finally:
-        holder.wait()
+        holder.communicate("\n", timeout=60)
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "another scene/config" in err
     assert waited > 0.5  # it waited for the lock before reading meta.json
