@@ -319,12 +319,18 @@ class ObjectSpec:
         return self.meshes[0]
 
 
-@lru_cache(maxsize=256)
 def base_mesh(mesh: str) -> trimesh.Trimesh | None:
     """A mesh file cleaned (seams merged), or a primitive at its unit size, before sizing; None
-    for a sheet. Kept in memory: a dataset draws the same few meshes again and again."""
+    for a sheet. Kept in memory by path, size and time of change: a dataset draws the same few
+    meshes again and again, and a file changed since is read again."""
     if mesh == SHEET:
         return None
+    stat = os.stat(mesh) if mesh not in PRIMITIVES and os.path.isfile(mesh) else None
+    return _base_mesh(mesh, None if stat is None else (stat.st_size, stat.st_mtime_ns))
+
+
+@lru_cache(maxsize=256)
+def _base_mesh(mesh: str, version: tuple[int, int] | None) -> trimesh.Trimesh:
     return primitive_mesh(mesh) if mesh in PRIMITIVES else clean_mesh(load_mesh(mesh), mesh)
 
 

@@ -243,3 +243,20 @@ def test_a_mesh_with_seams_warns_of_nothing_and_loads_as_one_mesh():
         points, how = solid_points(sized_mesh(clean_mesh(mesh), size=0.2), 0.02)
     assert how == "fill" and len(points) > 100
     assert meshes.mesh_digest(mesh) == meshes.mesh_digest(mesh.copy())
+
+
+def test_a_mesh_file_changed_on_disk_is_read_again(tmp_path):
+    """Scene files keep the meshes they read in memory; a file written again is not served stale."""
+    from hrn_pyg.data.meshes import MAX_FACES
+    from hrn_pyg.data.scene_file import base_mesh
+
+    path = tmp_path / "changing.obj"
+    trimesh.creation.box().export(path)
+    assert len(base_mesh(str(path)).faces) == 12
+    rng = np.random.default_rng(0)
+    faces = rng.integers(1, 9, size=(MAX_FACES + 1, 3))
+    path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in rng.random((8, 3)))
+                    + "".join(f"f {a} {b} {c}\n" for a, b, c in faces))
+    os.utime(path, ns=(1, 1))  # a different time of change, whatever the clock's resolution
+    with pytest.raises(ValueError, match=f"more than {MAX_FACES}"):
+        base_mesh(str(path))
