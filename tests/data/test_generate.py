@@ -255,3 +255,19 @@ def test_no_bar_is_drawn_into_a_redirected_stderr(tmp_path, capsys):
     assert main(["generate", "--scene", "cube_collision", "--episodes", "3", "--out", str(tmp_path / "quiet"),
                  "--episode-steps", "4", "--no-progress"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_pybullets_refusal_of_a_mesh_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    from hrn_pyg.data import scene_file
+
+    def refuse(*_):
+        raise scene_file.p.error("createCollisionShape failed.")
+
+    monkeypatch.setattr(scene_file.FileScene, "_collision_shape", refuse)
+    scene = tmp_path / "box.toml"
+    scene.write_text('steps = 3\n[[objects]]\nmesh = "box"\nmaterial = "rigid"\nsize = 0.1\nposition = [0, 0, 0.05]\n')
+    out = tmp_path / "out"
+    assert main(["generate", "--scene-file", str(scene), "--episodes", "1", "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "objects[0]: pybullet could not make its collision shape" in err, err
+    assert not out.exists()
