@@ -8,7 +8,8 @@ their own, the ground is ``z = 0`` with z up (no leaf more than one pitch under 
 jumps more than :data:`~hrn_pyg.data.episodes.MAX_STEP_DISPLACEMENT` in a step, ``dt > 0``,
 ``params`` is JSON, and the episode is long enough for one training window. Every problem is one
 line ``FILE: what is wrong``; a folder with any is exit code 2. A clean folder prints one summary
-line (episodes per split, steps, leaves, materials, pitch, dt).
+line (episodes per split, steps, leaves, materials, pitch, dt). Its arguments:
+:mod:`hrn_pyg.commands.check_data`.
 """
 
 from __future__ import annotations
@@ -42,10 +43,6 @@ class EpisodeSummary:
     materials: tuple[int, ...]
     pitch: float | None
     dt: float
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("folder", help="a folder of episode_<seed>.npz files")
 
 
 def tree_roots(parent: np.ndarray) -> np.ndarray:
