@@ -290,7 +290,8 @@ class EpisodeWindows(Dataset):
 
 def scene_of(folder: Path) -> str | None:
     """What made the episodes of ``folder``: its ``meta.json``'s scene file text, else its
-    built-in scene name; None when the folder records neither."""
+    built-in scene name, with the engine when it is not pybullet; None when the folder records
+    neither."""
     meta = folder / "meta.json"
     if not meta.is_file() or meta.stat().st_size > MAX_META_BYTES:
         return None
@@ -300,9 +301,11 @@ def scene_of(folder: Path) -> str | None:
         return None
     if not isinstance(record, dict):
         return None
+    engine = record.get("engine")
+    by = f" in {engine}" if isinstance(engine, str) and engine != "pybullet" else ""
     for key in ("scene_text", "scene"):
         if isinstance(record.get(key), str) and record[key]:
-            return f"{key}:{record[key]}"
+            return f"{key}:{record[key]}{by}"
     return None
 
 

@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("mujoco")
 
 from hrn_pyg.cli import main  # noqa: E402
+from hrn_pyg.data.dataset import EpisodeWindows  # noqa: E402
 from hrn_pyg.data.episodes import simulate_episode  # noqa: E402
 from hrn_pyg.data.io import load_episode  # noqa: E402
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC  # noqa: E402
@@ -161,3 +162,17 @@ def test_generate_engine_runs_a_pybullet_scene_in_mujoco(tmp_path):
     assert json.loads(str(load_episode(out / "episode_000000.npz")["params"]))["engine"] == "mujoco"
     assert main(args) == 2  # the pybullet default into the mujoco folder
     assert main([*args[:-2], str(tmp_path / "e"), "--no-progress", "--engine", "ode"]) == 2
+
+
+def test_one_scene_in_both_engines_pools_into_one_training_set(tmp_path):
+    """The same seeds of one scene file, once per engine, are different episodes: a dataset of
+    both folders keeps every one (the same seeds twice in one engine stay an error)."""
+    path = tmp_path / "scene.toml"
+    path.write_text("steps = 8\npitch = 0.05\n" + textwrap.dedent(PUSHED_CUBE))
+    for engine in ("pybullet", "mujoco"):
+        assert main(["generate", "--scene-file", str(path), "--episodes", "2", "--out", str(tmp_path / engine),
+                     "--engine", engine, "--no-progress"]) == 0
+    windows = EpisodeWindows([tmp_path / "pybullet", tmp_path / "mujoco"], split="train")
+    assert windows.seeds == [0, 0, 1, 1]
+    with pytest.raises(ValueError, match="occur in more than one of the folders"):
+        EpisodeWindows([tmp_path / "mujoco", tmp_path / "mujoco"], split="train")
