@@ -35,6 +35,7 @@ from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig
+from hrn_pyg.sim.plausibility import Scene, plausibility, summary_line
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
@@ -219,7 +220,9 @@ def run(args: argparse.Namespace) -> int:
         f.write(buffer.getvalue())
 
     atomic_write(out / "samples.npz", write_npz)
+    plausible = plausibility_record(graph, samples, truth, forces, steps)
     atomic_write_json(out / "samples.json", {
+        "plausibility": plausible,
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
         "sample_seed": args.sample_seed, "sleep": None if sleep is None else sleep.to_dict(), "model": str(args.model or checkpoint_path(name)),
         "device": str(device), "compiled": bool(args.compile),
@@ -235,4 +238,20 @@ def run(args: argparse.Namespace) -> int:
     bar.close()
     print(f"wrote {out / 'samples.png'}, {out / 'samples.gif'} and samples.npz ({args.k} x {steps} steps, "
           f"rate {rate:g}: {rate_source})")
+    print(plausible["line"])
     return 0
+
+
+def plausibility_record(graph, samples: np.ndarray, truth: np.ndarray, forces: torch.Tensor, steps: int) -> dict:
+    """The plausibility report (:mod:`hrn_pyg.sim.plausibility`) of the futures ``samples``
+    ``[K, steps, L, 3]`` and of the ground truth ``[steps+1, L, 3]`` (the reference row), with its
+    summary line; the start's history is the graph's."""
+    store = graph[NODE]
+    leaf = store.is_leaf
+    scene = Scene.of_graph(graph)
+    start = store.pos_seq[leaf][:, HISTORY - 1:HISTORY + 1].transpose(0, 1).double()  # x_{-1}, x_0
+    leaf_forces = forces[:, leaf].double()
+    reference = plausibility(torch.as_tensor(truth[1:steps + 1]).double(), start, scene, leaf_forces)[0]
+    reports = plausibility(torch.as_tensor(samples).double(), start, scene, leaf_forces)
+    return {"futures": [r.to_dict() for r in reports], "truth": reference.to_dict(),
+            "line": summary_line(reports, scene.pitch, reference)}

@@ -107,7 +107,8 @@ class ClothContact:
     leaves of cloth, and of soft bodies and rigid objects under a solid clearance), the rows of
     static objects, the leaves; ``rigid`` ``[N]`` bool: the projected leaves of rigid objects,
     which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
-    object; ``group`` ``[N]`` long and ``count``: every node's object;
+    object; ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
+    count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and ``count``: every node's object;
     ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and :math:`\\delta` in metres at each node's
     pitch.
     """
@@ -120,6 +121,8 @@ class ClothContact:
     leaf: Tensor
     rigid: Tensor
     rigid_rows: Tensor
+    kind: Tensor
+    size: Tensor
     group: Tensor
     count: int
     reach: Tensor
@@ -147,6 +150,11 @@ class ClothContact:
         solid_end = torch.cat([src, dst])
         cloth = self.cloth if movable is None else self.cloth & movable
         keep = cloth[cloth_end] & self.surface[solid_end] & (self.group[cloth_end] != self.group[solid_end])
+        # two bodies of one material give way one way only: the smaller is kept out of the larger
+        same = self.kind[cloth_end] == self.kind[solid_end]
+        size_c, size_j = self.size[self.group[cloth_end]], self.size[self.group[solid_end]]
+        yields = (size_c < size_j) | ((size_c == size_j) & (self.group[cloth_end] < self.group[solid_end]))
+        keep = keep & (~same | yields)
         if not bool(keep.any()):
             return pos
         c, j = cloth_end[keep], solid_end[keep]
@@ -244,5 +252,7 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
     static = store.is_static | (material == STATIC)
     gap = torch.where(material == CLOTH, torch.full_like(pitch, clearance), torch.full_like(pitch, solid_clearance))
     return ClothContact(rest=rest, normal=normal, surface=surface, cloth=projected, static=static, leaf=leaf,
-                        rigid=projected & rigid_rows, rigid_rows=rigid_rows, group=group, count=count,
+                        rigid=projected & rigid_rows, rigid_rows=rigid_rows, kind=material,
+                        size=torch.zeros(count, dtype=torch.long, device=group.device).index_add(
+                            0, group, leaf.long()), group=group, count=count,
                         reach=reach * pitch, clearance=gap * pitch)

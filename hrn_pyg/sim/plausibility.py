@@ -35,11 +35,13 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
+from torch_geometric.data import HeteroData
 
+from hrn_pyg.data.graph import NODE, graph_pitch
 from hrn_pyg.data.io import episode_pitch
 from hrn_pyg.data.kinds import CLOTH, GRAVITY, STATIC
 from hrn_pyg.data.voxelise import KUHN_TETS
-from hrn_pyg.sim.energy import STEP_SECONDS, scene_energy
+from hrn_pyg.sim.energy import STEP_SECONDS, scene_energy, step_seconds
 from hrn_pyg.sim.penetration import INSIDE_TOLERANCE, lattice_cells
 
 #: an object has stopped when no leaf moved more than this many pitches in the last step
@@ -114,6 +116,24 @@ class Scene:
                    torch.as_tensor(np.asarray(episode["object_material"]), dtype=torch.long),
                    torch.as_tensor(np.asarray(episode["positions"][0]), dtype=torch.float64),
                    float(pitch), float(episode["dt"]))
+
+    @classmethod
+    def of_graph(cls, graph: HeteroData) -> Scene:
+        """The scene of a model's one-scene graph (rest: its ``rest_pos``, else its ``pos``;
+        pitch: the graph's, which it must record; dt: the graph's ``dt``, else the default)."""
+        store = graph[NODE]
+        pitch = graph_pitch(graph)
+        if pitch is None:
+            raise ValueError("the graph records no pitch (hrn_pyg.data.graph.set_pitch)")
+        leaf = store.is_leaf
+        leaf_object = store.object[leaf].long()
+        count = int(leaf_object.max()) + 1
+        material = store.material[leaf].argmax(dim=1)
+        object_material = torch.zeros(count, dtype=torch.long).scatter_(0, leaf_object.cpu(), material.cpu())
+        rest = (store.rest_pos if "rest_pos" in store else store.pos)[leaf]
+        dt = float(step_seconds(graph)[0])
+        return cls(store.mass[leaf, 0].double().cpu(), leaf_object.cpu(), object_material,
+                   rest.detach().double().cpu(), float(pitch.reshape(-1)[0]), dt)
 
     @property
     def moving_mass(self) -> Tensor:

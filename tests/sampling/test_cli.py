@@ -23,7 +23,7 @@ def checkpoint(tmp_path_factory):
     return path
 
 
-def test_sample_writes_png_gif_and_arrays(checkpoint, tmp_path):
+def test_sample_writes_png_gif_and_arrays(checkpoint, tmp_path, capsys):
     out = tmp_path / "out"
     code = main(["sample", "--scene", "wedge", "--k", "3", "--rate", "0.3", "--episode-seed", "5", "--horizon", "3",
                  "--model", str(checkpoint), "--out", str(out)])
@@ -36,6 +36,10 @@ def test_sample_writes_png_gif_and_arrays(checkpoint, tmp_path):
         assert npz["samples"].shape[2:] == npz["truth"].shape[1:]
     meta = json.loads((out / "samples.json").read_text())
     assert meta["k"] == 3 and meta["seed"] == 5
+    plausible = meta["plausibility"]  # one report per future, pybullet's beside them, and its line
+    assert len(plausible["futures"]) == 3 and plausible["truth"]["first_non_finite"] == 0
+    assert plausible["line"].startswith("plausibility of 3 futures: ")
+    assert plausible["line"] in capsys.readouterr().out
 
 
 def test_missing_default_checkpoint_names_path_and_command(tmp_path):
