@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     target.add_argument("--in-place", action="store_true", help="write the choice into --model itself")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda (default: cuda if available, else cpu)")
+    parser.add_argument("--no-physics-check", action="store_true",
+                        help="rank candidates by spread alone; by default a rate with a future that fails the "
+                             "physics report (a blow-up, energy gained, bodies deep in each other) is rejected")
     add_no_progress(parser)
     add_renamed(parser, "--steps", "--horizon")
     add_renamed(parser, "--seeds", "--episode-seeds")

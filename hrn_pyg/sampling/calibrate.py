@@ -33,6 +33,7 @@ import json
 import math
 import sys
 import tomllib
+import warnings
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -62,6 +63,7 @@ from hrn_pyg.sampling.ensemble import (
 )
 from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
+from hrn_pyg.sim.plausibility import Scene, plausibility
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.options import progress_bar
@@ -249,15 +251,24 @@ def data_starts(folder: str | Path, scene: str | None, limit: int) -> tuple[list
 
 # ----------------------------------------------------------------------------- scoring
 def score(model: HRN, start: Start, k: int, steps: int, rate: float, modules: tuple[str, ...],
-          sample_seed: int = 0) -> tuple[float, float]:
-    """Spread ratio samples / ensemble and energy score (m) of one candidate on one start.
+          sample_seed: int = 0) -> tuple[float, float, int]:
+    """Spread ratio samples / ensemble, energy score (m) and the futures that fail the physics
+    report (:func:`implausible_futures`) of one candidate on one start; the spread and score are
+    of the finite futures (NaN, NaN when none is).
 
     The ``k`` futures come from :func:`~hrn_pyg.sampling.sample.sample` with a CPU generator
     seeded ``sample_seed`` (the same for every candidate and start).
     """
     gen = torch.Generator().manual_seed(int(sample_seed))
-    futures = sample(model, start.graph, k, steps, rate, forces=start.forces, generator=gen,
-                     modules=modules)[:, -1].cpu()  # [k, L, 3]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a failed future is counted below
+        every_step = sample(model, start.graph, k, steps, rate, forces=start.forces, generator=gen,
+                            modules=modules).cpu()  # [k, steps, L, 3]
+    failures = implausible_futures(start, every_step)
+    futures = every_step[:, -1]  # [k, L, 3]
+    futures = futures[torch.isfinite(futures).all(dim=(1, 2))]  # a blown-up future has no place to score
+    if len(futures) == 0:
+        return math.nan, math.nan, failures
     moving = start.moving
     spread = float(root_spread(futures[:, moving]).mean())
     ensemble_spread = float(root_spread(start.truth[:, moving]).mean())
@@ -265,17 +276,40 @@ def score(model: HRN, start: Start, k: int, steps: int, rate: float, modules: tu
         raise ValueError(f"the ensemble of seed {start.seed} does not spread (all members end equal); "
                          "choose other seeds or a larger perturbation")
     es = float(energy_score(futures[:, moving], start.truth[:, moving]).mean())
-    return spread / ensemble_spread, es
+    return spread / ensemble_spread, es, failures
+
+
+def implausible_futures(start: Start, futures: Tensor) -> int:
+    """How many of the ``futures`` ``[k, steps, L, 3]`` of a start fail the physics report
+    (:mod:`hrn_pyg.sim.plausibility`): a blow-up, energy gained beyond the pushes' work by more
+    than :data:`~hrn_pyg.sim.plausibility.ENERGY_TOLERANCE`, or an interpenetration deeper than
+    the start's own pybullet episode's plus one pitch."""
+    store = start.graph[NODE]
+    leaf = store.is_leaf
+    scene = Scene.of_graph(start.graph)
+    steps = futures.shape[1]
+    seq = store.pos_seq[leaf].transpose(0, 1).double()  # [steps+3, L, 3]: x_{-2} .. x_steps
+    history = seq[HISTORY - 1:HISTORY + 1]
+    forces = start.forces[:steps][:, leaf].double()
+    reference = plausibility(seq[HISTORY + 1:HISTORY + 1 + steps], history, scene, forces)[0]
+    reports = plausibility(futures.double(), history, scene, forces)
+    floor = reference.depth + scene.pitch
+    return sum(r.first_non_finite > 0 or r.gains_energy or r.depth > floor for r in reports)
 
 
 def _log(ratio: float) -> float:
     return math.log(ratio) if ratio > 0 else -math.inf
 
 
-def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energies: list[float]) -> dict:
-    """One candidate's row: per-start numbers and their summaries (JSON-safe: no infinities)."""
+def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energies: list[float],
+              implausible: int = 0) -> dict:
+    """One candidate's row: per-start numbers and their summaries (JSON-safe: no infinities);
+    ``implausible``: its futures that failed the physics report, over all starts."""
+    ratios = [r for r in ratios if not math.isnan(r)] or [0.0]
+    energies = [e for e in energies if not math.isnan(e)] or [0.0]
     log_median = float(np.median([_log(r) for r in ratios]))
     return {
+        "implausible_futures": int(implausible),
         "rate": float(rate), "modules": list(modules),
         "spread_ratios": [float(r) for r in ratios],
         "spread_ratio_median": float(math.exp(log_median)) if math.isfinite(log_median) else 0.0,
@@ -286,15 +320,22 @@ def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energi
     }
 
 
-def choose(candidates: list[dict]) -> int:
-    """Index of the candidate whose median log spread ratio is closest to 0; ties: lower energy
-    score, then the first (e.g. a module set with an idle module scores exactly like the set
-    without it). ValueError when no candidate spreads at all."""
+def choose(candidates: list[dict], physics: bool = True) -> int:
+    """Index of the candidate whose median log spread ratio is closest to 0 among those whose
+    futures all pass the physics report (:func:`implausible_futures`); ties: lower energy score,
+    then the first (e.g. a module set with an idle module scores exactly like the set without
+    it); ``physics=False``: among all candidates. ValueError when every candidate has a future
+    that fails the report, or none spreads."""
     def key(i: int) -> tuple[float, float]:
         lr = candidates[i]["log_ratio_median"]
         return (math.inf if lr is None else abs(lr), candidates[i]["energy_score_m"])
 
-    best = min(range(len(candidates)), key=key)
+    possible = [i for i, c in enumerate(candidates) if not (physics and c.get("implausible_futures", 0))]
+    if not possible:
+        raise ValueError("every candidate rate gives futures that fail the physics report (a blow-up, energy "
+                         "gained, or bodies deeper in each other than pybullet's plus a pitch) on these starts: "
+                         "try lower --rates")
+    best = min(possible, key=key)
     if candidates[best]["log_ratio_median"] is None:
         raise ValueError("no candidate spreads the samples at all (ratio 0 on every one): try higher "
                          "--rates or other --module-sets")
@@ -323,13 +364,14 @@ def calibrate(model: HRN, starts: list[Start], rates: tuple[float, ...], module_
     candidates = []
     try:
         for rate, modules in pairs:
-            ratios, energies = [], []
+            ratios, energies, implausible = [], [], 0
             for start in starts:
-                ratio, es = score(model, start, k, steps, rate, modules, sample_seed)
+                ratio, es, failures = score(model, start, k, steps, rate, modules, sample_seed)
                 ratios.append(ratio)
                 energies.append(es)
+                implausible += failures
                 bar.update(1)
-            candidates.append(summarise(rate, modules, ratios, energies))
+            candidates.append(summarise(rate, modules, ratios, energies, implausible))
             bar.set_postfix(rate=rate, modules="+".join(modules), ratio=f"{candidates[-1]['spread_ratio_median']:.2f}")
     finally:
         bar.close()
@@ -429,7 +471,7 @@ def run(args: argparse.Namespace) -> int:
     # --- candidates ---------------------------------------------------------------------------
     candidates = calibrate(model, starts, rates, module_sets, args.k, args.steps, args.sample_seed,
                            progress=not args.no_progress)
-    best = choose(candidates)
+    best = choose(candidates, physics=not args.no_physics_check)
     chosen = candidates[best]
     print(markdown(candidates, best))
     edge = grid_edge(chosen, rates)

@@ -57,8 +57,10 @@ def checkpoint(tmp_path_factory) -> Path:
 
 
 def calibrate_argv(model: Path, *extra: str) -> list[str]:
+    """A calibrate command line for the tiny untrained model, whose futures do not obey physics:
+    ranked by spread alone (the physics check has tests of its own)."""
     return ["calibrate", "--scene", SCENE, "--model", str(model), "--k", str(K), "--members", str(MEMBERS),
-            "--horizon", str(STEPS), "--no-progress", *extra]
+            "--horizon", str(STEPS), "--no-progress", "--no-physics-check", *extra]
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +181,7 @@ def test_scene_file_folders_name_their_scene(checkpoint, tiny_episodes, tmp_path
     out = tmp_path / "files.pt"
     argv = ["calibrate", "--model", str(checkpoint), "--data", str(data), "--k", str(K), "--members",
             str(MEMBERS), "--horizon", str(STEPS), "--rates", "0.3", "--module-sets", "force", "--no-progress",
-            "--out", str(out)]
+            "--no-physics-check", "--out", str(out)]
     assert main(argv) == 0
     record = cal.calibration_record(out)
     assert record["scene"] == ["two_cubes"] and record["seeds"] == [18] and record["data"] == [str(data)]
@@ -233,15 +235,35 @@ def test_device_cpu_is_used_when_the_default_is_elsewhere(checkpoint, tmp_path, 
     assert devices == [torch.device("cpu")] and cal.calibration_record(out)["rate"] == 0.3
 
 
-def test_device_meta_scores_there(checkpoint, tmp_path, monkeypatch):
-    """``--device meta`` (a device the default never is): the model is scored there and the run
-    stops with the error only meta tensors give, writing nothing."""
+def test_device_meta_is_refused_before_anything_is_scored(checkpoint, tmp_path, monkeypatch, capsys):
+    """``--device meta`` is no device the package runs on: one line, exit 2, nothing scored or
+    written."""
     devices = _spy_on_scoring(monkeypatch)
     out = tmp_path / "meta.pt"
-    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
-        main(calibrate_argv(checkpoint, "--episode-seeds", "8", "--rates", "0.3", "--module-sets", "force",
-                            "--out", str(out), "--device", "meta"))
-    assert devices == [torch.device("meta")] and not out.exists()
+    assert main(calibrate_argv(checkpoint, "--episode-seeds", "8", "--rates", "0.3", "--module-sets", "force",
+                               "--out", str(out), "--device", "meta")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "meta" in err[0]
+    assert devices == [] and not out.exists()
+
+
+def test_a_rate_whose_futures_break_physics_is_rejected(checkpoint, tmp_path, capsys):
+    """The tiny untrained model's futures gain energy and sink into each other: with the physics
+    check (the default) no candidate is chosen and nothing is written; the rows say why."""
+    out = tmp_path / "rejected.pt"
+    argv = [a for a in calibrate_argv(checkpoint, "--episode-seeds", "8", "--rates", "0.1,0.3", "--module-sets",
+                                      "force", "--out", str(out)) if a != "--no-physics-check"]
+    assert main(argv) == 2
+    assert "fail the physics report" in capsys.readouterr().err and not out.exists()
+
+
+def test_choose_skips_candidates_with_implausible_futures():
+    rows = [cal.summarise(0.1, ("force",), [0.5], [0.1], implausible=0),
+            cal.summarise(0.3, ("force",), [1.0], [0.1], implausible=2)]
+    assert cal.choose(rows) == 0  # the better spread fails the report
+    assert cal.choose(rows, physics=False) == 1
+    with pytest.raises(ValueError, match="fail the physics report"):
+        cal.choose(rows[1:])
 
 
 def test_output_equal_to_input_needs_in_place(checkpoint):
