@@ -3,7 +3,7 @@
 An episode (``episode_<seed:06d>.npz``, format in docs/architecture.md) holds leaf positions at
 model steps ``0..S`` and the forces of steps ``0..S-1``. A window of horizon ``T`` starting at
 step ``t`` (``2 <= t <= S - T``, so ``x_{t-2}`` exists) is one graph: the episode's static
-structure (:func:`hrn_pyg.data.graph.build_structure`, built once per episode and cached), the
+structure (:func:`hrn_pyg.data.graph.episode_structure`, built once per episode and cached), the
 state at ``t`` (:func:`hrn_pyg.data.graph.set_state`), and for every node
 
 * ``pos_seq (N, T+3, 3)``: ``x_{t-2} .. x_{t+T}`` (ancestors: mass-weighted leaf means),
@@ -32,7 +32,7 @@ from torch_geometric.data import Dataset, HeteroData
 from hrn_pyg.data.graph import (
     HISTORY,
     NODE,
-    build_structure,
+    episode_structure,
     leaf_to_ancestor_mean,
     set_state,
 )
@@ -231,16 +231,7 @@ class EpisodeWindows(Dataset):
     def structure(self, index: int) -> HeteroData:
         """The static graph of episode ``index`` (built once, then cached)."""
         if index not in self._structures:
-            ep = self._episode(index)
-            self._structures[index] = build_structure(
-                ep["hierarchy_parent"].long(),
-                ep["leaf_mass"].float(),
-                ep["leaf_object"].long(),
-                ep["object_material"].long(),
-                ep["object_stiffness"].float(),
-                rest_pos=ep["positions"][0].float(),
-                pitch=self._pitches[index],
-            )
+            self._structures[index] = episode_structure(self._episode(index), self._pitches[index])
         return self._structures[index]
 
     def pitch(self, index: int) -> float | None:

@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hrn_pyg.data import mujoco_scene  # noqa: F401  registers the mujoco engine of scene files
-from hrn_pyg.data.hierarchy import build_hierarchy
+from hrn_pyg.data.hierarchy import start_hierarchy
 from hrn_pyg.data.scene_file import SceneSpec, scene_spec
 from hrn_pyg.data.scenes import Scene
 
@@ -107,7 +107,5 @@ def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None
     finally:
         sim.close()
     check_plausible(positions, float(spec.config.pitch), f"{sim.name} seed {seed}")
-    episode["hierarchy_parent"] = np.asarray(
-        build_hierarchy(positions[0].astype(np.float64), leaf_mass.astype(np.float64), leaf_object),
-        dtype=np.int64)
+    episode["hierarchy_parent"] = start_hierarchy(positions[0], leaf_mass, leaf_object)
     return episode

@@ -16,11 +16,15 @@ graph-level ``pitch`` ``(1,)`` float64; batching gives one value per graph, and
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch_geometric.data import Batch, HeteroData
 
+from hrn_pyg.data.io import episode_pitch
 from hrn_pyg.data.kinds import CLOTH, HISTORY, MATERIALS, RIGID, SOFT, STATIC  # noqa: F401  the material codes, here too
 from hrn_pyg.data.radius import collision_edges
 
@@ -222,6 +226,35 @@ def build_structure(
     if pitch is not None:
         set_pitch(graph, pitch)
     return graph
+
+
+def episode_structure(episode: Mapping[str, Any], pitch: float | None = None) -> HeteroData:
+    """The static graph a model starts an episode's scene from: :func:`build_structure` of the
+    episode's ``hierarchy_parent``, ``leaf_mass``, ``leaf_object``, ``object_material`` and
+    ``object_stiffness``, its first frame ``positions[0]`` as the rest shape, and its pitch
+    (``pitch``, else the one its ``params`` record, :func:`~hrn_pyg.data.io.episode_pitch`).
+
+    The one builder of a start graph from a scene's record: the dataset's windows, a sampled
+    episode's start (:func:`hrn_pyg.sampling.ensemble.episode_state`) and the RL environment's
+    pool (:class:`hrn_pyg.rl.hrn_dynamics.HRNDynamics`) all build theirs here, so one state of a
+    scene is one graph on every path. Arrays may be numpy or torch.
+
+    **Shapes:** ``positions (S+1, L, 3)``, ``hierarchy_parent (N,)`` -> a graph of ``N`` nodes.
+    """
+
+    def tensor(key: str, dtype: torch.dtype) -> Tensor:
+        value = episode[key]
+        return (value if isinstance(value, Tensor) else torch.as_tensor(np.asarray(value))).to(dtype)
+
+    return build_structure(
+        tensor("hierarchy_parent", torch.long),
+        tensor("leaf_mass", torch.float32),
+        tensor("leaf_object", torch.long),
+        tensor("object_material", torch.long),
+        tensor("object_stiffness", torch.float32),
+        rest_pos=tensor("positions", torch.float32)[0],
+        pitch=episode_pitch(episode) if pitch is None else pitch,
+    )
 
 
 def set_pitch(graph: HeteroData, pitch: float) -> HeteroData:

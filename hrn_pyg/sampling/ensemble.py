@@ -26,11 +26,10 @@ from hrn_pyg.data.graph import (
     HISTORY,
     NODE,
     STATIC,
-    build_structure,
+    episode_structure,
     leaf_to_ancestor_mean,
     set_state,
 )
-from hrn_pyg.data.io import episode_pitch
 from hrn_pyg.data.scene_file import SceneSpec
 from hrn_pyg.data.scenes import Scene
 
@@ -116,8 +115,8 @@ def episode_state(
     """The model's initial state at step ``start`` of an episode, carrying its ground truth.
 
     Like a dataset window (:class:`hrn_pyg.data.dataset.EpisodeWindows`): the episode's static
-    structure, the state ``x_{start-2}, x_{start-1}, x_{start}`` with the force of step
-    ``start``, and ``pos_seq (N, steps+3, 3)`` (``x_{start-2} .. x_{start+steps}``, ancestors
+    structure (:func:`~hrn_pyg.data.graph.episode_structure`, the RL environment's too), the
+    state ``x_{start-2}, x_{start-1}, x_{start}`` with the force of step ``start``, and ``pos_seq (N, steps+3, 3)`` (``x_{start-2} .. x_{start+steps}``, ancestors
     derived), ``force_seq (N, steps, 3)`` (zero on ancestors), and the graph-level ``pitch``
     when the episode's ``params`` record one. ``steps`` defaults to all steps left in the episode.
     """
@@ -129,15 +128,7 @@ def episode_state(
     steps = total - start if steps is None else steps
     if not 1 <= steps <= total - start:
         raise ValueError(f"steps must be in [1, {total - start}] from start {start}, got {steps}")
-    structure = build_structure(
-        torch.as_tensor(np.asarray(episode["hierarchy_parent"]), dtype=torch.long),
-        torch.as_tensor(np.asarray(episode["leaf_mass"]), dtype=torch.float32),
-        torch.as_tensor(np.asarray(episode["leaf_object"]), dtype=torch.long),
-        torch.as_tensor(np.asarray(episode["object_material"]), dtype=torch.long),
-        torch.as_tensor(np.asarray(episode["object_stiffness"]), dtype=torch.float32),
-        rest_pos=positions[0],
-        pitch=episode_pitch(episode),
-    )
+    structure = episode_structure(episode)
     n, leaves = structure[NODE].num_nodes, positions.shape[1]
     seq = positions[start - HISTORY : start + steps + 1]  # [steps+3, L, 3]
     pad = seq.new_zeros(seq.shape[0], n - leaves, 3)

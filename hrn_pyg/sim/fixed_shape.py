@@ -33,8 +33,9 @@ few hundred small operations become a few fused kernels, so a step costs its ari
 than its dispatches. The first steps pay the compilation (seconds to a minute on a CPU); the
 positions are those of the eager step up to the rounding of reordered float arithmetic.
 
-A model with ``cloth_clearance`` on a scene whose cloth can land on another object is refused
-(that rule's sizes depend on the contacts of the step); on scenes without cloth it runs as any model.
+A model with ``cloth_clearance`` on a scene whose cloth can land on another object, or with
+``solid_clearance`` on a scene with a moving soft or rigid body beside another object, is refused
+(those rules' sizes depend on the contacts of the step); elsewhere it runs as any model.
 """
 
 from __future__ import annotations
@@ -250,9 +251,12 @@ class FixedShapeSimulator:
         self.objects = object_of(self.graph) if model.config.rigid_fit else None
         rules = step_rules(model, self.graph, self.objects)
         if rules is not None and rules.cloth is not None:
-            raise ValueError(f"fixed_shape_rollout: this model keeps cloth out of solids (cloth_clearance="
-                             f"{model.config.cloth_clearance:g}), a rule whose sizes depend on the contacts, which "
-                             "fixed-shape steps do not run; roll this scene out with hrn_pyg.sim.rollout")
+            clearances = ", ".join(f"{name}={float(getattr(model.config, name, 0.0)):g}"
+                                   for name in ("cloth_clearance", "solid_clearance")
+                                   if float(getattr(model.config, name, 0.0)) > 0)
+            raise ValueError(f"fixed_shape_rollout: this model moves leaves out of the objects they enter "
+                             f"({clearances}), a rule whose sizes depend on the contacts, which fixed-shape "
+                             "steps do not run; roll this scene out with hrn_pyg.sim.rollout")
         # the energy limit without host reads: computed on every row, the unchanged ones selected
         self.rules = None if rules is None else StepRules(None, rules.energy, rules.objects, rules.rigid_from_rest,
                                                           host_reads=False)
