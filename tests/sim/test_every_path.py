@@ -133,15 +133,27 @@ def test_the_fixed_shape_rollout_gives_the_rollout_or_refuses(scene):
     assert torch.allclose(fixed_shape_rollout(allowed, graph, STEPS).pos, expected, atol=ATOL)
 
 
-def env_steps(env: HRNDynamics, steps: int) -> torch.Tensor:
-    """``[steps, L, 3]``: the environment's leaves after each zero-force :meth:`next_history`."""
+def env_steps(env: HRNDynamics, steps: int, push: torch.Tensor | None = None) -> torch.Tensor:
+    """``[steps, L, 3]``: the environment's leaves after each :meth:`next_history` with the
+    per-object force ``push`` ``(O, 3)`` (None: zero)."""
     history, index = env.leaf_history(env.reset_states(1, torch.Generator().manual_seed(0)))
+    force = torch.zeros(1, env.num_objects, 3) if push is None else push[None]
     out = []
     with torch.no_grad():
         for _ in range(steps):
-            history = env.next_history(history, index, torch.zeros(1, env.num_objects, 3))
+            history = env.next_history(history, index, force)
             out.append(history[0, 2])
     return torch.stack(out)
+
+
+def node_forces(env: HRNDynamics, graph, push: torch.Tensor) -> torch.Tensor:
+    """``[STEPS, N, 3]``: the per-object force ``push`` ``(O, 3)`` spread evenly over each
+    object's leaves, as the environment spreads it, zero on the ancestors."""
+    leaf_object = env.leaf_object
+    count = torch.bincount(leaf_object, minlength=env.num_objects).float()
+    forces = torch.zeros(STEPS, graph[NODE].num_nodes, 3)
+    forces[:, graph[NODE].is_leaf] = push[leaf_object] / count[leaf_object, None]
+    return forces
 
 
 def test_the_environment_steps_as_the_rollout(scene, model):
@@ -154,6 +166,19 @@ def test_the_environment_steps_as_the_rollout(scene, model):
     with torch.no_grad():
         first = env.next_positions(history, index, torch.zeros(1, env.num_objects, 3))
     assert torch.allclose(first[0], expected[0], atol=ATOL)
+
+
+def test_a_pushed_environment_steps_as_the_pushed_rollout(scene, model):
+    """A push on the first object (its force spread over its leaves): the same positions, and
+    not those without the push."""
+    name, _, graph, plain = scene
+    env = dynamics(model, name)
+    push = torch.zeros(env.num_objects, 3)
+    push[0] = torch.tensor([3.0, 0.0, 2.0])
+    with torch.no_grad():
+        pushed = rollout(model, graph, STEPS, node_forces(env, graph, push), sleep=None)
+    assert not torch.allclose(pushed, plain, atol=1e-3)
+    assert torch.allclose(env_steps(env, STEPS, push), leaves_of(graph, pushed), atol=ATOL)
 
 
 @pytest.mark.parametrize("name", [
