@@ -15,11 +15,12 @@ from hrn_pyg.data.graph import (
     NODE,
     WITHIN_SIBLINGS,
     build_structure,
+    episode_structure,
     leaf_to_ancestor_mean,
     replicate,
     set_state,
 )
-from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy
+from hrn_pyg.data.hierarchy import HierarchyConfig, build_hierarchy, start_hierarchy
 from hrn_pyg.data.radius import collision_edges
 
 RADIUS = 0.08
@@ -233,3 +234,29 @@ def test_ancestor_spanning_two_objects_is_rejected() -> None:
     with pytest.raises(ValueError, match="leaf_mass"):
         build_structure(torch.tensor([2, 2, -1]), torch.tensor([1.0, 0.0]), torch.tensor([0, 0]), torch.tensor([0]),
                         torch.ones(1))
+
+
+def test_an_episodes_structure_has_its_tree_its_first_frame_at_rest_and_its_pitch():
+    """:func:`episode_structure` of numpy or torch arrays: the episode's tree (that of
+    :func:`start_hierarchy` on its first frame), ``rest_pos`` = the first frame (ancestors the
+    mass-weighted means), the pitch its ``params`` record unless one is given."""
+    rng = np.random.default_rng(0)
+    positions = rng.normal(size=(3, 12, 3)).astype(np.float32)
+    leaf_mass = rng.uniform(0.5, 1.5, 12).astype(np.float32)
+    leaf_object = np.repeat([0, 1], 6)
+    episode = {"positions": positions, "leaf_mass": leaf_mass, "leaf_object": leaf_object,
+               "object_material": np.array([0, 1]), "object_stiffness": np.array([1.0, 0.5], dtype=np.float32),
+               "hierarchy_parent": start_hierarchy(positions[0], leaf_mass, leaf_object),
+               "params": '{"config": {"pitch": 0.05}}'}
+    graph = episode_structure(episode)
+    parent = torch.as_tensor(episode["hierarchy_parent"])
+    assert torch.equal(parent, torch.as_tensor(build_hierarchy(positions[0].astype(np.float64),
+                                                               leaf_mass.astype(np.float64), leaf_object)))
+    assert graph[NODE].num_nodes == len(parent)
+    full = torch.zeros(1, len(parent), 3)
+    full[0, :12] = torch.from_numpy(positions[0])
+    assert torch.allclose(graph[NODE].rest_pos, leaf_to_ancestor_mean(full, graph)[0])
+    assert graph.pitch.item() == pytest.approx(0.05)
+    as_torch = {key: torch.as_tensor(value) if key != "params" else value for key, value in episode.items()}
+    other = episode_structure(as_torch, pitch=0.025)
+    assert torch.equal(other[NODE].rest_pos, graph[NODE].rest_pos) and other.pitch.item() == pytest.approx(0.025)
