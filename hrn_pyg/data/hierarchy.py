@@ -192,9 +192,13 @@ def build_hierarchy(
 
 def start_hierarchy(first_frame: np.ndarray, leaf_mass: np.ndarray, leaf_object: np.ndarray) -> np.ndarray:
     """The hierarchy a scene's episode is given: :func:`build_hierarchy` of its first recorded
-    frame (leaf positions as stored, float32, clustered in float64). Every path that starts a
-    model on a scene (an episode, a dataset, the RL environment's pool) takes its tree from here,
-    so one start state gets one tree. **Shapes:** ``(L, 3)``, ``(L,)``, ``(L,)`` -> ``(N,)`` int64."""
+    frame (leaf positions as stored, float32, clustered in float64).
+
+    Every path that starts a model on a scene (an episode, a dataset, the RL environment's pool)
+    takes its tree from here, so one start state gets one tree.
+
+    **Shapes:** ``(L, 3)``, ``(L,)``, ``(L,)`` -> ``(N,)`` int64.
+    """
     positions = np.asarray(first_frame, dtype=np.float32).astype(np.float64)
     masses = np.asarray(leaf_mass, dtype=np.float32).astype(np.float64)
     return np.asarray(build_hierarchy(positions, masses, np.asarray(leaf_object)), dtype=np.int64)
