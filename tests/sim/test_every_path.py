@@ -8,7 +8,9 @@ identical ones), the fixed-shape rollout (or its refusal), the RL environment's 
 model step (:func:`~hrn_pyg.rl.planning.rollout_futures`). The environment's pool entry is the
 same pybullet start, and its graph is built by the same function as the rollout's
 (:func:`~hrn_pyg.data.graph.episode_structure`), so every path gives one answer up to float
-rounding. Scenes: ``cube_collision`` (two rigid cubes), ``soft_bounce`` (a soft body),
+rounding. One known exception, marked: with sleeping on, the environment (which carries no sleep
+state between steps) puts an object to sleep as soon as its two steps of history are still,
+where a rollout waits ``SleepConfig.patience`` steps. Scenes: ``cube_collision`` (two rigid cubes), ``soft_bounce`` (a soft body),
 ``multi_material`` (a cloth falling onto a rigid and a soft cube).
 """
 
