@@ -1,9 +1,10 @@
 """hrn_pyg: stochastic Hierarchical Relation Networks in PyTorch Geometric.
 
 The names most users need are here: the model (:class:`HRN`, :class:`HRNConfig`), loading a
-checkpoint (:func:`load_model`), the deterministic rollout (:func:`rollout`, from
-:mod:`hrn_pyg.sim.rollout`), objects at rest (:class:`SleepConfig`) and the Monte Carlo
-dropout sampler (:func:`sample`). Each is imported on first use (PEP 562), so ``import hrn_pyg``
+checkpoint (:func:`load_model`), a scene's start state in one call (:func:`scene`), the
+deterministic rollout (:func:`rollout`) and the Monte Carlo dropout sampler (:func:`sample`), both
+giving leaf positions without gradients (:mod:`hrn_pyg.sampling.start`), and objects at rest
+(:class:`SleepConfig`). Each is imported on first use (PEP 562), so ``import hrn_pyg``
 and the command line's first checks do not load torch. This module is the top of the package:
 no module of the package imports it.
 """
@@ -19,7 +20,7 @@ if TYPE_CHECKING:
     from hrn_pyg.checkpoints import load_model
     from hrn_pyg.nn.hrn import HRN, HRNConfig
     from hrn_pyg.sampling.sample import sample
-    from hrn_pyg.sim.rollout import rollout
+    from hrn_pyg.sampling.start import rollout, scene
     from hrn_pyg.sim.sleeping import SleepConfig
 
 #: public name -> the module it comes from
@@ -28,11 +29,12 @@ LAZY: dict[str, str] = {
     "HRNConfig": "hrn_pyg.nn.hrn",
     "SleepConfig": "hrn_pyg.sim.sleeping",
     "load_model": "hrn_pyg.checkpoints",
-    "rollout": "hrn_pyg.sim.rollout",
+    "rollout": "hrn_pyg.sampling.start",
     "sample": "hrn_pyg.sampling.sample",
+    "scene": "hrn_pyg.sampling.start",
 }
 
-__all__ = ["HRN", "HRNConfig", "SleepConfig", "load_model", "rollout", "sample", "__version__"]
+__all__ = ["HRN", "HRNConfig", "SleepConfig", "load_model", "rollout", "sample", "scene", "__version__"]
 
 
 def __getattr__(name: str) -> Any:

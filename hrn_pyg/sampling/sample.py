@@ -156,6 +156,7 @@ def sample(
     sleep: SleepConfig | None = DEFAULT_SLEEP,
     effects: SceneEffects | None = None,
     fixed_shape: FixedShapeConfig | None = None,
+    seed: int | None = None,
 ) -> Tensor:
     r"""Sample ``k`` futures of one scene with Monte Carlo graph-convolutional dropout.
 
@@ -190,6 +191,8 @@ def sample(
             default); None runs every object of every copy at every step.
         effects: what the scene needs simulated (:class:`~hrn_pyg.data.effects.SceneEffects`, e.g.
             :func:`hrn_pyg.data.scene_file.scene_effects`); None: what the data show.
+        seed: seeds the masks (a CPU generator of its own), the same futures on any device;
+            not with ``generator``.
         fixed_shape: roll out with fixed-shape steps (:mod:`hrn_pyg.sim.fixed_shape`: no host read
             inside a step, optionally CUDA graphs); the same futures as with ``sleep=None``,
             which it needs.
@@ -208,6 +211,10 @@ def sample(
     **Shapes:** initial state over ``N`` nodes, ``L`` of them leaves; output ``(k, steps, L, 3)``.
     """
     check_sampling_args(k, steps, rate)
+    if seed is not None:
+        if generator is not None:
+            raise ValueError("sample: pass seed= or generator=, not both")
+        generator = torch.Generator().manual_seed(int(seed))
     if fixed_shape is not None and sleep is not None and sleep.enabled:
         raise ValueError("fixed_shape steps run every object: pass sleep=None with them")
     _check_state(initial_state)

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 import hrn_pyg
+from hrn_pyg.sim.rollout import rollout as rollout_nodes
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import set_pitch
@@ -38,8 +39,8 @@ def test_the_widened_model_predicts_as_the_plain_one_at_the_reference_pitch(drop
     state = drop_start.clone()
     set_pitch(state, plain.config.reference_pitch)
     with torch.no_grad():
-        expected = hrn_pyg.rollout(plain, state, 10, sleep=None)
-        got = hrn_pyg.rollout(wide, state, 10, sleep=None)
+        expected = rollout_nodes(plain, state, 10, sleep=None)
+        got = rollout_nodes(wide, state, 10, sleep=None)
     assert torch.equal(got, expected)
 
 
@@ -114,8 +115,8 @@ def test_a_model_made_to_read_the_force_in_collisions_predicts_as_before(drop_st
     forces = torch.zeros(10, drop_start["particle"].num_nodes, 3)
     forces[:, :12] = torch.tensor([3.0, -1.0, 0.0])
     with torch.no_grad():
-        expected = hrn_pyg.rollout(model, drop_start.clone(), 10, forces=forces, sleep=None)
-        got = hrn_pyg.rollout(grown, drop_start.clone(), 10, forces=forces, sleep=None)
+        expected = rollout_nodes(model, drop_start.clone(), 10, forces=forces, sleep=None)
+        got = rollout_nodes(grown, drop_start.clone(), 10, forces=forces, sleep=None)
     torch.testing.assert_close(got, expected, atol=1e-6, rtol=0)
     changed = [k for k, v in grown.state_dict().items() if v.shape != model.state_dict()[k].shape]
     assert set(changed) <= {"collision.phi.hidden_layers.0.weight", "collision.vector.weight", "collision.vector.bias"}

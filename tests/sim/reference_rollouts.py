@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 import hrn_pyg
+from hrn_pyg.sim.rollout import rollout as rollout_nodes
 from hrn_pyg.checkpoints import CHECKPOINT_DIR, load_model
 from hrn_pyg.data.graph import set_pitch
 from hrn_pyg.sampling.ensemble import episode_state
@@ -105,8 +106,8 @@ def compute(episode_arrays: dict[str, dict[str, np.ndarray]], names: tuple[str, 
                 state = start_state(model, ep, start)
                 forces = push(state, STEPS)
                 key = f"{name}/start{start}"
-                out[f"{key}/plain"] = hrn_pyg.rollout(model, state, STEPS, forces, sleep=None).numpy()
-                out[f"{key}/sleep"] = hrn_pyg.rollout(model, state, STEPS, forces).numpy()
+                out[f"{key}/plain"] = rollout_nodes(model, state, STEPS, forces, sleep=None).numpy()
+                out[f"{key}/sleep"] = rollout_nodes(model, state, STEPS, forces).numpy()
                 if getattr(model.config, "network", "hrn") != "gns":  # the GNS has no fixed-shape step
                     out[f"{key}/fixed"] = fixed_shape_rollout(model, state, STEPS, forces).pos.numpy()
                 rate = float(model.config.dropout_rate) or 0.1

@@ -12,6 +12,7 @@ import reference_rollouts as ref
 import torch
 
 import hrn_pyg
+from hrn_pyg.sim.rollout import rollout as rollout_nodes
 from hrn_pyg.checkpoints import CHECKPOINT_DIR, load_model
 
 
@@ -63,6 +64,6 @@ def test_the_cross_machine_tolerance_sees_a_changed_step_from_rest(stored, name)
         for p in model.parameters():
             p.mul_(1.001)
         state = ref.start_state(model, ref.stored_episodes(stored)[scene], ref.LATE_START)
-        changed = hrn_pyg.rollout(model, state, ref.STEPS, ref.push(state, ref.STEPS), sleep=None).numpy()
+        changed = rollout_nodes(model, state, ref.STEPS, ref.push(state, ref.STEPS), sleep=None).numpy()
     key = f"{name}/start{ref.LATE_START}/plain"
     assert differing({key: changed}, stored) == [key]
