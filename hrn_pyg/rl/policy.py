@@ -11,16 +11,15 @@ the actor of :func:`hrn_pyg.rl.ppo.build_actor_critic` for a given environment;
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import torch
 from tensordict.nn import TensorDictModule
 
-from hrn_pyg.checkpoints import POLICY_NAMES, checkpoint_path
+from hrn_pyg.checkpoints import MAX_WIDTH, POLICY_NAMES, checkpoint_path
 from hrn_pyg.rl.env import HRNEnv
-from hrn_pyg.utils.checkpoint import CheckpointError, load_checkpoint
+from hrn_pyg.utils.checkpoint import CheckpointError, bounded_json, load_checkpoint
 
 
 def policy_path(policy: str | os.PathLike) -> Path:
@@ -45,7 +44,10 @@ def load_actor(policy: str | os.PathLike, env: HRNEnv) -> TensorDictModule:
     path = policy_path(policy)
     ckpt = load_checkpoint(path)
     try:
-        hidden = json.loads(ckpt["config"])["ppo"]["hidden"]
+        hidden = bounded_json(ckpt["config"], f"{path}'s config")["ppo"]["hidden"]
+        if not isinstance(hidden, int) or isinstance(hidden, bool) or not 1 <= hidden <= MAX_WIDTH:
+            raise CheckpointError(f"{path}: the policy's hidden width must be a whole number in 1..{MAX_WIDTH}, "
+                                  f"got {hidden!r}")
         actor, _ = build_actor_critic(env, hidden)
         actor.load_state_dict(ckpt["model"]["actor"])
     except (KeyError, TypeError, RuntimeError) as exc:

@@ -29,3 +29,20 @@ def test_bad_policies_are_one_line_errors(env):
         policy_path("no_such_policy")
     with pytest.raises(CheckpointError, match="not a policy"):
         load_actor(checkpoint_path("wedge"), env)
+
+
+@pytest.mark.parametrize("hidden", [10**7, -3, "64", [64]])
+def test_a_policy_asking_for_an_absurd_width_is_refused_before_it_is_built(env, tmp_path, hidden):
+    """A small file whose config asks for 10^7 hidden units would build a network of gigabytes."""
+    import json
+
+    import torch
+
+    ckpt = torch.load(checkpoint_path("cube_push_policy"), weights_only=True)
+    config = json.loads(ckpt["config"])
+    config["ppo"]["hidden"] = hidden
+    ckpt["config"] = json.dumps(config)
+    path = tmp_path / "wide.pt"
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointError, match="hidden width must be a whole number"):
+        load_actor(path, env)
