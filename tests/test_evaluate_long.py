@@ -284,17 +284,16 @@ def test_evaluate_cli_long_table_and_device_cpu(tiny_episodes, tiny_model, tmp_p
     assert result["results"]["a"] == before
 
 
-def test_evaluate_cli_device_meta_puts_the_model_there(tiny_episodes, tiny_model, tmp_path, monkeypatch):
-    """``--device meta`` (a device the default never is): the model and the windows go there, and
-    the run stops with the error only meta tensors give (no values to read), writing nothing."""
+def test_evaluate_cli_device_meta_is_refused_in_one_line(tiny_episodes, tiny_model, tmp_path, monkeypatch, capsys):
+    """``--device meta`` is no device the package runs on: one line, exit 2, nothing evaluated or
+    written."""
     calls = _spy_on_evaluation(monkeypatch)
     out = tmp_path / "e"
-    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
-        main(["evaluate", "--data", str(tiny_episodes), "--model", f"a={tiny_model}", "--out", str(out),
-              "--horizons", "2", "--stride", "3", "--device", "meta", "--no-figure"])
-    meta = torch.device("meta")
-    assert calls == [("evaluate_model", meta, meta)]
-    assert not (out / "results.json").exists()
+    assert main(["evaluate", "--data", str(tiny_episodes), "--model", f"a={tiny_model}", "--out", str(out),
+                 "--horizons", "2", "--stride", "3", "--device", "meta", "--no-figure"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "meta" in err[0]
+    assert calls == [] and not (out / "results.json").exists()
 
 
 def test_evaluate_cli_rejects_an_unknown_device_in_one_line(tiny_episodes, tmp_path, capsys):

@@ -227,15 +227,15 @@ def test_cli_device_cpu(tmp_path, monkeypatch):
     assert weights and all(w.device.type == "cpu" for w in weights)
 
 
-def test_cli_device_meta_builds_the_run_there(tmp_path, monkeypatch):
-    """``--device meta`` (a device the default never is): the dynamics and the environment are
-    made on it, and the run stops with the error only meta tensors give, before any update."""
+def test_cli_device_meta_is_refused_before_anything_is_made(tmp_path, monkeypatch, capsys):
+    """``--device meta`` is no device the package runs on: one line, exit 2, no environment made,
+    nothing written."""
     made = _spy_on_environments(monkeypatch)
     out = tmp_path / "rl"
-    with pytest.raises((RuntimeError, NotImplementedError), match="(?i)meta"):
-        main([*CLI_RUN, "--out", str(out), "--device", "meta"])
-    assert made == [(torch.device("meta"), torch.device("meta"))]
-    assert not (out / "policy.pt").exists()
+    assert main([*CLI_RUN, "--out", str(out), "--device", "meta"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "meta" in err[0]
+    assert made == [] and not (out / "policy.pt").exists()
 
 
 def test_train_on_an_explicit_device_repeats_the_default_run(tmp_path, monkeypatch):
