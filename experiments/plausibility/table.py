@@ -59,7 +59,8 @@ def episode_of(scene: str, pitch: float, seed: int, steps: int, work: Path) -> d
     spec = dataclasses.replace(spec, config=dataclasses.replace(spec.config, pitch=pitch, steps=steps + START + 1))
     try:
         episode = simulate_episode(spec, seed=seed)
-    except DivergedEpisode:
+    except (DivergedEpisode, ValueError) as exc:  # lost by pybullet, or no scene at this pitch
+        print(f"{cell_name(scene, pitch, seed)}: {str(exc).splitlines()[0]}", file=sys.stderr, flush=True)
         return None
     path.parent.mkdir(parents=True, exist_ok=True)
     save_episode(path, episode)
@@ -72,7 +73,7 @@ def score_cell(model, scene: str, pitch: float, seed: int, settings: dict, work:
     t0 = time.perf_counter()
     episode = episode_of(scene, pitch, seed, steps, work)
     if episode is None:
-        return {"scene": Path(scene).stem, "pitch": pitch, "seed": seed, "lost_by_pybullet": True}
+        return {"scene": Path(scene).stem, "pitch": pitch, "seed": seed, "lost_by_pybullet": True}  # or not made
     simulated = time.perf_counter() - t0
     truth = torch.as_tensor(episode["positions"], dtype=torch.float64)
     scene_info = Scene.of_episode(episode)
