@@ -154,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="folder for table.md and cells.json")
     parser.add_argument("--only", default="", help="comma-separated scene stems")
     parser.add_argument("--pitches", default="", help="comma-separated pitches (default: the set's)")
+    parser.add_argument("--seeds", default="", help="comma-separated episode seeds (default: the set's)")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -174,7 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     cells_dir.mkdir(parents=True, exist_ok=True)
     only = set(filter(None, args.only.split(",")))
     pitches = [float(p) for p in args.pitches.split(",")] if args.pitches else settings["pitches"]
-    for seed in settings["seeds"]:
+    seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else settings["seeds"]
+    for seed in seeds:
         for pitch in pitches:
             for scene in settings["scenes"]:
                 if only and Path(scene).stem not in only:
