@@ -129,6 +129,10 @@ def run(args: argparse.Namespace) -> int:
         spec = builtin_scene(args.scene, **settings).with_engine(engine)
         record = {}
     spec.check(args.seed_offset)  # overlaps and leaf counts fail here, before anything is written
+    if kind == "file" and args.episodes > 1 and not spec.draws_anything:
+        print(f"hrn-pyg generate: warning: {args.scene_file} draws nothing at random (no [draw], uniform(), "
+              f"integer(), range or choice of meshes): its {args.episodes} episodes will all be the same",
+              file=sys.stderr)
     name, fields = spec.name, settings
     record["config"] = spec.settings_dict()
     if spec.engine != "pybullet":

@@ -86,6 +86,7 @@ import trimesh
 
 from hrn_pyg.data.expressions import (
     CONSTANTS,
+    DRAWS,
     LimitError,
     check_elements,
     checked,
@@ -376,6 +377,26 @@ class SceneSpec:
         no collision search."""
         derived = {"forces": bool(self.pushes), "collisions": len(self.objects) > 1 or None}
         return SceneEffects(**(derived | self.declared_effects))
+
+    @property
+    def draws_anything(self) -> bool:
+        """Whether a seed changes anything: a ``[draw]`` table, an expression that calls
+        ``uniform`` or ``integer``, a range whose ends differ, a choice of meshes, or a random push.
+        A scene that draws nothing makes the same episode for every seed."""
+        def random(value: Any) -> bool:
+            if isinstance(value, str):
+                return any(f"{name}(" in value for name in DRAWS)
+            if isinstance(value, tuple) and len(value) == 2 and all(isinstance(v, np.ndarray) for v in value):
+                return not np.array_equal(value[0], value[1])
+            if isinstance(value, dict):
+                return any(random(v) for v in value.values())
+            return False
+
+        if self.draws or any(len(o.meshes) > 1 for o in self.objects):
+            return True
+        parts = [*self.objects, *self.pushes]
+        return any(random(getattr(part, f.name)) for part in parts for f in dataclasses.fields(part)) or any(
+            p.random for p in self.pushes)
 
     @property
     def uses_deformables(self) -> bool:

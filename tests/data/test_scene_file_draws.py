@@ -104,3 +104,26 @@ position = [0.5, 0.0, 0.1]
 """
     with pytest.raises(ValueError, match=r"^scene: objects\[1\]\.mass: must be > 0, got -1"):
         spec_of(text).draw(np.random.default_rng(0))
+
+
+def test_a_scene_that_draws_nothing_is_named_and_generate_warns(tmp_path, capsys):
+    """A scene file with only fixed values makes one episode for every seed: generate says so in
+    one line; any range, draw, expression of uniform() or choice of meshes is a draw."""
+    from hrn_pyg.cli import main
+    from hrn_pyg.data.scene_file import read_scene_file
+
+    fixed = tmp_path / "fixed.toml"
+    fixed.write_text('steps = 4\npitch = 0.05\n\n[[objects]]\nmesh = "box"\nmaterial = "rigid"\nsize = 0.2\n'
+                     'position = [0.0, 0.0, 0.3]\n')
+    assert not read_scene_file(fixed).draws_anything
+    for change in ('yaw = { min = 0, max = 90 }', 'velocity = "[uniform(-1, 1), 0, 0]"'):
+        drawn = tmp_path / "drawn.toml"
+        drawn.write_text(fixed.read_text() + change + "\n")
+        assert read_scene_file(drawn).draws_anything, change
+    chosen = tmp_path / "chosen.toml"
+    chosen.write_text(fixed.read_text().replace('mesh = "box"', 'mesh = ["box", "sphere"]'))
+    assert read_scene_file(chosen).draws_anything
+    assert main(["generate", "--scene-file", str(fixed), "--episodes", "2", "--out", str(tmp_path / "d"),
+                 "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "draws nothing at random" in err and "its 2 episodes will all be the same" in err
