@@ -145,22 +145,21 @@ def limit_energy(graph: HeteroData, prediction: Prediction, objects: tuple[Tenso
     """
     group, count = objects
     balance = energy_balance(graph, prediction, force, movable)
-    copy = copy_of_objects(graph, objects)  # [R]
+    node_copy = copy_of_objects(graph, objects)[group]  # [N]
+
+    def per_copy(values: Tensor) -> Tensor:  # [N] -> [R]: sums over each copy (rows past the copies stay 0)
+        return torch.zeros(count, dtype=torch.float64, device=group.device).index_add(0, node_copy, values)
+
     gained = torch.zeros(count, dtype=torch.float64, device=group.device).index_add(
-        0, group, balance.next - balance.now)  # [R]
-    surplus = torch.zeros_like(gained).index_add(0, copy, gained)
-    surplus = surplus - torch.zeros_like(gained).index_add(0, copy, torch.zeros_like(gained).index_add(
-        0, group, balance.work)).clamp_min(0.0)  # [copies, padded to R]
+        0, group, balance.next - balance.now)  # [R], per object
+    work = per_copy(balance.work)
+    surplus = per_copy(balance.next - balance.now) - work.clamp_min(0.0)
     gainer = (gained > 0)[group] & (balance.weight > 0)  # [N]
-    node_copy = copy[group]
     w = torch.where(gainer, balance.weight, torch.zeros_like(balance.weight))
-    a = torch.zeros_like(gained).index_add(0, node_copy, w * balance.g * balance.step[:, 2])
-    b = torch.zeros_like(gained).index_add(0, node_copy, 0.5 * w * balance.inv_dt2 * balance.step.square().sum(-1))
+    a = per_copy(w * balance.g * balance.step[:, 2])
+    b = per_copy(0.5 * w * balance.inv_dt2 * balance.step.square().sum(-1))
     # the pushes' work moves with the gainers' fraction too: W(alpha) = W_others + alpha W_gainers
-    pushed = (torch.zeros_like(gained).index_add(0, copy, torch.zeros_like(gained).index_add(
-        0, group, balance.work)) > 0)[node_copy]
-    a = a - torch.zeros_like(gained).index_add(0, node_copy, torch.where(gainer & pushed, balance.work,
-                                                                          torch.zeros_like(balance.work)))
+    a = a - per_copy(torch.where(gainer & (work > 0)[node_copy], balance.work, torch.zeros_like(balance.work)))
     c = a + b - surplus
     root = (a.square() + 4.0 * b * c.clamp_min(0.0)).sqrt()
     fraction = torch.where(c > 0, 2.0 * c.clamp_min(0.0) / (a + root).clamp_min(torch.finfo(torch.float64).tiny),
