@@ -63,7 +63,7 @@ from hrn_pyg.sampling.ensemble import (
 )
 from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.sim.plausibility import Scene, plausibility
+from hrn_pyg.sim.plausibility import is_implausible, state_plausibility
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.options import progress_bar
@@ -284,17 +284,8 @@ def implausible_futures(start: Start, futures: Tensor) -> int:
     (:mod:`hrn_pyg.sim.plausibility`): a blow-up, energy gained beyond the pushes' work by more
     than :data:`~hrn_pyg.sim.plausibility.ENERGY_TOLERANCE`, or an interpenetration deeper than
     the start's own pybullet episode's plus one pitch."""
-    store = start.graph[NODE]
-    leaf = store.is_leaf
-    scene = Scene.of_graph(start.graph)
-    steps = futures.shape[1]
-    seq = store.pos_seq[leaf].transpose(0, 1).double()  # [steps+3, L, 3]: x_{-2} .. x_steps
-    history = seq[HISTORY - 1:HISTORY + 1]
-    forces = start.forces[:steps][:, leaf].double()
-    reference = plausibility(seq[HISTORY + 1:HISTORY + 1 + steps], history, scene, forces)[0]
-    reports = plausibility(futures.double(), history, scene, forces)
-    floor = reference.depth + scene.pitch
-    return sum(r.first_non_finite > 0 or r.gains_energy or r.depth > floor for r in reports)
+    reports, reference, scene = state_plausibility(start.graph, futures, start.forces)
+    return sum(is_implausible(r, reference, scene.pitch) for r in reports)
 
 
 def _log(ratio: float) -> float:

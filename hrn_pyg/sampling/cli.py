@@ -35,7 +35,7 @@ from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig
-from hrn_pyg.sim.plausibility import Scene, plausibility, summary_line
+from hrn_pyg.sim.plausibility import state_plausibility, summary_line
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
@@ -220,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
         f.write(buffer.getvalue())
 
     atomic_write(out / "samples.npz", write_npz)
-    plausible = plausibility_record(graph, samples, truth, forces, steps)
+    plausible = plausibility_record(graph, samples, forces)
     atomic_write_json(out / "samples.json", {
         "plausibility": plausible,
         "k": args.k, "rate": rate, "rate_source": rate_source, "steps": steps, "modules": list(modules or model.config.dropout_modules),
@@ -242,16 +242,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def plausibility_record(graph, samples: np.ndarray, truth: np.ndarray, forces: torch.Tensor, steps: int) -> dict:
+def plausibility_record(graph, samples: np.ndarray, forces: torch.Tensor) -> dict:
     """The plausibility report (:mod:`hrn_pyg.sim.plausibility`) of the futures ``samples``
-    ``[K, steps, L, 3]`` and of the ground truth ``[steps+1, L, 3]`` (the reference row), with its
-    summary line; the start's history is the graph's."""
-    store = graph[NODE]
-    leaf = store.is_leaf
-    scene = Scene.of_graph(graph)
-    start = store.pos_seq[leaf][:, HISTORY - 1:HISTORY + 1].transpose(0, 1).double()  # x_{-1}, x_0
-    leaf_forces = forces[:, leaf].double()
-    reference = plausibility(torch.as_tensor(truth[1:steps + 1]).double(), start, scene, leaf_forces)[0]
-    reports = plausibility(torch.as_tensor(samples).double(), start, scene, leaf_forces)
+    ``[K, steps, L, 3]`` and of the graph's ground truth (the reference row), with its summary line."""
+    reports, reference, scene = state_plausibility(graph, torch.as_tensor(samples), forces)
     return {"futures": [r.to_dict() for r in reports], "truth": reference.to_dict(),
             "line": summary_line(reports, scene.pitch, reference)}

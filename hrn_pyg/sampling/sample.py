@@ -125,7 +125,7 @@ def make_masks_fn(
     return masks_fn
 
 
-def _copy_forces(forces: Tensor | None, graph: HeteroData, steps: int, k: int) -> Tensor | None:
+def copies_forces(forces: Tensor | None, graph: HeteroData, steps: int, k: int) -> Tensor | None:
     """``[steps, N or L, 3]`` forces of one scene -> ``[steps, k N, 3]`` for the k copies."""
     if forces is None:
         return None
@@ -225,17 +225,17 @@ def sample(
             del graph[NODE][name]
     graph = graph.to(model_device(model))
     store = graph[NODE]
-    copies_forces = _copy_forces(forces, graph, steps, k)
+    forces_of_copies = copies_forces(forces, graph, steps, k)
     n = store.num_nodes
     leaf_index = torch.nonzero(store.is_leaf).flatten()
     batched = replicate(graph, k)
     masks_fn = make_masks_fn(model, k, rate, generator, modules)
     if fixed_shape is not None:
-        pos = fixed_shape_rollout(model, batched, steps, copies_forces, masks_fn, effects, fixed_shape).pos
+        pos = fixed_shape_rollout(model, batched, steps, forces_of_copies, masks_fn, effects, fixed_shape).pos
         failed_at = None
     else:
         with torch.no_grad():
-            pos, failed_at = _rollout_holding_failed(model, batched, steps, copies_forces, masks_fn, sleep, effects, k)
+            pos, failed_at = _rollout_holding_failed(model, batched, steps, forces_of_copies, masks_fn, sleep, effects, k)
     futures = pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()
     if failed_at is not None and bool((failed_at < steps).any()):
         futures = mark_failed(futures, failed_at)

@@ -27,11 +27,11 @@ from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.effects import SceneEffects
 from hrn_pyg.data.episodes import simulate_episode
-from hrn_pyg.data.graph import HISTORY
+from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.data.scene_file import read_scene_file
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.sampling.sample import sample
+from hrn_pyg.sampling.sample import copies_forces, sample
 from hrn_pyg.sim.rollout import rollout as rollout_nodes
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP, SleepConfig
 
@@ -61,10 +61,7 @@ def rollout(model: HRN, state: HeteroData, steps: int, forces: Tensor | None = N
     rollout (the graph's device, every step kept for backward)."""
     if not grad:
         return sample(model, state, 1, steps, 0.0, forces=forces, sleep=sleep, effects=effects)[0]
-    leaf = state["particle"].is_leaf
-    full = None if forces is None or forces.shape[1] == state["particle"].num_nodes else forces
-    if forces is not None and full is None:  # leaves' forces on the nodes
-        full = forces.new_zeros(forces.shape[0], state["particle"].num_nodes, 3)
-        full[:, leaf] = forces
+    leaf = state[NODE].is_leaf
+    full = copies_forces(forces, state, steps, 1)  # [steps, N, 3] on every node, or None
     with torch.enable_grad():
         return rollout_nodes(model, state, steps, full, sleep=sleep, effects=effects)[:, leaf]

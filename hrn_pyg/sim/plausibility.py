@@ -37,12 +37,12 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.graph import NODE, graph_pitch
+from hrn_pyg.data.graph import HISTORY, NODE, graph_pitch
 from hrn_pyg.data.io import episode_pitch
 from hrn_pyg.data.kinds import CLOTH, GRAVITY, STATIC
-from hrn_pyg.data.voxelise import KUHN_TETS
 from hrn_pyg.sim.energy import STEP_SECONDS, scene_energy, step_seconds
-from hrn_pyg.sim.penetration import INSIDE_TOLERANCE, lattice_cells
+from hrn_pyg.sim.cloth_contact import NEIGHBOURHOOD
+from hrn_pyg.sim.penetration import INSIDE_TOLERANCE, object_solids
 
 #: an object has stopped when no leaf moved more than this many pitches in the last step
 REST_SPEED = 0.05
@@ -142,30 +142,24 @@ class Scene:
 
 
 class Solids:
-    """Every solid object's tetrahedra (its lattice cells cut six ways) and its surface leaves,
-    found once from the rest positions: ``tets`` ``(K, 4)`` leaf indices, ``owner`` ``(K,)`` the
-    object of each, ``surface`` ``(L,)`` bool, the leaves with fewer than 26 lattice neighbours."""
+    """Every solid object's tetrahedra (:func:`~hrn_pyg.sim.penetration.object_solids`: its
+    lattice cells cut six ways) and its surface leaves, found once from the rest positions:
+    ``tets`` ``(K, 4)`` leaf indices, ``owner`` ``(K,)`` the object of each, ``surface`` ``(L,)``
+    bool, the leaves with fewer than 26 lattice neighbours (every leaf of a part one leaf thick,
+    which the surface normals of :mod:`hrn_pyg.sim.cloth_contact` leave out)."""
 
     def __init__(self, scene: Scene) -> None:
+        solids = object_solids(scene.rest, scene.leaf_object, scene.object_material, scene.pitch)
         points = scene.rest.detach().double().cpu().numpy()
         objects = scene.leaf_object.cpu().numpy()
-        material = scene.object_material.cpu().numpy()
-        tets, owners = [], []
-        surface = np.zeros(len(points), dtype=bool)
-        for obj, kind in enumerate(material):
+        surface = np.ones(len(points), dtype=bool)  # cloth leaves: all surface
+        for obj, kind in enumerate(scene.object_material.cpu().numpy()):
             members = np.flatnonzero(objects == obj)
             if kind == CLOTH or len(members) == 0:
-                surface[members] = True
                 continue
-            cells = lattice_cells(points[members], scene.pitch, f"object {obj}")
-            if len(cells):
-                tets.append(members[cells[:, KUHN_TETS].reshape(-1, 4)])
-                owners.append(np.full(len(cells) * len(KUHN_TETS), obj))
-            tree = cKDTree(points[members])
-            neighbours = np.array([len(n) - 1 for n in tree.query_ball_point(points[members], 1.8 * scene.pitch)])
-            surface[members] = neighbours < 26
-        self.tets = np.concatenate(tets) if tets else np.zeros((0, 4), dtype=np.int64)
-        self.owner = np.concatenate(owners) if owners else np.zeros(0, dtype=np.int64)
+            near = cKDTree(points[members]).query_ball_point(points[members], NEIGHBOURHOOD * scene.pitch)
+            surface[members] = np.array([len(n) - 1 for n in near]) < 26
+        self.tets, self.owner = solids.tets.numpy(), solids.tet_object.numpy()
         self.surface = surface
         self.leaf_object = objects
 
@@ -283,6 +277,29 @@ def plausibility(futures: Tensor, start: Tensor, scene: Scene, forces: Tensor | 
         share = float(rise[b] / e0[b]) if float(e0[b]) > 0 else (math.inf if float(rise[b]) > 0 else 0.0)
         reports.append(FutureReport(float(rise[b]), share, depth, inside, unsupported, first_bad))
     return reports
+
+
+def state_plausibility(state: HeteroData, futures: Tensor,
+                       forces: Tensor | None = None) -> tuple[list[FutureReport], FutureReport, Scene]:
+    """The reports of ``futures`` ``(K, T, L, 3)`` from a start state that carries its ground truth
+    (``pos_seq``, as :func:`~hrn_pyg.sampling.ensemble.episode_state` makes it), that truth's own
+    report over the same ``T`` steps (pybullet's row) and the scene; ``forces`` ``(T', N, 3)``
+    (N, on every node; ``T' >= T``) or None."""
+    store = state[NODE]
+    leaf = store.is_leaf
+    scene = Scene.of_graph(state)
+    steps = futures.shape[1]
+    seq = store.pos_seq[leaf].transpose(0, 1).detach().double().cpu()  # x_{-2} .. x_end
+    history = seq[HISTORY - 1:HISTORY + 1]
+    leaf_forces = None if forces is None else forces[:steps][:, leaf].detach().double().cpu()
+    reference = plausibility(seq[HISTORY + 1:HISTORY + 1 + steps], history, scene, leaf_forces)[0]
+    return plausibility(futures.double(), history, scene, leaf_forces), reference, scene
+
+
+def is_implausible(report: FutureReport, reference: FutureReport, pitch: float) -> bool:
+    """A blow-up, more than :data:`ENERGY_TOLERANCE` of the energy gained, or deeper into another
+    body than ``reference`` (pybullet's row) plus one ``pitch``."""
+    return report.first_non_finite > 0 or report.gains_energy or report.depth > reference.depth + pitch
 
 
 def summary_line(reports: Sequence[FutureReport], pitch: float, reference: FutureReport | None = None) -> str:
