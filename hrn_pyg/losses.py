@@ -278,11 +278,3 @@ def shape_groups(graph: HeteroData) -> tuple[Tensor, Tensor]:
     if "batch" in store:
         obj = copy_object_ids(store.batch[leaf], obj, object_span(store.object))
     return leaf, obj
-
-
-def _smooth_distance(diff: Tensor, eps: float) -> Tensor:
-    """:math:`\\sqrt{\\lVert d \\rVert^2 + \\epsilon^2} - \\epsilon` over the last dimension: 0 at
-    ``d = 0`` with gradient 0 there (finite), within ``eps`` of the Euclidean norm everywhere."""
-    return torch.sqrt(diff.pow(2).sum(dim=-1) + eps * eps) - eps
-
-

@@ -36,7 +36,6 @@ COLLISION = (NODE, "collision", NODE)
 LEAF_TO_ANCESTOR = (NODE, "leaf_to_ancestor", NODE)
 WITHIN_SIBLINGS = (NODE, "within_siblings", NODE)
 ANCESTOR_TO_DESCENDANT = (NODE, "ancestor_to_descendant", NODE)
-EDGE_TYPES = (CHILD_TO_PARENT, COLLISION, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_TO_DESCENDANT)
 #: The graph-level attribute holding the voxel pitch (m) the scene was made at, ``(B,)`` float64.
 PITCH = "pitch"
 

@@ -65,8 +65,6 @@ VOLUME_CELLS = 100
 #: digits of the vertex coordinates in the written OBJ files
 OBJ_DIGITS = 8
 
-Box = tuple[tuple[float, float, float], tuple[float, float, float]]  # (lower corner, upper corner)
-
 
 def _box(lower: Sequence[float], upper: Sequence[float]) -> trimesh.Trimesh:
     """The closed axis-aligned box between two corners."""

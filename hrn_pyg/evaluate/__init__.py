@@ -61,7 +61,6 @@ from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 from hrn_pyg.utils.options import progress_bar
 
 METRICS = ("position", "velocity", "shape")
-DEFAULT_HORIZONS = (5, 15)
 #: The rest metrics of each model, in table order.
 REST_METRICS = ("ground_depth", "rest_height_error", "rest_drift")
 
