@@ -8,7 +8,7 @@ the range of moving objects per scene (objects that are not ``static``) and the 
 speed (m/s; per step displacement over the step's duration). ``hrn-pyg train`` records the
 domain of its datasets in each checkpoint it writes; the shipped checkpoints carry theirs in
 ``manifest.json`` (``domain``, derived from their recipe's datasets by
-:mod:`hrn_pyg.recipe.domains`).
+``experiments/domains.py`` in the repository).
 
 :func:`outside` lists what of a scene's domain lies outside a model's and by how much, each as a
 :class:`Outside`; :func:`outside_line` makes that one line, e.g. ``shapes_d4.pt was trained at

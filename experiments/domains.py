@@ -1,6 +1,6 @@
 """The domain of each shipped model, derived from its recipe's datasets without their files.
 
-``python -m hrn_pyg.recipe.domains [--episodes N] [--only NAME,...]`` (from the repository root)
+``python -m experiments.domains [--episodes N] [--only NAME,...]`` (from the repository root)
 re-simulates the first training episodes (seed ``% 10`` not 8 or 9) of every dataset a manifest
 entry names, one in ten of its episodes but at least :data:`MIN_EPISODES` and at most ``N``
 (:func:`episodes_to_measure`) (its own and those its stages join in), each at the dataset's length,
@@ -98,7 +98,7 @@ def derive_domains(recipe_path: str | Path, manifest_path: str | Path, count: in
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hrn_pyg.recipe.domains", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.domains", description=__doc__.splitlines()[0])
     parser.add_argument("--recipe", default=RECIPE_PATH, help=f"recipe file (default {RECIPE_PATH})")
     parser.add_argument("--manifest", default=str(MANIFEST_PATH), help="manifest to update (default: the package's)")
     parser.add_argument("--episodes", type=int, default=EPISODES,
