@@ -57,7 +57,7 @@ from hrn_pyg.sampling.ensemble import (
 )
 from hrn_pyg.sampling.metrics import energy_score
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.sampling.sides import (
+from benchmarks.sides import (
     RIDGE_X,
     ball_centres,
     brier_score,

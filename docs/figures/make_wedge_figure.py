@@ -10,7 +10,7 @@ re-simulated for the paths:
 (c) every episode of the JSON: the model's share of samples ending at x < 0 against the 2 mm
     and the 1 cm ensembles' shares; the diagonal is a perfect match.
 
-Run: ``python docs/figures/make_wedge_figure.py --sides benchmarks/results/wedge_sides_val.json
+Run: ``python -m docs.figures.make_wedge_figure --sides benchmarks/results/wedge_sides_val.json
 [--seed 18] [--rate 0.5] [--out docs/figures/sampling_wedge_sides.png]``.
 """
 
@@ -32,7 +32,7 @@ from hrn_pyg.sampling.ensemble import (
     ground_truth_ensemble,
 )
 from hrn_pyg.sampling.sample import sample
-from hrn_pyg.sampling.sides import RIDGE_X, ball_centres, ridge_config
+from benchmarks.sides import RIDGE_X, ball_centres, ridge_config
 from hrn_pyg.viz import save_figure
 
 HERE = Path(__file__).resolve().parent

@@ -1,11 +1,11 @@
-"""Side of the wedge's ridge (hrn_pyg.sampling.sides): shares, scores and clear errors."""
+"""Side of the wedge's ridge (benchmarks.sides): shares, scores and clear errors."""
 
 import json
 
 import pytest
 import torch
 
-from hrn_pyg.sampling.sides import (
+from benchmarks.sides import (
     ball_centres,
     brier_score,
     ridge_config,
