@@ -70,114 +70,58 @@ class HRNConfig(NetworkConfig):
         collision_radius: metres; leaves of different objects closer than this interact.
         dropout_rate: default rate of :meth:`HRN.sample_masks` (0: deterministic).
         dropout_modules: which sub-modules accept a dropout mask (names from :data:`MODULE_NAMES`).
-        skip_idle_modules: do not run the force / collision module when there is no force /
-            no collision edge (the result is the same; False runs them on empty input).
+        skip_idle_modules: skip the force / collision module when there is no force / collision
+            edge (same result; False runs them on empty input).
         rigid_fit: replace the predicted leaf motion of every rigid object by its best rigid
             transform (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`), in training and at inference.
-        rigid_fit_rest: fit that transform from the object's rest shape (the graph's
-            ``rest_pos``) rather than from its current leaves. Both are rigid images of one
-            body, so the fitted positions agree to rounding; from the rest shape the rounding of
-            one step is not carried into the next, and a rigid body's pairwise distances stay
-            those of its rest shape to one rounding at every horizon (from the current leaves
-            the rounding adds up over the steps). A graph without ``rest_pos`` is fitted from its
-            current leaves. Without ``rigid_fit`` it does nothing (so a fine-tuning of a
-            checkpoint with the rigid fit can name it alone).
-        rest_offsets: the propagation modules also see each edge's offset in the rest shape
+        rigid_fit_rest: fit that transform from the object's rest shape (``rest_pos``) rather than
+            its current leaves, so rounding does not add up over steps (needs ``rigid_fit``).
+        rest_offsets: the propagation modules also see each edge's rest-shape offset
             (``graph['particle'].rest_pos``), so an elastic restoring effect is learnable.
-        ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`: the distance to
-            the ground plane, saturated beyond the collision radius (GNS treats walls so).
-        mirror_average: average the network over the reflection :math:`M: x \mapsto -x` of the
-            whole scene (frame averaging), :math:`u = (f(s) + M f(M s)) / 2`: the prediction is
-            then exactly mirror-equivariant, as the physics is (gravity acts along z, the
-            materials are isotropic), so the network has no side of its own. Two passes a
-            step; :meth:`HRN.sample_masks` draws an independent mask for each.
-        mirror_planes: the reflections ``mirror_average`` averages over: ``"x"`` (the plane
-            x = 0; two passes) or ``"xy"`` (the planes x = 0 and y = 0 and their product, the
-            half-turn about z; four passes). With ``"xy"`` a body that a half-turn about its
-            vertical axis maps onto itself (a resting cube, a centred stack of cubes) gets no
-            horizontal velocity of its own making: a learnt bias cannot make it creep.
-            ``"d4"`` adds the exchange of x and y (eight passes: the four of ``"xy"`` and the
-            quarter-turns about z with their mirrors), the symmetries of the voxel lattice.
-        pitch_aware: read each scene relative to its voxel pitch :math:`p` (the graph's
-            ``pitch``; :mod:`hrn_pyg.nn.pitch`), with :math:`s = p / p_{ref}`: collision radius
-            :math:`r_c s` (and the ground-contact column's), positions and rest positions
-            divided by :math:`s`, and a last state column :math:`\log_2 s`. One model then
-            serves scenes of several pitches. False: the pitch is not read.
-        reference_pitch: :math:`p_{ref}` (m), the pitch at which a pitch-aware model reads a
-            scene as a plain model with the same ``collision_radius`` does.
-        ground_projection: after the rigid fit, keep every moving leaf on or above the ground
-            plane :math:`z = 0` (:func:`hrn_pyg.sim.step.ground_projected_positions`): a rigid
-            object is lifted as a whole by the depth of its lowest leaf, a leaf of a soft body
-            or a cloth alone. A rule of the decoder, like ``rigid_fit``: a point inside a body
-            cannot be under the ground, whatever the network predicts.
-        ground_projection_rigid: the ground projection also lifts rigid objects. False lifts
-            only the leaves of soft bodies and cloth, which are the engine's own nodes and rest
-            on the plane; a rigid object's leaves are the centres of its voxels, and where its
-            surface rests on the ground the lowest of them may lie up to a pitch under it, so
-            lifting them to the plane raises a resting body off the ground.
-        rigid_ground_depth: how far under the plane, in voxel pitches, the lowest leaf of a rigid
-            object may lie before ``ground_projection_rigid`` lifts the object (back to that
-            depth). A rigid leaf is the centre of a voxel that meets the body, up to half a pitch
-            past its surface, and the engine lets a resting body settle a little into the plane:
-            in pybullet's resting scenes of the generalist's training data the lowest rigid leaf
-            lies up to 0.77 pitch under it. 0.8 then lifts only a body that sank further and
-            leaves a resting one where it is; 0 lifts every rigid leaf onto the plane. Needs the
-            graph's pitch when above 0.
-        rigid_ground_speed: the furthest, in voxel pitches, a rigid object's leaves may move in
-            the step for ``ground_projection_rigid`` to lift it; a faster one is left where the
-            network put it (0: lift at any speed). A body at rest sinks slowly and is lifted; one
-            that strikes the ground may pass under the allowance for a step or two, and lifting it
-            then turns its fall into its whole move up, which the network did not predict.
-        ground_lift_velocity: a node the ground projection lifts moves by the lift in the
-            step, so the velocity the next step reads (:math:`x_{t+1} - x_t`) includes it. False:
-            the lift corrects the node's place and is not a motion: it carries the node's
-            :math:`x_t` with it (the next graph's ``prev_pos``), and the next step reads the
-            velocity the network predicted. A body that strikes the ground and is lifted then
-            does not leave it with an upward speed the network never predicted.
-        rigid_leaf_siblings: the within-siblings phase also runs on the edges into the leaves
-            of rigid objects. False drops them (:func:`within_siblings_of`; on a pile of rigid
-            meshes at pitch 0.05 about two thirds of the within-siblings edges): a rigid body's
-            leaves keep their places relative to each other, and effects still reach them
-            through their ancestors (L2A, the ancestors' siblings, A2D). Dropped from weights
-            trained with them, short rollouts barely change but resting bodies creep, so it is
-            a setting to train with, not one to switch at inference.
-        corotated_rest: with ``rest_offsets``, the rest shape of every soft body and cloth is
-            turned each step by the rotation that maps it best onto the body's current leaves
-            (mass-weighted, :func:`hrn_pyg.sim.step.corotated_rest_positions`), so its rest
-            offsets say how the body is deformed and not how it is turned; a soft body that
-            fell over reads as lying at rest, not as bent away from its upright rest shape.
-            Rigid bodies keep the recorded rest shape (their leaves move rigidly in any case).
-            It changes what the network reads, so it is a setting to train with.
-        cloth_clearance: a cloth leaf that a step leaves inside another object is moved back out
-            to this many pitches in front of the object's surface leaves
-            (:mod:`hrn_pyg.sim.cloth_contact`; 0: off). A rule applied after the network in a
-            rollout, like ``ground_projection``: the cloth's own model does not change. The
-            package's rollout loop (:func:`hrn_pyg.sim.rollout.iterate`) applies it; the
-            fixed-shape simulator (:mod:`hrn_pyg.sim.fixed_shape`) cannot, and refuses such a
-            model on a scene whose cloth can land on another object.
-        solid_clearance: the rule of ``cloth_clearance`` for the leaves of soft bodies and rigid
-            objects: a leaf that a step leaves inside another object (rigid, soft or static) is
-            moved back out to this many pitches in front of its surface leaves, a rigid object
-            as a whole by the longest push its leaves need (0: off).
-        energy_limit: no step ends with more energy than it started with plus the work of the
-            scene's pushes, per scene copy (:mod:`hrn_pyg.sim.energy`): the objects that gained
-            energy in a step that created some move by the fraction of their predicted step
-            that closes the balance. A rule applied after the network like ``cloth_clearance``
-            (:mod:`hrn_pyg.sim.rules`), on every path; the weights do not change.
-        equivariant: build the network of :mod:`hrn_pyg.nn.equivariant`: its MLPs read only
-            quantities that no turn about z and no mirror in a vertical plane changes (heights,
-            vertical components, horizontal lengths and dot products), its horizontal outputs
-            are weighted sums of the scene's horizontal vectors, and effects carry
-            ``vector_channels`` horizontal vectors beside the scalar effect. One pass is then
-            exactly equivariant under every turn about z and every mirror (the lattice's eight
-            maps among them): no average over passes, and no direction of its own to drift in.
-            Its normaliser must be isotropic in the horizontal
-            (:func:`hrn_pyg.nn.normalizer.isotropic_horizontal`; training makes it so). Not
-            with ``mirror_average``.
+        ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`, the distance to the
+            ground saturated beyond the collision radius.
+        mirror_average: frame averaging over the reflections of ``mirror_planes``,
+            :math:`u = \frac{1}{|G|} \sum_{M \in G} M^{-1} f(M s)`: exactly equivariant under them, one
+            pass per element; :meth:`HRN.sample_masks` draws a mask for each.
+        mirror_planes: the group averaged over: ``"x"`` (x = 0; two passes), ``"xy"`` (x = 0,
+            y = 0 and the half-turn about z; four) or ``"d4"`` (also x and y exchanged: the eight
+            symmetries of the square voxel lattice).
+        pitch_aware: read each scene relative to its voxel pitch :math:`p` (:mod:`hrn_pyg.nn.pitch`)
+            with :math:`s = p / p_{ref}`: collision radius :math:`r_c s`, positions divided by
+            :math:`s`, and a last state column :math:`\log_2 s`.
+        reference_pitch: :math:`p_{ref}` (m), where a pitch-aware model reads a scene as a plain one.
+        ground_projection: after the rigid fit, keep every moving leaf on or above :math:`z = 0`
+            (:func:`hrn_pyg.sim.step.ground_projected_positions`): a rigid object lifted as a whole
+            by its lowest leaf's depth, a soft or cloth leaf alone.
+        ground_projection_rigid: the ground projection also lifts rigid objects (False: only soft
+            and cloth leaves; a rigid leaf is a voxel centre and may rest up to a pitch under).
+        rigid_ground_depth: pitches under the plane a rigid object's lowest leaf may lie before it
+            is lifted (back to that depth); 0 lifts every rigid leaf onto the plane.
+        rigid_ground_speed: the furthest (pitches) a rigid object's leaves may move in the step for
+            it to be lifted; a faster one is left where the network put it (0: any speed).
+        ground_lift_velocity: a lift counts as motion, so the next step's velocity
+            :math:`x_{t+1} - x_t` includes it; False moves ``prev_pos`` with the node too.
+        rigid_leaf_siblings: the within-siblings phase also runs on the edges into rigid objects'
+            leaves (False drops them, :func:`within_siblings_of`; a setting to train with).
+        corotated_rest: with ``rest_offsets``, each soft body's and cloth's rest shape is turned
+            every step by the best-fitting rotation onto its current leaves
+            (:func:`hrn_pyg.sim.step.corotated_rest_positions`), so rest offsets read deformation,
+            not orientation (a setting to train with).
+        cloth_clearance: pitches in front of another object's surface to which a cloth leaf that a
+            step leaves inside it is moved back (:mod:`hrn_pyg.sim.cloth_contact`; 0: off). A rule
+            after the network (:mod:`hrn_pyg.sim.rules`).
+        solid_clearance: the same rule for soft and rigid leaves (a rigid object moved as a whole
+            by the longest push its leaves need; 0: off).
+        energy_limit: no step ends with more energy per scene copy than it started with plus the
+            pushes' work (:mod:`hrn_pyg.sim.energy`): the objects that gained energy move by the
+            fraction of their step that closes the balance. A rule after the network.
+        equivariant: the network of :mod:`hrn_pyg.nn.equivariant`, exactly equivariant in one pass
+            under turns about z and mirrors in vertical planes (MLPs read invariants, horizontal
+            outputs are weighted sums of the scene's horizontal vectors). Needs a horizontally
+            isotropic normaliser; not with ``mirror_average``.
         vector_channels: :math:`C`, the horizontal vectors each effect carries (``equivariant``).
-        collision_force: the collision module also reads the external force on both ends of a
-            collision edge, so that two bodies pushed into each other resist in the step of the
-            push rather than one step after, from the overlap the push has made.
+        collision_force: the collision module also reads the external force on both ends of an
+            edge, so pushed bodies resist in the step of the push.
     """
 
     hidden: int = 64
@@ -264,20 +208,14 @@ class HRNConfig(NetworkConfig):
 
 
 class HierarchyConstants(NamedTuple):
-    r"""What the three propagation phases (L2A, WS, A2D, in that order) read of the hierarchy that
-    no step changes: each phase's in-degree and, with ``HRNConfig.rest_offsets``, its edges'
-    rest offsets :math:`\bar x_j - \bar x_i` as the network reads them (normalised; a
-    pitch-aware model's divided by the pitch scale). A rollout computes them once
-    (:func:`hierarchy_constants`), and each pass takes them instead of recomputing them; the
-    numbers are the same, bit for bit.
+    r"""What the propagation phases (L2A, WS, A2D) read of the hierarchy that no step changes, computed
+    once per rollout (:func:`hierarchy_constants`) with the same numbers bit for bit: each phase's
+    in-degree and, with ``HRNConfig.rest_offsets``, its edges' normalised rest offsets
+    :math:`\bar x_j - \bar x_i`; ``within_siblings``, the WS edges when they are not the graph's
+    (:func:`within_siblings_of`).
 
-    ``within_siblings`` is the WS phase's edge set when it is not the graph's (a model without
-    ``rigid_leaf_siblings``: :func:`within_siblings_of`, whose size depends on the data), so a
-    step need not select it again.
-
-    **Shapes:** ``degree``: three ``[N]`` float; ``rest_offset``: three ``[E_k, 3]``, or None
-    (no rest offsets, or a graph whose rest shape is its current shape); ``within_siblings``
-    ``[2, E_WS]`` or None (the graph's own).
+    **Shapes:** ``degree``: three ``[N]`` float; ``rest_offset``: three ``[E_k, 3]`` or None;
+    ``within_siblings`` ``[2, E_WS]`` or None (the graph's own).
     """
 
     degree: tuple[Tensor, Tensor, Tensor]
@@ -289,49 +227,29 @@ class HierarchyConstants(NamedTuple):
 class StepOptions:
     r"""How one model step is run: what its caller knows ahead, so that the step need not find out.
 
-    Each option saves work (a host read, a collision search, a data-dependent tensor size) and,
-    used as documented, leaves the prediction as it is (``fixed_shape`` up to the rounding of a
-    matrix product over more rows). The caller that knows says so here (a rollout from its
-    :class:`~hrn_pyg.data.effects.EffectPlan`, the fixed-shape step of
-    :mod:`hrn_pyg.sim.fixed_shape`, the RL environment), and the one object travels from
-    :func:`hrn_pyg.sim.step.step` through :func:`~hrn_pyg.sim.step.predict` and
-    :func:`~hrn_pyg.sim.step.build_inputs` into :class:`HRNInputs`, where the network pass reads
-    it. The defaults ask nothing of the caller and check everything. A variant is
-    ``dataclasses.replace(options, name=value)``; a new option of the step is a new field here.
+    Each option saves work (a host read, a collision search, a data-dependent size) and leaves the
+    prediction as it is. The object travels from :func:`hrn_pyg.sim.step.step` through
+    :func:`~hrn_pyg.sim.step.predict` and :func:`~hrn_pyg.sim.step.build_inputs` into
+    :class:`HRNInputs`. The defaults check everything; a new option of the step is a field here.
 
     Attributes:
-        force_active: whether the external force :math:`f_i(t)` is nonzero on some particle, so
-            that the force module :math:`e_F = \phi_F(s_i, f_i)` runs; False skips it (with
-            ``HRNConfig.skip_idle_modules``: a zero force adds nothing, and a nonzero one is then
-            ignored, so False is the caller's promise). None: the pass asks the force tensor
-            (``force.ne(0).any()``, a host read, which stalls a GPU's launch queue).
-        check: check the graph's three positions and the force for NaN / inf before the step
-            (one host read each); False: the caller has checked them (a rollout checks its start
-            and its forces once).
-        objects: ``([N] long, R)``, every node's object and the number of objects
-            (:func:`hrn_pyg.sim.step.object_of` of the graph the step runs on) for the rigid fit
-            of :func:`~hrn_pyg.sim.step.decode`; None: found there when the model fits rigid
-            motions (a host read per step).
-        collision_weight: ``[E_C]``, 1 for the collision edges that act in this step and 0 for
-            candidates that do not (a padded candidate list, :mod:`hrn_pyg.sim.fixed_shape`);
-            each collision message is multiplied by it. None: every edge of the graph acts.
-        fixed_shape: no tensor of the pass has a size that depends on the data: the force module
-            runs :math:`\phi_F` on every row and zeroes the rows without force (``dense``),
-            instead of selecting the pushed rows (no host read; the MLP runs on every row).
-        collisions: whether the next graph gets a collision search at :math:`x_{t+1}`
-            (:func:`hrn_pyg.sim.step.step`; a rollout's ``EffectPlan.collisions``); False: nothing
-            in the scene can touch, so the next graph has no collision edges and no search is made.
-        rules: ``(graph, prediction, force, movable) -> prediction``, the rules after the network
-            of the scene the step runs on (:class:`~hrn_pyg.sim.rules.StepRules`: cloth clearance,
-            the energy limit, failed copies held), applied to the step's
-            :class:`~hrn_pyg.sim.step.Prediction` on the whole graph before it advances, also when
-            objects sleep (``movable``: the awake rows, else None). None: the step makes the
-            model's rules of its graph itself (:func:`~hrn_pyg.sim.rules.step_rules`, a host pass
-            per step); a rollout makes them once.
-        hierarchy: the :class:`HierarchyConstants` of the graph the step runs on
-            (:func:`hrn_pyg.sim.step.hierarchy_constants`: the same for every graph of a rollout
-            without sleeping), which the pass then reads instead of recomputing them; None:
-            recomputed in the pass.
+        force_active: whether :math:`f_i(t)` is nonzero somewhere, so the force module
+            :math:`e_F = \phi_F(s_i, f_i)` runs (False is the caller's promise); None: asked of the
+            force tensor (a host read).
+        check: check positions and force for NaN / inf before the step; False: the caller did.
+        objects: ``([N] long, R)``, every node's object and the object count
+            (:func:`hrn_pyg.sim.step.object_of`) for the rigid fit; None: found in the step.
+        collision_weight: ``[E_C]``, 1 for collision edges that act and 0 for padded candidates
+            (:mod:`hrn_pyg.sim.fixed_shape`); None: every edge acts.
+        fixed_shape: no tensor's size depends on the data (the force module runs on every row and
+            zeroes those without force).
+        collisions: whether the next graph gets a collision search at :math:`x_{t+1}`; False: nothing
+            can touch, so no search is made.
+        rules: ``(graph, prediction, force, movable) -> prediction``, the scene's rules after the
+            network (:class:`~hrn_pyg.sim.rules.StepRules`), applied on the whole graph before it
+            advances (``movable``: the awake rows, or None). None: made from the model each step.
+        hierarchy: the graph's :class:`HierarchyConstants`
+            (:func:`hrn_pyg.sim.step.hierarchy_constants`); None: recomputed in the pass.
     """
 
     force_active: bool | None = None
@@ -346,18 +264,13 @@ class StepOptions:
 
 
 class HRNInputs(NamedTuple):
-    """Everything one network pass reads, already normalised (built by
-    :func:`hrn_pyg.sim.step.build_inputs`).
+    """Everything one network pass reads, already normalised (:func:`hrn_pyg.sim.step.build_inputs`).
 
     Shapes: ``state``, ``prev_state`` ``[N, STATE_DIM]`` (s(t), s(t-1)); ``pos`` ``[N, 3]``
-    positions divided by the length scale (only differences are used; a pitch-aware model's
-    also by each node's pitch scale :math:`s_i`); ``force`` ``[N, 3]``
-    normalised; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long;
-    the four edge sets ``[2, E]``; ``rest_pos`` ``[N, 3]`` rest-shape positions divided as
-    ``pos``, or None (models without ``rest_offsets``). ``options``: the step's
-    :class:`StepOptions`; the pass reads ``force_active``, ``collision_weight`` (``[E_C]``, one
-    per edge of ``collision``) and ``fixed_shape``. ``hierarchy``: the
-    :class:`HierarchyConstants` of these inputs' edges, or None (computed in the pass).
+    positions over the length scale (and a pitch-aware model's pitch scale :math:`s_i`); ``force``
+    ``[N, 3]``; ``is_static``, ``is_root`` ``[N]`` bool; ``batch`` ``[N]`` long; the four edge sets
+    ``[2, E]``; ``rest_pos`` ``[N, 3]`` scaled as ``pos``, or None. ``options``: the step's
+    :class:`StepOptions`; ``hierarchy``: the :class:`HierarchyConstants` of these edges, or None.
     """
 
     state: Tensor
@@ -434,16 +347,13 @@ def state_features(
     ground_radius: float | Tensor | None = None,
     pitch: Tensor | None = None,
 ) -> Tensor:
-    r"""A particle's state vector in the order of :data:`STATE_LAYOUT`, then (with
-    ``ground_radius``) the ground-contact column :math:`\mathrm{clip}(z / r, -1, 1)`, then (with
-    ``pitch``) the pitch column as given (:func:`hrn_pyg.nn.pitch.pitch_column`).
-
-    No absolute horizontal position enters: shifting a scene in x or y leaves it unchanged.
+    r"""A particle's state vector in the order of :data:`STATE_LAYOUT`, then (with ``ground_radius``)
+    the column :math:`\mathrm{clip}(z / r, -1, 1)`, then (with ``pitch``) the pitch column
+    (:func:`hrn_pyg.nn.pitch.pitch_column`). No absolute horizontal position enters.
 
     **Shapes:** velocity ``[N, 3]``, z / mass / stiffness ``[N, 1]``, material ``[N, 4]``,
-    depth / is_leaf / is_root ``[N]``, ``ground_radius`` a number or ``[N, 1]`` (each node's),
-    ``pitch`` ``[N, 1]``; returns ``[N, STATE_DIM]`` (``+ 1`` with ``ground_radius``, ``+ 1``
-    with ``pitch``).
+    depth / is_leaf / is_root ``[N]``, ``ground_radius`` a number or ``[N, 1]``, ``pitch``
+    ``[N, 1]``; returns ``[N, STATE_DIM (+1 per optional column)]``.
     """
     dtype = velocity.dtype
     root = is_root.to(dtype).unsqueeze(-1)
@@ -481,13 +391,10 @@ class HRN(nn.Module):
         \hat u_i &= \psi(s_i, e_i)
 
     :math:`e_F` (:class:`ForceModule`) and :math:`e_C` (:class:`CollisionModule`) are skipped when
-    there is no force / no collision edge, which gives the same result as running them. The
-    output is the normalised change of each particle's local velocity (zero on static particles);
-    :func:`hrn_pyg.sim.step.decode` turns it into positions. The model carries no hidden state.
-
-    A dropout mask (see :meth:`sample_masks`) is a ``[B, hidden]`` table per module, one row per
-    trajectory copy ``B``, looked up by each node's / edge's batch id. Without masks the model is
-    deterministic, whatever ``dropout_rate`` says.
+    there is no force / collision edge (same result). The output is the normalised change of each
+    particle's local velocity (zero on static particles); :func:`hrn_pyg.sim.step.decode` turns it
+    into positions. A dropout mask (:meth:`sample_masks`) is a ``[B, hidden]`` table per module, one
+    row per trajectory copy; without masks the model is deterministic.
 
     **Shapes:**
         - **input:** :class:`HRNInputs` over :math:`|\mathcal{V}|` nodes; masks ``{name: (B, H)}``
@@ -540,13 +447,9 @@ class HRN(nn.Module):
         rate: float | None = None,
         generator: torch.Generator | None = None,
     ) -> dict[str, Tensor]:
-        """One fresh mask per module of ``config.dropout_modules``, one row per trajectory copy.
-
-        Call once per prediction step. ``rate`` defaults to ``config.dropout_rate``. With
-        ``config.mirror_average`` each mask has ``G * num_copies`` rows for the ``G`` passes of
-        ``config.mirror_group``: the first ``num_copies`` for the direct pass, then one block per
-        reflection.
-        """
+        """One fresh mask per module of ``config.dropout_modules``, one row per trajectory copy; call once
+        per step. ``rate`` defaults to ``config.dropout_rate``. With ``mirror_average`` each mask has
+        ``G * num_copies`` rows, one block per element of ``config.mirror_group``."""
         rate = self.config.dropout_rate if rate is None else rate
         device = self.normalizer.velocity_std.device
         return {
@@ -605,10 +508,8 @@ class HRN(nn.Module):
         return self.state(s, effect, inputs.is_static, masks.get("state"), b)
 
     def _equivariant_pass(self, inputs: HRNInputs, masks: Mapping[str, Tensor]) -> Tensor:
-        """One pass of the equivariant modules: the same phases as :meth:`_pass`, each adding to
-        the scalar effect and to the vector channels, which are squashed to lengths under 1
-        after the first three modules and after each phase
-        (:func:`~hrn_pyg.nn.equivariant.features.squash`)."""
+        """One pass of the equivariant modules: the phases of :meth:`_pass`, each adding to the scalar
+        effect and the vector channels (squashed after each stage, :func:`~hrn_pyg.nn.equivariant.features.squash`)."""
         x, b, rest, options = inputs.pos, inputs.batch, inputs.rest_pos, inputs.options
         s, velocity = invariant_state(inputs.state), inputs.state[:, :2]
         effect, vectors = self.history(s, invariant_state(inputs.prev_state), velocity,
@@ -674,14 +575,11 @@ def reflection_signs(group: tuple[tuple[int | str, ...], ...]) -> Tensor:
 
 
 def transform_normalised(x: Tensor, mean: Tensor | float, std: Tensor, flip: Tensor, swap: bool = False) -> Tensor:
-    r"""The first three columns of ``x = (v - mean) / std`` for the vector under the orthogonal
-    map :math:`v \mapsto f \odot P v` (``flip`` :math:`f`, entries :math:`\pm 1`; :math:`P`
-    exchanges x and y when ``swap``, else the identity): the vector is denormalised, mapped and
-    normalised again, since each axis has statistics of its own; the other columns as they are.
-    With ``mean = 0`` this maps a scale-only quantity such as a force.
+    r"""The first three columns of ``x = (v - mean) / std`` under :math:`v \mapsto f \odot P v`
+    (``flip`` :math:`f \in \{\pm 1\}^3`, :math:`P` exchanges x and y when ``swap``): denormalised,
+    mapped, normalised again; the other columns as they are. ``mean = 0`` maps a force.
 
-    **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` broadcast against ``x[:, :3]`` (``[3]`` or
-    ``[N, 3]``); ``flip`` ``[3]``.
+    **Shapes:** ``x`` ``[N, C]``; ``mean``, ``std`` ``[3]`` or ``[N, 3]``; ``flip`` ``[3]``.
     """
     v = x[:, :3] * std + mean
     if swap:
@@ -697,14 +595,10 @@ def untransform_normalised(x: Tensor, mean: Tensor | float, std: Tensor, flip: T
 
 
 def transformed_inputs(inputs: HRNInputs, normalizer: Normalizer, flip: Tensor, swap: bool = False) -> HRNInputs:
-    r"""The network inputs of the scene under :math:`v \mapsto f \odot P v` (x and y exchanged
-    when ``swap``, then the axes where ``flip`` is -1 negated): a mirror, a half- or
-    quarter-turn about z, or a diagonal mirror.
-
-    Velocities keep their normalisation and forces their per-axis scale
-    (:func:`transform_normalised`); positions and rest positions share one length scale. Edges,
-    masses, materials, heights and the gravity column do not change.
-    """
+    r"""The network inputs of the scene under :math:`v \mapsto f \odot P v` (a mirror, a half- or
+    quarter-turn about z, or a diagonal mirror): velocities and forces through
+    :func:`transform_normalised`, positions through one length scale; edges, masses, materials,
+    heights and gravity unchanged."""
     def move(p: Tensor) -> Tensor:
         return (p[:, SWAPPED_AXES] if swap else p) * flip
 

@@ -1,11 +1,9 @@
 r"""Objects at rest sleep: a step runs the network only on what moves (as Bullet and PhysX do).
 
 An *object* is one root's tree of one batch copy (:func:`hrn_pyg.sim.step.root_of`), so the
-copies of :func:`hrn_pyg.data.graph.replicate` sleep independently. Each object carries two
-numbers across the steps of a rollout (:class:`SleepState`): whether it is asleep, and for how
-many consecutive steps it has been still. At the start of step :math:`t` (graph at
-:math:`x_t`, external force :math:`f_t`, collision edges of :math:`x_t`), with
-:math:`\tau` = ``threshold`` and :math:`P` = ``patience``:
+copies of :func:`hrn_pyg.data.graph.replicate` sleep independently. Each object carries whether
+it is asleep and for how many steps it has been still (:class:`SleepState`). At the start of
+step :math:`t`, with :math:`\tau` = ``threshold`` and :math:`P` = ``patience``:
 
 .. math::
     \mathrm{still}_o &\iff \max_{l \in o} \lVert x_l(t) - x_l(t-1) \rVert < \tau
@@ -21,49 +19,23 @@ many consecutive steps it has been still. At the start of step :math:`t` (graph 
         \ \vee\ \bigl(\mathrm{awake}_o \wedge o \notin \mathrm{active} \wedge c_o \ge P\bigr)
         \ \vee\ \mathrm{static}_o
 
-(static objects never enter ``active``: a contact with the wedge wakes nothing). In words: an
-object falls asleep once its leaves have moved less than ``threshold`` per step for ``patience``
-consecutive steps, with no force on it and no contact with a moving or pushed object; a force
-on any of its leaves, or a contact (collision edge) that joins it to a moving object, directly
-or through a chain of touching objects (a *simulation island*, as in Bullet), wakes it. A new
-contact can only form when something moves, so "no new collision edge" is this contact rule;
-sub-threshold creep counts as rest. Woken objects take part in the same step, with zero
-velocity (an asleep object's ``prev_pos`` and ``prev_prev_pos`` equal its ``pos``).
+Static objects never enter ``active``. A force, or a chain of contacts to a moving object (a
+*simulation island*), wakes an object; woken objects take part in the same step from rest.
 
-The step itself (:func:`sleeping_step`) runs :func:`hrn_pyg.sim.step.predict` on a sub-graph
-(:func:`predict_held`): every node of the awake objects, then the asleep (or static) leaves
-that are sources of collision edges into awake leaves, flagged ``is_static`` (they act on their
-neighbours but are not moved). The network is local to an object's tree plus its collision
-sources, so the awake objects see exactly what they would see in the whole graph. Asleep
-objects keep ``pos`` bit for bit. The next graph's collision edges (:func:`next_collision_edges`)
-are the full set, but searched only around awake leaves: an edge between two asleep leaves
-cannot change and is carried over, and a sleeping object still notices a newcomer. When no
-movable object is asleep the step is :func:`hrn_pyg.sim.step.step` on the whole graph
-(bit-identical to a rollout without sleeping); when every object is asleep the network is not
-run at all.
+:func:`sleeping_step` runs :func:`hrn_pyg.sim.step.predict` on a sub-graph
+(:func:`predict_held`): the awake objects plus the asleep leaves with collision edges into them,
+flagged ``is_static``. The network is local, so the awake objects see what they would see in the
+whole graph; asleep objects keep ``pos`` bit for bit. With nothing asleep the step is
+:func:`hrn_pyg.sim.step.step` bit for bit; with everything asleep the network does not run.
 
-A rollout keeps its objects and their sleep state in a :class:`Sleeper`. Callers that carry no
-state between steps (the RL environment, :mod:`hrn_pyg.rl.hrn_dynamics`) take the held nodes
-from :func:`held_from_history`: an object still over the two steps its three positions span is
-asleep (:func:`state_from_history`), then :func:`update` wakes what a force or a moving
-neighbour reaches. A rollout starts from the same state (``SleepConfig.start_from_history``,
-the default): a scene whose start shows its objects at rest does not run them for
-``patience`` steps first.
+A rollout keeps its state in a :class:`Sleeper`. Callers with no state between steps (the RL
+environment) use :func:`held_from_history`: an object still over the two steps of its history
+is asleep (:func:`state_from_history`), then :func:`update` wakes what is reached.
 
-Why the defaults (per-step leaf displacements, the largest over an object's leaves, in metres
-per model step of 1/30 s; the sweeps behind them are in docs/history.md):
-
-* pybullet's resting rigid bodies move < 1e-4 per step; its resting soft cubes and cloth jitter
-  at 1-10 mm per step, so "pybullet at rest" is not one number;
-* real motion is far above: a pushed ball moves 1-4 cm per step, and anything in free flight
-  changes its displacement by :math:`g\,\Delta t^2` = 1.1 cm per step, so it cannot stay under
-  a few mm per step for two steps running;
-* the trained models never hold an object exactly still: they let resting objects creep by
-  0.1-1.4 mm per step.
-
-So ``threshold = 2e-3`` (6 cm/s) is above the models' creep and below real motion (Bullet's
-sleep threshold is 0.8 m/s, PhysX's about 0.1 m/s), and ``patience = 10`` steps (1/3 s;
-PhysX's wake counter is 0.4 s) is longer than any turning point of a real motion.
+The defaults (displacements per 1/30 s step; sweeps in docs/history.md): pybullet's resting
+bodies jitter up to 1-10 mm per step (soft, cloth), real motion is 1 cm per step or more, and
+the models let resting objects creep 0.1-1.4 mm per step; so ``threshold = 2e-3`` (6 cm/s) and
+``patience = 10`` steps (1/3 s).
 """
 
 from __future__ import annotations
@@ -102,14 +74,10 @@ class SleepConfig:
 
     Attributes:
         enabled: False runs every object at every step (the plain rollout, bit for bit).
-        threshold: metres per step; an object whose leaves all moved less than this in a step
-            (and had no external force) was still in that step. Default 2e-3 (6 cm/s at 30 steps
-            per second): above the creep of the shipped models at rest, below real motion.
+        threshold: metres per step under which an unpushed object's leaves were still.
         patience: consecutive still steps after which an object falls asleep (>= 1).
-        start_from_history: a rollout's objects start in the state the start's own three
-            positions imply (:func:`state_from_history`: still over both steps
-            of history, and not pushed or touched by a moving object, is asleep, as in the RL
-            environment); False starts every movable object awake.
+        start_from_history: start in the state the start's three positions imply
+            (:func:`state_from_history`); False starts every movable object awake.
     """
 
     enabled: bool = True
@@ -151,11 +119,10 @@ HIERARCHY_EDGES = (CHILD_TO_PARENT, LEAF_TO_ANCESTOR, WITHIN_SIBLINGS, ANCESTOR_
 
 
 class Objects(NamedTuple):
-    """The objects of a graph, fixed for a rollout (the tree does not change).
+    """The objects of a graph, fixed for a rollout.
 
     Attributes:
-        of_node: ``[N]`` long, the object ``0..R-1`` of every node (objects numbered in the
-            order of their root nodes, so one per root per batch copy).
+        of_node: ``[N]`` long, the object ``0..R-1`` of every node (in the order of the roots).
         static: ``[R]`` bool, static objects (never moved, always asleep).
         count: ``R``, the number of objects.
     """
@@ -217,12 +184,8 @@ def touched_by(edge_index: Tensor, objs: Objects, source: Tensor) -> Tensor:
 def update(
     config: SleepConfig, state: SleepState, graph: HeteroData, force: Tensor, objs: Objects
 ) -> SleepState:
-    """The sleep state of step ``t`` from the graph at ``t`` and the step's force ``[N, 3]``.
-
-    Applies the rule of the module docstring: still counters, the active set grown through
-    collision edges to a fixed point (one scatter per link of the longest contact chain, and one
-    host sync each to test for the fixed point), wake-ups, then sleep.
-    """
+    """The sleep state of step ``t`` from the graph at ``t`` and the step's force ``[N, 3]``: the rule
+    of the module docstring, the active set grown through collision edges to a fixed point."""
     store = graph[NODE]
     leaf = store.is_leaf
     disp = (store.pos - store.prev_pos).norm(dim=-1)
@@ -256,16 +219,11 @@ def subgraph(graph: HeteroData, asleep_node: Tensor, prev_pos: Tensor, prev_prev
              ) -> tuple[HeteroData, Tensor, Tensor]:
     """The nodes a step with sleeping objects has to run, as a graph of their own.
 
-    Nodes: every node of an awake object (``~asleep_node``), in node order, then every asleep
-    leaf that is the source of a collision edge into an awake leaf, in node order, flagged
-    ``is_static`` (a collision source that is not moved). Edges: the hierarchy's edges of the
-    awake objects and the collision edges into awake leaves, renumbered. Node attributes keep
-    their values (``batch`` ids included, so dropout masks ``[B, H]`` look up the same rows, and
-    so does the graphs' ``pitch``, which the sub-graph carries too);
-    ``prev_pos``, ``prev_prev_pos`` are the frozen ones of :func:`freeze`.
-
-    Returns ``(sub, index, awake_rows)``: ``index`` ``[n]`` the full-graph node of every
-    sub-graph node, ``awake_rows`` ``[n]`` bool, the rows that belong to awake objects.
+    Nodes: every node of an awake object (``~asleep_node``), then every asleep leaf with a collision
+    edge into an awake leaf, flagged ``is_static``; edges among them, renumbered. Node attributes
+    (``batch`` and ``pitch`` included) keep their values; positions are those of :func:`freeze`.
+    Returns ``(sub, index, awake_rows)``: ``index`` ``[n]`` the full-graph node of each sub-graph
+    node, ``awake_rows`` ``[n]`` bool.
 
     **Shapes:** asleep_node ``(N,)`` bool; ``sub`` has ``n <= N`` nodes.
     """
@@ -314,14 +272,9 @@ def sleeping_step(
 ) -> tuple[Step, SleepState]:
     """One model step in which objects at rest sleep; returns the step and the new sleep state.
 
-    ``force`` ``[N, 3]`` is the step's external force (zero on ancestors); ``state`` the sleep
-    state carried from the previous step (:func:`initial_state` at the start). The returned
-    :class:`~hrn_pyg.sim.step.Step` has zero velocities on asleep nodes, ``asleep`` ``[N]`` the
-    nodes held still in this step, and the next graph (:func:`advance`): asleep nodes with
-    ``pos``, ``prev_pos`` and ``prev_prev_pos`` all equal to the held position, the collision
-    edges of all leaves at ``x_{t+1}``. ``options`` are those of :func:`hrn_pyg.sim.step.step`
-    (a rollout's: its :class:`~hrn_pyg.data.effects.EffectPlan` for the step, inputs checked);
-    the objects of the plain step are ``objs`` unless ``options.objects`` has them.
+    ``force`` ``[N, 3]``; ``state`` from the previous step (:func:`initial_state` at the start). The
+    :class:`~hrn_pyg.sim.step.Step` has zero velocities and ``asleep`` on the held nodes and the next
+    graph of :func:`advance`. ``options`` are those of :func:`hrn_pyg.sim.step.step`.
     """
     state = update(config, state, graph, force, objs)
     asleep_node = state.asleep[objs.of_node]
@@ -347,15 +300,9 @@ def predict_held(
     held: Tensor | None,
     options: StepOptions = StepOptions(),
 ) -> Prediction:
-    """:func:`hrn_pyg.sim.step.predict` of a step in which the ``held`` ``[N]`` rows are held still.
-
-    The network runs on the :func:`subgraph` of the objects not held (with frozen held collision
-    sources); held rows keep ``pos`` bit for bit with zero velocity, and when every row is held
-    the network is not run. ``held=None`` holds nothing: the plain prediction on the whole graph.
-    ``options`` are those of :func:`~hrn_pyg.sim.step.predict`; the sub-graph's pass gets them
-    without ``objects`` (those of ``graph``: the sub-graph finds its own). A
-    ``collision_weight`` weighs the edges of the whole graph, so it cannot come with ``held``.
-    """
+    """:func:`hrn_pyg.sim.step.predict` with the ``held`` ``[N]`` rows held still: the network runs on
+    the :func:`subgraph` of the others; held rows keep ``pos`` bit for bit with zero velocity.
+    ``held=None``: the plain prediction. A ``collision_weight`` cannot come with ``held``."""
     if held is None:
         return predict(model, graph, force, masks, options)
     if options.collision_weight is not None:
@@ -379,19 +326,14 @@ def predict_held(
 
 
 def held_from_history(config: SleepConfig, graph: HeteroData, objs: Objects, force: Tensor) -> Tensor:
-    """``[N]`` bool: the nodes a caller that carries no state between steps holds in this step:
-    the objects :func:`state_from_history` finds at rest, less those :func:`update` wakes
-    (a force ``[N, 3]`` on them, or a contact with a moving object)."""
+    """``[N]`` bool: the nodes a stateless caller holds this step: those :func:`state_from_history`
+    finds at rest, less those :func:`update` wakes (a force ``[N, 3]`` or a moving contact)."""
     return update(config, state_from_history(config, graph, objs), graph, force, objs).asleep[objs.of_node]
 
 
 class Sleeper:
-    """The sleep bookkeeping of one rollout: the scene's :class:`Objects` (the tree does not
-    change) and the :class:`SleepState` carried from step to step.
-
-    :meth:`start` finds the objects and their state at the start; every :meth:`step` is a
-    :func:`sleeping_step` that carries the state on.
-    """
+    """The sleep bookkeeping of one rollout: the scene's :class:`Objects` and the
+    :class:`SleepState`; :meth:`start`, then one :func:`sleeping_step` per :meth:`step`."""
 
     def __init__(self, config: SleepConfig, objs: Objects, state: SleepState) -> None:
         self.config, self.objects, self.state = config, objs, state
@@ -414,11 +356,9 @@ class Sleeper:
 
 
 def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) -> SleepState:
-    """The sleep state a graph's own three positions imply, for callers that carry no state
-    between steps (the RL environment): an object whose leaves moved less than ``threshold`` in
-    both steps ``x_{t-2} -> x_{t-1} -> x_t`` is asleep, with its still counter at ``patience``
-    (so the two steps of history stand for the patience a rollout would have waited);
-    :func:`update` then wakes whatever a force or a moving neighbour reaches."""
+    """The sleep state a graph's three positions imply: an object whose leaves moved less than
+    ``threshold`` in both steps ``x_{t-2} -> x_{t-1} -> x_t`` is asleep, its counter at
+    ``patience``."""
     store = graph[NODE]
     leaf = store.is_leaf
     zero = torch.zeros_like(store.pos[:, 0])
@@ -430,14 +370,9 @@ def state_from_history(config: SleepConfig, graph: HeteroData, objs: Objects) ->
 
 def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float | Tensor | None,
             prev_pos: Tensor | None = None) -> HeteroData:
-    """The graph at ``t+1`` after a step with sleeping objects: :func:`hrn_pyg.sim.step.advance`
-    with the asleep nodes held (all three positions equal to the held one) and the collision
-    edges of :func:`next_collision_edges`.
-
-    ``pos`` ``[N, 3]`` is ``x_{t+1}`` with ancestors derived (the awake objects' from the
-    sub-graph's decode, the asleep nodes' rows equal to ``x_t``), so the held rows stay bit for bit.
-    ``prev_pos``: the prediction's ``x_t`` where the ground lift moved it (None: the graph's).
-    """
+    """The graph at ``t+1`` after a sleeping step: :func:`hrn_pyg.sim.step.advance` with the asleep
+    nodes held and the edges of :func:`next_collision_edges`. ``pos`` ``[N, 3]`` has ancestors
+    derived; ``prev_pos``: the prediction's ``x_t`` where a ground lift moved it."""
     check_next_pos(pos)  # before the search reads it
     edges = next_collision_edges(graph, asleep_node, pos, radius)
     return advance_graph(graph, pos, radius, held=asleep_node, edges=edges, check=False, prev_pos=prev_pos)
@@ -445,18 +380,12 @@ def advance(graph: HeteroData, asleep_node: Tensor, pos: Tensor, radius: float |
 
 def next_collision_edges(graph: HeteroData, asleep_node: Tensor, pos: Tensor,
                          radius: float | Tensor | None) -> Tensor:
-    r"""The collision edges of ``pos`` (``x_{t+1}``), searched only where something moved.
+    """The collision edges of ``pos`` (``x_{t+1}``), searched only where something moved.
 
-    Asleep leaves do not move, so an edge between two of them is the same at :math:`x_{t+1}` as
-    in the graph at :math:`x_t` and is kept from there. Every other edge has an awake end: the
-    search (:func:`hrn_pyg.data.radius.collision_edges`) runs on the awake leaves and the asleep
-    leaves near them (:func:`near_awake`), and keeps the edges
-    with an awake end. The union, sorted by destination then source, is exactly the full
-    search's edge set. When more than half of the leaves are awake the full search is cheaper
-    and is what runs; when none is, the graph's edges are returned as they are (no search).
-    ``radius``: a number, or one per graph of a batch (``(B,)``, graphs of different pitches:
-    :func:`~hrn_pyg.nn.pitch.collision_radius_of`), each leaf then searched at its graph's and
-    the leaves near an awake one found at the largest.
+    An edge between two asleep leaves cannot change and is kept; the others are searched
+    (:func:`hrn_pyg.data.radius.collision_edges`) among the awake leaves and the asleep ones near
+    them (:func:`near_awake`). The union is exactly the full search's set. Over half awake: the full
+    search runs; none awake: the edges are kept. ``radius``: a number or one per graph ``(B,)``.
 
     **Shapes:** asleep_node ``(N,)`` bool, pos ``(N, 3)``; returns ``(2, |E_C|)``.
     """
@@ -493,14 +422,9 @@ def _at(radius: float | Tensor, index: Tensor) -> float | Tensor:
 
 def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float,
                leaf_object: Tensor) -> Tensor:
-    r"""``[N]`` bool: the leaves inside the bounding box of an awake object of their own batch
-    copy, grown by ``radius`` on every side: a superset of the leaves within ``radius`` of an
-    awake leaf (a distance below :math:`r` is below :math:`r` on every axis).
-
-    A few ops for the whole scene (a scatter for the boxes, one broadcast test), where the
-    cells of the collision grid cost a sort of every leaf; when the test would exceed
-    :data:`BOX_TEST_LIMIT` comparisons (many awake objects in a large scene) it falls back to
-    the cells (:func:`near_awake_cells`).
+    """``[N]`` bool: the leaves inside the bounding box, grown by ``radius``, of an awake object of
+    their batch copy: a superset of those within ``radius`` of an awake leaf. Over
+    :data:`BOX_TEST_LIMIT` comparisons it falls back to :func:`near_awake_cells`.
 
     **Shapes:** pos ``(N, 3)``, batch / leaf_object ``(N,)``, leaf / awake_leaf ``(N,)`` bool.
     """
@@ -520,10 +444,8 @@ def near_awake(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, rad
 
 
 def near_awake_cells(pos: Tensor, batch: Tensor, leaf: Tensor, awake_leaf: Tensor, radius: float) -> Tensor:
-    r"""``[N]`` bool: the leaves in a grid cell next to (or in) a cell holding an awake leaf of
-    the same batch copy, on the collision search's own grid
-    (:func:`hrn_pyg.data.radius.cell_keys`, cells of side :math:`h \ge r`): every leaf within
-    ``radius`` of an awake leaf is among them.
+    r"""``[N]`` bool: the leaves in or next to a grid cell (:func:`hrn_pyg.data.radius.cell_keys`, side
+    :math:`h \ge r`) holding an awake leaf of the same batch copy.
 
     **Shapes:** pos ``(N, 3)``, batch ``(N,)``, leaf / awake_leaf ``(N,)`` bool.
     """

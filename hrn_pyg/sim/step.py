@@ -1,24 +1,17 @@
 """One learned step of the HRN, written once: every rollout, sampler and environment calls it.
 
-A step has three stages, each a function testable on its own (after GNS's
-``learned_simulator.py``):
+Three stages, each testable on its own (after GNS's ``learned_simulator.py``):
 
-1. :func:`build_inputs`: per-particle state features and edge offsets, normalised with the
-   model's :class:`~hrn_pyg.nn.normalizer.Normalizer` (no absolute horizontal position enters);
+1. :func:`build_inputs`: state features and edge offsets, normalised with the model's
+   :class:`~hrn_pyg.nn.normalizer.Normalizer`;
 2. :func:`run_network`: the :class:`~hrn_pyg.nn.hrn.HRN` pass, optionally with dropout masks;
-3. :func:`decode`: inverse normalisation to local velocities (parent frame, roots global), one
-   scatter down the tree to global velocities, integration ``x_{t+1} = x_t + v_{t+1}`` of the
-   leaves, ancestor positions re-derived from the leaves; static particles never move.
+3. :func:`decode`: local velocities (parent frame, roots global) summed down the tree,
+   integration ``x_{t+1} = x_t + v_{t+1}`` of the leaves, ancestors re-derived; static
+   particles never move.
 
-:func:`predict` chains the three stages; it is the only place they are chained. :func:`step`
-adds :func:`advance`, the next graph (positions shifted, collision edges recomputed at the new
-positions). The callers add only what is their own: the rollout loop
-(:mod:`hrn_pyg.sim.rollout`), objects at rest held still (:mod:`hrn_pyg.sim.sleeping`), steps
-with no host read (:mod:`hrn_pyg.sim.fixed_shape`) and the RL environment's batched step
-(:mod:`hrn_pyg.rl.hrn_dynamics`). What a caller knows ahead of a step (is there a force, are
-the inputs checked, the scene's objects, ...) travels as one
-:class:`~hrn_pyg.nn.hrn.StepOptions` from :func:`step` down to the network pass. Everything is
-differentiable in the positions (the edge sets are not), and vectorised over particles.
+:func:`predict` is the only place the stages are chained; :func:`step` adds :func:`advance`,
+the next graph. What a caller knows ahead travels as one :class:`~hrn_pyg.nn.hrn.StepOptions`.
+Differentiable in the positions (the edge sets are not) and vectorised over particles.
 """
 
 from __future__ import annotations
@@ -75,9 +68,8 @@ class Prediction(NamedTuple):
         pos: positions at ``t+1`` (leaves integrated, ancestors derived).
         local_velocity: velocity in the parent's frame (roots global).
         velocity: global velocity (local summed down the tree).
-        prev_pos: what the next graph holds as ``x_t`` (its ``prev_pos``), from which the next
-            step reads its velocity: the graph's ``pos`` moved by the ground lift where the lift
-            is not a motion (``HRNConfig.ground_lift_velocity`` False); None: the graph's ``pos``.
+        prev_pos: ``x_t`` as the next graph holds it: ``pos`` moved by a ground lift that is not a
+            motion (``HRNConfig.ground_lift_velocity`` False); None: the graph's ``pos``.
     """
 
     pos: Tensor
@@ -90,17 +82,12 @@ class Step(NamedTuple):
     """Result of one model step.
 
     Attributes:
-        pos: ``[N, 3]`` positions at ``t+1`` (leaves integrated, ancestors derived).
-        local_velocity: ``[N, 3]`` predicted velocity in the parent's frame (roots global).
-        velocity: ``[N, 3]`` predicted global velocity (local summed down the tree).
-        graph: the graph at ``t+1``: ``prev_prev_pos, prev_pos, pos = x_{t-1}, x_t, x_{t+1}``,
-            force zero, collision edges of ``x_{t+1}`` (an asleep node's three positions are
-            all its held position).
-        asleep: ``[N]`` bool, the nodes held still in this step because their object was asleep
-            (:mod:`hrn_pyg.sim.sleeping`); None when sleeping is off.
-        failed: ``[R]`` bool, row ``b``: batch copy ``b`` has failed (a non-finite prediction,
-            held since) at this step or before (:class:`~hrn_pyg.sim.rules.StepRules`); None
-            when failed copies are an error.
+        pos, local_velocity, velocity: ``[N, 3]``, as in :class:`Prediction`.
+        graph: the graph at ``t+1`` (:func:`advance`).
+        asleep: ``[N]`` bool, nodes held still this step (:mod:`hrn_pyg.sim.sleeping`); None when
+            sleeping is off.
+        failed: ``[R]`` bool, batch copies that have failed (a non-finite prediction, held since)
+            by this step (:class:`~hrn_pyg.sim.rules.StepRules`); None when failing is an error.
     """
 
     pos: Tensor
@@ -138,14 +125,9 @@ def node_force(graph: HeteroData, force: Tensor | None, check: bool = True) -> T
 
 
 def _with_legacy(options: StepOptions, legacy: Mapping[str, Any], where: str) -> StepOptions:
-    """``options``, with the options an older caller passed one keyword each folded in.
-
-    ``legacy`` holds those keywords (``force_active=``, ``check=``, ``objects=``,
-    ``collision_weight=``, ``fixed_shape=``, ``collisions=``, each a field of
-    :class:`~hrn_pyg.nn.hrn.StepOptions`); they still work, with a DeprecationWarning, and
-    will be removed. Raises TypeError for a keyword that is no option, or ``options`` that are
-    not a :class:`~hrn_pyg.nn.hrn.StepOptions`.
-    """
+    """``options`` with the deprecated one-keyword options (fields of
+    :class:`~hrn_pyg.nn.hrn.StepOptions`) folded in, with a DeprecationWarning; TypeError for a
+    keyword that is no option or ``options`` of another type."""
     if not isinstance(options, StepOptions):
         raise TypeError(f"{where}: options must be a StepOptions, got {type(options).__name__}")
     if not legacy:
@@ -169,16 +151,11 @@ def build_inputs(
     r"""Stage 1: normalised network inputs of the graph's current state.
 
     States :math:`s(t)` from :math:`v_t = x_t - x_{t-1}` and :math:`z_t`, :math:`s(t-1)` from
-    :math:`v_{t-1} = x_{t-1} - x_{t-2}` and :math:`z_{t-1}`, plus the static attributes;
-    positions divided by the length scale (edges only see differences); force divided by its
-    scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force`` (zero on ancestors); the
-    collision edges are read from the graph as they are. A pitch-aware model
-    (:mod:`hrn_pyg.nn.pitch`) reads each node relative to its graph's pitch, :math:`s_i = p_i /
-    p_{ref}`: positions and rest positions divided by :math:`s_i` too, the ground-contact column
-    at radius :math:`r_c s_i`, and the state column :math:`\log_2 s_i` last. ``options``
-    (:class:`~hrn_pyg.nn.hrn.StepOptions`) go into the inputs for the network pass;
-    ``options.check=False`` skips the finite checks of the positions and the force (each a host
-    read on a GPU): for a caller that has checked them already, as a rollout does.
+    :math:`v_{t-1}` and :math:`z_{t-1}`, plus the static attributes; positions over the length
+    scale; force over its scale. ``force`` ``[N, 3]`` overrides ``graph['particle'].force``. A
+    pitch-aware model (:mod:`hrn_pyg.nn.pitch`) reads node :math:`i` at :math:`s_i = p_i / p_{ref}`:
+    positions divided by :math:`s_i`, ground-contact radius :math:`r_c s_i`, last column
+    :math:`\log_2 s_i`. ``options.check=False`` skips the finite checks (host reads).
     """
     options = _with_legacy(options, legacy, "build_inputs")
     check = options.check
@@ -244,12 +221,9 @@ def build_inputs(
 
 
 def hierarchy_constants(model: HRN, graph: HeteroData) -> HierarchyConstants | None:
-    """The :class:`~hrn_pyg.nn.hrn.HierarchyConstants` of ``graph`` for ``model`` (None for a
-    network other than the HRN): what ``StepOptions.hierarchy`` takes for every graph that
-    shares ``graph``'s hierarchy and rest shape (the graphs of a rollout without sleeping).
-    A graph without a recorded rest shape reads its current shape as the rest shape, which
-    changes, so its constants hold the degrees only; so does a graph with a moving soft body or
-    cloth under ``corotated_rest``, whose rest shape turns with it (one host read to find out)."""
+    """The :class:`~hrn_pyg.nn.hrn.HierarchyConstants` of ``graph`` for ``model`` (None for another
+    network), valid for every graph sharing its hierarchy and rest shape. Without a recorded rest
+    shape, or with a moving soft body or cloth under ``corotated_rest``, only the degrees."""
     if not isinstance(model, HRN):
         return None
     inputs = build_inputs(model, graph, options=StepOptions(check=False, force_active=False))
@@ -267,19 +241,16 @@ def _deformable_leaves(graph: HeteroData) -> Tensor:
 
 def corotated_rest_positions(graph: HeteroData, rest: Tensor, pos: Tensor,
                              objects: tuple[Tensor, int] | None = None) -> Tensor:
-    r"""The rest shape ``rest`` ``[N, 3]`` with every soft body and cloth turned onto its
-    current leaves ``pos`` ``[N, 3]`` (:attr:`~hrn_pyg.nn.hrn.HRNConfig.corotated_rest`).
+    r"""The rest shape ``rest`` ``[N, 3]`` with every soft body and cloth turned onto its current
+    leaves ``pos`` ``[N, 3]`` (:attr:`~hrn_pyg.nn.hrn.HRNConfig.corotated_rest`).
 
     .. math::
         \bar x'_i = R_o (\bar x_i - \bar c_o) + c_o, \qquad
         R_o = \arg\min_{R \in SO(3)} \sum_{l \in o} m_l \lVert R (\bar x_l - \bar c_o) - (x_l - c_o) \rVert^2
 
     for every leaf :math:`i` of a soft or cloth object :math:`o` (:math:`\bar c_o, c_o` its
-    mass-weighted rest and current centres; :func:`~hrn_pyg.nn.rigid.fit_rigid_motion`, the
-    rigid fit's Kabsch solution); the ancestors are re-derived from the leaves. Rigid and
-    static objects keep their rows: the rest offsets of a rigid body are those recorded. The
-    network reads only offsets, so the translation to :math:`c_o` changes nothing it sees.
-    ``objects``: :func:`object_of` of ``graph``, if the caller has it.
+    mass-weighted rest and current centres; :func:`~hrn_pyg.nn.rigid.fit_rigid_motion`); ancestors
+    re-derived, rigid and static rows kept. ``objects``: :func:`object_of` of ``graph``, if known.
     """
     store = graph[NODE]
     deformable = _deformable_leaves(graph)
@@ -290,12 +261,8 @@ def corotated_rest_positions(graph: HeteroData, rest: Tensor, pos: Tensor,
 
 
 def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | None = None) -> Tensor:
-    """Stage 2: the HRN's normalised output ``[N, 3]`` (change of local velocity).
-
-    Many copies of a scene on the CPU (sampled futures, a planner's candidates) run as groups of
-    copies that fit in the cache, one pass each (:mod:`hrn_pyg.sim.copy_groups`); the answer is
-    that of one pass over all of them.
-    """
+    """Stage 2: the HRN's normalised output ``[N, 3]`` (change of local velocity). Many copies on the
+    CPU run as cache-sized groups (:mod:`hrn_pyg.sim.copy_groups`), with the same answer."""
     groups = copy_groups(inputs) if isinstance(model, HRN) else None
     if groups is not None:
         parts = group_inputs(inputs, dict(masks or {}), groups, passes=model.mask_rows(1))
@@ -307,8 +274,7 @@ def run_network(model: HRN, inputs: HRNInputs, masks: Mapping[str, Tensor] | Non
 def decode(
     model: HRN, graph: HeteroData, out: Tensor, objects: tuple[Tensor, int] | None = None
 ) -> Prediction:
-    r"""Stage 3: normalised output -> the :class:`Prediction` ``(pos_{t+1}, local_velocity, velocity,
-    prev_pos)``, each ``[N, 3]`` (``prev_pos`` None unless the ground lift moves ``x_t``).
+    r"""Stage 3: normalised output -> the :class:`Prediction`, each ``[N, 3]``.
 
     .. math::
         v^{loc}_i(t+1) &= v^{loc}_i(t) + \mu_{r(i)} + \sigma_{r(i)} \odot \hat u_i \\
@@ -316,16 +282,10 @@ def decode(
         x_l(t+1) &= x_l(t) + v_l(t+1) \ \text{(leaves)}, \qquad
         x_a(t+1) = \textstyle\sum_{l} m_l x_l(t+1) / m_a \ \text{(ancestors)}
 
-    Static particles get zero velocity, so their positions are returned unchanged. A
-    :class:`~hrn_pyg.nn.gns.GNS` predicts each leaf's acceleration instead
-    (:func:`integrate_acceleration`). With ``model.config.rigid_fit`` the leaves of every rigid
-    object then move by the one rigid transform that fits their predicted motion best
-    (:func:`rigid_leaf_positions`), and that
-    object's velocities are the fitted ones; with ``ground_projection`` no moving leaf ends
-    under the ground (:func:`ground_projected_positions`; ``ground_lift_velocity`` False: the
-    lift moves the node's ``x_t`` too, returned as ``prev_pos``). ``objects`` is :func:`object_of` of
-    ``graph`` when the caller has it (a rollout computes it once), else it is computed here (one
-    host read).
+    Static particles do not move. A :class:`~hrn_pyg.nn.gns.GNS` predicts accelerations instead
+    (:func:`integrate_acceleration`). Then, per the config: ``rigid_fit``
+    (:func:`rigid_leaf_positions`) and ``ground_projection`` (:func:`ground_projected_positions`).
+    ``objects``: :func:`object_of` of ``graph``, if known (else one host read).
     """
     store = graph[NODE]
     c2p = graph[CHILD_TO_PARENT].edge_index
@@ -356,10 +316,8 @@ def decode(
 def _lifted_above_ground(graph: HeteroData, prediction: Prediction, objects: tuple[Tensor, int] | None,
                          rigid: bool = True, rigid_depth: float = 0.0, rigid_speed: float = 0.0,
                          lift_velocity: bool = True) -> Prediction:
-    """``decode``'s prediction after :func:`ground_projected_positions`. With ``lift_velocity`` a
-    lifted node's velocity is its whole move, and the local velocities of its object are derived
-    anew; without, the velocities stay the network's and the lift moves ``x_t`` too (the
-    prediction's ``prev_pos``)."""
+    """``decode``'s prediction after :func:`ground_projected_positions`: with ``lift_velocity`` the
+    lift is part of the velocity, else it moves ``x_t`` too (``prev_pos``)."""
     pos, local, velocity = prediction.pos, prediction.local_velocity, prediction.velocity
     group, count = object_of(graph) if objects is None else objects
     lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid, rigid_depth,
@@ -383,16 +341,11 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
         z_i \leftarrow z_i + \begin{cases} \max_{j \in o(i)} d_j & i \text{ a leaf of a rigid object } o(i) \\
                                          d_i & i \text{ a leaf of a soft body or cloth} \end{cases}
 
-    so a rigid object is lifted as a whole (it stays rigid) and a deformable leaf alone; static
-    rows, ancestors and leaves above the ground are returned unchanged, bit for bit (ancestor rows
-    need re-deriving). :math:`\delta_i` is ``rigid_depth`` on the leaves of rigid objects and 0
-    on the others, :math:`p_i` the node's voxel pitch (:func:`~hrn_pyg.data.graph.node_pitch`,
-    read only when ``rigid_depth`` or ``rigid_speed`` is above 0): a rigid object's leaves are voxel centres and may lie
-    that deep (``HRNConfig.rigid_ground_depth``). With ``rigid_speed`` :math:`s > 0` a rigid object
-    is lifted only while :math:`\max_{j \in o} \lVert x_j - x_j^{\text{now}} \rVert \le s\, p_j`, its
-    leaves' largest move in the step against the graph's positions (``HRNConfig.rigid_ground_speed``).
-    With ``rigid=False`` rigid objects are left where they are too, and only the leaves of soft
-    bodies and cloth are lifted. ``objects``: :func:`object_of` of ``graph``, if the caller has it.
+    Other rows are returned bit for bit (ancestors need re-deriving). :math:`\delta_i` is
+    ``rigid_depth`` on rigid leaves and 0 elsewhere, :math:`p_i` the node's pitch
+    (:func:`~hrn_pyg.data.graph.node_pitch`). With ``rigid_speed`` :math:`s > 0` a rigid object is
+    lifted only while its leaves moved at most :math:`s\, p_j` this step; ``rigid=False`` lifts only
+    soft and cloth leaves. ``objects``: :func:`object_of` of ``graph``, if known.
     """
     store = graph[NODE]
     moving_leaf = store.is_leaf & ~store.is_static
@@ -415,15 +368,14 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
 
 
 def integrate_acceleration(model: GNS, graph: HeteroData, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Stage 3 of a :class:`~hrn_pyg.nn.gns.GNS`: semi-implicit Euler of the leaves'
-    accelerations, ``(pos_{t+1}, local_velocity, velocity)``, each ``[N, 3]``.
+    r"""Stage 3 of a :class:`~hrn_pyg.nn.gns.GNS`: semi-implicit Euler, ``(pos_{t+1}, local_velocity,
+    velocity)``, each ``[N, 3]``.
 
     .. math::
         v_l(t+1) = x_l(t) - x_l(t-1) + \mu_a + \sigma_a \odot \hat a_l, \qquad
         x_l(t+1) = x_l(t) + v_l(t+1)
 
-    (zero velocity on static leaves); an ancestor's position and velocity are the mass-weighted
-    means of its leaves', and the local velocities follow from the global ones.
+    (zero on static leaves); ancestors are mass-weighted means of their leaves.
     """
     store = graph[NODE]
     leaf_velocity = store.pos - store.prev_pos + model.denormalize_acceleration(out)
@@ -436,17 +388,10 @@ def integrate_acceleration(model: GNS, graph: HeteroData, out: Tensor) -> tuple[
 def rigid_leaf_positions(
     graph: HeteroData, pred_pos: Tensor, objects: tuple[Tensor, int] | None = None, from_rest: bool = False
 ) -> Tensor:
-    """``pred_pos`` ``[N, 3]`` with the leaves of each rigid object replaced by the best rigid
-    motion of their current positions (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`); other rows are
-    returned unchanged (ancestor rows still need re-deriving). ``from_rest``: the motion of their
-    rest shape (``rest_pos``) instead, where the graph has one
-    (:attr:`~hrn_pyg.nn.hrn.HRNConfig.rigid_fit_rest`).
-
-    An object (of one batch copy) is identified by its root node (:func:`object_of`, one fit per
-    object rather than per node); rows other than rigid leaves enter the fit with zero weight,
-    and so do static rows (a sleeping object's leaf in a sub-graph, :mod:`hrn_pyg.sim.sleeping`, is
-    rigid and static). ``objects``: :func:`object_of` of ``graph``, if the caller has it.
-    """
+    """``pred_pos`` ``[N, 3]`` with each rigid object's leaves replaced by the best rigid motion of
+    their current positions (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`), or of the rest shape with
+    ``from_rest``; other rows unchanged (ancestors need re-deriving). One fit per object
+    (:func:`object_of`); static rows weigh 0. ``objects``: :func:`object_of` of ``graph``, if known."""
     store = graph[NODE]
     rigid_leaf = store.is_leaf & store.material[:, RIGID].bool() & ~store.is_static
     weight = torch.where(rigid_leaf, store.mass[:, 0], torch.zeros_like(store.mass[:, 0]))
@@ -467,9 +412,7 @@ def object_of(graph: HeteroData) -> tuple[Tensor, int]:
 
 
 def root_of(graph: HeteroData) -> Tensor:
-    """``[N]`` long: the root node of every node's tree (a root is its own, and so is a node
-    without ancestors in the graph, e.g. a sleeping object's leaf in a sub-graph of
-    :mod:`hrn_pyg.sim.sleeping`)."""
+    """``[N]`` long: the root node of every node's tree (a node without ancestors is its own)."""
     store = graph[NODE]
     node, ancestor = graph[LEAF_TO_ANCESTOR].edge_index
     index = torch.arange(store.num_nodes, device=node.device)
@@ -479,12 +422,8 @@ def root_of(graph: HeteroData) -> Tensor:
 
 
 def target_output(model: HRN, graph: HeteroData, next_pos: Tensor) -> Tensor:
-    """Inverse of :func:`decode`: the normalised network output that would produce ``next_pos``
-    (for a :class:`~hrn_pyg.nn.gns.GNS`, the leaves' normalised accelerations).
-
-    ``next_pos`` ``[N, 3]`` must have ancestors derived from its leaves. Useful as a regression
-    target and to test the decoder; ``[N, 3]``.
-    """
+    """Inverse of :func:`decode`: the normalised output ``[N, 3]`` that would produce ``next_pos``
+    ``[N, 3]`` (ancestors derived; a GNS: the normalised accelerations). A regression target."""
     store = graph[NODE]
     if isinstance(model, GNS):  # the leaves' normalised accelerations, zero on ancestor rows
         acceleration = model.normalize_acceleration(next_pos - 2.0 * store.pos + store.prev_pos)
@@ -507,14 +446,10 @@ def predict(
     Args:
         model: the HRN.
         graph: current state (``pos``, ``prev_pos``, ``prev_prev_pos``; collision edges of ``pos``).
-        force: ``[N, 3]`` external force during ``t -> t+1``; None uses ``graph['particle'].force``
-            (zero if absent).
+        force: ``[N, 3]`` external force during ``t -> t+1``; None: ``graph['particle'].force``.
         masks: dropout masks ``{module: [B, H]}``; None is the deterministic model.
-        options: what the caller knows ahead (:class:`~hrn_pyg.nn.hrn.StepOptions`: whether a
-            force acts, whether the inputs are checked, :func:`object_of` of ``graph``, ...); the
-            defaults find out and check everything.
-        legacy: the options one keyword each (``force_active=``, ``objects=``, ...), deprecated
-            (a DeprecationWarning).
+        options: what the caller knows ahead (:class:`~hrn_pyg.nn.hrn.StepOptions`).
+        legacy: the options one keyword each, deprecated.
     """
     options = _with_legacy(options, legacy, "predict")
     inputs = build_inputs(model, graph, force, options)
@@ -531,17 +466,10 @@ def step(
     search: CollisionSearch | None = None,
     **legacy: Any,
 ) -> Step:
-    """One model step: :func:`predict`, then :func:`advance` the graph to ``t+1``.
-
-    The arguments are those of :func:`predict`; ``options.collisions`` (the step's part of an
-    :class:`~hrn_pyg.data.effects.EffectPlan`) says whether the next graph gets a collision
-    search (False: no collision edges). ``search(graph, pos)`` (optional) gives the collision
-    edges of the graph's leaves at ``pos``, as :func:`~hrn_pyg.data.graph.leaf_collision_edges`
-    at the model's radius does (a rollout's :class:`~hrn_pyg.data.candidates.VerletSearch`);
-    None searches; ``options.rules`` (the model's rules of the scene,
-    :func:`~hrn_pyg.sim.rules.step_rules`; None: only the decoder's) are applied to the
-    prediction before the graph advances. The new positions are always checked for NaN / inf.
-    """
+    """One model step: :func:`predict`, ``options.rules`` (:func:`~hrn_pyg.sim.rules.step_rules`),
+    then :func:`advance` to ``t+1``. ``search(graph, pos)`` (optional) gives the collision edges at
+    ``pos`` (a rollout's :class:`~hrn_pyg.data.candidates.VerletSearch`); None searches, and
+    ``options.collisions`` False gives none. New positions are always checked for NaN / inf."""
     options = _with_legacy(options, legacy, "step")
     prediction = predict(model, graph, force, masks, options)
     if options.rules is not None:
@@ -565,20 +493,13 @@ def advance(
     check: bool = True,
     prev_pos: Tensor | None = None,
 ) -> HeteroData:
-    """The graph at ``t+1``: a shallow copy of ``graph`` (at ``t``) with ``prev_prev_pos, prev_pos,
-    pos = x_{t-1}, x_t, x_{t+1}``, force zero and the collision edges of ``x_{t+1}``.
+    """The graph at ``t+1``: a shallow copy with ``prev_prev_pos, prev_pos, pos = x_{t-1}, x_t,
+    x_{t+1}``, force zero and the collision edges of ``x_{t+1}``; rows moved, not recomputed.
 
-    What :func:`hrn_pyg.data.graph.set_state` gives for a graph whose ancestor rows are already
-    derived (every graph of a rollout, and ``pos`` from :func:`decode`), without re-deriving
-    them: the rows are moved, not recomputed, so they stay bit for bit. ``held`` ``[N]`` bool
-    (optional): nodes held still in this step (:mod:`hrn_pyg.sim.sleeping`), whose
-    ``prev_prev_pos`` becomes ``x_t`` so they start from rest when they wake. ``edges``
-    ``(2, |E_C|)`` (optional): the collision edges of ``x_{t+1}`` when the caller has them
-    (the sleeping step searches only where something moved); else all leaves are searched at
-    ``radius`` (a number, or one per graph of a batch: :func:`~hrn_pyg.nn.pitch.collision_radius_of`).
-    ``check=False``: the caller has checked ``pos`` for NaN / inf (with :func:`check_next_pos`).
-    ``prev_pos`` ``[N, 3]`` (optional): ``x_t`` as the next graph holds it when it is not the
-    graph's ``pos`` (a :class:`Prediction`'s ``prev_pos``: the ground lift moved it).
+    ``held`` ``[N]`` bool: nodes held still (:mod:`hrn_pyg.sim.sleeping`), whose ``prev_prev_pos``
+    becomes ``x_t``. ``edges``: the collision edges of ``x_{t+1}`` if known, else all leaves are
+    searched at ``radius`` (:func:`~hrn_pyg.nn.pitch.collision_radius_of`). ``check=False``: ``pos``
+    is checked (:func:`check_next_pos`). ``prev_pos``: ``x_t`` when it is not ``pos``.
 
     **Shapes:** pos ``(N, 3)``; returns a graph with ``collision`` ``(2, |E_C|)``.
     """
