@@ -15,8 +15,11 @@ dropout masks (one per step per copy, the seed paper's graph-convolutional dropo
 
 Speed (the environment step is the RL loop's cost): every pool entry shares one hierarchy, so
 the batched static graph depends only on the number of copies; it is collated once per copy
-count and cached, and only the node attributes that differ between pool entries (the masses)
-are gathered per step. At rate 0 the ``k`` samples are one deterministic prediction, computed
+count and cached, and only the node attributes that differ between pool entries (the masses
+and rest shapes) are gathered per step. Each entry's graph is built as an episode's
+(:func:`hrn_pyg.data.graph.episode_structure`: the hierarchy of the first pool scene's first
+frame, the entry's first frame as its rest shape), so the environment steps a scene exactly as a
+rollout from the same pybullet start does. At rate 0 the ``k`` samples are one deterministic prediction, computed
 once per environment and repeated. A step is one :func:`hrn_pyg.sim.sleeping.predict_held`
 (the model's prediction with the objects at rest held still) and no next graph: the collision
 search that :func:`hrn_pyg.sim.step.step` would make for it is left out, since the next call
@@ -39,8 +42,8 @@ from torch_geometric.data import Batch, HeteroData
 
 from hrn_pyg.checkpoints import load_model
 from hrn_pyg.checkpoints.domain import frames_domain, merge_all, report_outside
-from hrn_pyg.data.graph import HISTORY, NODE, build_structure, object_centres, set_state
-from hrn_pyg.data.hierarchy import build_hierarchy
+from hrn_pyg.data.graph import HISTORY, NODE, episode_structure, object_centres, set_state
+from hrn_pyg.data.hierarchy import start_hierarchy
 from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.rl.dynamics import ROOT_DIM
@@ -145,12 +148,14 @@ class HRNDynamics:
         if int(leaf_object_t.max()) + 1 < self.num_objects:
             raise ValueError(f"scene {self.task.scene_name!r} has fewer objects than the task's {self.num_objects}")
         self.state_dim = 9 * self.num_leaves + 1
-        # one hierarchy (the first pool scene's, at rest) shared by every pool entry; each entry
-        # keeps its own masses
-        parent = torch.as_tensor(build_hierarchy(pool[0, -1], masses[0], leaf_object), dtype=torch.long)
+        # every pool entry shares one hierarchy, the one an episode of the first pool scene is
+        # given (its first frame's); each entry keeps its own masses and rest shape (its first
+        # frame), so entry 0 is the very graph a rollout from that episode starts from
+        parent = start_hierarchy(pool[0, 0], masses[0], leaf_object)
         self._structures = [
-            build_structure(parent, leaf_mass[i], leaf_object_t, torch.as_tensor(material),
-                            torch.as_tensor(stiffness), pitch=pitch).to(device)
+            episode_structure({"positions": pool[i], "leaf_mass": masses[i], "leaf_object": leaf_object,
+                               "object_material": material, "object_stiffness": stiffness,
+                               "hierarchy_parent": parent}, pitch=pitch).to(device)
             for i in range(len(pool_seeds))
         ]
         self.pool_seeds = torch.tensor(list(pool_seeds), dtype=torch.long, device=device)

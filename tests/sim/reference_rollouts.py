@@ -3,7 +3,8 @@ checked to leave every model's predictions as they were (to rounding).
 
 ``python tests/sim/reference_rollouts.py --write`` remakes ``reference_rollouts.npz`` (only
 when the predictions are *meant* to change); ``--add NAME[,NAME]`` adds the rollouts of newly
-shipped checkpoints from the stored start states and keeps every other array as it is;
+shipped checkpoints from the stored start states and keeps every other array as it is; ``--rl``
+remakes only the RL environment's steps (``rl/...``, when the environment is meant to change);
 ``tests/sim/test_reference_rollouts.py`` compares.
 The start states are stored with the file (pybullet is not rerun), so the comparison is of the
 model code alone.
@@ -168,6 +169,20 @@ def add(names: tuple[str, ...]) -> None:
     print(f"added {', '.join(names)} to {FILE} ({FILE.stat().st_size / 1e6:.2f} MB, {len(arrays)} arrays)")
 
 
+def remake_rl() -> None:
+    """Remake the RL environment's arrays (``rl/...``), keeping every other array of the file."""
+    arrays = read()
+    fresh = compute(stored_episodes(arrays), names=(), rl=True)
+    for key in sorted(fresh):
+        moved = np.abs(fresh[key] - arrays[key]).max() if fresh[key].shape == arrays[key].shape else np.nan
+        print(f"{key}: moved up to {float(moved):.3g}")
+    arrays.update(fresh)
+    tmp = FILE.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(FILE)
+    print(f"remade the RL arrays of {FILE} ({FILE.stat().st_size / 1e6:.2f} MB, {len(arrays)} arrays)")
+
+
 def read() -> dict[str, np.ndarray]:
     with np.load(FILE, allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
@@ -186,8 +201,11 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--write", action="store_true", help="remake the reference file")
     parser.add_argument("--add", default="", help="NAME[,NAME]: add these models' rollouts, keep the rest")
+    parser.add_argument("--rl", action="store_true", help="remake the RL environment's steps, keep the rest")
     args = parser.parse_args()
     if args.write:
         write()
+    elif args.rl:
+        remake_rl()
     elif args.add:
         add(tuple(n for n in args.add.split(",") if n))

@@ -6,16 +6,11 @@ and stepped by the plain rollout, the sleeping rollout, the sampler at rate 0 (o
 identical ones), the fixed-shape rollout (or its refusal), the RL environment's dynamics
 (:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.next_history`, ``next_positions``) and the planner's
 model step (:func:`~hrn_pyg.rl.planning.rollout_futures`). The environment's pool entry is the
-same pybullet start, and every path but the environment's gives one answer up to float rounding.
-
-Known gaps, marked as expected failures that must keep failing until they are closed: the
-environment builds its graph with another tree (k-means of the pool's third frame, not the
-episode's first) and no rest shape, so it steps 0.2-2.8 mm away from the rollout in 4 steps
-(:data:`ENVIRONMENT_GRAPH`); building it as an episode's changes the shipped RL and planner
-results (the planner lengths that set the task thresholds, 9.92 / 12.13 / 19.92 steps, become
-9.94 / 12.11 / 21.45), which must be measured again with it. With sleeping on, the environment
-(which carries no sleep state between steps) puts an object to sleep as soon as its two steps of
-history are still, where a rollout waits ``SleepConfig.patience`` steps. Scenes: ``cube_collision`` (two rigid cubes), ``soft_bounce`` (a soft body),
+same pybullet start, and its graph is built by the same function as the rollout's
+(:func:`~hrn_pyg.data.graph.episode_structure`), so every path gives one answer up to float
+rounding. One known exception, marked: with sleeping on, the environment (which carries no sleep
+state between steps) puts an object to sleep as soon as its two steps of history are still,
+where a rollout waits ``SleepConfig.patience`` steps. Scenes: ``cube_collision`` (two rigid cubes), ``soft_bounce`` (a soft body),
 ``multi_material`` (a cloth falling onto a rigid and a soft cube).
 """
 
@@ -43,10 +38,6 @@ SEED = 10_000
 ATOL = 1e-5
 #: scene -> its movable objects
 SCENES = {"cube_collision": 2, "soft_bounce": 1, "multi_material": 3}
-#: the environment's graph is not yet the rollout's (module docstring)
-ENVIRONMENT_GRAPH = pytest.mark.xfail(strict=True, reason=(
-    "the environment's tree is the k-means of its pool's third frame and it has no rest shape; an episode's "
-    "graph changes the recorded RL and planner results, which must be measured again first"))
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +76,6 @@ def test_the_plain_rollout_moves_every_scene(scene):
     assert float((plain[-1] - graph[NODE].pos).abs().max()) > 1e-4
 
 
-@ENVIRONMENT_GRAPH
 def test_the_environment_builds_the_rollouts_graph(scene, model):
     name, episode, graph, _ = scene
     env = dynamics(model, name).structure_graph(0)
@@ -168,7 +158,6 @@ def node_forces(env: HRNDynamics, graph, push: torch.Tensor) -> torch.Tensor:
     return forces
 
 
-@ENVIRONMENT_GRAPH
 def test_the_environment_steps_as_the_rollout(scene, model):
     name, episode, graph, plain = scene
     env = dynamics(model, name)
@@ -181,7 +170,6 @@ def test_the_environment_steps_as_the_rollout(scene, model):
     assert torch.allclose(first[0], expected[0], atol=ATOL)
 
 
-@ENVIRONMENT_GRAPH
 def test_a_pushed_environment_steps_as_the_pushed_rollout(scene, model):
     """A push on the first object (its force spread over its leaves): the same positions, and
     not those without the push."""
@@ -200,7 +188,7 @@ def test_a_pushed_environment_steps_as_the_pushed_rollout(scene, model):
     pytest.param("soft_bounce", marks=pytest.mark.xfail(strict=True, reason=(
         "the environment carries no sleep state between steps: an object still over its two "
         "steps of history sleeps at once, where a rollout waits SleepConfig.patience steps"))),
-    pytest.param("multi_material", marks=ENVIRONMENT_GRAPH),
+    "multi_material",
 ])
 def test_the_sleeping_environment_steps_as_the_sleeping_rollout(name, model):
     episode = simulate_episode(name, SEED, steps=STEPS + HISTORY + 1)
@@ -210,7 +198,6 @@ def test_the_sleeping_environment_steps_as_the_sleeping_rollout(name, model):
     assert torch.allclose(env_steps(dynamics(model, name, DEFAULT_SLEEP), STEPS), expected, atol=ATOL)
 
 
-@ENVIRONMENT_GRAPH
 def test_the_planners_model_step_is_the_rollouts(scene, model):
     """Zero actions through :func:`rollout_futures`: the roots (centre, per-step velocity) of
     the rollout's graphs after each step (whose ``x_t`` is the one the ground lift moved)."""
