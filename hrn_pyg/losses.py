@@ -1,10 +1,9 @@
 """Training losses of the HRN: local and global velocity errors, two shape terms and the rest term.
 
-The group shape loss is the baseline HRN's (distances between siblings of one parent only); the
-fully-connected shape loss is the seed paper's (distances between all leaf pairs of an object),
-computed object by object in row chunks, each chunk's gradient formed with its value, so its memory
-stays bounded by ``chunk_size`` times the size of the largest object (and a few numbers per pair of
-each object under 64 leaves), in the forward and the backward pass.
+The group shape loss is the baseline HRN's (siblings of one parent); the fully-connected one is
+the seed paper's (all leaf pairs of an object), computed in row chunks with each chunk's
+gradient formed with its value, so memory stays bounded by ``chunk_size`` times the largest
+object, forward and backward.
 """
 
 from __future__ import annotations
@@ -42,8 +41,8 @@ def local_velocity_loss(
             \Bigl\lVert \frac{\hat v^{loc}_i - v^{loc}_i}{\sigma_{r(i)}} \Bigr\rVert^2
 
     over the non-static nodes :math:`\mathcal{M}`; :math:`\sigma_{r(i)}` is the normaliser's root
-    scale for roots (global frame) and its local scale otherwise (parent frame). Equal to the MSE
-    of the normalised network output against :func:`hrn_pyg.sim.step.target_output`.
+    scale for roots and its local scale otherwise (the MSE of the normalised output against
+    :func:`hrn_pyg.sim.step.target_output`).
 
     **Shapes:** pred_local, true_local :math:`(N, 3)`; is_root, is_static :math:`(N,)`; returns a scalar.
     """
@@ -67,8 +66,7 @@ def global_velocity_loss(
             \Bigl\lVert \frac{\hat v_i - v_i}{\sigma} \Bigr\rVert^2, \qquad
         \mathcal{G} = \{i : (\mathrm{root}_i \lor \mathrm{leaf}_i) \land \lnot \mathrm{static}_i\}
 
-    ``scale`` :math:`\sigma` is a number or a ``(3,)`` tensor (e.g. the normaliser's
-    ``velocity_std``).
+    ``scale`` :math:`\sigma`: a number or ``(3,)`` (e.g. the normaliser's ``velocity_std``).
 
     **Shapes:** pred_velocity, true_velocity :math:`(N, 3)`; masks :math:`(N,)`; returns a scalar.
     """
@@ -92,13 +90,9 @@ def rest_velocity_loss(
             \Bigl\lVert \frac{\hat v_i - v_i}{\sigma} \Bigr\rVert_1, \qquad
         \mathcal{R} = \{i : \mathrm{scored}_i \land \lnot \mathrm{static}_i \land \lVert v_i \rVert < \tau\}
 
-    The squared errors of :func:`global_velocity_loss` hardly see a resting object's creep of
-    a tenth of a millimetre per step (about 1 % of a typical velocity scale, so 1e-4 of the loss),
-    yet over a thousand steps it slides it by decimetres. An absolute error keeps a constant pull
-    towards zero error however small the creep is, and only for objects that should be still.
-    ``scored`` picks the nodes the term looks at: the roots (``is_root``, one per object), or
-    roots and leaves, which also holds still the resting leaves of a soft body (whose shape
-    creeps although its centre stays). Zero when nothing rests.
+    An absolute error keeps pulling a resting object's slow creep to zero, which squared errors
+    hardly see. ``scored``: the roots, or roots and leaves (a soft body's shape too). Zero when
+    nothing rests.
 
     **Shapes:** pred_velocity, true_velocity :math:`(N, 3)`; masks :math:`(N,)`; returns a scalar.
     """
@@ -118,8 +112,6 @@ def group_shape_loss(
     .. math::
         \mathcal{L}_{group} = \frac{1}{|\mathcal{E}_{WS}|} \sum_{(j, i) \in \mathcal{E}_{WS}}
             \Bigl(\frac{\lVert \hat x_i - \hat x_j \rVert - \lVert x_i - x_j \rVert}{\sigma}\Bigr)^2
-
-    over the ``within_siblings`` edges (every level of the tree).
 
     **Shapes:** pred_pos, true_pos :math:`(N, 3)`; within_siblings :math:`(2, E)`; returns a scalar.
     """
@@ -141,15 +133,12 @@ class _PairDistanceError(torch.autograd.Function):
         g_{ij} = \frac{2 w_{ij} (d_{ij} - \bar d_{ij})}{d_{ij}}
 
     with :math:`d_{ij} = \sqrt{\lVert \hat x_i - \hat x_j \rVert^2 + \epsilon}` predicted and
-    :math:`\bar d_{ij}` true (the norm of :func:`~hrn_pyg.nn.collision.safe_norm`). The columns
-    start at the rows' first leaf: :math:`w_{ij} = 1` for the first ``diagonal`` columns (the
-    square block of the rows with themselves, every pair in both orders) and 2 beyond (pairs whose
-    reverse order no later block visits). Only the two gradients, ``[R, 3]`` and ``[C, 3]``, are
-    kept for the backward pass, so a block's ``R x C`` distances are freed as soon as it is summed,
-    and the gradient's sums over ``j`` are matrix products.
+    :math:`\bar d_{ij}` true. The columns start at the rows' first leaf: :math:`w_{ij} = 1` for the
+    first ``diagonal`` columns (the square block) and 2 beyond. Only the gradients ``[R, 3]`` and
+    ``[C, 3]`` are kept for the backward pass, so the ``R x C`` distances are freed at once.
 
     **Shapes:** pred rows :math:`(R, 3)`, pred columns :math:`(C, 3)`, true rows and columns the
-    same; returns a scalar. The true positions are constants (no gradient).
+    same (constants); returns a scalar.
     """
 
     @staticmethod
@@ -174,10 +163,9 @@ class _PairDistanceError(torch.autograd.Function):
 
 
 def _small_groups_error(p: Tensor, t: Tensor, counts: Tensor, starts: Tensor, chunk_size: int) -> Tensor:
-    """Sum of squared distance errors over every ordered pair of the groups of fewer than
-    :data:`SMALL_GROUP` rows (``p``, ``t`` sorted by group; ``counts`` and ``starts`` the groups'
-    sizes and first rows): the groups padded to one size ``m`` and taken together, about ``chunk_size * SMALL_GROUP`` pairs
-    at a time, so that many small objects cost a few tensor operations, not a loop over them."""
+    """Sum of squared distance errors over every ordered pair of the groups under
+    :data:`SMALL_GROUP` rows (sorted by group; ``counts``, ``starts`` their sizes and first rows),
+    padded to one size and taken about ``chunk_size * SMALL_GROUP`` pairs at a time."""
     small = (counts >= 2) & (counts < SMALL_GROUP)
     if not bool(small.any()):
         return p.new_zeros(())
@@ -213,25 +201,16 @@ def full_shape_loss(
             \Bigl(\frac{\lVert \hat x_i - \hat x_j \rVert - \lVert x_i - x_j \rVert}{\sigma}\Bigr)^2,
         \qquad P = \sum_g |g| (|g| - 1)
 
-    :math:`g` runs over the groups (one object of one batch copy, see :func:`shape_groups`).
-    A group of :data:`SMALL_GROUP` leaves or more is taken on its own, its rows at most
-    ``chunk_size`` (and half the group) at a time against its own later rows only: a pair in two
-    chunks is visited once and counted twice, so about half of the :math:`|g|^2` distances are
-    formed and no pair of two groups is. Such a block's gradient is formed with its value
-    (:class:`_PairDistanceError`), so at most one ``chunk_size x (largest group)`` block of
-    distances is alive at any time, in the forward and the backward pass. Smaller groups are
-    padded to one size and taken together under autograd, which keeps their distances for the
-    backward pass (fewer than :data:`SMALL_GROUP` squared pairs each). Exact: every pair is
-    counted once per order, as in the formula.
+    :math:`g` runs over the groups (:func:`shape_groups`). A group of :data:`SMALL_GROUP` leaves or
+    more is taken ``chunk_size`` rows at a time against its own later rows
+    (:class:`_PairDistanceError`), so at most one ``chunk_size x (largest group)`` block is alive;
+    smaller groups are padded and taken together (:func:`_small_groups_error`). Exact.
 
-    ``fixed`` marks the rows of groups whose predicted distances the network cannot change: the
-    leaves of a rigid object under the model's rigid fit move by one rigid motion of their
-    current positions, so their distances are those of the step's input. Such a group's pairs
-    still count in :math:`P` but their (constant) errors are not computed: the gradient is the
-    same and the value lower by their constant part.
+    ``fixed`` marks groups whose distances the network cannot change (rigid objects under the rigid
+    fit): their pairs count in :math:`P` but their constant errors are not computed.
 
-    **Shapes:** pred_pos, true_pos :math:`(L, 3)` (typically leaves); group :math:`(L,)` long;
-    fixed :math:`(L,)` bool, the same for every row of a group; returns a scalar.
+    **Shapes:** pred_pos, true_pos :math:`(L, 3)`; group :math:`(L,)` long; fixed :math:`(L,)`
+    bool, the same within a group; returns a scalar.
     """
     if chunk_size < 1:
         raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -268,10 +247,8 @@ def full_shape_loss(
 
 
 def shape_groups(graph: HeteroData) -> tuple[Tensor, Tensor]:
-    """Leaves that enter the shape loss and their group: one group per object per batch copy.
-
-    Static leaves are left out (they never move). Returns ``(leaf_index [L'], group [L'])``.
-    """
+    """Leaves that enter the shape loss (non-static) and their group, one per object per batch copy:
+    ``(leaf_index [L'], group [L'])``."""
     store = graph[NODE]
     leaf = torch.nonzero(store.is_leaf & ~store.is_static).flatten()
     obj = store.object[leaf]

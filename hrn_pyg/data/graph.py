@@ -1,16 +1,11 @@
 """The hierarchical particle graph as PyG ``HeteroData`` (see docs/architecture.md).
 
 One node type, ``particle``, holds leaves and ancestors. The static part (node attributes and
-the ``child_to_parent``, ``leaf_to_ancestor``, ``within_siblings`` and
-``ancestor_to_descendant`` edges) is built once per scene by :func:`build_structure`; the
-dynamic part (``pos``, ``prev_pos``, ``prev_prev_pos``, ``force`` and the ``collision`` edges)
-is filled by :func:`set_state` at every step. Ancestor states are always derived from the
-leaves with :func:`leaf_to_ancestor_mean`. :func:`replicate` makes K copies of a scene as one
-batched graph; every function here works on batched graphs as well as single scenes.
-
-A graph built from an episode or a scene also carries its voxel pitch (metres) as the
-graph-level ``pitch`` ``(1,)`` float64; batching gives one value per graph, and
-:func:`node_pitch` gives every node the pitch of its own graph.
+the hierarchy's edges) is built once per scene by :func:`build_structure`; the dynamic part
+(``pos``, ``prev_pos``, ``prev_prev_pos``, ``force``, ``collision`` edges) by :func:`set_state`.
+Ancestor states are derived from the leaves (:func:`leaf_to_ancestor_mean`). :func:`replicate`
+batches K copies; everything here works on batched graphs. A graph carries its voxel pitch (m)
+as the graph-level ``pitch`` ``(B,)`` float64 (:func:`node_pitch`).
 """
 
 from __future__ import annotations
@@ -47,10 +42,7 @@ def _sort_edges(src: Tensor, dst: Tensor, num_nodes: int) -> Tensor:
 
 
 def _ancestor_pairs(parent: Tensor) -> tuple[Tensor, Tensor]:
-    """All (descendant, ancestor) pairs by repeated parent lookups, one pass per tree level.
-
-    Raises ValueError on a cycle (more levels than nodes).
-    """
+    """All (descendant, ancestor) pairs, one parent lookup per tree level; ValueError on a cycle."""
     num_nodes = parent.shape[0]
     node = torch.nonzero(parent >= 0).flatten()
     anc = parent[node]
@@ -147,26 +139,23 @@ def build_structure(
         \mathrm{object}_a = \mathrm{object}_l \ (l \in \mathcal{L}(a))
 
     Edges: ``child_to_parent`` ``i -> parent(i)``; ``leaf_to_ancestor`` ``i -> a`` for every
-    ``a in A(i)`` (every node, not only leaves, sorted by (dst, src)); ``ancestor_to_descendant``
-    its exact reverse (each edge flipped, same order); ``within_siblings`` ``j -> i`` for distinct
-    ``i, j`` of one parent; ``collision`` empty (filled by :func:`set_state`).
+    ``a in A(i)`` (sorted by (dst, src)); ``ancestor_to_descendant`` its exact reverse;
+    ``within_siblings`` ``j -> i`` for distinct children of one parent; ``collision`` empty.
 
     Args:
-        parent: parent of each node (leaves ``0..L-1`` first, roots ``-1``), as written by
-            :func:`hrn_pyg.data.hierarchy.build_hierarchy`.
+        parent: parent of each node (leaves ``0..L-1`` first, roots ``-1``;
+            :func:`hrn_pyg.data.hierarchy.build_hierarchy`).
         leaf_mass: leaf masses, > 0.
         leaf_object: object of each leaf, ``0..O-1``.
         object_material: material column of each object (:data:`MATERIALS`).
         object_stiffness: stiffness of each object.
-        rest_pos: leaf positions of the rest shape (e.g. an episode's first state); stored as
-            ``rest_pos (N, 3)`` with ancestors derived, for models with ``rest_offsets``.
-        pitch: the voxel pitch (m) the scene's leaves were made at; stored as the graph-level
-            ``pitch (1,)`` float64 (:data:`PITCH`), read by pitch-aware models.
+        rest_pos: leaf positions of the rest shape, stored as ``rest_pos (N, 3)`` with ancestors.
+        pitch: the voxel pitch (m), stored as the graph-level ``pitch (1,)`` float64.
 
     Returns:
         HeteroData with ``graph['particle']``: ``mass (N,1)``, ``material (N,4)`` one-hot,
         ``stiffness (N,1)``, ``object (N,)``, ``depth (N,)``, ``is_leaf``, ``is_root``,
-        ``is_static`` ``(N,)`` bool, and the five edge types; ``graph.pitch`` with ``pitch``.
+        ``is_static`` ``(N,)`` bool, and the five edge types.
 
     **Shapes**: parent ``(N,)``, leaf_mass ``(L,)``, leaf_object ``(L,)``,
     object_material ``(O,)``, object_stiffness ``(O,)``.
@@ -228,15 +217,10 @@ def build_structure(
 
 
 def episode_structure(episode: Mapping[str, Any], pitch: float | None = None) -> HeteroData:
-    """The static graph a model starts an episode's scene from: :func:`build_structure` of the
-    episode's ``hierarchy_parent``, ``leaf_mass``, ``leaf_object``, ``object_material`` and
-    ``object_stiffness``, its first frame ``positions[0]`` as the rest shape, and its pitch
-    (``pitch``, else the one its ``params`` record, :func:`~hrn_pyg.data.io.episode_pitch`).
-
-    The one builder of a start graph from a scene's record: the dataset's windows, a sampled
-    episode's start (:func:`hrn_pyg.sampling.ensemble.episode_state`) and the RL environment's
-    pool (:class:`hrn_pyg.rl.hrn_dynamics.HRNDynamics`) all build theirs here, so one state of a
-    scene is one graph on every path. Arrays may be numpy or torch.
+    """The static graph of an episode's scene: :func:`build_structure` of its hierarchy, masses,
+    objects and materials, with ``positions[0]`` as the rest shape and its pitch
+    (:func:`~hrn_pyg.data.io.episode_pitch`). The one builder of a start graph (dataset windows,
+    sampling, the RL pool). Arrays may be numpy or torch.
 
     **Shapes:** ``positions (S+1, L, 3)``, ``hierarchy_parent (N,)`` -> a graph of ``N`` nodes.
     """
@@ -274,12 +258,10 @@ def graph_pitch(graph: HeteroData) -> Tensor | None:
 
 
 def node_pitch(graph: HeteroData) -> Tensor:
-    r"""The voxel pitch of every node's own graph, ``(N,)`` float64 (metres):
-    :math:`p_{b(i)}`, with :math:`b(i)` the node's batch copy (``graph['particle'].batch``; all
-    nodes share the one value of an unbatched graph). Raises ValueError when the graph carries
-    no pitch (:func:`set_pitch`).
+    """The voxel pitch (m) of every node's graph, :math:`p_{b(i)}` with :math:`b(i)` its batch copy;
+    ValueError when the graph has none (:func:`set_pitch`).
 
-    **Shapes**: ``pitch (B,)``, ``batch (N,)`` -> ``(N,)``.
+    **Shapes**: ``pitch (B,)``, ``batch (N,)`` -> ``(N,)`` float64.
     """
     pitch = graph_pitch(graph)
     if pitch is None:
@@ -311,11 +293,9 @@ def object_centres(positions: Tensor, leaf_object: Tensor, num_objects: int,
 
     .. math:: r_o = \sum_{l \in o} m_l x_l \Big/ \sum_{l \in o} m_l
 
-    ``leaf_mass`` ``(L,)``, or ``(*, L)`` with masses of their own per leading index; None: equal
-    masses. An object without leaves gets zeros.
+    ``leaf_mass`` ``(L,)`` or ``(*, L)``; None: equal masses. An object without leaves gets zeros.
 
-    **Shapes:** positions ``(*, L, 3)``, leaf_object ``(L,)`` long in ``0..num_objects-1``;
-    returns ``(*, num_objects, 3)``.
+    **Shapes:** positions ``(*, L, 3)``, leaf_object ``(L,)`` long; returns ``(*, num_objects, 3)``.
     """
     weight = torch.ones_like(positions[..., 0]) if leaf_mass is None else leaf_mass.to(positions.dtype)
     weight = weight.expand(positions.shape[:-1])
@@ -331,9 +311,7 @@ def leaf_to_ancestor_mean(values: Tensor, graph: HeteroData) -> Tensor:
     .. math::
         v_a = \frac{1}{m_a} \sum_{l \in \mathcal{L}(a)} m_l\, v_l
 
-    computed as one scatter over the ``leaf_to_ancestor`` edges, with weight
-    :math:`m_l / m_a` on edges from a leaf and 0 on edges from an ancestor (no boolean
-    indexing, so no host sync). Differentiable in ``values``; nothing is cached on the graph.
+    One scatter over the ``leaf_to_ancestor`` edges (weight 0 from ancestors; no host sync).
 
     **Shapes**: values ``(..., N, D)``; returns ``(..., N, D)``.
     """
@@ -374,16 +352,11 @@ def set_state(
     radius: float | Tensor | None,
     force: Tensor | None = None,
 ) -> HeteroData:
-    r"""A shallow copy of ``graph`` carrying the state ``x_{t-2}, x_{t-1}, x_t`` and its collisions.
+    """A shallow copy of ``graph`` carrying the state ``x_{t-2}, x_{t-1}, x_t`` and its collisions.
 
-    Positions may be given for all nodes ``(N, 3)`` (ancestor rows are ignored) or for the
-    leaves only ``(L, 3)``, in node order of the leaves. Ancestor positions are always derived
-    with :func:`leaf_to_ancestor_mean`; ``force`` is kept on leaves and zero on ancestors.
-    ``collision`` edges are :func:`hrn_pyg.data.radius.collision_edges` of the leaves at ``x_t``,
-    grouped by ``graph['particle'].batch`` when present (so copies never collide), mapped to
-    node indices. ``radius=None`` leaves the collision set empty; a tensor ``(B,)`` is one
-    radius per graph of a batch (:func:`leaf_collision_edges`). The input graph is not
-    modified; its static tensors are shared, not copied.
+    Positions for all nodes ``(N, 3)`` (ancestor rows ignored) or the leaves only ``(L, 3)``;
+    ancestors derived; ``force`` zero on ancestors; ``collision`` edges of the leaves at ``x_t``
+    (:func:`leaf_collision_edges`; ``radius=None``: none). Static tensors are shared.
 
     **Shapes**: positions and force ``(N, 3)`` or ``(L, 3)``; sets ``pos``, ``prev_pos``,
     ``prev_prev_pos``, ``force`` ``(N, 3)`` and ``collision`` ``(2, |E_C|)``.
@@ -406,13 +379,9 @@ def set_state(
 
 
 def leaf_collision_edges(graph: HeteroData, pos: Tensor, radius: float | Tensor | None) -> Tensor:
-    """Collision edges (node indices) of the leaves of ``graph`` at positions ``pos`` ``[N, 3]``
-    (:func:`hrn_pyg.data.radius.collision_edges`), grouped by ``graph['particle'].batch`` when
-    present so copies never collide; none when ``radius`` is None or 0.
-
-    ``radius`` is one number for every graph, or a tensor ``(B,)`` with the radius of each
-    graph of a batch (scenes at different pitches: :func:`hrn_pyg.nn.pitch.collision_radius_of`);
-    each graph then gets exactly the edges of a search at its own radius.
+    """Collision edges (node indices) of the leaves at ``pos`` (:func:`hrn_pyg.data.radius.collision_edges`),
+    per batch copy; none when ``radius`` is None or 0. ``radius``: a number, or one per graph
+    (:func:`hrn_pyg.nn.pitch.collision_radius_of`).
 
     **Shapes**: pos ``(N, 3)``, radius ``(B,)`` or a number; returns ``(2, |E_C|)``.
     """
@@ -440,8 +409,6 @@ def per_node_radius(graph: HeteroData, radius: Tensor) -> Tensor:
 
 def replicate(graph: HeteroData, k: int) -> HeteroData:
     """``k`` copies of one scene graph as one batched graph (``graph['particle'].batch`` = copy).
-
-    PyG offsets every edge set by the node count of the preceding copies.
 
     **Shapes**: ``N`` nodes -> ``k N`` nodes; every edge set ``E`` -> ``k E``.
     """

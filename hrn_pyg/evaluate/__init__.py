@@ -1,34 +1,22 @@
-"""``hrn-pyg evaluate``: Table 1 of the seed paper on held-out episodes.
+r"""``hrn-pyg evaluate``: Table 1 of the seed paper on held-out episodes.
 
-Every model is rolled out from the same held-out initial states (the ``test`` split, disjoint by
-seed from the training data) with the recorded external forces, feeding its own predictions
-back. At the chosen horizons (default ``t+5`` and ``t+15``) three errors are measured against
-pybullet's ground truth, over the moving leaves:
+Every model is rolled out from the same held-out initial states (the ``test`` split) with the
+recorded external forces, feeding its own predictions back. At the chosen horizons (default
+``t+5`` and ``t+15``) three errors are measured against pybullet over the moving leaves:
 
 .. math::
-    \\mathrm{MSE}_{pos} = \\frac{1}{3L}\\sum_l \\lVert \\hat x_l - x_l \\rVert^2, \\qquad
-    \\mathrm{MSE}_{vel} = \\frac{1}{3L}\\sum_l \\lVert \\hat v_l - v_l \\rVert^2, \\qquad
-    \\mathrm{MSE}_{shape} = \\frac{1}{P}\\sum_{o}\\sum_{i \\ne j \\in o}
-        (\\lVert \\hat x_i - \\hat x_j \\rVert - \\lVert x_i - x_j \\rVert)^2
+    \mathrm{MSE}_{pos} = \frac{1}{3L}\sum_l \lVert \hat x_l - x_l \rVert^2, \qquad
+    \mathrm{MSE}_{vel} = \frac{1}{3L}\sum_l \lVert \hat v_l - v_l \rVert^2, \qquad
+    \mathrm{MSE}_{shape} = \frac{1}{P}\sum_{o}\sum_{i \ne j \in o}
+        (\lVert \hat x_i - \hat x_j \rVert - \lVert x_i - x_j \rVert)^2
 
-(velocities are per-step displacements, the shape error is the fully-connected pairwise-distance
-error). Each trajectory gives one number per metric and horizon; the table shows their mean and
-standard error. All test windows are rolled out together as one batched graph.
+(velocities are per-step displacements). The table shows the mean and standard error over
+trajectories, all rolled out as one batched graph. A rollout that leaves the finite numbers is
+isolated (:func:`guarded_rollout`), NaN from its failing step on and counted as ``diverged``.
 
-**Diverged rollouts.** A model outside what it learned may leave the finite numbers (positions
-growing geometrically until they overflow). Such a trajectory is not dropped silently and does not
-stop the evaluation: the batch is split until the rollout that failed is alone
-(:func:`guarded_rollout`), its positions from the failing step on are NaN, and the tables give
-the mean over the trajectories that stayed finite with the count of those that did not
-(``diverged`` in the JSON, ``(k diverged)`` in a cell).
-
-**Long rollouts.** A second table scores one rollout per held-out episode, started at the
-earliest possible step (``t = 2``) and run to the episode's end, at the long horizons (default
-``t+50`` and ``t+100``; a horizon past an episode's end is read at the end and labelled e.g.
-``t+47 (end)``), plus the rest metrics of :mod:`hrn_pyg.evaluate.rest`: how far movable leaves get
-below the ground, and for objects at rest at the end of the ground truth the error of the
-predicted resting height and the predicted horizontal drift. The short-horizon Table 1 keeps its
-own windows (``--stride`` apart, horizon ``max(--horizons)``), so its numbers are unchanged.
+**Long rollouts**: one rollout per held-out episode from ``t = 2`` to its end, read at the long
+horizons (default ``t+50``, ``t+100``; past an episode's end at the end, e.g. ``t+47 (end)``),
+plus the rest metrics of :mod:`hrn_pyg.evaluate.rest`.
 """
 
 from __future__ import annotations
@@ -104,13 +92,11 @@ def guarded_rollout(model, windows: list, steps: int, device: torch.device | str
                     graph: Batch | None = None) -> tuple[Tensor, np.ndarray]:
     """Roll ``windows`` out ``steps`` steps with their recorded forces, surviving divergence.
 
-    All windows run as one batched graph. When a step's positions are not finite, the batch is
-    halved and each half rolled again, down to the window that diverged, which is rolled alone up
-    to its failing step. Returns the positions ``[steps, N, 3]`` of the whole batch (the nodes of
-    window ``0``, then ``1``, ...: :meth:`Batch.from_data_list`'s order), NaN for a diverged
-    window from its failing step on, and for each window the step (1-based) at which it diverged,
-    ``0`` for none (``[E]`` int). ``graph``: the windows already batched on ``device``, when the
-    caller has them.
+    One batched graph; on a non-finite step the batch is halved and rolled again, down to the
+    window that diverged. Returns the positions ``[steps, N, 3]`` (windows in
+    :meth:`Batch.from_data_list`'s order), NaN for a diverged window from its failing step on, and
+    each window's 1-based failing step, 0 for none (``[E]`` int). ``graph``: the windows already
+    batched on ``device``, if the caller has them.
     """
     graph = Batch.from_data_list(windows).to(device) if graph is None else graph
     forces = graph[NODE].force_seq[:, :steps].transpose(0, 1)
@@ -138,11 +124,9 @@ def guarded_rollout(model, windows: list, steps: int, device: torch.device | str
 def per_object_errors(pred: Tensor, truth: Tensor, graph: Batch) -> dict[str, Tensor]:
     r"""Position and shape error of each object of each trajectory copy at one time.
 
-    The position error is the mean over the object's moving leaves of
-    :math:`\frac{1}{3}\lVert \hat x_l - x_l \rVert^2`, the shape error the fully-connected
-    pairwise-distance error over its leaves (as in :func:`per_trajectory_errors`, one object at
-    a time). Row ``c * O + o`` is object ``o`` of copy ``c`` (``O`` objects per copy, the span
-    of the object ids); an object with no moving leaf (static) is NaN.
+    Position: the mean over the object's moving leaves of :math:`\frac{1}{3}\lVert \hat x_l - x_l
+    \rVert^2`; shape: the pairwise-distance error over its leaves. Row ``c * O + o`` is object
+    ``o`` of copy ``c``; a static object is NaN.
 
     **Shapes:** ``pred``, ``truth`` ``[N, 3]``; returns ``{"position": [B*O], "shape": [B*O]}``.
     """
@@ -167,12 +151,8 @@ def per_object_errors(pred: Tensor, truth: Tensor, graph: Batch) -> dict[str, Te
 @torch.no_grad()
 def evaluate_model(model, windows: list, horizons: tuple[int, ...],
                    device: torch.device | str = "cpu") -> dict[str, dict[int, np.ndarray]]:
-    """Roll ``model`` out from every window (one batched graph); errors ``{metric: {h: [B]}}``.
-
-    ``model`` must already be on ``device``; the windows are moved there, the errors come back
-    to the CPU. A window whose rollout diverged before a horizon has NaN errors there
-    (:func:`guarded_rollout`).
-    """
+    """Roll ``model`` (on ``device``) out from every window; errors ``{metric: {h: [B]}}`` on the CPU,
+    NaN past a divergence (:func:`guarded_rollout`)."""
     graph = Batch.from_data_list(windows).to(device)
     store = graph[NODE]
     steps = max(horizons)
@@ -188,11 +168,8 @@ def evaluate_model(model, windows: list, horizons: tuple[int, ...],
 
 
 def summarise(errors: dict[str, dict[int, np.ndarray]]) -> dict[str, dict[str, dict[str, float]]]:
-    """Mean and standard error over trajectories of each metric and horizon.
-
-    Over the finite values: ``n`` counts them, ``diverged`` the trajectories whose rollout left
-    the finite numbers before that horizon (NaN there).
-    """
+    """Mean and standard error over the finite values of each metric and horizon; ``n`` counts them,
+    ``diverged`` the NaN ones."""
     return {m: {f"t+{h}": _mean_sem(values) for h, values in by_h.items()} for m, by_h in errors.items()}
 
 
@@ -222,14 +199,11 @@ def select_windows(dataset: EpisodeWindows, stride: int, limit: int | None) -> l
 
 
 def episode_start_windows(data: str | Path, split: str, limit: int | None = None) -> list[HeteroData]:
-    """One window per episode of ``split``: from the earliest start ``t = 2`` to the episode's end.
+    """One window per episode of ``split``, from ``t = 2`` to its end (horizon ``T_e = S_e - 2``);
+    episodes under 3 steps skipped, at most ``limit``, in seed order.
 
-    The window of episode ``e`` (``S_e`` steps) has horizon ``T_e = S_e - 2``, so one rollout
-    covers the whole episode, whatever its length (episodes may differ). Episodes of fewer than
-    3 steps are skipped; at most ``limit`` windows, in seed order.
-
-    **Shapes:** window ``e`` holds ``pos_seq`` ``[N_e, S_e + 1, 3]`` (``x_0 .. x_{S_e}``) and
-    ``force_seq`` ``[N_e, S_e - 2, 3]``.
+    **Shapes:** window ``e`` holds ``pos_seq`` ``[N_e, S_e + 1, 3]`` and ``force_seq``
+    ``[N_e, S_e - 2, 3]``.
     """
     probe = EpisodeWindows(data, split, horizon=1)
     lengths = [episode_steps(path) - HISTORY for path in probe.paths]
@@ -248,19 +222,13 @@ def episode_start_windows(data: str | Path, split: str, limit: int | None = None
 @torch.no_grad()
 def evaluate_long(model, windows: list, horizons: tuple[int, ...],
                   device: torch.device | str = "cpu") -> dict[str, Any]:
-    """Roll ``model`` over whole-episode windows (:func:`episode_start_windows`) and score them.
+    """Roll ``model`` (on ``device``) over whole-episode windows (:func:`episode_start_windows`, equal
+    lengths batched) and score them: horizon ``h`` read at step ``min(h, T_e)``, the rest metrics
+    (:func:`hrn_pyg.evaluate.rest.rest_metrics`) over the whole rollout.
 
-    Windows of equal length are rolled out together as one batched graph. Horizon ``h`` is read
-    at step ``min(h, T_e)`` of window ``e``; the rest metrics (:func:`hrn_pyg.evaluate.rest.rest_metrics`)
-    use the whole rollout, which ends at the episode's end. ``model`` must already be on
-    ``device``; results come back to the CPU.
-
-    **Shapes** (``E`` windows, ``R`` objects at rest at the end of the ground truth, over all
-    windows): returns ``errors`` ``{metric: {h: [E]}}``, ``steps`` ``{h: [E]}`` (the step each
-    horizon was read at), ``ground_depth`` and ``truth_ground_depth`` ``[E]``,
-    ``rest_height_error`` and ``rest_drift`` ``[R]`` (numpy arrays), ``diverged_at`` ``[E]``
-    (the step a window's rollout left the finite numbers, 0 for none; its errors from there on and
-    its rest metrics are NaN).
+    **Shapes** (``E`` windows, ``R`` objects at rest at the end of the truth): returns ``errors``
+    ``{metric: {h: [E]}}``, ``steps`` ``{h: [E]}``, ``ground_depth`` and ``truth_ground_depth``
+    ``[E]``, ``rest_height_error`` and ``rest_drift`` ``[R]``, ``diverged_at`` ``[E]`` (0 for none).
     """
     lengths = np.array([int(w[NODE].force_seq.shape[1]) for w in windows])
     count = len(windows)
@@ -304,11 +272,8 @@ def evaluate_long(model, windows: list, horizons: tuple[int, ...],
 
 
 def horizon_label(horizon: int, steps: np.ndarray) -> str:
-    """Table header of a long horizon read at ``steps`` (one per episode, ``min(h, T_e)``).
-
-    ``t+50`` when every episode reaches it, ``t+47 (end)`` when all end earlier at the same
-    step, ``t+40..50 (end)`` when episode lengths differ and some end earlier.
-    """
+    """Header of a long horizon read at ``steps``: ``t+50``, ``t+47 (end)`` when all end earlier at
+    one step, ``t+40..50 (end)`` when some end earlier."""
     lo, hi = int(steps.min()), int(steps.max())
     if lo == hi == horizon:
         return f"t+{horizon}"
@@ -329,12 +294,8 @@ def _mean_sem(values: np.ndarray) -> dict[str, float]:
 
 
 def summarise_long(result: dict[str, Any]) -> dict[str, dict]:
-    """Mean ± standard error of :func:`evaluate_long`'s output.
-
-    Returns ``{"long": {metric: {"t+h": {mean, sem, n, label, step_min, step_max}}}, "rest":
-    {ground_depth: {mean, sem, n, max}, rest_height_error: {mean, sem, n}, rest_drift: ...}}``;
-    ``ground_depth`` is over trajectories, the other two over objects at rest.
-    """
+    """Mean ± standard error of :func:`evaluate_long`'s output: ``{"long": {metric: {"t+h": {mean,
+    sem, n, label, step_min, step_max}}}, "rest": {name: {mean, sem, n[, max]}}}``."""
     long: dict[str, dict[str, dict]] = {}
     for m, by_h in result["errors"].items():
         long[m] = {}
@@ -360,13 +321,8 @@ def _cell(stats: dict[str, float], count: bool = False) -> str:
 
 
 def long_table(summaries: dict[str, dict], scene: str) -> str:
-    """Long rollouts: one row per model (``summaries[name]`` from :func:`summarise_long`).
-
-    Position / velocity / shape MSE at each distinct long horizon (horizons past every
-    episode's end collapse into one ``(end)`` column), then the rest metrics: lowest movable
-    leaf below the ground (m, over trajectories), rest height error and rest drift (m, over
-    objects at rest, their count in brackets).
-    """
+    """Long rollouts, one row per model (:func:`summarise_long`): the MSEs at each distinct long
+    horizon, then the lowest leaf below the ground and the rest height error and drift."""
     first = next(iter(summaries.values()))["long"]
     columns: dict[str, str] = {}  # label -> "t+h" key, first horizon per label
     for key, stats in first[METRICS[0]].items():
@@ -404,11 +360,9 @@ def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 1
 
 def rest_check(model, episode: Mapping[str, Any], steps: int,
                limits: StabilityLimits = StabilityLimits()) -> dict[str, float | bool] | None:
-    """:func:`hrn_pyg.sim.stability.stability_report` of ``steps`` steps of ``model`` alone (no
-    object sleeps, no force) from the last state of ``episode`` (an episode file's arrays,
-    :func:`hrn_pyg.data.io.load_episode`); None when pybullet's objects are not all at rest
-    there (:func:`hrn_pyg.evaluate.rest.objects_at_rest`). A rollout that leaves the finite numbers
-    is reported as not finite and not holding, with its ``error``."""
+    """:func:`hrn_pyg.sim.stability.stability_report` of ``steps`` force-free steps of ``model`` from
+    the last state of ``episode``; None when pybullet's objects are not all at rest there
+    (:func:`hrn_pyg.evaluate.rest.objects_at_rest`)."""
     truth = torch.as_tensor(episode["positions"], dtype=torch.float32)
     obj = torch.as_tensor(episode["leaf_object"], dtype=torch.long)
     count = int(obj.max()) + 1

@@ -1,28 +1,15 @@
-r"""Graph Network-based Simulator (GNS; Sanchez-Gonzalez et al., ICML 2020): the flat baseline.
+"""Graph Network-based Simulator (GNS; Sanchez-Gonzalez et al., ICML 2020): the flat baseline.
 
-A GNS sees the leaves only: no hierarchy, one radius graph over every leaf of the scene (within
-and between objects), encode-process-decode with ``M`` interaction-network steps, and a decoder
-to each leaf's acceleration. It plugs into the package's one step (:mod:`hrn_pyg.sim.step`) as
-the HRN does: :func:`~hrn_pyg.sim.step.build_inputs` makes the same
-:class:`~hrn_pyg.nn.hrn.HRNInputs` (with the ground-contact column), :class:`GNS` reads the
-leaf rows it needs from them, and :func:`~hrn_pyg.sim.step.decode` integrates its output by
-semi-implicit Euler, so rollouts, sampling, sleeping and evaluation run it unchanged.
+A GNS sees the leaves only: one radius graph over every leaf (within and between objects),
+encode-process-decode with ``M`` interaction-network steps, decoded to each leaf's acceleration.
+It plugs into the package's one step (:mod:`hrn_pyg.sim.step`) as the HRN does: it reads the
+leaf rows of the same :class:`~hrn_pyg.nn.hrn.HRNInputs`, and
+:func:`~hrn_pyg.sim.step.decode` integrates its output by semi-implicit Euler.
 
-What differs from the paper, and why:
-
-* **Two input velocities**, not five: the package's state (every rollout, the sleeping
-  sub-graphs, the RL environment, the training windows) carries three positions
-  :math:`x_{t-2}, x_{t-1}, x_t` (:data:`~hrn_pyg.data.graph.HISTORY` = 2), the HRN's history.
-  A longer history would change that state for every model and caller.
-* **External force and mass** are node inputs: our scenes push objects (impulses on the cubes,
-  the kick of the soft cube) and draw each object's mass per episode; the paper's scenes have
-  neither pushes nor per-episode masses (a particle type fixes its mass there).
-* **Ground only**: the clipped distance to the lower boundary is the distance to the ground
-  plane :math:`\mathrm{clip}(z / R, -1, 1)`; our scenes have no walls.
-* **Material**: a learnt embedding of the package's material code (rigid, soft, cloth, static)
-  and the stiffness as a number, in place of the particle-type embedding.
-* **MC dropout**: optional masks on the hidden activations of the processor's MLPs (one mask
-  per trajectory copy and step, shared by every edge and node of that copy, as the HRN's).
+Differences from the paper: two input velocities, not five (the package's state holds
+:data:`~hrn_pyg.data.graph.HISTORY` = 2); external force and mass as node inputs (our scenes
+push objects and draw masses); the ground plane as the only boundary; a material embedding and
+stiffness in place of the particle type; optional MC dropout masks, as the HRN's.
 """
 
 from __future__ import annotations
@@ -89,15 +76,14 @@ class GNSConfig(NetworkConfig):
         depth: hidden layers of every MLP.
         activation: MLP activation (see :data:`hrn_pyg.nn.mlp.ACTIVATIONS`).
         message_passing_steps: ``M``, interaction-network steps of the processor.
-        collision_radius: the connectivity radius ``R`` (metres): leaves closer than this are
-            connected, within and between objects; also the radius of the rollout's collision
-            search (which sleeping reads) and of the ground column.
+        collision_radius: the connectivity radius ``R`` (m), also of the collision search and the
+            ground column.
         material_embedding: size of the learnt embedding of the material code.
         dropout_rate: default rate of :meth:`GNS.sample_masks` (0: deterministic).
         dropout_modules: which parts take a dropout mask (names from :data:`MODULE_NAMES`).
-        rigid_fit: replace the predicted motion of every rigid object's leaves by its best rigid
-            transform (:func:`hrn_pyg.sim.step.rigid_leaf_positions`), after the network.
-        network: always :data:`NETWORK`; it tells a checkpoint's reader which model to build.
+        rigid_fit: replace each rigid object's leaf motion by its best rigid transform
+            (:func:`hrn_pyg.sim.step.rigid_leaf_positions`).
+        network: always :data:`NETWORK`; tells a checkpoint's reader which model to build.
     """
 
     latent: int = 128
@@ -159,9 +145,8 @@ def radius_graph(pos: Tensor, radius: float, batch: Tensor | None = None) -> Ten
     .. math::
         \mathcal{E} = \{(j, i) : j \ne i,\ b_j = b_i,\ \lVert x_i - x_j \rVert < R\}
 
-    The package's collision search (:func:`hrn_pyg.data.radius.collision_edges`) with every
-    point an object of its own, so pairs within an object are kept too. Sorted by destination,
-    then source; no gradient flows into the edge set.
+    (:func:`hrn_pyg.data.radius.collision_edges` with every point its own object), sorted by
+    destination, then source.
 
     **Shapes:** pos ``(L, 3)``, batch ``(L,)``; returns ``(2, |E|)`` (row 0 source ``j``).
     """
@@ -183,25 +168,13 @@ class GNS(MessagePassing):
             \qquad (m = 0 .. M-1) \\
         \hat a_i &= \delta^V\bigl(h_i^{M}\bigr)
 
-    over the leaves :math:`i` and the edges :math:`j \to i` of :func:`radius_graph` (radius
-    :math:`R`, within and between objects). :math:`\hat v` are the normalised velocities,
-    :math:`g_i = \mathrm{clip}(z_i / R, -1, 1)` the clipped distance to the ground,
-    :math:`k_i` the material code, :math:`\kappa_i` the stiffness, :math:`\hat m_i` the
-    normalised log mass and :math:`\hat f_i` the normalised external force. Every
-    :math:`\varepsilon, \phi, \delta` is an MLP; LN is a LayerNorm (none after the decoder).
-    Only differences of positions enter, so shifting every position horizontally (or lifting a
-    scene that is clear of the ground by more than :math:`R`) changes nothing.
-
-    The output is the normalised acceleration :math:`\hat a_i = (a_i - \mu_a) / \sigma_a` of
-    every leaf (``acceleration_mean`` / ``acceleration_std``, buffers fitted on the training
-    data by :func:`fit_acceleration`) and zero on ancestor rows;
-    :func:`hrn_pyg.sim.step.decode` integrates it by semi-implicit Euler,
-    :math:`v(t+1) = v(t) + a`, :math:`x(t+1) = x(t) + v(t+1)`, zero on static leaves.
-
-    A dropout mask (:meth:`sample_masks`) is a ``[B, hidden]`` table per part of
-    ``config.dropout_modules``, one row per trajectory copy, applied to every hidden layer of
-    that part's MLPs (for ``processor``: all ``2 M`` of them); an edge takes the row of its
-    destination's copy.
+    over the leaves and the edges of :func:`radius_graph`. :math:`\hat v`: normalised velocities,
+    :math:`g_i = \mathrm{clip}(z_i / R, -1, 1)`, :math:`k_i` material code, :math:`\kappa_i`
+    stiffness, :math:`\hat m_i` normalised log mass, :math:`\hat f_i` normalised force; every
+    :math:`\varepsilon, \phi, \delta` an MLP, LN a LayerNorm. The output is the normalised
+    acceleration :math:`\hat a_i = (a_i - \mu_a) / \sigma_a` (buffers of :func:`fit_acceleration`),
+    zero on ancestor rows. A dropout mask (:meth:`sample_masks`) is a ``[B, hidden]`` table per part,
+    one row per trajectory copy, on every hidden layer of that part's MLPs.
 
     **Shapes:**
         - **input:** :class:`~hrn_pyg.nn.hrn.HRNInputs` over :math:`|\mathcal{V}|` nodes (state
@@ -337,12 +310,9 @@ def leaf_accelerations(pos_seq: Tensor) -> Tensor:
 
 @torch.no_grad()
 def fit_acceleration(windows: Iterable[HeteroData], model: GNS) -> GNS:
-    """Fit ``model.acceleration_mean`` / ``acceleration_std`` on training windows, in place.
-
-    The per-axis mean and standard deviation of :func:`leaf_accelerations` over the moving
-    leaves of every window's ``pos_seq`` (sums in float64); an axis that never varies (std 0)
-    takes the mean scale of the others, or 1 when none varies. Returns ``model``.
-    """
+    """Fit ``model.acceleration_mean`` / ``acceleration_std`` in place: the per-axis mean and std of
+    :func:`leaf_accelerations` over the moving leaves of the windows (float64 sums); a constant axis
+    takes the others' mean scale, or 1. Returns ``model``."""
     total, squares, count = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 0
     for window in windows:
         store = window[NODE]

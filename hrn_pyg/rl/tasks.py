@@ -1,48 +1,25 @@
 """The manipulation tasks: the seed paper's two (section 4.3), three with room to learn and one
-with an uncertain outcome;
-configs and goal tests.
+with an uncertain outcome; configs and goal tests.
 
-``cube_push``: two rigid cubes that pass through each other; the agent pushes the cubes (one
-horizontal force per cube) and succeeds when at least one cube's centre lies inside a goal
-disc on the ground. At most 10 steps. Dropout 0.1 on the force module, held constant.
+- ``cube_push``: two rigid cubes; one horizontal force per cube; success when a cube's centre is
+  inside a goal disc. 10 steps; dropout 0.1 on the force module.
+- ``tower``: three stacked cubes and a ball; a 3-vector force on the ball; success when the
+  middle cube has left the tower axis by more than ``goal_radius``. 15 steps; dropout on force
+  and collision, annealed 0.1 -> 0 over 1200 PPO updates.
+- ``cube_push_stop``: a cube must stop (< 5 mm per step) inside a 3 cm disc 0.15-0.3 m from the
+  origin, within 20 steps (a full push overshoots, :func:`experiments.rl.planners.stop_push`
+  brakes). Dropout 0.3 on force.
+- ``cube_push_hold``: as ``cube_push_stop``, but stopped (< 3 mm per step) for 3 steps in a row.
+- ``tower_aside``: the middle cube must reach a 4.5 cm disc 12-15 cm beside the tower, at least
+  45 degrees off the ball-tower line, within 40 steps (the ball must go around,
+  :func:`experiments.rl.planners.aside_push`). Dropout 0.3 on force and collision.
+- ``tower_top_aside``: the top cube must come to rest (< 1 cm per step) in a 5 cm disc 12-16 cm
+  beside the tower within 40 steps: an uncertain outcome, for planners that weigh futures.
 
-``tower``: three stacked cubes and a ball; the agent pushes only the ball (a 3-vector force, so
-it can loft the ball) and succeeds when the middle cube's centre has left the tower axis by
-more than ``goal_radius`` (one cube edge). At most 15 steps. Dropout on the force and
-collision modules, annealed linearly 0.1 -> 0 over 1200 PPO updates.
-
-``cube_push_stop`` (the cube_push scene and model): a cube must *stop* (slower than 5 mm per
-step) inside a 3 cm disc drawn 0.15-0.3 m from the origin and at least 0.15 m from both cubes,
-within 20 steps. A full-force push at the goal overshoots; a push that brakes in time
-(:func:`experiments.rl.planners.stop_push`) succeeds. Dropout 0.3 on the force module.
-
-``cube_push_hold`` (the cube_push scene and model): as ``cube_push_stop``, but the cube must
-stay stopped (slower than 3 mm per step) inside the 3 cm disc for 3 steps in a row. A pass that
-stops for one step does not count; the samples straddle the slower speed bound on most of the
-steps spent holding, so reward relaxation acts on many steps of an episode, not only its last.
-
-``tower_aside`` (the tower scene and model): the middle cube must reach a 4.5 cm disc 12-15 cm
-beside the tower, on a side at least 45 degrees off the line from the ball to the tower, within
-40 steps. Pushing the ball straight at the tower moves the stack along that line and never gets
-there; driving the ball around the tower first (:func:`experiments.rl.planners.aside_push`) does.
-Dropout 0.3 on the force and collision modules.
-
-``tower_top_aside`` (the tower scene and model): the *top* cube must come to rest (slower than
-1 cm per step) inside a 5 cm disc 12-16 cm beside the tower, off the line from the ball to the
-tower, within 40 steps. The stack slides or topples when the ball strikes it, and where a
-falling cube comes to rest is the part of the tower's physics the learned model is least sure
-of: a task whose outcome is uncertain, for planners that weigh sampled futures.
-
-A goal is a ``(B, 2)`` ground-plane point: the centre of the goal disc (``region``, ``aside``) or the
-tower axis (``displaced``). Goal tests take root states with any leading dimensions, so one call
-judges all ``k`` samples of all ``B`` environments.
-
-**Goals need a policy.** :func:`sample_goal` never returns a goal that is already met at reset:
-every goal starts at least ``goal_margin`` (5 cm, half a cube edge) away from being met
-(:func:`goal_clearance`), whatever the training mode, since every mode draws its goals here.
-
-Also the names of the five training modes (:data:`MODES`), shared by the PPO loop and the
-summaries, and which of them train without reward relaxation (:data:`UNRELAXED_MODES`).
+A goal is a ``(B, 2)`` ground point (the disc centre, or the tower axis for ``displaced``).
+Goal tests take root states with any leading dimensions. :func:`sample_goal` never returns a
+goal met at reset: each starts ``goal_margin`` away (:func:`goal_clearance`). Also the training
+modes (:data:`MODES`) and those without reward relaxation (:data:`UNRELAXED_MODES`).
 """
 
 from __future__ import annotations
@@ -78,51 +55,29 @@ class TaskConfig:
         max_steps: episode length limit; the episode is truncated when reached.
         num_objects: ``O``, movable objects in the scene (root states in the observation).
         controlled_objects: objects the action pushes, in action order.
-        force_axes: force components the action sets for each controlled object (0=x, 1=y, 2=z);
-            the action has ``len(controlled_objects) * len(force_axes)`` entries.
-        max_force: bound on every action entry, Newton; the top of the random-force range
-            the task's training scenes were generated with (the ``force_range`` setting of the
-            scene files ``cube_push.toml``, 15 N, and ``tower.toml``, 8 N), because the
-            learned model is only trusted inside the forces it was trained on.
-        goal_kind: ``"region"`` (an object inside the goal disc) or ``"displaced"`` (an object
-            farther than ``goal_radius`` from the goal point).
+        force_axes: force components the action sets per controlled object (0=x, 1=y, 2=z); the
+            action has ``len(controlled_objects) * len(force_axes)`` entries.
+        max_force: bound on every action entry (N): the top of the training scenes' ``force_range``,
+            where the learned model is trusted.
+        goal_kind: ``"region"`` (an object inside the disc), ``"aside"`` (a region beside the first
+            goal object) or ``"displaced"`` (an object farther than ``goal_radius`` from the point).
         goal_objects: objects the goal test looks at; any one of them suffices.
         goal_radius: disc radius or displacement threshold, metres.
-        goal_distance: for ``region``, the disc centre is drawn at this range of distances from
-            the origin, in a uniformly random direction.
-        goal_margin: how far, metres, every goal lies from being met at reset
-            (:func:`goal_clearance` ``> goal_margin``): ``region`` discs are drawn at least
-            ``goal_radius + goal_margin`` from every goal object; a ``displaced`` goal object must
-            start within ``goal_radius - goal_margin`` of the goal point. The default, 5 cm (half
-            a cube edge), is five times what resting cubes drift under a zero action in a whole
-            episode of the learned model (``hrn_pyg/checkpoints/cube_push.pt``: at most 1.1 cm
-            over 10 zero-force steps, any of 5 samples, dropout 0 or 0.1, 16 pool scenes), so no
-            goal is met without acting, yet it takes only a disc of 0.15 m radius around each
-            cube out of the goal ring.
+        goal_distance: range of the disc centre's distance from the origin (``region``) or from the
+            first goal object (``aside``).
+        goal_margin: metres every goal lies from being met at reset (:func:`goal_clearance`); 5 cm
+            is five times the zero-action drift of the learned model over an episode.
         dropout_modules: HRN modules that get Monte Carlo dropout.
         dropout_rate: rate at the start of training (the ``stochastic`` modes).
         anneal_updates: PPO updates over which ``stochastic_annealed`` brings the rate to 0.
         num_samples: ``k``, futures sampled per step for reward relaxation.
         step_penalty: reward added on every step that does not reach the goal (<= 0).
-        scene: the scene the task is played in (a built-in scene file, ``hrn_pyg.data.scene_file``
-            ``make_scene``) and the point-mass layout; ``""``: the task's ``name``. Several tasks
-            may share one scene (and so one trained model).
-        goal_speed: for ``region`` and ``aside`` goals, if positive, a goal object counts only
-            when it is also slower than this, metres per step (the root velocity is the
-            per-step displacement): the object must *stop* in the disc, not pass through it.
-            0: no speed condition.
-        hold_steps: consecutive steps the goal test must hold for the episode to succeed and
-            end; 1: the first goal-reaching step ends it (the seed paper's tasks). With more,
-            the agent must keep the goal object in the goal, not touch it once.
+        scene: the built-in scene file the task is played in; ``""``: the task's ``name``.
+        goal_speed: if positive, a goal object counts only when slower than this (m per step).
+        hold_steps: consecutive goal steps needed to succeed (1: the first one ends the episode).
 
-    ``aside`` goals (:func:`sample_goal`): a disc of ``goal_radius`` for the goal objects whose
-    centre lies ``goal_distance[0]`` to ``goal_distance[1]`` from the first goal object's start,
-    along one of the two world axes (``±x``, ``±y``) that are 45-135 degrees off the line from
-    the first controlled object to the first goal object: pushing the controlled object
-    straight at the goal object moves it along that line, away from the disc.
-
-    ``scene``, ``goal_speed`` and ``hold_steps`` are left out of :meth:`to_dict` at their
-    defaults, so that the records of runs made before they existed still match.
+    ``scene``, ``goal_speed`` and ``hold_steps`` are left out of :meth:`to_dict` at their defaults,
+    so older run records still match.
     """
 
     name: str
@@ -267,19 +222,13 @@ def action_to_forces(task: TaskConfig, action: Tensor) -> Tensor:
 
 
 def sample_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> Tensor:
-    """A goal for each environment from its initial root states ``(B, O, 6)`` -> ``(B, 2)``,
-    never met at reset.
+    """A goal for each environment from its initial root states ``(B, O, 6)`` -> ``(B, 2)``, never met
+    at reset.
 
-    ``region``: :data:`GOAL_CANDIDATES` disc centres per environment, each at a distance drawn
-    uniformly from ``goal_distance`` in a uniform direction; the first whose
-    :func:`goal_clearance` exceeds ``goal_margin`` (farther than ``goal_radius + goal_margin``
-    from every goal object) is kept. ``displaced``: the current ground-plane position of the
-    (first) goal object. Drawn on ``generator``'s device (always the same number of draws),
-    returned on ``roots``'.
-
-    Raises ``ValueError`` if an environment has no such goal: every candidate lies near a goal
-    object (a ``goal_distance`` range that the reset positions cover), or a displaced goal's
-    objects start apart.
+    ``region``: the first of :data:`GOAL_CANDIDATES` centres (distance uniform in
+    ``goal_distance``, uniform direction) whose :func:`goal_clearance` exceeds ``goal_margin``;
+    ``aside``: :func:`aside_goal`; ``displaced``: the first goal object's ground position. Drawn on
+    ``generator``'s device with a fixed number of draws. ValueError if no such goal exists.
     """
     B = roots.shape[0]
     if task.goal_kind == "displaced":
@@ -316,11 +265,9 @@ def aside_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> T
     r"""Disc centres beside the first goal object, off the controlled object's line: ``(B, 2)``.
 
     With :math:`g` the first goal object's and :math:`c` the first controlled object's ground
-    position and :math:`d = g - c`, the sideways axis is :math:`e = \hat x` if
-    :math:`|d_x| < |d_y|` else :math:`\hat y` (the world axis at least 45 degrees off
-    :math:`d`), and the centre is :math:`g + s\, \rho\, e` with a sign
-    :math:`s = \pm 1` and a distance :math:`\rho \sim \mathcal U[\text{goal\_distance}]`, two
-    draws per environment from ``generator`` (on its device), returned on ``roots``' device.
+    position and :math:`d = g - c`: :math:`g + s\, \rho\, e` with :math:`e = \hat x` if
+    :math:`|d_x| < |d_y|` else :math:`\hat y`, :math:`s = \pm 1` and
+    :math:`\rho \sim \mathcal U[\text{goal\_distance}]` drawn from ``generator``.
     """
     B = roots.shape[0]
     g = roots[:, task.goal_objects[0], :2]
@@ -337,12 +284,10 @@ def aside_goal(task: TaskConfig, roots: Tensor, generator: torch.Generator) -> T
 def goal_clearance(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     r"""How far, metres, each state is from meeting the goal (``<= 0``: met, for ``region``).
 
-    ``region`` and ``aside``: :math:`\min_{i \in G} \lVert x_i^{xy} - g \rVert - r` (distance
-    of the nearest goal object to the disc's rim), with a ``goal_speed`` :math:`v_{\max} > 0`
+    ``region`` and ``aside``: :math:`\min_{i \in G} \lVert x_i^{xy} - g \rVert - r`, with a
+    ``goal_speed`` :math:`v_{\max} > 0`
     :math:`\min_{i \in G} \max(\lVert x_i^{xy} - g \rVert - r,\ \lVert v_i \rVert - v_{\max})`;
-    ``displaced``: :math:`r - \max_{i \in G} \lVert x_i^{xy} - g
-    \rVert` (room left before an object leaves the disc). :func:`goal_reached` is true exactly
-    when the clearance is ``<= 0`` (``region``) or ``< 0`` (``displaced``).
+    ``displaced``: :math:`r - \max_{i \in G} \lVert x_i^{xy} - g \rVert` (met when ``< 0``).
 
     **Shapes**: roots ``(*lead, O, 6)``, goal broadcastable to ``(*lead, 2)`` -> ``(*lead,)``.
     """
@@ -360,12 +305,11 @@ def goal_clearance(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
 def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
     r"""Whether each state meets the task's goal.
 
-    ``region`` and ``aside``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert \le r`
-    (and :math:`\lVert v_i \rVert \le v_{\max}` with a ``goal_speed`` :math:`v_{\max} > 0`);
-    ``displaced``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert > r`.
+    ``region`` and ``aside``: :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert \le r` (and
+    :math:`\lVert v_i \rVert \le v_{\max}` with a ``goal_speed``); ``displaced``:
+    :math:`\exists i \in G: \lVert x_i^{xy} - g \rVert > r`.
 
-    **Shapes**: roots ``(*lead, O, 6)``, goal broadcastable to ``(*lead, 2)`` (e.g. ``(B, 1, 2)``
-    against ``(B, k, O, 6)``) -> ``(*lead,)`` bool.
+    **Shapes**: roots ``(*lead, O, 6)``, goal broadcastable to ``(*lead, 2)`` -> ``(*lead,)`` bool.
     """
     xy = roots[..., list(task.goal_objects), :2]                # (*lead, G, 2)
     dist = (xy - goal.unsqueeze(-2)).norm(dim=-1)               # (*lead, G)
@@ -378,13 +322,8 @@ def goal_reached(task: TaskConfig, roots: Tensor, goal: Tensor) -> Tensor:
 
 
 def goal_streak(held: int | Tensor, reached: bool | Tensor) -> int | Tensor:
-    r"""Goal-reaching steps in a row after one more step: :math:`c_{t+1} = (c_t + 1)\, h_t`.
-
-    ``held`` the count so far and ``reached`` whether this step met the goal, as numbers or as
-    tensors of one shape (int and bool); the episode of a task succeeds when the count reaches
-    ``task.hold_steps`` (:func:`goal_held`). The one rule the environment and the pybullet
-    judges (:mod:`hrn_pyg.rl.evaluate`) share.
-    """
+    r"""Goal-reaching steps in a row after one more step: :math:`c_{t+1} = (c_t + 1)\, h_t`, numbers or
+    tensors of one shape; success when it reaches ``task.hold_steps`` (:func:`goal_held`)."""
     return (held + 1) * reached
 
 

@@ -1,41 +1,30 @@
-r"""A rollout whose steps have fixed shapes: no host read inside a step, capturable as a CUDA graph.
+"""A rollout whose steps have fixed shapes: no host read inside a step, capturable as a CUDA graph.
 
-:func:`hrn_pyg.sim.rollout.iterate` waits for the device several times a step: the collision search
-reads back how many cells and pairs it found, the force module how many leaves are pushed, and
-the step checks its new positions for NaN. On a GPU each wait stalls the launch queue, and a
-small scene's step costs its waits, not its arithmetic. :func:`fixed_shape_rollout` gives the
-same positions with none of them inside a step:
+:func:`hrn_pyg.sim.rollout.iterate` waits for the device several times a step (the collision
+search's counts, the pushed leaves, the NaN check); on a GPU each wait stalls the launch queue.
+:func:`fixed_shape_rollout` gives the same positions with none of them inside a step:
 
-- collision pairs come from a list with a skin (:mod:`hrn_pyg.data.candidates`), searched when
-  the rollout starts and again only when a leaf has moved half the skin; each step marks the
-  pairs closer than the radius with a 0 / 1 weight, which the collision module multiplies in;
-- the force module runs on every row and zeroes the rows without force (``dense``), and whether
-  a step has a force at all comes from the rollout's :class:`~hrn_pyg.data.effects.EffectPlan`;
-- the step does not check its output; it returns a small report on the device: how far its
-  input has moved since the search, how far its output moves, and whether the output is finite.
+- collision pairs come from a list with a skin (:mod:`hrn_pyg.data.candidates`), searched again
+  only when a leaf has moved half the skin; each step weighs the pairs closer than the radius
+  by 1, the others by 0;
+- the force module runs on every row (``dense``); whether a step has a force comes from the
+  rollout's :class:`~hrn_pyg.data.effects.EffectPlan`;
+- the step returns a small report on the device (how far its input moved since the search, how
+  far its output moves, whether it is finite).
 
-The rollout runs up to ``check_every`` steps ahead, then reads the reports of all of them at
-once (one host read). Steps up to the first whose input had moved past the list's limit are
-kept (a non-finite output among them raises, as :func:`~hrn_pyg.sim.step.advance` does); from
-that step on, the list is searched anew and the steps are run again with the masks they had
-(``masks_fn`` is called once per step and its masks are kept until the step is final). So the
-result is that of the plain rollout with sleeping off, whatever the skin; the skin and
-``check_every`` only set what it costs. How many steps to run ahead is predicted from the last
-report (the margin left to the limit over the fastest node's last move, with a quarter to
-spare), and the list is searched before a step that would be predicted stale.
+The rollout runs up to ``check_every`` steps ahead, then reads all their reports at once. Steps
+up to the first whose input moved past the list's limit are kept (a non-finite one raises);
+from there the list is searched anew and the steps rerun with the same masks. So the result is
+the plain rollout's (sleeping off), whatever the skin. How far to run ahead is predicted from
+the last report.
 
-With ``cuda_graph=True`` (CUDA only) each kind of step (with or without force, each padded list
-size) is recorded once as a CUDA graph and replayed: one launch per step instead of hundreds.
-With ``compile=True`` (any device) each kind of step (with or without force, masks or not) is
-compiled by ``torch.compile``, the candidate list's length left dynamic (after the first list
-of another length, one graph serves every length, so lists are not padded): on a CPU the step's
-few hundred small operations become a few fused kernels, so a step costs its arithmetic rather
-than its dispatches. The first steps pay the compilation (seconds to a minute on a CPU); the
-positions are those of the eager step up to the rounding of reordered float arithmetic.
+``cuda_graph=True`` (CUDA) records each kind of step (force or not, each padded list size) once
+and replays it. ``compile=True`` compiles each kind with ``torch.compile``, the list's length
+dynamic; positions equal the eager step's up to rounding.
 
 A model with ``cloth_clearance`` on a scene whose cloth can land on another object, or with
-``solid_clearance`` on a scene with a moving soft or rigid body beside another object, is refused
-(those rules' sizes depend on the contacts of the step); elsewhere it runs as any model.
+``solid_clearance`` on a scene with a moving soft or rigid body beside another object, is
+refused (those rules' sizes depend on the step's contacts).
 """
 
 from __future__ import annotations
@@ -74,15 +63,13 @@ class FixedShapeConfig:
     """How :func:`fixed_shape_rollout` trades searches against repeated steps.
 
     Attributes:
-        skin: the candidate list's skin, as a fraction of the model's collision radius: larger
-            means rarer searches and more candidate pairs per step.
-        check_every: most steps run before the flags are read (one host read per read).
+        skin: the candidate list's skin, a fraction of the collision radius (larger: rarer searches,
+            more pairs per step).
+        check_every: most steps run before the reports are read (one host read each time).
         cuda_graph: record each kind of step as a CUDA graph and replay it (CUDA only).
-        compile: compile each kind of step with ``torch.compile`` (the node count fixed, the
-            candidate list's length dynamic). The compiled steps check only their inputs and
-            torch's global state before they run (:func:`step_input_guards`): the model and the
-            scene's static graph must stay as they were when the simulator was made (their
-            weights' values may change; a changed model or graph needs a new simulator).
+        compile: compile each kind of step with ``torch.compile``; the guards check only the inputs
+            and torch's global state (:func:`step_input_guards`), so the model and the static graph
+            must not be replaced (their weights may change).
     """
 
     skin: float = 0.5
@@ -125,14 +112,10 @@ SPEED_MARGIN = 1.25
 
 def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float, skin: float,
               mask_names: tuple[str, ...]) -> StepFn:
-    """The step of :func:`fixed_shape_rollout` as a function of tensors only (no host read).
-
-    ``graph`` holds the static attributes (tree, masses, materials, batch); the positions, the
-    force, the masks (in the order of ``mask_names``) and the candidate list come in as tensors,
-    so the same function can be recorded once and replayed with new values. ``options`` are what
-    the rollout knows (``force_active`` of the kind of step, ``objects`` of ``graph``); every
-    step runs them with ``check=False``, ``fixed_shape=True`` and its candidates' weights.
-    """
+    """The step of :func:`fixed_shape_rollout` as a function of tensors only (no host read): positions,
+    force, masks (in ``mask_names`` order) and candidates come in as tensors, so it can be recorded
+    once and replayed. It runs ``options`` with ``check=False``, ``fixed_shape=True`` and the
+    candidates' weights."""
     collisions = radius > 0
     options = replace(options, check=False, fixed_shape=True)
 
@@ -165,28 +148,23 @@ GLOBAL_GUARDS = frozenset({"GRAD_MODE", "GLOBAL_STATE", "DEFAULT_DEVICE", "DETER
 
 
 def step_input_guards(entries: list) -> list[bool]:
-    """The ``guard_filter_fn`` of a compiled step: keep the guards on the step's arguments
-    (:data:`STEP_INPUTS`: a new candidate count recompiles with a dynamic size, a new dtype or
-    device afresh) and on torch's global state (:data:`GLOBAL_GUARDS`); drop those on the model,
-    the scene's static graph and the package's functions, which the simulator holds fixed. The
-    step's graph is read through about a thousand guards otherwise, checked at every step: on
-    a pile of 10 objects they cost about 5 % of the step (``benchmarks/pile_step.py --compile``)."""
+    """The ``guard_filter_fn`` of a compiled step: keep the guards on its arguments
+    (:data:`STEP_INPUTS`) and torch's global state (:data:`GLOBAL_GUARDS`); drop those on the model,
+    the static graph and the package's functions, which the simulator holds fixed (about a thousand
+    guards, 5 % of a step on a pile of 10 objects)."""
     return [e.guard_type in GLOBAL_GUARDS or e.name.split("[")[0].split(".")[0] in STEP_INPUTS for e in entries]
 
 
 def own_code(fn: StepFn) -> StepFn:
-    """``fn`` with a code object of its own. ``torch.compile`` keeps its compiled graphs on the
-    code object and stops compiling one past ``torch._dynamo.config.recompile_limit`` graphs
-    (then it runs eagerly); every step function is the same closure code, so without this the
-    kinds of step of all simulators of a process would share that limit."""
+    """``fn`` with a code object of its own, so each simulator's kinds of step have their own
+    ``torch._dynamo.config.recompile_limit`` (compiled graphs are kept per code object)."""
     return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
 @torch.compiler.disable
 def graph_at(graph: HeteroData, pos: Tensor, prev: Tensor, prev2: Tensor, edge_index: Tensor) -> HeteroData:
-    """A shallow copy of ``graph`` at the state ``x_t, x_{t-1}, x_{t-2}`` with collision
-    candidates ``edge_index`` (left to Python when the step is compiled: a graph object is
-    copied, no tensor is computed)."""
+    """A shallow copy of ``graph`` at ``x_t, x_{t-1}, x_{t-2}`` with collision candidates
+    ``edge_index`` (no tensor computed)."""
     current = copy.copy(graph)
     store = current[NODE]
     store.pos, store.prev_pos, store.prev_prev_pos = pos, prev, prev2
@@ -234,12 +212,8 @@ def _steps_within(limit: float, moved: float, speed: float, most: int) -> int:
 
 
 class FixedShapeSimulator:
-    """A model and one scene, with the steps of :func:`fixed_shape_rollout` kept between rollouts
-    (with ``cuda_graph``, each kind of step is recorded once, not once per rollout).
-
-    ``graph`` is the scene at its start state (``pos``, ``prev_pos``, ``prev_prev_pos``; the
-    tree, masses and materials are shared with the steps); every :meth:`rollout` starts there.
-    """
+    """A model and one scene at its start state, with the steps of :func:`fixed_shape_rollout` kept
+    between rollouts (each kind recorded or compiled once); every :meth:`rollout` starts there."""
 
     def __init__(self, model: HRN, graph: HeteroData, config: FixedShapeConfig = FixedShapeConfig()) -> None:
         if config.cuda_graph and graph[NODE].pos.device.type != "cuda":
@@ -369,10 +343,8 @@ def fixed_shape_rollout(
     effects: SceneEffects | None = None,
     config: FixedShapeConfig = FixedShapeConfig(),
 ) -> FixedShapeRollout:
-    """The positions of :func:`hrn_pyg.sim.rollout.rollout` with ``sleep=None``, from fixed-shape
-    steps (see the module docstring). Inference only (no gradient is recorded); the arguments
-    are those of :func:`~hrn_pyg.sim.rollout.iterate`. ``masks_fn(t, graph)`` sees the graph at ``t``
-    without its collision edges. To roll one scene out several times, keep a
-    :class:`FixedShapeSimulator`.
-    """
+    """The positions of :func:`hrn_pyg.sim.rollout.rollout` with ``sleep=None``, from fixed-shape steps
+    (module docstring); inference only, the arguments of :func:`~hrn_pyg.sim.rollout.iterate`.
+    ``masks_fn(t, graph)`` sees the graph without collision edges. To roll one scene out several
+    times, keep a :class:`FixedShapeSimulator`."""
     return FixedShapeSimulator(model, graph, config).rollout(steps, forces, masks_fn, effects)
