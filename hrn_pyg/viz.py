@@ -1,15 +1,10 @@
 """Pictures of particle scenes: rollouts side by side (Fig. 5), sampled futures (Fig. 6), GIFs.
 
-Every function takes leaf positions as arrays ``[T, L, 3]`` (time, leaf, xyz) and writes its
-file atomically. Matplotlib runs on the ``Agg`` backend, so no screen is needed.
-
-Reading aids: the ground ``z = 0`` is a light line grid drawn *under* the particles (a filled
-surface would hide them); static objects (the wedge) are light grey; the axis limits come from
-the reference rollout (the ground truth) plus a margin, each axis its own length with the box
-drawn to scale, so one wild sample cannot shrink the scene (sample pictures also cover the
-central part of the sample points per axis and time step, between the quantiles
-:data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK``: 96 %). Points outside the limits are not
-drawn, and a panel says what fraction of its points it left out.
+Every function takes leaf positions ``[T, L, 3]`` and writes its file atomically (matplotlib
+``Agg``). The ground ``z = 0`` is a light grid under the particles; static objects are light
+grey; axis limits come from the reference rollout plus a margin, each axis to scale (sample
+pictures also cover the quantiles :data:`SAMPLES_BULK` to ``1 - SAMPLES_BULK`` of the samples),
+and a panel says what fraction of its points fell outside.
 """
 
 from __future__ import annotations
@@ -72,12 +67,8 @@ def object_colors(leaf_object: np.ndarray, static: np.ndarray | None = None) -> 
 
 
 def scene_limits(*positions: np.ndarray, pad: float = 0.05) -> np.ndarray:
-    """Axis limits ``[3, 2]`` covering every array given plus ``pad`` metres (ground z = 0 shown).
-
-    Each axis keeps its own length (at least :data:`MIN_EXTENT`, grown about its centre); the
-    panels draw the box to scale, so the scene is not squeezed into a cube set by its longest
-    axis. Non-finite points are ignored.
-    """
+    """Axis limits ``[3, 2]`` covering every finite point given plus ``pad`` metres (and z = 0), each
+    axis at least :data:`MIN_EXTENT` long, drawn to scale."""
     pts = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 3) for p in positions], axis=0)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) == 0:
@@ -95,12 +86,9 @@ def _inside(pos: np.ndarray, limits: np.ndarray) -> np.ndarray:
 
 
 def _bulk(samples: np.ndarray) -> np.ndarray:
-    """Corners ``[2, 3]`` of the central part of the sample points: the quantiles
-    :data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK`` per axis, taken at each time step apart (the
-    union over the steps), so the late, wide steps are not outvoted by the early, tight ones.
-
-    Shapes: ``samples [K, T, L, 3]`` (or ``[..., 3]``, one pool) ``-> [2, 3]``.
-    """
+    """Corners ``[2, 3]`` of the central part of the samples: per axis the quantiles
+    :data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK`` of each time step, united over the steps.
+    Shapes: ``samples [K, T, L, 3]`` (or ``[..., 3]``) ``-> [2, 3]``."""
     samples = np.asarray(samples, dtype=float)
     steps = [samples[:, t] for t in range(samples.shape[1])] if samples.ndim == 4 else [samples]
     corners = []
@@ -172,10 +160,8 @@ def save_figure(fig, path: str | os.PathLike, dpi: float | None = None) -> None:
 
 def rollout_grid(rows: dict[str, np.ndarray], times: Sequence[int], colors, path: str | os.PathLike,
                  title: str = "") -> None:
-    """One row per named rollout (e.g. ground truth, HRN, ours), one column per time (Fig. 5).
-
-    The axis limits come from the *first* row (by convention the ground truth) at the drawn
-    times; points of other rows outside them are left out and counted in the panel.
+    """One row per named rollout (ground truth first), one column per time (Fig. 5); limits from the
+    first row, other rows' points outside them counted in the panel.
 
     Shapes: each ``rows[name]`` is ``[T, L, 3]``; ``colors`` is ``[L]``.
     """
@@ -239,12 +225,8 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
                    path: str | os.PathLike, title: str = "", static: np.ndarray | None = None,
                    size: tuple[int, int] | None = None, view: tuple[float, float] = VIEW,
                    legend: bool = True) -> None:
-    """Ground truth dark, each sampled future light, overlaid per time column (Fig. 6).
-
-    Static leaves (``static``, or those coloured :data:`STATIC_COLOR`) are drawn once, light
-    grey. Limits cover the ground truth and the central part of the moving samples (per axis,
-    quantiles :data:`SAMPLES_BULK` and ``1 - SAMPLES_BULK``), plus :data:`SAMPLES_PAD`; sample
-    points outside them are counted in the panel, not drawn.
+    """Ground truth dark, each sampled future light, per time column (Fig. 6); static leaves drawn
+    once, grey. Limits: the truth and the samples' bulk plus :data:`SAMPLES_PAD`.
 
     Shapes: ``truth`` ``[T, L, 3]``, ``samples`` ``[K, T, L, 3]``, ``colors`` ``[L]``,
     ``static`` ``[L]`` bool.
@@ -270,15 +252,12 @@ def samples_figure(truth: np.ndarray, samples: np.ndarray, times: Sequence[int],
 def write_gif(frames: dict[str, np.ndarray], colors, path: str | os.PathLike, fps: float = 10,
               samples: np.ndarray | None = None, static: np.ndarray | None = None,
               size: tuple[int, int] | None = None, view: tuple[float, float] = VIEW, legend: bool = True) -> None:
-    """An animated GIF (or, for a path ending in ``.mp4``, an H.264 video through imageio-ffmpeg)
-    with one panel per named rollout; optional light sample clouds on top, with a legend.
-    ``size`` is each frame's (width, height) in pixels (a video's rounded down to even numbers).
+    """An animated GIF (or an H.264 ``.mp4`` through imageio-ffmpeg) with one panel per named rollout
+    and optional sample clouds in the first; ``size`` is a frame's (width, height) in pixels.
+    Limits as in :func:`samples_figure`.
 
-    Limits come from the first rollout (the ground truth) over all its frames and, with
-    ``samples``, the central part of the moving samples (as in :func:`samples_figure`).
-
-    Shapes: each ``frames[name]`` ``[T, L, 3]``; ``samples`` ``[K, T, L, 3]`` drawn in the first
-    panel; ``static`` ``[L]`` bool (default: leaves coloured :data:`STATIC_COLOR`).
+    Shapes: each ``frames[name]`` ``[T, L, 3]``; ``samples`` ``[K, T, L, 3]``; ``static`` ``[L]``
+    bool (default: leaves coloured :data:`STATIC_COLOR`).
     """
     import imageio.v2 as imageio
 

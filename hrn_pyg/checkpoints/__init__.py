@@ -1,15 +1,12 @@
 """The shipped checkpoints, by name, and how to load any model checkpoint.
 
-This folder holds the trained models the package ships (``<name>.pt``, remade by
-``make checkpoints`` from ``data/recipes.toml``; ``manifest.json`` says how each was made and
-what it was trained on). :func:`load_model` reads a model checkpoint written by ``hrn-pyg
-train``, given its path or a shipped model's name (``load_model("shapes")``; weights-only
-unpickling, so loading cannot run code); :func:`model_path` turns a name or path into the file,
-:func:`checkpoint_path` names a shipped file and :func:`resolve_model` picks the one a command
-should use. :func:`shipped_models` lists the shipped models with their manifest records
-(:class:`ShippedModel`) and :func:`checkpoint_domain` the domain a checkpoint was trained on
-(:mod:`hrn_pyg.checkpoints.domain`). Evaluation, sampling and RL load models through here,
-without the training stack.
+This folder holds the shipped models (``<name>.pt``, from ``make checkpoints`` and
+``data/recipes.toml``; ``manifest.json`` says how each was made and on what).
+:func:`load_model` reads a checkpoint of ``hrn-pyg train`` by path or name
+(``load_model("shapes")``; weights-only unpickling); :func:`model_path`,
+:func:`checkpoint_path` and :func:`resolve_model` find files; :func:`shipped_models` lists the
+models (:class:`ShippedModel`) and :func:`checkpoint_domain` gives a training domain
+(:mod:`hrn_pyg.checkpoints.domain`).
 """
 
 from __future__ import annotations
@@ -61,13 +58,8 @@ MAX_PARAMETERS = 50_000_000
 
 @dataclass(frozen=True)
 class ShippedModel:
-    """One shipped model as its manifest records it.
-
-    ``datasets`` are the recipe datasets it was trained on (the first is its own, the others
-    joined in a stage); ``scene`` the scene (a built-in name or a scene file) of the first;
-    ``rate`` and ``modules`` its calibrated sampling rate (None: never calibrated); ``test`` its
-    test errors where the manifest has them (metric -> value).
-    """
+    """One shipped model as its manifest records it: ``datasets`` (its own first), ``scene`` of the
+    first, calibrated ``rate`` and ``modules`` (None: never calibrated), ``test`` errors by metric."""
 
     name: str
     path: Path
@@ -106,11 +98,8 @@ def model_path(model: str | os.PathLike) -> Path:
 
 
 def resolve_model(scene: str, path: str | os.PathLike | None = None) -> Path:
-    """The checkpoint to use for ``scene``: ``path`` (a file or a shipped model's name), or the
-    shipped ``<scene>.pt`` when None.
-
-    Raises FileNotFoundError naming the missing file and the commands that make one.
-    """
+    """The checkpoint to use for ``scene``: ``path`` (a file or a shipped name), or the shipped
+    ``<scene>.pt``; FileNotFoundError naming the file and the commands that make one."""
     if path:
         return model_path(path)
     model = checkpoint_path(scene)
@@ -136,16 +125,10 @@ def display_name(path: str | os.PathLike) -> str:
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device | None = None) -> HRN:
-    """An :class:`~hrn_pyg.nn.hrn.HRN` with its normaliser from a checkpoint written by
-    ``hrn-pyg train`` (a path, or a shipped model's name: ``load_model("shapes")``), in eval
-    mode, on ``device`` (None: the CPU).
-
-    The model carries ``domain``, the :class:`~hrn_pyg.checkpoints.domain.Domain` it was
-    trained on (None when the checkpoint records none), and ``checkpoint_name``, how messages
-    name it. Raises FileNotFoundError for a name that is neither a file nor a shipped model, and
-    :class:`~hrn_pyg.utils.checkpoint.CheckpointError` (a ValueError) naming the file when it
-    is not a model checkpoint.
-    """
+    """An :class:`~hrn_pyg.nn.hrn.HRN` with its normaliser from a checkpoint of ``hrn-pyg train`` (a
+    path or a shipped name), in eval mode on ``device`` (None: CPU), carrying ``domain`` (or None)
+    and ``checkpoint_name``. FileNotFoundError for an unknown name;
+    :class:`~hrn_pyg.utils.checkpoint.CheckpointError` (a ValueError) for a file that is not one."""
     path = model_path(path)
     ckpt = load_checkpoint(path)
     try:
@@ -175,11 +158,8 @@ def checkpoint_config(path: str | os.PathLike) -> NetworkConfig:
 
 
 def check_model_size(config: NetworkConfig) -> None:
-    """ValueError naming the field when ``config`` asks for more than the limits allow: a depth
-    past :data:`MAX_DEPTH`, passes past :data:`MAX_PASSES`, another size past :data:`MAX_WIDTH`,
-    or more than :data:`MAX_PARAMETERS` parameters. The fields are compared first; then the
-    network is built on the ``meta`` device (shapes only, no memory for weights) and its
-    parameters counted, so a checkpoint's config is believed only once it is small enough."""
+    """ValueError naming the field when ``config`` exceeds :data:`MAX_DEPTH`, :data:`MAX_PASSES`,
+    :data:`MAX_WIDTH` or :data:`MAX_PARAMETERS` (counted on the ``meta`` device, no memory)."""
     for field in fields(config):
         if field.type not in (int, "int"):
             continue
@@ -226,11 +206,8 @@ def checkpoint_domain(path: str | os.PathLike, ckpt: dict[str, Any] | None = Non
 
 @lru_cache(maxsize=8)
 def training_domain(folders: tuple[str, ...], init_from: str = "", pitch_range: bool = False) -> Domain | None:
-    """The domain a training on the dataset ``folders`` gives its model, with that of the
-    ``init_from`` checkpoint it starts from (when that records one); None when a folder has no
-    episodes. ``pitch_range`` (a pitch-aware model): the domain also records the span of its
-    pitches (:attr:`~hrn_pyg.checkpoints.domain.Domain.pitch_range`), so any pitch between them
-    is inside. Read once per arguments (a run writes many checkpoints)."""
+    """The domain a training on the dataset ``folders`` gives its model, with that of ``init_from``;
+    None when a folder has no episodes. ``pitch_range``: also the span of its pitches. Cached."""
     try:
         domain = dataset_domain(list(folders))
     except FileNotFoundError:
@@ -246,10 +223,7 @@ def training_domain(folders: tuple[str, ...], init_from: str = "", pitch_range: 
 
 
 def read_manifest(path: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:
-    """The manifest's entries, model name -> record (empty when there is no manifest).
-
-    ``path`` defaults to the manifest shipped beside the checkpoints.
-    """
+    """The manifest's entries, name -> record (empty without one); ``path`` defaults to the package's."""
     path = Path(MANIFEST_PATH if path is None else path)
     if not path.is_file():
         return {}
@@ -309,11 +283,8 @@ def shipped_models() -> list[ShippedModel]:
 
 
 def with_applied_options(model: HRN, **options: Any) -> HRN:
-    """The same weights and normaliser under a config with ``options`` changed, for options of
-    :data:`APPLIED_OPTIONS` only (they change how the weights are applied, e.g. the mirror
-    average); the other settings fix which weights there are. Keeps ``model``'s train/eval mode
-    and its ``domain`` and ``checkpoint_name``.
-    """
+    """The same weights and normaliser under ``options`` of :data:`APPLIED_OPTIONS` (how the weights
+    are applied, e.g. the mirror average), keeping mode, ``domain`` and ``checkpoint_name``."""
     allowed = applied_options(model, APPLIED_OPTIONS)  # a GNS: its rigid fit
     unknown = sorted(set(options) - set(allowed))
     if unknown:
@@ -327,10 +298,9 @@ def with_applied_options(model: HRN, **options: Any) -> HRN:
 
 
 def write_applied(source: str | os.PathLike, options: dict[str, Any], target: str | os.PathLike) -> None:
-    """Write (atomically) to ``target`` the model checkpoint ``source`` (a path or a shipped name)
-    with the :data:`APPLIED_OPTIONS` ``options`` set in its config, everything else as it was (the
-    same weights, normaliser, step and domain). An option that is not an applied one, or a value
-    its config refuses, is a ``ValueError`` raised before anything is written."""
+    """Write ``source`` (a path or shipped name) to ``target`` atomically with the
+    :data:`APPLIED_OPTIONS` ``options`` set; ValueError for another option or a refused value,
+    before anything is written."""
     path = model_path(source)
     changed = with_applied_options(load_model(path), **options)  # checks the options and their values
     payload = {key: value for key, value in load_checkpoint(path).items() if key != "format"}

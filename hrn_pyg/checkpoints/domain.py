@@ -1,23 +1,16 @@
 """What a model was trained on, and what of a scene lies outside it.
 
-A :class:`Domain` summarises episodes: the voxel pitches (m) (and, for a pitch-aware model,
-their span), the materials, the range of an
-object's size (m across: the largest distance between two of its leaves at the start, plus one
-pitch; the same whatever the object's orientation),
-the range of moving objects per scene (objects that are not ``static``) and the fastest leaf
-speed (m/s; per step displacement over the step's duration). ``hrn-pyg train`` records the
-domain of its datasets in each checkpoint it writes; the shipped checkpoints carry theirs in
-``manifest.json`` (``domain``, derived from their recipe's datasets by
-``experiments/domains.py`` in the repository).
+A :class:`Domain` summarises episodes: voxel pitches (m) and, pitch-aware, their span;
+materials; object sizes (m, the largest leaf distance at the start plus a pitch); moving
+objects per scene; the fastest leaf speed (m/s). ``hrn-pyg train`` records it in each
+checkpoint; shipped models carry theirs in ``manifest.json``.
 
-:func:`outside` lists what of a scene's domain lies outside a model's and by how much, each as a
-:class:`Outside`; :func:`outside_line` makes that one line, e.g. ``shapes_d4.pt was trained at
-pitch 0.05 m; this scene's pitch is 0.025 m (0.5x)``. A scene is inside when its pitch is one
-the model saw (within :data:`PITCH_TOLERANCE`; for a domain with a ``pitch_range``, a
-pitch-aware model's, any pitch in that range widened by the tolerance), its materials are among the model's, its object
-count within the model's range, its object sizes within the model's range widened by
-:data:`SIZE_TOLERANCE` and its fastest leaf no faster than :data:`SPEED_TOLERANCE` times the
-model's. A field a domain does not know (None, or empty) is not compared.
+:func:`outside` lists what of a scene's domain lies outside a model's (:class:`Outside`),
+:func:`outside_line` as one line, e.g. ``shapes_d4.pt was trained at pitch 0.05 m; this scene's
+pitch is 0.025 m (0.5x)``. Inside means: a pitch seen (within :data:`PITCH_TOLERANCE`, or in
+the range), known materials, object count in range, sizes in range widened by
+:data:`SIZE_TOLERANCE`, speed at most :data:`SPEED_TOLERANCE` times. Unknown fields are not
+compared.
 """
 
 from __future__ import annotations

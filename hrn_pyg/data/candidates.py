@@ -1,25 +1,17 @@
 r"""Collision candidates with a skin: a pair set that stays valid while nothing moves far.
 
-The collision search (:mod:`hrn_pyg.data.radius`) finds the leaf pairs closer than the radius
-:math:`r` at every step, and how many there are is only known once the device has counted them:
-the step's shapes change with the data and the host has to wait for the answer. Molecular
-dynamics codes keep a *Verlet list* instead: every pair closer than :math:`r + s` (the skin
-:math:`s`) at the time of the search. While no leaf has moved more than :math:`s / 2` since then,
-no pair outside the list can have come closer than :math:`r`:
+A *Verlet list* holds every pair closer than :math:`r + s` (the skin :math:`s`) at the search.
+While no leaf has moved more than :math:`s / 2` since, no pair outside it can be closer than
+:math:`r`:
 
 .. math::
     \lVert x_i - x_j \rVert \ \ge\ \lVert x^0_i - x^0_j \rVert - \lVert x_i - x^0_i \rVert
         - \lVert x_j - x^0_j \rVert \ \ge\ (r + s) - 2 \cdot \tfrac{s}{2} = r,
 
-so the collision edges of a step are exactly the candidates with
-:math:`\lVert x_i - x_j \rVert^2 < r^2`, decided by the same float expression as the search's,
-in the search's order (by destination, then source). A step then uses a fixed candidate set with
-a 0 / 1 weight per pair (:func:`active_collisions`; the collision module adds an exact zero for
-a pair of weight 0), and :func:`largest_move` measures on the device how close the list is to
-going stale.
-
-``capacity`` pads the list to a size that changes rarely (the next power of two), with padding
-pairs that are never active, so a captured step (a CUDA graph) can be reused across rebuilds.
+so a step's collision edges are exactly the candidates with :math:`\lVert x_i - x_j \rVert^2 <
+r^2` (the search's float expression and order), used as a fixed set with 0 / 1 weights
+(:func:`active_collisions`); :func:`largest_move` measures staleness on the device.
+``capacity`` pads the list to a rarely changing size with inactive pairs, for CUDA graphs.
 """
 
 from __future__ import annotations
@@ -38,17 +30,16 @@ STALE_FRACTION = 0.49
 
 
 class CollisionCandidates(NamedTuple):
-    """A Verlet list of collision pairs (see the module docstring).
+    """A Verlet list of collision pairs (module docstring).
 
     Attributes:
-        edge_index: ``[2, C]`` long, node indices, row 0 the source and row 1 the destination;
-            the pairs closer than ``radius + skin`` at ``reference``, sorted by destination then
-            source, then padding pairs ``0 -> 0``.
+        edge_index: ``[2, C]`` long, the pairs closer than ``radius + skin`` at ``reference``
+            (source, destination; sorted by destination, then source), then padding ``0 -> 0``.
         valid: ``[C]`` bool, False on the padding.
         reference: ``[N, 3]`` positions at the search.
         radius: the collision radius ``r`` (metres).
         skin: the skin ``s`` (metres).
-        pairs: how many pairs the search found (``C`` minus the padding).
+        pairs: how many pairs the search found.
     """
 
     edge_index: Tensor
@@ -69,11 +60,8 @@ def padded_size(pairs: int, minimum: int = 64) -> int:
 
 def build_candidates(graph: HeteroData, pos: Tensor, radius: float, skin: float,
                      capacity: int | None = None) -> CollisionCandidates:
-    """Search the leaves of ``graph`` at ``pos`` ``[N, 3]`` with radius ``radius + skin``.
-
-    ``capacity`` (optional) pads the list to that many pairs (:func:`pad_candidates`); the
-    search itself reads its sizes from the device, as every search does.
-    """
+    """Search the leaves of ``graph`` at ``pos`` ``[N, 3]`` at ``radius + skin``; ``capacity`` pads the
+    list (:func:`pad_candidates`)."""
     if not radius > 0 or not skin > 0:
         raise ValueError(f"radius and skin must be > 0, got radius={radius}, skin={skin}")
     edges = leaf_collision_edges(graph, pos.detach(), radius + skin)
@@ -126,17 +114,12 @@ def collisions_of(candidates: CollisionCandidates, pos: Tensor) -> Tensor:
 
 
 class VerletSearch:
-    """The collision edges of a rollout's steps from a Verlet list, searched again only when stale.
+    """A rollout's collision edges from a Verlet list, searched again only when stale.
 
-    Each call gives :func:`~hrn_pyg.data.graph.leaf_collision_edges` of the graph's leaves at
-    ``pos``, the same edges in the same order (see the module docstring): the pairs of the list
-    closer than the radius, while no node has moved more than :func:`move_limit` since the list
-    was searched (one host read a call, to find out), else a new list searched at ``pos``. So a
-    step costs a gather and a comparison over the list's pairs instead of a search.
-
-    The graphs it is called with must share the start graph's leaves, objects and batch (the
-    graphs of one rollout). ``radius`` is one number (metres, > 0); ``skin`` the list's skin
-    (metres, > 0).
+    Each call gives :func:`~hrn_pyg.data.graph.leaf_collision_edges` at ``pos`` (the same edges in
+    the same order) from the list while no node moved past :func:`move_limit` (one host read),
+    else from a new search. The graphs must share the start graph's leaves, objects and batch;
+    ``radius`` and ``skin`` are metres > 0.
     """
 
     def __init__(self, radius: float, skin: float) -> None:

@@ -1,18 +1,15 @@
 """Training windows over a folder of episode files, as a PyG ``Dataset`` of ``HeteroData``.
 
-An episode (``episode_<seed:06d>.npz``, format in docs/architecture.md) holds leaf positions at
-model steps ``0..S`` and the forces of steps ``0..S-1``. A window of horizon ``T`` starting at
-step ``t`` (``2 <= t <= S - T``, so ``x_{t-2}`` exists) is one graph: the episode's static
-structure (:func:`hrn_pyg.data.graph.episode_structure`, built once per episode and cached), the
-state at ``t`` (:func:`hrn_pyg.data.graph.set_state`), and for every node
+An episode (``episode_<seed:06d>.npz``, docs/architecture.md) holds leaf positions at steps
+``0..S`` and forces of steps ``0..S-1``. A window of horizon ``T`` at step ``t``
+(``2 <= t <= S - T``) is one graph: the episode's structure
+(:func:`hrn_pyg.data.graph.episode_structure`, cached), the state at ``t``, and per node
 
 * ``pos_seq (N, T+3, 3)``: ``x_{t-2} .. x_{t+T}`` (ancestors: mass-weighted leaf means),
 * ``force_seq (N, T, 3)``: the forces of steps ``t .. t+T-1`` (zero on ancestors),
 
-plus graph-level ``episode_seed (1,)``, ``start_step (1,)`` and ``pitch (1,)`` (the voxel pitch
-the episode was made at, from its ``params``). Nothing is processed to disk:
-episodes are read lazily (npz, ``allow_pickle=False``) and a few decoded episodes are kept in
-memory. Splits are disjoint by seed: ``seed % 10 == 9`` test, ``== 8`` val, the rest train.
+plus ``episode_seed (1,)``, ``start_step (1,)`` and ``pitch (1,)``. Episodes are read lazily
+(``allow_pickle=False``), a few kept decoded. Splits by seed: ``% 10 == 9`` test, ``== 8`` val.
 """
 
 from __future__ import annotations
@@ -108,27 +105,18 @@ class EpisodeWindows(Dataset):
     """Windows of ``T + 3`` consecutive model states from one split of an episode folder.
 
     Args:
-        root: folder of ``episode_<seed:06d>.npz`` files, or several such folders whose
-            episodes are pooled (a fine-tuning on a mix of datasets). A seed may occur in two
-            folders only when their ``meta.json`` name different scenes (the same seed of the
-            same scene is the same episode twice).
-        split: ``train``, ``val`` or ``test`` (disjoint by seed, see :func:`split_of_seed`), or
-            ``all`` (every episode, for scoring a dataset that is not split by seed).
-        horizon: ``T``, the number of predicted steps per window (1 for one-step training,
-            up to 6 for recurrent training).
-        collision_radius: ``r_c`` for the window's ``collision`` edges at step ``t``; None
-            leaves them empty (the trainer recomputes them at every unrolled step anyway).
-        reference_pitch: with it, the collision radius scales with each episode's pitch
-            :math:`p`: a window's edges are those of radius :math:`r_c p / p_{ref}` (a
-            pitch-aware model's, :func:`hrn_pyg.nn.pitch.collision_radius_of`); None: ``r_c``
-            for every episode.
-        cache_episodes: how many decoded episodes to keep in memory (per worker process).
+        root: folder of ``episode_<seed:06d>.npz`` files, or several pooled (a seed twice only for
+            different scenes).
+        split: ``train``, ``val``, ``test`` (:func:`split_of_seed`) or ``all``.
+        horizon: ``T``, predicted steps per window.
+        collision_radius: ``r_c`` of the window's ``collision`` edges at ``t``; None: none.
+        reference_pitch: scale the radius to :math:`r_c p / p_{ref}` per episode (pitch-aware).
+        cache_episodes: decoded episodes kept in memory (per worker).
         transform: PyG transform applied to each window.
 
-    **Shapes** of one window (``N`` nodes, ``L`` leaves): the static attributes of
+    **Shapes** of one window (``N`` nodes): the attributes of
     :func:`~hrn_pyg.data.graph.build_structure`; ``pos``, ``prev_pos``, ``prev_prev_pos``,
-    ``force`` ``(N, 3)``; ``pos_seq (N, T+3, 3)``; ``force_seq (N, T, 3)``;
-    ``episode_seed (1,)``, ``start_step (1,)``.
+    ``force`` ``(N, 3)``; ``pos_seq (N, T+3, 3)``; ``force_seq (N, T, 3)``.
     """
 
     def __init__(

@@ -1,25 +1,20 @@
 r"""Arithmetic in scene files: values derived from settings and from a seed's random draws.
 
-A scene file's value may be a string holding one expression, evaluated with Python's grammar
-but nothing of Python's power: numbers, lists (read as ``numpy`` arrays, so arithmetic is
-element-wise), names bound earlier, ``+ - * / ** %``, comparisons, ``and``/``or``/``not``,
-``a if c else b``, indexing by a constant or a name, and the functions of :data:`FUNCTIONS`.
-Two functions draw from the seed's random stream, in the order they are evaluated:
+A value may be a string holding one expression in Python's grammar without Python's power:
+numbers, lists (``numpy`` arrays, element-wise arithmetic), names bound earlier,
+``+ - * / ** %``, comparisons, ``and``/``or``/``not``, ``a if c else b``, constant or named
+indexing, and the functions of :data:`FUNCTIONS`. Two draw from the seed's stream in
+evaluation order:
 
 * ``uniform(low, high)`` or ``uniform(pair)``: :math:`u \sim U[\text{low}, \text{high})`;
-  ``uniform(low, high, shape)`` an array of them (element after element from the stream);
+  ``uniform(low, high, shape)`` an array of them;
 * ``integer(low, high)`` or ``integer(pair)``: an integer in :math:`\{\text{low}, \dots, \text{high}\}`.
 
-The evaluation mirrors plain ``numpy`` code operation for operation (the same association and
-the same calls), so a scene written as a file gives bit for bit the numbers the same scene
-written in Python gives.
-
-:func:`evaluate` raises ``ValueError`` naming the expression for anything else (an unknown
-name, an attribute, a call of anything not listed), so a file can never run code. An expression
-is bounded in time and memory: its text, its syntax tree (nodes and depth), its arrays (elements,
-checked before they are made) and its whole numbers (bits, checked before a power is computed)
-have the limits below; past one, :class:`LimitError` (a ``ValueError``) names it. Numeric
-overflow, division by zero and invalid operations of ``numpy`` are errors too, not warnings.
+The evaluation mirrors plain ``numpy`` operation for operation, so a file gives bit for bit the
+numbers of the same scene in Python. :func:`evaluate` raises ``ValueError`` naming the
+expression for anything else, so a file cannot run code; text, syntax tree, array elements and
+integer bits are bounded (:class:`LimitError`, a ``ValueError``); numpy overflow and invalid
+operations are errors.
 """
 
 from __future__ import annotations

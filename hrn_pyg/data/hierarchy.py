@@ -1,27 +1,13 @@
 """Per-object particle hierarchy by recursive k-means (HRN, Mrowca et al. 2018, Sec. 3).
 
 Each object's leaves are clustered with scikit-learn ``KMeans`` into at most ``branching``
-groups; every group larger than ``leaf_group_size`` is clustered again, recursively. Every
-cluster becomes one ancestor node; the object's whole leaf set hangs under exactly one root.
+groups, each group larger than ``leaf_group_size`` again, recursively; every cluster (singletons
+included) is an ancestor node, and each object has exactly one root, even with one leaf. A
+node's children are all leaves or all ancestors. A group k-means cannot split (identical states)
+is split by index into ``min(branching, n)`` chunks, so the recursion ends.
 
-The result is a parent array over ``N = L + A`` nodes:
-
-* nodes ``0 .. L-1`` are the leaves, in input order;
-* ancestors follow, object by object (objects in increasing index order), each object's
-  ancestors in breadth-first order (its root first, then the root's children in cluster order,
-  ...);
-* roots have parent ``-1``.
-
-Choices this module fixes (the rest of the package relies on them):
-
-* **An object always has a root, even with one leaf**, so every leaf has a parent and the
-  model's "velocity in the parent's frame" is defined for every leaf.
-* **Every cluster becomes a node, including singletons.** A node's children are therefore
-  either all leaves (between 1 and ``leaf_group_size`` of them) or all ancestors (between 1 and
-  ``branching``); no node mixes leaves and ancestors.
-* If k-means cannot split a group (all members share one state, so every point lands in one
-  cluster), the group is split by index into ``min(branching, n)`` nearly equal chunks, so the
-  recursion always terminates.
+The parent array over ``N = L + A`` nodes: leaves ``0 .. L-1`` in input order, then ancestors
+object by object, breadth-first within an object; roots have parent ``-1``.
 """
 
 from __future__ import annotations
@@ -135,13 +121,10 @@ def build_hierarchy(
     config: HierarchyConfig | None = None,
     velocities: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Parent array of the per-object k-means tree over the leaves.
-
-    For each object ``o`` with leaf set ``S_o``, a root ``r_o`` is made and
-    ``grow(r_o, S_o)`` runs, where ``grow(p, S)`` sets ``parent[l] = p`` for all ``l in S`` if
-    ``|S| <= leaf_group_size``, and otherwise splits ``S`` with k-means
-    (``k = min(branching, |S|)``) on the state ``[x, w_v v, w_m m]`` into ``S_1 .. S_k``, makes
-    one child node ``c_j`` per cluster (``parent[c_j] = p``) and calls ``grow(c_j, S_j)``.
+    """Parent array of the per-object k-means tree over the leaves (module docstring): ``grow(p, S)``
+    makes ``p`` the parent of every ``l in S`` if ``|S| <= leaf_group_size``, else splits ``S``
+    with k-means (``k = min(branching, |S|)``) on ``[x, w_v v, w_m m]`` and grows one child per
+    cluster.
 
     Args:
         positions: leaf positions (at rest).
@@ -151,9 +134,7 @@ def build_hierarchy(
         velocities: leaf velocities, needed only when ``config.velocity_weight > 0``.
 
     Returns:
-        ``parent``: int64 array; ``parent[i]`` is the node index of ``i``'s parent, ``-1`` for
-        roots. Leaves are nodes ``0..L-1`` in input order, ancestors follow (objects in
-        increasing order, breadth-first within an object).
+        ``parent`` int64, ``-1`` for roots.
 
     **Shapes**: positions ``(L, 3)``, masses ``(L,)``, leaf_object ``(L,)``,
     velocities ``(L, 3)``; returns ``(N,)`` with ``N = L + A``.
@@ -191,11 +172,8 @@ def build_hierarchy(
 
 
 def start_hierarchy(first_frame: np.ndarray, leaf_mass: np.ndarray, leaf_object: np.ndarray) -> np.ndarray:
-    """The hierarchy a scene's episode is given: :func:`build_hierarchy` of its first recorded
-    frame (leaf positions as stored, float32, clustered in float64).
-
-    Every path that starts a model on a scene (an episode, a dataset, the RL environment's pool)
-    takes its tree from here, so one start state gets one tree.
+    """The hierarchy of a scene's start: :func:`build_hierarchy` of its first frame (float32 as
+    stored, clustered in float64); every path that starts a model takes its tree from here.
 
     **Shapes:** ``(L, 3)``, ``(L,)``, ``(L,)`` -> ``(N,)`` int64.
     """

@@ -1,29 +1,21 @@
 r"""Meshes as they come: read, clean, size, fill with leaves, and decompose for collision.
 
-A user's mesh is rarely a tidy solid. An OBJ exported with textures repeats every vertex on a
-texture seam, so its faces do not share edges and it reads as many open pieces; a scanned toy
-has holes; a cup is concave, and pybullet's mesh collision for a moving body is the convex hull,
-so its cavity would be solid. This module takes such meshes as they are:
-
 * :func:`load_mesh` reads any file trimesh reads into one mesh, or names the problem;
-* :func:`clean_mesh` merges duplicate vertices (positions only: texture and normal seams
-  vanish), drops degenerate and repeated faces, keeps every piece;
-* :func:`sized_mesh` scales a mesh so its longest extent is ``size`` and centres its bounding box;
-* :func:`solid_points` is the leaf lattice: a closed mesh is filled as
-  :func:`hrn_pyg.data.voxelise.voxelise` fills it; an open one by the generalised winding number
-  (:func:`winding_numbers`): a lattice point is inside when
-  :math:`|w(p)| \ge \tfrac12` with
+* :func:`clean_mesh` merges duplicate vertices (texture seams vanish), drops degenerate and
+  repeated faces, keeps every piece;
+* :func:`sized_mesh` scales a mesh to longest extent ``size`` and centres its bounding box;
+* :func:`solid_points` is the leaf lattice: a closed mesh filled by
+  :func:`hrn_pyg.data.voxelise.voxelise`, an open one by the generalised winding number
+  (:func:`winding_numbers`), inside where :math:`|w(p)| \ge \tfrac12` with
 
   .. math:: w(p) = \frac{1}{4\pi} \sum_{f} \Omega_f(p), \qquad
       \tan\frac{\Omega_f}{2} = \frac{a \cdot (b \times c)}
       {|a||b||c| + (a \cdot b)|c| + (b \cdot c)|a| + (c \cdot a)|b|}
 
-  (:math:`a, b, c` the triangle's corners relative to :math:`p`), which is 1 inside a closed
-  surface, 0 outside, and degrades gracefully across holes; a mesh that encloses nothing at
-  the pitch (a sheet, thin walls) keeps the voxels its surface passes through, with a warning
-  that says so;
-* :func:`convex_parts` writes the convex decomposition pybullet collides a concave rigid body
-  with (its V-HACD), cached on disk by the mesh's digest so a dataset decomposes each mesh once.
+  (:math:`a, b, c` the triangle's corners relative to :math:`p`); a mesh that encloses nothing
+  keeps the voxels its surface passes through, with a warning;
+* :func:`convex_parts` writes the convex decomposition (V-HACD) pybullet collides a concave
+  rigid body with, cached by the mesh's digest.
 """
 
 from __future__ import annotations
@@ -76,13 +68,10 @@ class MeshWarning(UserWarning):
 
 
 def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
-    """The mesh in ``path`` (any format trimesh reads; the pieces of a scene are concatenated).
-
-    Raises FileNotFoundError for a missing file and ValueError naming the file for one that is
-    not a mesh, is empty, has NaN or infinite vertices, or is past a limit (a file of more than
-    :data:`MAX_MESH_BYTES`, checked before it is read; more than :data:`MAX_FACES` faces or
-    :data:`MAX_VERTICES` vertices, counted before the mesh is processed).
-    """
+    """The mesh in ``path`` (any format trimesh reads; a scene's pieces concatenated).
+    FileNotFoundError for a missing file; ValueError naming the file for one that is not a mesh, is
+    empty or non-finite, or is past :data:`MAX_MESH_BYTES`, :data:`MAX_FACES` or :data:`MAX_VERTICES`
+    (checked before it is processed)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
@@ -114,13 +103,9 @@ def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> None:
 
 
 def primitive_mesh(name: str, extents: np.ndarray | None = None) -> trimesh.Trimesh:
-    """The primitive ``name`` (one of :data:`PRIMITIVES`) at ``extents`` ``[x, y, z]`` (m; default
-    its :data:`PRIMITIVE_PROPORTIONS`, longest extent 1 m), its bounding box centred at the
-    origin, except the wedge, whose base is centred on the origin (its ridge along y, its apex up).
-
-    Round primitives take their diameter from ``x`` (a cylinder, capsule or cone is upright, a
-    sphere is round: ``y`` and ``z`` are read from ``x``).
-    """
+    """The primitive ``name`` (:data:`PRIMITIVES`) at ``extents`` ``[x, y, z]`` (m; default
+    :data:`PRIMITIVE_PROPORTIONS`), its bounding box centred (a wedge: its base, ridge along y).
+    Round primitives take their diameter from ``x``."""
     if name not in PRIMITIVES:
         raise ValueError(f"unknown primitive {name!r}; choose from {', '.join(PRIMITIVES)}")
     x, y, z = (float(e) for e in (PRIMITIVE_PROPORTIONS[name] if extents is None else extents))
@@ -143,11 +128,8 @@ def primitive_mesh(name: str, extents: np.ndarray | None = None) -> trimesh.Trim
 
 
 def clean_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
-    """A copy of ``mesh`` with duplicate vertices merged by position (texture and normal seams
-    join), degenerate and repeated faces dropped and unused vertices removed; every piece kept.
-
-    Raises ValueError if nothing with an area is left.
-    """
+    """A copy of ``mesh`` with duplicate vertices merged by position, degenerate and repeated faces and
+    unused vertices dropped; ValueError if nothing with an area is left."""
     check_mesh(mesh, name)
     out = trimesh.Trimesh(vertices=np.asarray(mesh.vertices, dtype=np.float64),
                           faces=np.asarray(mesh.faces, dtype=np.int64), process=False)
@@ -211,11 +193,9 @@ def too_many_leaves(count: float, pitch: float, max_leaves: int, name: str) -> V
 
 
 def leaf_estimate(mesh: trimesh.Trimesh, pitch: float) -> float:
-    """About how many leaves ``mesh`` has at ``pitch``, from its measures alone (before a
-    lattice is built): its volume (a closed mesh) or its bounding box's (an open one) over
-    :math:`\text{pitch}^3`, or half its area over :math:`\text{pitch}^2` when that is more (the
-    voxels a flat or thin surface passes through), and never more than the cells of its
-    bounding box."""
+    r"""About how many leaves ``mesh`` has at ``pitch`` before a lattice is built: its volume (closed)
+    or bounding box's (open) over :math:`\text{pitch}^3`, or half its area over
+    :math:`\text{pitch}^2` if more, at most its bounding box's cells."""
     extents = np.asarray(mesh.extents, dtype=np.float64)
     volume = float(mesh.volume) if mesh.is_watertight else float(np.prod(extents))
     box_cells = float(np.prod(np.floor(extents / pitch) + 1))
@@ -240,17 +220,14 @@ def _surface_voxels(mesh: trimesh.Trimesh, pitch: float, name: str) -> trimesh.v
 
 def solid_points(mesh: trimesh.Trimesh, pitch: float, name: str = "mesh",
                  max_leaves: int | None = None) -> tuple[np.ndarray, str]:
-    """The leaf lattice of a mesh: ``(points [L, 3], how)``, ``how`` one of ``"fill"`` (a closed
-    mesh, :func:`hrn_pyg.data.voxelise.voxelise`), ``"winding"`` (an open one: its surface voxels
-    and the other lattice points with :math:`|w| \\ge` :data:`INSIDE_WINDING`) or ``"surface"`` (an
-    open mesh that encloses nothing, no point reaching :data:`ENCLOSED_WINDING`: a sheet, or a
-    cup whose walls are thinner than a voxel; its leaves are the voxels its surface passes
-    through, and a :class:`MeshWarning` says so).
+    r"""The leaf lattice of a mesh: ``(points [L, 3], how)``, ``how`` one of ``"fill"`` (closed,
+    :func:`hrn_pyg.data.voxelise.voxelise`), ``"winding"`` (open: surface voxels and points with
+    :math:`|w| \ge` :data:`INSIDE_WINDING`) or ``"surface"`` (an open mesh that encloses nothing;
+    a :class:`MeshWarning` says so).
 
-    Raises ValueError when fewer than :data:`MIN_LEAVES` lattice points are found, or more than
-    ``max_leaves`` (checked on :func:`leaf_estimate` before the lattice is built), naming a
-    pitch that would do, and when the inside test of an open mesh would take more than
-    :data:`MAX_INSIDE_PAIRS` point-face pairs (:func:`inside_test_pairs`).
+    ValueError, naming a pitch that would do, when fewer than :data:`MIN_LEAVES` or more than
+    ``max_leaves`` points (:func:`leaf_estimate`) are found, or when an open mesh's inside test
+    exceeds :data:`MAX_INSIDE_PAIRS` pairs (:func:`inside_test_pairs`).
     """
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"pitch must be a finite number > 0, got {pitch}")
@@ -312,14 +289,9 @@ def mesh_digest(mesh: trimesh.Trimesh) -> str:
 
 
 def convex_parts(mesh: trimesh.Trimesh, cache_dir: str | os.PathLike, resolution: int = 100_000) -> Path:
-    """An OBJ of the convex parts pybullet collides ``mesh`` with (pybullet's V-HACD), for a
-    concave rigid body; made once per mesh and kept in ``cache_dir`` under the mesh's digest.
-
-    V-HACD at a coarse voxel resolution can return a concave mesh as one part (a cup whose
-    cavity would be solid); then it runs again at :data:`FINER_RESOLUTION` times the resolution,
-    and the finer answer is kept. The file is written next to its final name and moved into
-    place, so two workers that decompose the same mesh at once leave one whole file.
-    """
+    """An OBJ of the convex parts (V-HACD) pybullet collides a concave rigid ``mesh`` with, cached in
+    ``cache_dir`` by digest and written atomically. A concave answer of one part is redone at
+    :data:`FINER_RESOLUTION` times the resolution."""
     pybullet = import_pybullet()
     cache = Path(cache_dir)
     cache.mkdir(parents=True, exist_ok=True)

@@ -1,35 +1,25 @@
 r"""MuJoCo as a second ground-truth engine: a scene file's scene (``engine = "mujoco"``) built in
 MuJoCo, stepped under the same pushes, giving the same episode arrays.
 
-The world is one MJCF model made per seed from what the seed drew (:class:`MujocoScene` draws as
-:class:`~hrn_pyg.data.scene_file.FileScene` does, so a seed is the same scene in both engines):
+One MJCF model per seed from what the seed drew (:class:`MujocoScene` draws as
+:class:`~hrn_pyg.data.scene_file.FileScene` does, so a seed is one scene in both engines):
 
-* the ground is a plane at ``z = 0``; its ``rolling_friction`` is MuJoCo's torsional and rolling
-  friction of the ground (``condim = 6``). pybullet multiplies the friction of the two bodies in
-  a contact and MuJoCo takes the larger, so each body's MuJoCo friction is its own times the
-  ground's (the scene's ``friction``) and the ground's is 0: a contact with the ground has
-  pybullet's coefficient;
-* a **rigid** or **static** object is a body (free joint; none for static) whose leaves are the
-  voxel lattice of its mesh in the body frame, as in pybullet; it collides as the primitive it is
-  (box, sphere, cylinder, capsule), a convex mesh as its hull, a concave one as the convex parts
-  pybullet uses (:func:`~hrn_pyg.data.meshes.convex_parts`); its inertia is the mesh's at its
-  mass (a static one weighs ``STATIC_DENSITY`` times its volume);
-* a **soft** object is a 3-D flex on the same lattice tetrahedra as pybullet's soft body
-  (:func:`~hrn_pyg.data.scene_file.soft_lattice`), linear elastic with Young's modulus and
-  Poisson ratio of pybullet's Neo-Hookean :math:`\mu` and :math:`\lambda = 2\mu`:
-  :math:`\nu = \lambda / (2(\lambda + \mu)) = 1/3`, :math:`E = 2\mu(1 + \nu)`;
-* a **cloth** is a 2-D flex on the same sheet or surface mesh whose edges keep their length
-  (MuJoCo's edge equality constraints): the discrete integrator that flex elasticity needs
-  applies no 2-D elasticity and refuses edge stiffness, so a MuJoCo cloth is inextensible and
-  its stiffness (pybullet's spring constant) is recorded, not simulated;
-* a push on a rigid body is a force on its centre of mass for the whole step; on a soft body or
-  cloth it is the same change of velocity of its nodes (a rigid field, with the push's spin) that
-  the pybullet scene makes, recorded as :math:`m_i \Delta v_i / \Delta t`.
+* the ground is a plane at ``z = 0`` with the scene's ``rolling_friction`` (``condim = 6``);
+  each body's friction is its own times the ground's and the ground's 0, since MuJoCo takes the
+  larger of two where pybullet multiplies;
+* a **rigid** or **static** object is a body (a free joint unless static) with its mesh's voxel
+  leaves, colliding as its primitive, a convex mesh's hull or a concave one's convex parts
+  (:func:`~hrn_pyg.data.meshes.convex_parts`), with the mesh's inertia;
+* a **soft** object is a 3-D flex on pybullet's lattice tetrahedra
+  (:func:`~hrn_pyg.data.scene_file.soft_lattice`), linear elastic with :math:`\lambda = 2\mu`:
+  :math:`\nu = 1/3`, :math:`E = 2\mu(1 + \nu)`;
+* a **cloth** is a 2-D flex whose edges keep their length (inextensible: its stiffness is
+  recorded, not simulated);
+* a push is a force on a rigid body's centre of mass, or the velocity change of a soft body's or
+  cloth's nodes that pybullet's scene makes, recorded as :math:`m_i \Delta v_i / \Delta t`.
 
-Flex elasticity runs with MuJoCo's ``discrete`` integrator, the one that keeps it stable at
-240 Hz (Euler blows up and ``implicitfast`` refuses flex elasticity); a scene without soft bodies
-or cloth uses ``implicitfast``. What one engine cannot do that the other does is one line
-(:data:`LIMITS`, and a ValueError where a scene asks for it).
+Flex elasticity needs the ``discrete`` integrator (stable at 240 Hz); other scenes use
+``implicitfast``. What one engine cannot do is one line (:data:`LIMITS`, and a ValueError).
 """
 
 from __future__ import annotations

@@ -1,44 +1,32 @@
 r"""Procedural shapes for training: random convex hulls and concave unions of boxes, as mesh files.
 
-Every shape is drawn from a :class:`numpy.random.Generator` and returned centred on its bounding
-box with longest extent 1 m; a scene file names the written OBJ and scales it by ``size``. The
-kinds (:data:`KINDS`), lengths in the frame before the final scaling (which is 1 or, for a tall
-T, up to 1.2):
+Every shape is drawn from a :class:`numpy.random.Generator`, centred on its bounding box with
+longest extent 1 m (a scene file scales it by ``size``). The kinds (:data:`KINDS`), in the
+frame before that scaling:
 
-* ``random_hull``: the convex hull of :math:`n \in [8, 30]` points drawn uniformly in an
-  ellipsoid of semi-axes :math:`(a_x, a_y, a_z)`, each uniform in :math:`[1, 3]` (aspect up to
-  1:3). A point is :math:`p = r^{1/3}\, (a \odot u)` with :math:`u` uniform on the unit sphere
-  and :math:`r` uniform in :math:`[0, 1]`, which is uniform in the ellipsoid's volume.
-* ``l_shape``: a bar of length 1 along :math:`x` (height :math:`t_1`) with an upright bar of
-  thickness :math:`t_2` and height :math:`h` on one end; :math:`t_1, t_2 \in [0.15, 0.35]`,
-  :math:`h \in [0.45, 1]`, depth :math:`d \in [0.2, 0.6]`.
-* ``t_shape``: a top bar of length 1 along :math:`x` on a stem of width :math:`w \in [0.15, 0.3]`
-  and height :math:`h \in [0.35, 0.9]`, set off the middle by up to a quarter of the bar.
-* ``cross``: two bars crossing in the ground plane (a plus, or an off-centre cross), of lengths
-  1 and :math:`[0.5, 1]`, widths :math:`[0.15, 0.3]` and heights :math:`[0.12, 0.4]` each.
-* ``cup``: a floor and four walls, outer width 1, depth :math:`[0.6, 1]`, height
-  :math:`[0.4, 1]`, walls and floor :math:`[0.12, 0.18]` thick, at least 0.12 of the longest
-  extent, so that a leaf lattice of a pitch around 1/8 of the cup's size sees the walls.
-* ``ring``: a regular polygon of :math:`n \in \{4, 5, 6\}` straight segments between the
-  apothems :math:`0.5 \mp b/2`, :math:`b \in [0.2, 0.36]`, of height :math:`[0.12, 0.3]` of the
-  ring's extent across (the width is then 0.14-0.26 of it, the hole about 0.4 across or more).
-  Segment :math:`k` is the prism :math:`|x| \le y \tan(\pi/n) + \delta`, :math:`0.5 - b/2 \le y
-  \le 0.5 + b/2` turned by :math:`2\pi k/n` about :math:`z`: cut at the mitres and carried
-  :math:`\delta` = :data:`OVERLAP` past them (at the outer corners a spike of that length). Rings
-  of more sides cost pybullet's V-HACD tens of seconds a mesh.
+* ``random_hull``: the hull of :math:`n \in [8, 30]` points uniform in an ellipsoid of
+  semi-axes :math:`a_i \sim U[1, 3]`, :math:`p = r^{1/3}\, (a \odot u)` with :math:`u` uniform
+  on the unit sphere and :math:`r \sim U[0, 1]`;
+* ``l_shape``: a bar of length 1 (height :math:`t_1`) with an upright bar (thickness
+  :math:`t_2`, height :math:`h`) on one end; :math:`t_1, t_2 \in [0.15, 0.35]`,
+  :math:`h \in [0.45, 1]`, depth :math:`[0.2, 0.6]`;
+* ``t_shape``: a top bar of length 1 on a stem of width :math:`[0.15, 0.3]` and height
+  :math:`[0.35, 0.9]`, off the middle by up to a quarter of the bar;
+* ``cross``: two bars crossing in the ground plane, lengths 1 and :math:`[0.5, 1]`, widths
+  :math:`[0.15, 0.3]`, heights :math:`[0.12, 0.4]`;
+* ``cup``: a floor and four walls, width 1, depth :math:`[0.6, 1]`, height :math:`[0.4, 1]`,
+  walls :math:`[0.12, 0.18]` thick;
+* ``ring``: :math:`n \in \{4, 5, 6\}` straight segments between the apothems
+  :math:`0.5 \mp b/2`, :math:`b \in [0.2, 0.36]`, height :math:`[0.12, 0.3]`; segment :math:`k`
+  is the prism :math:`|x| \le y \tan(\pi/n) + \delta`, :math:`|y - 0.5| \le b/2`, turned by
+  :math:`2\pi k/n` about :math:`z` (:math:`\delta` = :data:`OVERLAP`).
 
-No boolean engine is needed: a concave shape is the concatenation of closed convex pieces that
-overlap by :data:`OVERLAP` (never share an edge), so each edge lies on exactly two faces and
-trimesh reads the union as closed. :func:`hrn_pyg.data.meshes.solid_points` fills it on the
-voxel lattice (the interior walls inside the union are just more filled voxels; a cup's cavity
-and a ring's hole are open to the outside and stay empty), and pybullet collides it as its
-V-HACD convex parts (:func:`hrn_pyg.data.meshes.convex_parts`). The volume of such a union is
-measured by :func:`union_volume`, the midpoints of a fine grid tested against the pieces'
-half-spaces.
+A concave shape is the concatenation of closed convex pieces overlapping by :data:`OVERLAP`
+(never sharing an edge), so trimesh reads the union as closed with no boolean engine;
+:func:`union_volume` measures it.
 
-Files: ``python -m hrn_pyg.data.procedural --out DIR --per-kind N --seed S`` writes
-``DIR/<kind>_<i:03d>.obj`` (shape ``i`` of a kind is :func:`make_shape` ``(kind, S + i)``) and
-``DIR/index.json``; a rerun leaves files that are already there as they are.
+``python -m hrn_pyg.data.procedural --out DIR --per-kind N --seed S`` writes
+``DIR/<kind>_<i:03d>.obj`` (:func:`make_shape` ``(kind, S + i)``) and ``DIR/index.json``.
 """
 
 from __future__ import annotations
@@ -196,12 +184,9 @@ def obj_text(mesh: trimesh.Trimesh) -> str:
 
 
 def convex_pieces(mesh: trimesh.Trimesh, tolerance: float = 1e-6) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The pieces of a mesh made of closed convex pieces, each as ``(planes [H, 4], bounds [2, 3])``:
-    a point ``x`` is inside a piece when ``n . x + c <= 0`` for every row ``(n, c)`` of its planes.
-
-    Raises ValueError if a piece is not closed and convex (its volume short of its hull's by more
-    than ``tolerance`` of the hull's).
-    """
+    """The pieces of a mesh made of closed convex pieces, each ``(planes [H, 4], bounds [2, 3])``
+    (inside: ``n . x + c <= 0`` for every row); ValueError if a piece is not closed and convex
+    (volume short of its hull's by more than ``tolerance``)."""
     out = []
     for piece in mesh.split(only_watertight=False):
         hull = ConvexHull(np.asarray(piece.vertices))
@@ -212,14 +197,9 @@ def convex_pieces(mesh: trimesh.Trimesh, tolerance: float = 1e-6) -> list[tuple[
 
 
 def union_volume(mesh: trimesh.Trimesh, grow: float = 0.0, cells: int = VOLUME_CELLS) -> float:
-    r"""The volume of the union of a mesh's closed convex pieces (:func:`convex_pieces`), each
-    piece first grown by ``grow`` in every axis direction (half-space :math:`n \cdot x + c \le
-    \text{grow}\, \|n\|_1`; for a box the Minkowski sum with a cube of half-side ``grow``).
-
-    Counted at the midpoints of a grid of ``cells`` cells along the longest extent: each piece
-    marks the cells of its own bounding box that lie inside it, and the union is the marked
-    cells; the error is about the surface's share of the cells (1 % or less at the default).
-    """
+    r"""The volume of the union of a mesh's convex pieces (:func:`convex_pieces`), each grown by
+    ``grow`` (:math:`n \cdot x + c \le \text{grow}\, \|n\|_1`), counted at the midpoints of a grid of
+    ``cells`` along the longest extent (error about 1 %)."""
     if not (math.isfinite(grow) and grow >= 0):
         raise ValueError(f"grow must be a finite number >= 0, got {grow}")
     lower, upper = mesh.bounds[0] - grow, mesh.bounds[1] + grow
@@ -238,10 +218,8 @@ def union_volume(mesh: trimesh.Trimesh, grow: float = 0.0, cells: int = VOLUME_C
 
 
 def gable_roof(width: float = 0.4, length: float = 0.3, eaves: float = 0.08, ridge: float = 0.2) -> trimesh.Trimesh:
-    """A house roof for the two-outcome check, never a training kind: a box ``width x length``
-    (``x``, ``y``) of height ``eaves`` under a gable whose ridge runs along ``y`` at ``x = 0``,
-    ``ridge`` above the floor. Convex (a pentagonal prism), centred on its bounding box, in
-    metres as given (a scene file's ``size`` rescales its longest extent)."""
+    """A house roof for the two-outcome check (never a training kind): a convex ``width x length``
+    box of height ``eaves`` under a gable whose ridge runs along ``y`` at ``x = 0``, ``ridge`` high."""
     if not (width > 0 and length > 0 and 0 < eaves < ridge):
         raise ValueError(f"gable_roof needs width, length > 0 and 0 < eaves < ridge, got "
                          f"{width}, {length}, {eaves}, {ridge}")
@@ -261,14 +239,9 @@ def shape_record(path: Path, kind: str, seed: int) -> dict:
 
 
 def write_shapes(out: str | Path, per_kind: int, seed: int = 0, kinds: Sequence[str] | None = None) -> list[dict]:
-    """Write ``per_kind`` shapes of each kind (default all of :data:`KINDS`) to
-    ``out/<kind>_<i:03d>.obj``, shape ``i`` drawn from seed ``seed + i``, and ``out/index.json``
-    listing them; returns the index's records.
-
-    Each file is written atomically. A file that is already there is left alone when it holds
-    the same text; one that differs (another seed) raises ValueError, so an index never
-    describes a file it did not make.
-    """
+    """Write ``per_kind`` shapes of each kind to ``out/<kind>_<i:03d>.obj`` (seed ``seed + i``) and
+    ``out/index.json``, atomically; returns the records. An existing file with the same text is
+    kept; one that differs raises ValueError."""
     if isinstance(per_kind, bool) or not isinstance(per_kind, (int, np.integer)) or per_kind < 0:
         raise ValueError(f"per_kind must be an integer >= 0, got {per_kind!r}")
     check_seed(seed)

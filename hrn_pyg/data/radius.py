@@ -1,26 +1,19 @@
 """Collision edges: leaf pairs of different objects closer than the collision radius.
 
-PyG's ``radius`` needs pyg-lib or torch-cluster, which are not installed here, so this module
-does its own fixed-radius neighbour search, fully vectorised in torch (no Python loop over
-particles), on whatever device the positions live on. Up to :data:`DENSE_MAX_POINTS` points it
-tests every pair (:func:`dense_collision_edges`); above, it uses a uniform cell grid:
+A fixed-radius neighbour search of our own (PyG's ``radius`` needs pyg-lib or torch-cluster),
+vectorised in torch on the positions' device. Up to :data:`DENSE_MAX_POINTS` points every pair
+is tested (:func:`dense_collision_edges`); above, a uniform cell grid:
 
-1. every leaf gets an integer cell ``c = floor((x - x_min) / h)`` with cell size ``h >= r``
-   (occupied coordinates renumbered per axis, adjacency kept, so far-apart points cannot
-   overflow the keys),
-   and one int64 key combining its batch copy and its cell;
+1. each leaf gets a cell ``c = floor((x - x_min) / h)``, ``h >= r`` (coordinates compressed per
+   axis, :func:`_compress_cells`) and one int64 key of its batch copy and cell;
 2. leaves are sorted by key; the occupied cells are the runs of equal keys;
-3. for each occupied cell, its occupied neighbours among the 27 surrounding cells (a pair closer
-   than ``r`` is never more than one cell apart per axis) are found with one ``searchsorted``;
-4. a cell pair in which both cells hold only leaves of one and the same object is dropped: inside
-   a dense body this removes almost every candidate;
-5. the remaining cell pairs are expanded into leaf pairs, which are kept when the objects differ
-   and ``|x_i - x_j|^2 < r^2``.
+3. each cell's occupied neighbours among the 27 around it come from one ``searchsorted``;
+4. cell pairs holding only leaves of one and the same object are dropped;
+5. the rest are expanded into leaf pairs, kept when the objects differ and
+   ``|x_i - x_j|^2 < r^2``.
 
-The radius may also be given per leaf (a batch of scenes at different voxel pitches, each with
-a radius of its own): the search then runs at the largest radius and keeps a pair only within
-its destination's radius (:func:`within_radius`), which gives each batch copy exactly the edges
-of a search at its own radius.
+A per-leaf radius (scenes at different pitches in one batch) searches at the largest and keeps a
+pair within its destination's radius (:func:`within_radius`).
 """
 
 from __future__ import annotations
@@ -70,12 +63,9 @@ def _validate(leaf_pos: Tensor, leaf_object: Tensor, radius: float | Tensor, bat
 
 
 def _compress_cells(cell: Tensor) -> Tensor:
-    """Renumber the occupied cell coordinates of each axis to ``0, 1, 2, ...`` keeping adjacency.
-
-    Two occupied coordinates one apart stay one apart; a larger gap becomes a gap of two, so
-    cells that were not neighbours still are not. The grid then spans at most ``2 L`` cells per
-    axis however far apart the points are (a scene 1e6 radii wide, or a diverged rollout), and
-    the int64 keys cannot overflow.
+    """Renumber the occupied cell coordinates of each axis to ``0, 1, 2, ...``: a gap of one stays
+    one, a larger gap becomes two, so adjacency is kept and the int64 keys cannot overflow however
+    far apart the points are.
 
     **Shapes**: ``(L, 3)`` long -> ``(L, 3)`` long.
     """
@@ -89,12 +79,8 @@ def _compress_cells(cell: Tensor) -> Tensor:
 
 def dense_collision_edges(leaf_pos: Tensor, leaf_object: Tensor, radius: float,
                           batch: Tensor | None = None) -> Tensor:
-    """:func:`collision_edges` by testing every pair: ``L^2`` distances in a handful of ops,
-    which for a few hundred leaves is cheaper than the grid's sorting and bookkeeping. The same
-    edge set in the same order, decided by the same float expression per pair.
-
-    **Shapes**: as :func:`collision_edges`; memory ``O(L^2)``.
-    """
+    """:func:`collision_edges` by testing every pair (cheaper for a few hundred leaves): the same edges
+    in the same order. **Shapes**: as :func:`collision_edges`; memory ``O(L^2)``."""
     pos = leaf_pos.detach()
     diff = pos[:, None, :] - pos[None, :, :]  # [dst, src, 3]
     near = (diff * diff).sum(dim=-1) < radius * radius
@@ -106,23 +92,16 @@ def dense_collision_edges(leaf_pos: Tensor, leaf_object: Tensor, radius: float,
 
 
 def squared_limit(radius: Tensor, dtype: torch.dtype) -> Tensor:
-    r"""The per-leaf squared radius :math:`r_i^2` as the search compares it: squared in float64,
-    then rounded once to the positions' ``dtype``, which is what a comparison of ``dtype``
-    distances with the Python number ``r * r`` does. So a per-leaf radius equal to a scalar
-    radius keeps the same pairs, bit for bit.
-
-    **Shapes**: ``(L,)`` -> ``(L,)``.
-    """
+    """The per-leaf squared radius :math:`r_i^2` squared in float64 and rounded once to the positions'
+    ``dtype``, as comparing with the number ``r * r`` does, so equal radii keep the same pairs bit
+    for bit. **Shapes**: ``(L,)`` -> ``(L,)``."""
     r = radius.detach().to(torch.float64)
     return (r * r).to(dtype)
 
 
 def within_radius(edge_index: Tensor, leaf_pos: Tensor, radius: Tensor) -> Tensor:
-    r"""The edges ``j -> i`` of ``edge_index`` with :math:`\lVert x_i - x_j \rVert^2 < r_i^2`
-    (``radius`` per leaf; the destination's radius decides, and both ends share it when they lie
-    in one batch copy), in their order. The squared distance is the search's own float
-    expression and the limit :func:`squared_limit`'s, so a pair kept here is a pair that a
-    search at radius :math:`r_i` keeps.
+    r"""The edges ``j -> i`` of ``edge_index`` with :math:`\lVert x_i - x_j \rVert^2 < r_i^2` (the
+    destination's radius, :func:`squared_limit`), in their order.
 
     **Shapes**: edge_index ``(2, E)``, leaf_pos ``(L, 3)``, radius ``(L,)``; returns ``(2, E')``.
     """
@@ -138,9 +117,8 @@ def _empty(device: torch.device) -> Tensor:
 
 
 def cell_keys(pos: Tensor, radius: float, batch: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Step 1 of the search: the int64 key of each point's cell (side ``h`` just above
-    ``radius``, coordinates compressed per axis, batch copy included) and the key offsets of the
-    27 neighbour cells, so ``key + offset`` are the keys of the cells around a point.
+    """Step 1 of the search: each point's int64 cell key (side ``h`` just above ``radius``, batch copy
+    included) and the key offsets of the 27 neighbour cells.
 
     **Shapes**: pos ``(L, 3)`` (L >= 1), batch ``(L,)`` -> ``(L,)`` long, ``(27,)`` long.
     """
@@ -169,25 +147,17 @@ def collision_edges(
     .. math::
         \mathcal{E}_C = \{(j, i) : o_j \ne o_i,\ b_j = b_i,\ \lVert x_i - x_j \rVert^2 < r_i^2\}
 
-    ``radius`` is one number :math:`r` for every leaf, or a tensor ``(L,)`` of radii
-    :math:`r_i` (equal within a batch copy, e.g. the copies of scenes at different pitches): the
-    search then runs at the largest and keeps each pair within its destination's radius
-    (:func:`within_radius`).
-
-    Both directions of every pair are returned; there are no self loops (a leaf shares its own
-    object). Edges are sorted by destination, then source, so the result is deterministic.
-    Positions are only read (no gradient flows into the edge set).
+    Both directions, no self loops, sorted by destination then source; no gradient.
 
     Args:
         leaf_pos: leaf positions.
         leaf_object: object index of each leaf (within its batch copy).
-        radius: collision radius ``r`` (strict ``<``); 0 gives no edges. A float tensor
-            ``(L,)``: each leaf's own radius.
+        radius: ``r`` (strict ``<``; 0 gives no edges), or a float tensor ``(L,)`` of per-leaf
+            radii, equal within a batch copy (:func:`within_radius`).
         batch: batch copy of each leaf; all zeros if None.
 
     Returns:
-        ``edge_index`` with row 0 the source ``j`` and row 1 the destination ``i``, indices into
-        the leaf rows, on ``leaf_pos.device``.
+        ``edge_index``, row 0 the source ``j``, row 1 the destination ``i`` (leaf rows).
 
     **Shapes**: leaf_pos ``(L, 3)``, leaf_object ``(L,)``, batch ``(L,)``;
     returns ``(2, |E_C|)``.

@@ -1,33 +1,23 @@
-"""Ground-truth physics: a pybullet world stepped one model step at a time.
+r"""Ground-truth physics: a pybullet world stepped one model step at a time.
 
 :class:`Scene` is the mechanics every scene shares: the ground, gravity, rigid, soft and cloth
-bodies, pushes, and the leaves read back each step. What a scene holds (its objects, their
-ranges, its pushes) is data: a scene file (:mod:`hrn_pyg.data.scene_file`; the package's own
-six scenes are files too), whose :class:`~hrn_pyg.data.scene_file.FileScene` builds the bodies.
-
-Every scene runs headless (``pybullet.DIRECT``) in its own client and is seeded (one
-``numpy.random.Generator`` per scene draws every parameter and every random action).
+bodies, pushes, and the leaves read back each step. What a scene holds is data: a scene file
+(:mod:`hrn_pyg.data.scene_file`), whose :class:`~hrn_pyg.data.scene_file.FileScene` builds the
+bodies. Every scene runs headless in its own client, seeded by one ``numpy.random.Generator``.
 
 Leaves (the particles the model sees), per material:
 
-* **rigid / static**: the filled voxel centres of the body's trimesh mesh
-  (:func:`hrn_pyg.data.voxelise.voxelise`), carried by the body's pose
-  :math:`x_i = R(q)\\,\\ell_i + p`; pybullet simulates the matching primitive (box, sphere) or
-  convex mesh (wedge).
-* **soft**: the same voxel centres become the nodes of a tetrahedral mesh (``.vtk``) that
-  pybullet simulates as a Neo-Hookean deformable body; leaves = its simulation nodes, in the
-  ``.vtk``'s node order (pybullet keeps it), so ground truth is exact.
-* **cloth**: a one-layer lattice loaded as a mass-spring soft body; leaves = its nodes.
+* **rigid / static**: the filled voxel centres of the body's mesh
+  (:func:`hrn_pyg.data.voxelise.voxelise`), carried by its pose :math:`x_i = R(q)\,\ell_i + p`;
+* **soft**: the same voxel centres as the nodes of a tetrahedral Neo-Hookean body (``.vtk``,
+  node order kept by pybullet);
+* **cloth**: a one-layer lattice as a mass-spring soft body; leaves = its nodes.
 
-The ground is a static box whose top face is ``z = 0`` (pybullet's ``GEOM_PLANE`` does not
-collide properly with deformable bodies: a soft cube hovers ~0.1 m above it). It is not an
-object: the model sees the height ``z``.
-
-A model step is ``substeps`` physics steps of ``1 / physics_hz`` s. External forces (actions)
-are constant over one model step; the episode records, per leaf, the force that acted on it:
-total body force / leaf count for a rigid body; for soft bodies and cloth (pybullet cannot push
-their nodes) an action is an instantaneous velocity change of all nodes, recorded as the
-equivalent per-leaf force :math:`f_i = m_i\\,\\Delta v_i / \\Delta t`.
+The ground is a static box with top face ``z = 0`` (``GEOM_PLANE`` does not collide properly
+with deformable bodies); it is not an object. A model step is ``substeps`` physics steps of
+``1 / physics_hz`` s with constant actions; the episode records each leaf's force: a rigid body's
+force over its leaf count, or, for soft bodies and cloth (pushed by a velocity change of all
+nodes), :math:`f_i = m_i\,\Delta v_i / \Delta t`.
 """
 
 from __future__ import annotations
@@ -79,14 +69,9 @@ CLOTH_LOG10_K_RANGE = (0.0, 3.0)
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Settings every scene has (a scene file's top level).
-
-    ``steps``: model steps per episode; ``substeps``: physics steps per model step;
-    ``physics_hz``: physics rate; ``pitch``: voxel size (m) for leaves; ``friction``: lateral
-    friction of every body and the ground; ``rolling_friction``: the ground's rolling and
-    spinning friction (0: a ball on the ground rolls or spins forever; > 0: it slows down and
-    comes to rest). A field named ``*_range`` is ``(low, high)``.
-    """
+    """Settings every scene has (a scene file's top level): ``steps`` per episode, ``substeps`` per
+    model step, ``physics_hz``, leaf ``pitch`` (m), ``friction`` of every body and the ground, the
+    ground's ``rolling_friction`` (> 0: a rolling ball comes to rest). ``*_range``: ``(low, high)``."""
 
     steps: int = 150
     substeps: int = SUBSTEPS
@@ -165,18 +150,16 @@ class SceneObject:
 
 
 class Scene:
-    """A seeded pybullet scene stepped one model step at a time.
+    r"""A seeded pybullet scene stepped one model step at a time.
 
-    Life cycle: ``scene = make_scene(name_or_spec, seed)``
-    (:func:`hrn_pyg.data.scene_file.make_scene`); ``x0 = scene.reset()``;
-    ``x = scene.step(action_forces)`` any number of times; ``scene.close()``. ``reset`` rebuilds
-    the same world (same drawn parameters) so a policy can be replayed from the start.
+    ``scene = make_scene(name_or_spec, seed)`` (:func:`hrn_pyg.data.scene_file.make_scene`);
+    ``x0 = scene.reset()`` (the same world each time); ``x = scene.step(action_forces)``;
+    ``scene.close()``.
 
     **Shapes**
     - ``reset()``, ``step()`` return leaf positions ``[L, 3]`` float64.
-    - ``action_forces``: ``[O, 3]`` force (N) on each object's centre of mass during the step.
-      Rigid: applied as a force every substep. Soft / cloth: an equivalent velocity change
-      :math:`\\Delta v = F \\Delta t / M` of all nodes at the start of the step. Static: must be 0.
+    - ``action_forces``: ``[O, 3]`` force (N) on each object during the step (rigid: every substep;
+      soft / cloth: :math:`\Delta v = F \Delta t / M` of all nodes at the start; static: 0).
     - ``last_forces``: ``[L, 3]`` the per-leaf force of the last step (what the episode records).
     - ``leaf_mass [L]``, ``leaf_object [L]``, ``object_material [O]``, ``object_stiffness [O]``.
     """
@@ -305,11 +288,8 @@ class Scene:
 
     def step(self, action_forces: np.ndarray | None = None,
              action_spins: np.ndarray | None = None) -> np.ndarray:
-        """Advance one model step under ``action_forces [O, 3]`` (N); return leaves ``[L, 3]``.
-
-        ``action_spins [O, 3]`` (rad/s, soft/cloth only) sets a rigid spin of the body's nodes
-        about their centre of mass, together with the force's velocity change.
-        """
+        """Advance one model step under ``action_forces [O, 3]`` (N) and, for soft / cloth,
+        ``action_spins [O, 3]`` (rad/s about the centre of mass); return leaves ``[L, 3]``."""
         self._require_started()
         c, n_obj = self._client, self.num_objects
         forces = self.zero_action() if action_forces is None else np.asarray(action_forces, float)
@@ -349,12 +329,8 @@ class Scene:
         return self.leaf_positions()
 
     def nudge(self, offsets: np.ndarray, velocities: np.ndarray | None = None) -> np.ndarray:
-        """Translate each object by ``offsets [O, 3]`` (m) and add ``velocities [O, 3]`` (m/s)
-        to its linear velocity, at once; return the new leaf positions ``[L, 3]``.
-
-        For perturbing an initial state (a soft body or cloth is translated rigidly and all its
-        nodes get the mean node velocity plus the offset). Static objects' rows must be zero.
-        """
+        """Translate each object by ``offsets [O, 3]`` (m) and add ``velocities [O, 3]`` (m/s) at once, to
+        perturb a start state; return the leaves ``[L, 3]``. Static objects' rows must be zero."""
         self._require_started()
         c, n_obj = self._client, self.num_objects
         offsets = np.asarray(offsets, float)
@@ -395,12 +371,8 @@ class Scene:
         return np.asarray(verts, dtype=np.float64)
 
     def _kick_deformable(self, obj: SceneObject, dv: np.ndarray, spin: np.ndarray) -> np.ndarray:
-        """Set node velocities to ``v_mean + dv + spin x (x - x_mean)``; return per-leaf forces.
-
-        pybullet's ``resetBaseVelocity`` on a soft body overwrites every node's velocity with
-        that rigid field, so the recorded force is the actual change per node,
-        :math:`f_i = m_i (v_i^{new} - v_i^{old}) / \\Delta t`.
-        """
+        r"""Set node velocities to ``v_mean + dv + spin x (x - x_mean)``; return the per-leaf forces
+        :math:`f_i = m_i (v_i^{new} - v_i^{old}) / \Delta t`."""
         n = len(obj.local_leaves)
         if not np.any(dv != 0) and not np.any(spin != 0):
             return np.zeros((n, 3))

@@ -1,39 +1,33 @@
-r"""Point tracks in, episodes out: ``hrn-pyg import``.
+"""Point tracks in, episodes out: ``hrn-pyg import``.
 
 Tracks are the positions of points over frames, each point with an object and each object a
-material: what motion capture, a tracker or another simulator gives. :func:`tracks_to_episode`
-turns them into the episode format of ``docs/data.md``:
+material (motion capture, a tracker, another simulator). :func:`tracks_to_episode` turns them
+into the episode format of ``docs/data.md``:
 
-* **leaves** are the points as they are (``leaves="points"``), or lie on the package's lattice
-  of spacing ``pitch`` (``leaves="lattice"``): an object's points at the rest frame are snapped to
-  the lattice through its lowest corner (:func:`~hrn_pyg.data.voxelise.lattice_indices`' grid),
-  each occupied cell is a leaf, or, for a rigid or static object given a mesh, the mesh's own
-  voxel lattice is (:func:`~hrn_pyg.data.meshes.solid_points`, as a scene file's body gets). A
-  rigid object's leaves then move with the least-squares rigid motion of its points
-  (:func:`rigid_motion`); a soft or cloth leaf moves by the mean displacement of the points in its
-  cell;
-* a **static** object keeps its rest-frame leaves at every frame;
-* the **rest shape** is the frame ``rest_frame`` (the frames before it are dropped), and the
-  hierarchy is clustered there with :func:`~hrn_pyg.data.hierarchy.build_hierarchy`, as
-  :func:`~hrn_pyg.data.episodes.simulate_episode` does;
-* every ``frame_stride``-th frame is kept (``dt`` times the stride), each step's force the mean of
-  its frames' forces.
+* **leaves** are the points (``leaves="points"``) or lattice cells of spacing ``pitch``
+  (``leaves="lattice"``: an object's rest-frame points snapped to
+  :func:`~hrn_pyg.data.voxelise.lattice_indices`' grid, or a rigid object's mesh's voxels,
+  :func:`~hrn_pyg.data.meshes.solid_points`). A rigid object's leaves move with the
+  least-squares rigid motion of its points (:func:`rigid_motion`), a soft or cloth leaf by the
+  mean displacement of its cell's points; a **static** object's leaves never move;
+* the **rest shape** is frame ``rest_frame`` (earlier frames dropped), where the hierarchy is
+  clustered (:func:`~hrn_pyg.data.hierarchy.build_hierarchy`);
+* every ``frame_stride``-th frame is kept, each step's force the mean of its frames'.
 
-Two file layouts are read (:data:`FORMATS`), both ``.npz`` without pickle:
+Two ``.npz`` layouts are read (:data:`FORMATS`), without pickle:
 
-``npz`` (the package's own, :func:`save_tracks` writes it)
-    ``positions [T, P, 3]`` (m), ``object [P]`` (any integers; objects are numbered in
-    increasing id order), ``material [P]`` (codes 0-3 or the names rigid, soft, cloth, static;
-    one per object); optional ``mass [P]`` (kg; default ``mass`` per object, shared equally),
+``npz`` (:func:`save_tracks` writes it)
+    ``positions [T, P, 3]`` (m), ``object [P]`` (any integers, numbered in increasing order),
+    ``material [P]`` (codes 0-3 or names, one per object); optional ``mass [P]`` (kg),
     ``forces [T-1, P, 3]`` (N), ``stiffness [O]`` (0..1), ``dt`` (s), ``pitch`` (m).
 
-``learning_to_simulate`` (the layout of GNS's datasets)
-    ``position [T, N, dim]`` with ``dim`` 2 or 3 and ``particle_type [N]``; several
-    trajectories as ``position_<i>`` / ``particle_type_<i>``. Each particle type is one object,
-    its material from ``particle_materials`` (type -> material name); ``dt`` is given.
+``learning_to_simulate`` (GNS's datasets)
+    ``position [T, N, dim]`` (``dim`` 2 or 3) and ``particle_type [N]``, or ``position_<i>`` /
+    ``particle_type_<i>`` per trajectory; each type one object, its material from
+    ``particle_materials``; ``dt`` given.
 
-Positions are turned so that ``up`` (x, y or z of the file) becomes z (a 2-D ``(x, y)`` becomes
-``(x, 0, y)``) and shifted so that the height ``ground`` becomes the package's ground ``z = 0``.
+Positions are turned so that ``up`` becomes z (2-D ``(x, y)`` becomes ``(x, 0, y)``) and
+shifted so that the height ``ground`` is ``z = 0``.
 """
 
 from __future__ import annotations
@@ -101,8 +95,8 @@ class ImportConfig:
         pitch: the lattice spacing (m); for ``points``, the spacing recorded for pitch-aware models.
         rest_frame: the frame whose positions are the rest shape; earlier frames are dropped.
         frame_stride: keep every n-th frame from the rest frame on.
-        meshes: object index -> mesh file (m, posed as the object is at the rest frame) whose
-            voxel lattice gives a rigid or static object's leaves (``lattice`` only).
+        meshes: object index -> mesh file (posed as at the rest frame) whose voxels are a rigid or
+            static object's leaves (``lattice`` only).
     """
 
     leaves: str = "points"
@@ -159,12 +153,8 @@ def check_tracks(tracks: Tracks) -> None:
 
 
 def to_z_up(positions: np.ndarray, up: str = "z", ground: float = 0.0) -> np.ndarray:
-    """Positions ``[T, P, dim]`` (``dim`` 2 or 3) turned by a proper rotation so that axis ``up``
-    points along z, then shifted so that the height ``ground`` (along ``up``) is ``z = 0``; a
-    2-D ``(x, y)`` with ``up = "y"`` becomes ``(x, 0, y)``.
-
-    **Shapes** ``[T, P, dim]`` -> ``[T, P, 3]`` float64.
-    """
+    """Positions turned by a proper rotation so that axis ``up`` is z, then shifted so that the height
+    ``ground`` is ``z = 0``. **Shapes** ``[T, P, dim]`` (``dim`` 2 or 3) -> ``[T, P, 3]`` float64."""
     x = np.asarray(positions, dtype=np.float64)
     if x.ndim != 3 or x.shape[2] not in (2, 3):
         raise ValueError(f"positions: expected [T, P, 2 or 3], got {list(x.shape)}")
@@ -197,10 +187,9 @@ def tracks_from_points(positions: np.ndarray, point_object: np.ndarray, point_ma
                        point_mass: np.ndarray | None = None, object_mass: float = 1.0,
                        stiffness: np.ndarray | None = None, forces: np.ndarray | None = None,
                        pitch: float | None = None, name: str = "tracks") -> Tracks:
-    """:class:`Tracks` from per-point arrays with any object ids (numbered in increasing order);
-    an object's points must share one material. Without ``point_mass`` each object weighs
-    ``object_mass`` kg, shared equally by its points; without ``stiffness`` rigid and static
-    objects get 1, soft and cloth :data:`DEFAULT_STIFFNESS`.
+    """:class:`Tracks` from per-point arrays with any object ids; an object's points share one
+    material. Default masses: ``object_mass`` kg per object, shared by its points; default
+    stiffness: 1 for rigid and static, :data:`DEFAULT_STIFFNESS` for soft and cloth.
 
     **Shapes** ``positions [T, P, 3]``, ``point_object [P]``, ``point_material [P]``,
     ``point_mass [P]``, ``stiffness [O]``, ``forces [T-1, P, 3]``.
@@ -347,10 +336,9 @@ def save_tracks(path: str | Path, tracks: Tracks) -> None:
 
 
 def rigid_motion(rest: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    r"""The rotation and translation of each frame that best carry the rest points onto it,
-    :math:`\min_{R_t, c_t} \sum_i \| R_t (\bar x_i - \bar\mu) + c_t - x_{t,i} \|^2` (Kabsch: the
-    SVD of the cross-covariance, its reflection removed), so :math:`x \approx R_t(\bar x - \bar
-    \mu) + c_t` with :math:`c_t` the frame's centroid.
+    r"""Per frame, the rotation and translation that best carry the rest points onto it,
+    :math:`\min_{R_t, c_t} \sum_i \| R_t (\bar x_i - \bar\mu) + c_t - x_{t,i} \|^2` (Kabsch, no
+    reflection); :math:`c_t` is the frame's centroid.
 
     **Shapes** ``rest [P, 3]``, ``frames [T, P, 3]`` -> ``R [T, 3, 3]``, ``c [T, 3]``.
     """

@@ -1,13 +1,10 @@
 """Mesh voxelisation: the one path from a trimesh mesh to leaf particles.
 
-Every material starts here. A rigid body's leaves are the filled voxel centres of its mesh,
-carried by the body's pose; a soft body's leaves are the same voxel centres turned into the
-nodes of a tetrahedral mesh (:func:`lattice_tetrahedra`, :func:`write_tetrahedral_vtk`) that
-pybullet simulates; a cloth is a one-layer lattice (:func:`grid_sheet`).
-
-trimesh's ``voxelized(pitch)`` puts voxel centres on a grid through the mesh's lower corner, so
-a box of side ``a = n * pitch`` yields ``(n + 1)`` centres per axis, the outer ones lying on its
-faces: the leaves span the body exactly.
+A rigid body's leaves are the filled voxel centres of its mesh; a soft body's are the same
+centres as the nodes of a tetrahedral mesh (:func:`lattice_tetrahedra`,
+:func:`write_tetrahedral_vtk`); a cloth is a one-layer lattice (:func:`grid_sheet`). The grid
+runs through the mesh's lower corner, so a box of side ``n * pitch`` has ``n + 1`` centres per
+axis, the outer ones on its faces.
 """
 
 from __future__ import annotations
@@ -49,15 +46,10 @@ def _check_mesh(mesh: trimesh.Trimesh) -> None:
 
 
 def voxelise(mesh: trimesh.Trimesh, pitch: float) -> np.ndarray:
-    """Filled voxel centres of a closed mesh.
+    """Filled voxel centres of a closed mesh: :math:`c` is a leaf iff the voxel of side ``pitch``
+    centred at :math:`c` meets the surface or lies inside it (``mesh.voxelized(pitch).fill()``).
 
-    A point :math:`c` is a leaf iff the voxel of side ``pitch`` centred at :math:`c` meets the
-    surface or lies inside it (``mesh.voxelized(pitch).fill()``), so
-    :math:`L \\cdot \\text{pitch}^3 \\approx \\text{vol}(\\text{mesh dilated by pitch}/2)`.
-
-    **Shapes**
-    - ``mesh``: ``V`` vertices, ``F`` faces, watertight, finite.
-    - returns: ``[L, 3]`` float64 voxel centres in the mesh's frame.
+    **Shapes** ``mesh`` watertight and finite; returns ``[L, 3]`` float64 in the mesh's frame.
     """
     if not np.isfinite(pitch) or pitch <= 0:
         raise ValueError(f"pitch: must be a finite number > 0, got {pitch}")
@@ -84,11 +76,8 @@ def sphere_mesh(radius: float, subdivisions: int = 3) -> trimesh.Trimesh:
 
 
 def wedge_mesh(width: float, height: float, length: float) -> trimesh.Trimesh:
-    """Triangular prism with its ridge along the y axis.
-
-    Cross-section (x, z): base from ``(-width/2, 0)`` to ``(width/2, 0)``, apex ``(0, height)``;
-    extruded over ``y`` in ``[-length/2, length/2]``. The base lies on ``z = 0``.
-    """
+    """Triangular prism, ridge along y: base from ``(-width/2, 0)`` to ``(width/2, 0)`` on ``z = 0``,
+    apex ``(0, height)``, over ``y`` in ``[-length/2, length/2]``."""
     for name, value in (("width", width), ("height", height), ("length", length)):
         if not np.isfinite(value) or value <= 0:
             raise ValueError(f"{name}: must be finite and > 0, got {value}")
@@ -132,11 +121,9 @@ class LatticeWarning(UserWarning):
 
 
 def largest_piece(cell_index: np.ndarray) -> np.ndarray:
-    """Which cells belong to the largest piece (most cells) of a lattice, two cells being in one
-    piece when a chain of cells, each sharing a whole face with the next, joins them.
+    """Which cells belong to the largest face-connected piece of a lattice.
 
-    **Shapes:** ``cell_index`` ``[C, 3]`` the distinct integer lattice indices of the cells
-    (their lowest corners); returns ``[C]`` bool.
+    **Shapes:** ``cell_index`` ``[C, 3]`` distinct integer indices; returns ``[C]`` bool.
     """
     count = len(cell_index)
     shifted = cell_index - cell_index.min(axis=0) + 1  # room for a neighbour at -1
@@ -158,18 +145,12 @@ def largest_piece(cell_index: np.ndarray) -> np.ndarray:
 
 
 def lattice_tetrahedra(points: np.ndarray, pitch: float) -> tuple[np.ndarray, np.ndarray]:
-    """Tetrahedral mesh whose nodes are voxel centres.
+    r"""Tetrahedral mesh whose nodes are voxel centres: every cell with all 8 corners filled is split
+    into the 6 Kuhn tetrahedra (:data:`KUHN_TETS`), each with
+    :math:`\det[x_1 - x_0, x_2 - x_0, x_3 - x_0] > 0`; centres in no complete cell are dropped.
 
-    Every lattice cell whose 8 corners are all filled voxel centres is split into the 6 Kuhn
-    tetrahedra (:data:`KUHN_TETS`); each tet is ordered to have positive volume
-    :math:`\\det[x_1 - x_0, x_2 - x_0, x_3 - x_0] > 0`. Voxel centres in no complete cell are
-    dropped (they could not be simulated). A box of ``n^3`` centres gives ``n^3`` nodes and
-    ``6 (n-1)^3`` tets.
-
-    **Shapes**
-    - ``points``: ``[L, 3]`` voxel centres on a lattice of spacing ``pitch``.
-    - returns ``nodes [M, 3]`` float64 (a subset of ``points``, in their order) and
-      ``tets [T, 4]`` int64 indices into ``nodes``.
+    **Shapes** ``points [L, 3]`` on a lattice of spacing ``pitch``; returns ``nodes [M, 3]``
+    float64 (a subset of ``points``, in order) and ``tets [T, 4]`` int64.
     """
     idx = lattice_indices(points, pitch)
     dims = idx.max(axis=0) + 1
@@ -205,12 +186,8 @@ def lattice_tetrahedra(points: np.ndarray, pitch: float) -> tuple[np.ndarray, np
 
 
 def write_tetrahedral_vtk(path: str | os.PathLike, nodes: np.ndarray, tets: np.ndarray) -> None:
-    """Write a legacy ASCII ``.vtk`` unstructured grid of tetrahedra (VTK cell type 10).
-
-    Written to a temp file in the same folder and moved into place.
-
-    **Shapes** ``nodes [M, 3]``, ``tets [T, 4]`` int.
-    """
+    """Write a legacy ASCII ``.vtk`` grid of tetrahedra (cell type 10), atomically.
+    **Shapes** ``nodes [M, 3]``, ``tets [T, 4]`` int."""
     nodes = np.asarray(nodes, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
     if nodes.ndim != 2 or nodes.shape[1] != 3 or not np.all(np.isfinite(nodes)):
@@ -228,10 +205,8 @@ def write_tetrahedral_vtk(path: str | os.PathLike, nodes: np.ndarray, tets: np.n
 
 
 def grid_sheet(size: float, pitch: float) -> tuple[np.ndarray, np.ndarray]:
-    """A square one-layer lattice in the plane ``z = 0`` centred at the origin (a cloth).
-
-    ``n = round(size / pitch) + 1`` nodes per side; each lattice square is split into two
-    triangles.
+    """A square one-layer lattice in ``z = 0`` centred at the origin (a cloth), ``n = round(size /
+    pitch) + 1`` nodes a side, each square two triangles.
 
     **Shapes** returns ``vertices [n*n, 3]`` float64 and ``faces [2 (n-1)^2, 3]`` int64.
     """

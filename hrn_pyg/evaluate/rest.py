@@ -1,31 +1,22 @@
 r"""Ground and rest metrics of a long rollout: does a predicted object sink, float or creep?
 
-Positional MSE hides the failures that matter at the end of a long rollout: an object that slowly
-sinks into the floor, comes to rest at the wrong height, or keeps sliding when pybullet has it
-still. Three numbers, on leaf positions ``pred`` and ``truth`` ``[S, L, 3]`` (``S`` states of one
-or more batched trajectories, ``z`` up, the ground plane at ``z = 0``):
+On leaf positions ``pred`` and ``truth`` ``[S, L, 3]`` (``z`` up, the ground at ``z = 0``):
 
-* **ground depth** of a trajectory :math:`g`, over its movable leaves :math:`\mathcal{M}_g`:
+* **ground depth** of a trajectory :math:`g` over its movable leaves :math:`\mathcal{M}_g`:
 
   .. math:: d_g = \max_s \max_{l \in \mathcal{M}_g} \max(0, -z_{s,l})
 
-* **objects at rest** in the ground truth: object :math:`o` (leaves :math:`\mathcal{L}_o`, none
-  static) is at rest when every leaf moved less than :data:`REST_SPEED` metres per step over the
-  last :data:`REST_STEPS` steps:
+* **objects at rest** in the truth: every leaf moved less than :data:`REST_SPEED` per step over
+  the last :math:`K` = :data:`REST_STEPS` steps:
 
   .. math:: \mathrm{rest}_o = \Big[\max_{S-K < s \le S} \max_{l \in \mathcal{L}_o}
             \lVert x_{s,l} - x_{s-1,l} \rVert < v_{rest}\Big]
 
-  (states numbered :math:`x_1 .. x_S`, so :math:`x_S` is the last one and :math:`K` =
-  :data:`REST_STEPS`);
+* for objects at rest, with the mass-weighted centroid :math:`c_{s,o}`, the **rest height
+  error** :math:`|\hat c^z_{S,o} - c^z_{S,o}|` and the **rest drift**
+  :math:`\lVert \hat c^{xy}_{S,o} - \hat c^{xy}_{S-K,o} \rVert`.
 
-* with the mass-weighted centroid :math:`c_{s,o} = \sum_{l \in \mathcal{L}_o} m_l x_{s,l} /
-  \sum_{l \in \mathcal{L}_o} m_l`, for objects at rest the **rest height error**
-  :math:`|\hat c^z_{S,o} - c^z_{S,o}|` at the last state and the **rest drift**
-  :math:`\lVert \hat c^{xy}_{S,o} - \hat c^{xy}_{S-K,o} \rVert`, the horizontal distance the
-  predicted centroid travels over the same last :math:`K` steps.
-
-Everything is one scatter over leaves; no Python loop over particles, objects or steps.
+One scatter over leaves each; no Python loop.
 """
 
 from __future__ import annotations
@@ -90,11 +81,8 @@ def object_centroids(pos: Tensor, obj: Tensor, num_objects: int, mass: Tensor | 
 
 def objects_at_rest(truth: Tensor, obj: Tensor, movable: Tensor, num_objects: int,
                     steps: int = REST_STEPS, speed: float = REST_SPEED) -> Tensor:
-    r"""Which objects are at rest at the end of the ground truth (see the module docstring).
-
-    An object is at rest when all its leaves are movable and each moved less than ``speed``
-    metres in each of the last ``steps`` steps (fewer if ``truth`` holds fewer). Objects with a
-    static leaf, or with no leaf, are never at rest.
+    """Which objects are at rest at the end of the ground truth (module docstring); an object with a
+    static leaf, or none, never is.
 
     **Shapes:** ``truth`` ``[S, L, 3]`` (``S >= 2``), ``obj`` ``[L]``, ``movable`` ``[L]``
     bool; returns ``[num_objects]`` bool.
@@ -129,10 +117,8 @@ def rest_height_error(pred: Tensor, truth: Tensor, obj: Tensor, num_objects: int
 
 def rest_drift(pred: Tensor, obj: Tensor, num_objects: int, steps: int = REST_STEPS,
                mass: Tensor | None = None) -> Tensor:
-    r""":math:`\lVert \hat c^{xy}_{S,o} - \hat c^{xy}_{S-K,o} \rVert`: horizontal centroid travel.
-
-    The net horizontal distance between the predicted centroid ``steps`` steps before the last
-    state and at the last state (``K = min(steps, S - 1)``).
+    r""":math:`\lVert \hat c^{xy}_{S,o} - \hat c^{xy}_{S-K,o} \rVert`, ``K = min(steps, S - 1)``: the
+    predicted centroid's net horizontal travel.
 
     **Shapes:** ``pred`` ``[S, L, 3]`` (``S >= 2``), ``obj`` ``[L]``, ``mass`` ``[L]`` or None;
     returns ``[num_objects]`` (metres).
@@ -166,13 +152,10 @@ class RestMetrics(NamedTuple):
 def rest_metrics(pred: Tensor, truth: Tensor, obj: Tensor, movable: Tensor, group: Tensor,
                  num_objects: int, num_groups: int, mass: Tensor | None = None,
                  steps: int = REST_STEPS, speed: float = REST_SPEED) -> RestMetrics:
-    """All rest metrics of rollouts ``pred`` against ``truth``, both ending at the episode's end.
+    """All rest metrics of rollouts ``pred`` against ``truth`` (:class:`RestMetrics`); ``obj`` numbers
+    objects uniquely across trajectories, ``group`` gives each leaf's trajectory.
 
-    ``obj`` must number objects uniquely across trajectories (e.g. ``copy * O + object``) and
-    ``group`` gives each leaf's trajectory.
-
-    **Shapes:** ``pred``, ``truth`` ``[S, L, 3]``; ``obj``, ``group``, ``movable``, ``mass``
-    ``[L]``; see :class:`RestMetrics` for the outputs.
+    **Shapes:** ``pred``, ``truth`` ``[S, L, 3]``; ``obj``, ``group``, ``movable``, ``mass`` ``[L]``.
     """
     _check_positions("truth", truth)
     _check_positions("pred", pred, truth.shape[1])

@@ -24,22 +24,12 @@ class CollisionModule(nn.Module):
         e_C(i) = \sum_{j \in \mathcal{N}_C(i)}
             \phi_C\bigl(s_i,\ s_j,\ x_i - x_j,\ \lVert x_i - x_j \rVert\bigr)
 
-    :math:`\mathcal{N}_C(i)` are the sources of the collision edges ``j -> i`` (leaves of other
-    objects within the collision radius), :math:`s` the particle state vectors and :math:`x` the
-    (scaled) positions; only differences of positions enter, so the effect is translation
-    invariant. Aggregation is a sum, so a particle that receives no message gets an exact zero and
-    an empty edge set gives an all-zero output.
-
-    ``edge_weight`` (optional, 0 or 1 per edge) switches edges off without removing them: an edge
-    of weight 0 adds an exact zero and does not count in the output layer's bias, so the result
-    is that of the edge set without it. This is the fixed-shape step's form
-    (:mod:`hrn_pyg.sim.fixed_shape`): a candidate set that only changes when something has moved far,
-    with the pairs closer than the radius marked per step.
-
-    With ``reads_force`` the messages also read the external force (normalised) on both ends,
-    :math:`\phi_C(s_i, s_j, f_i, f_j, x_i - x_j, \lVert x_i - x_j \rVert)`: a push on either body
-    reaches the contact in the step it is applied, where without it the contact learns of the push
-    only from the overlap it has made one step later.
+    :math:`\mathcal{N}_C(i)`: the sources of collision edges ``j -> i`` (leaves of other objects
+    within the radius); translation invariant; a node without messages gets an exact zero.
+    ``edge_weight`` (0 or 1 per edge, the fixed-shape step's candidates) switches edges off exactly.
+    With ``reads_force`` the messages also read the normalised force on both ends,
+    :math:`\phi_C(s_i, s_j, f_i, f_j, x_i - x_j, \lVert x_i - x_j \rVert)`, so a push reaches the
+    contact in its own step.
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.
@@ -50,8 +40,8 @@ class CollisionModule(nn.Module):
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, pos :math:`(|\mathcal{V}|, 3)`,
           edge_index :math:`(2, |\mathcal{E}_C|)`, mask :math:`(B, H)` or None,
-          batch :math:`(|\mathcal{V}|,)` (needed with a mask; an edge uses its destination's id),
-          edge_weight :math:`(|\mathcal{E}_C|,)` or None, force :math:`(|\mathcal{V}|, 3)` (with ``reads_force``)
+          batch :math:`(|\mathcal{V}|,)` (with a mask; an edge uses its destination's id),
+          edge_weight :math:`(|\mathcal{E}_C|,)` or None, force :math:`(|\mathcal{V}|, 3)`
         - **output:** effect :math:`(|\mathcal{V}|, D)`
     """
 

@@ -1,10 +1,8 @@
 """The one MLP constructor of hrn_pyg, with an optional dropout mask handed in from outside.
 
-Every learned function of the HRN (``phi_F``, ``phi_C``, ``phi_H``, ``eta``, ``psi``) is an
-:class:`MLP` built from one :class:`MLPConfig`. Monte Carlo graph-convolutional dropout (seed
-paper, section 3.2) needs *one* mask per prediction step per trajectory, shared by every node and
-edge of that trajectory; the mask is therefore not drawn inside the layer but passed in as a
-``[B, H]`` table (one row per trajectory copy) and looked up by each row's batch id.
+Every learned function of the HRN is an :class:`MLP` of one :class:`MLPConfig`. Monte Carlo
+graph-convolutional dropout (seed paper, 3.2) needs one mask per step per trajectory, shared by
+all its nodes and edges, so the mask is passed in as a ``[B, H]`` table looked up by batch id.
 """
 
 from __future__ import annotations
@@ -114,12 +112,8 @@ def dropout_mask(
 
 
 def in_degree(edge_index: Tensor, num_nodes: int, edge_weight: Tensor | None = None) -> Tensor:
-    """Number of edges into each node, ``[num_nodes]`` long (``edge_index[1]`` are destinations);
-    with ``edge_weight`` ``[E]`` the sum of the weights of those edges (in its dtype).
-
-    One ``index_add``: unlike ``torch.bincount``, which reads the largest index back to size its
-    output, it never waits for the device, so a step can be captured in a CUDA graph.
-    """
+    """Number of edges into each node, ``[num_nodes]`` long, or with ``edge_weight`` ``[E]`` the sum
+    of their weights; one ``index_add`` (no host read, unlike ``torch.bincount``)."""
     dst = edge_index[1]
     if edge_weight is None:
         return torch.zeros(num_nodes, dtype=torch.long, device=dst.device).index_add_(0, dst, torch.ones_like(dst))
@@ -127,11 +121,8 @@ def in_degree(edge_index: Tensor, num_nodes: int, edge_weight: Tensor | None = N
 
 
 def sum_by_index(values: Tensor, index: Tensor, num_rows: int) -> Tensor:
-    r"""Rows of ``values`` summed by ``index``: :math:`y_i = \sum_{e:\, \mathrm{index}_e = i} v_e`.
-
-    One ``scatter_add_``, the sum that PyG's ``aggr="add"`` computes, in the same order (the
-    same numbers, bit for bit), without the message-passing machinery around it; a row no
-    index names is an exact zero.
+    r"""Rows of ``values`` summed by ``index``: :math:`y_i = \sum_{e:\, \mathrm{index}_e = i} v_e`,
+    PyG's ``aggr="add"`` bit for bit (one ``scatter_add_``).
 
     **Shapes:** values ``(E, F)``, index ``(E,)`` long in ``[0, num_rows)``; returns ``(num_rows, F)``.
     """
@@ -177,12 +168,8 @@ class MLP(nn.Module):
         return self.forward_from_first(self.hidden_layers[0](x), mask, index, pre_is_scratch=True)
 
     def split_first_weight(self, sizes: Sequence[int]) -> tuple[Tensor, ...]:
-        r"""The first layer's weight cut by input columns, :math:`W_1 = [W_1^{(1)} | W_1^{(2)} | \dots]`.
-
-        An edge MLP whose input concatenates per-node parts can then apply each block once per
-        node and gather the products onto the edges (:meth:`forward_from_first`), instead of
-        multiplying the concatenated input once per edge; the result is the same.
-        """
+        r"""The first layer's weight cut by input columns, :math:`W_1 = [W_1^{(1)} | W_1^{(2)} | \dots]`,
+        so an edge MLP applies each per-node block once per node (:meth:`forward_from_first`)."""
         if sum(sizes) != self.in_dim:
             raise ValueError(f"MLP: column blocks {list(sizes)} do not add up to in_dim={self.in_dim}")
         return torch.split(self.hidden_layers[0].weight, list(sizes), dim=1)
@@ -202,12 +189,8 @@ class MLP(nn.Module):
 
     def last_hidden_from_first(self, pre: Tensor, mask: Tensor | None = None,
                                index: Tensor | None = None, pre_is_scratch: bool = False) -> Tensor:
-        """The last (masked) hidden activation :math:`h_D` from the first layer's pre-activation.
-
-        Without autograd (rollouts, sampling) the activations and masks are applied in place on
-        the layers' fresh outputs, and on ``pre`` itself when the caller marks it
-        ``pre_is_scratch`` (a tensor made for this call alone): one pass over the rows fewer per
-        operation, the same numbers.
+        """The last (masked) hidden activation :math:`h_D` from the first layer's pre-activation; without
+        autograd in place (on ``pre`` too when ``pre_is_scratch``).
 
         **Shapes:** ``pre`` :math:`(M, H)`; output :math:`(M, H)`.
         """
@@ -238,16 +221,12 @@ class MLP(nn.Module):
         return self.activation(h)
 
     def output_of_sum(self, hidden_sum: Tensor, count: Tensor) -> Tensor:
-        r"""The output layer applied to a sum of ``count`` last hidden activations.
-
-        The output layer is affine, so a sum of MLP outputs over a node's incoming edges equals
+        r"""The output layer applied to a sum of ``count`` last hidden activations, since it is affine:
 
         .. math::
-            \sum_{e \to i} (W h_e + b) = W \Bigl(\sum_{e \to i} h_e\Bigr) + n_i\, b,
+            \sum_{e \to i} (W h_e + b) = W \Bigl(\sum_{e \to i} h_e\Bigr) + n_i\, b
 
-        with :math:`n_i` the number of edges into :math:`i`. A message-passing layer that sums
-        can therefore aggregate :math:`h` (:meth:`last_hidden_from_first`) and run the output
-        layer once per node instead of once per edge; a node with no edge gets an exact zero.
+        (once per node instead of per edge; a node without edges gets an exact zero).
 
         **Shapes:** ``hidden_sum`` :math:`(N, H)`, ``count`` :math:`(N,)`; output :math:`(N, F_{out})`.
         """

@@ -1,9 +1,7 @@
 """Normalisation statistics of the HRN's inputs and targets, fitted once on training data.
 
-The statistics are buffers of :class:`Normalizer`, so they live in the model's ``state_dict`` and
-travel with every checkpoint; :func:`fit_normalizer` computes them from an iterable of training
-graphs or windows, and nothing is estimated from data at inference time. Before fitting, the
-normaliser is the identity (means 0, scales 1) and ``fitted`` is False.
+The statistics are buffers of :class:`Normalizer` (saved with every checkpoint), computed by
+:func:`fit_normalizer`; nothing is estimated at inference. Unfitted, it is the identity.
 """
 
 from __future__ import annotations
@@ -31,13 +29,11 @@ MASS_FLOOR = 1e-8
 class Normalizer(nn.Module):
     r"""Explicit input and target statistics of the model.
 
-    Inputs: velocity :math:`(v - \mu_v) / \sigma_v`, force :math:`f / \sigma_f` (no shift, so a
-    zero force stays exactly zero), height :math:`(z - \mu_z) / \sigma_z`, log mass
-    :math:`(\log m - \mu_m) / \sigma_m`, edge offsets :math:`\Delta x / \ell`.
-    Targets: the change of the local velocity over one step,
-    :math:`\delta_i = v^{loc}_i(t+1) - v^{loc}_i(t)`, standardised with :math:`(\mu_{loc},
-    \sigma_{loc})` for non-root nodes (parent frame) and :math:`(\mu_{root}, \sigma_{root})` for
-    roots (global frame).
+    Inputs: velocity :math:`(v - \mu_v) / \sigma_v`, force :math:`f / \sigma_f` (zero stays zero),
+    height :math:`(z - \mu_z) / \sigma_z`, log mass :math:`(\log m - \mu_m) / \sigma_m`, edge
+    offsets :math:`\Delta x / \ell`. Targets: :math:`\delta_i = v^{loc}_i(t+1) - v^{loc}_i(t)`,
+    standardised with :math:`(\mu_{loc}, \sigma_{loc})` (parent frame) or
+    :math:`(\mu_{root}, \sigma_{root})` for roots (global frame).
 
     **Shapes:** every buffer is :math:`(3,)` (per axis) or :math:`(1,)`; ``fitted`` is a bool scalar.
     """
@@ -113,14 +109,8 @@ class _Moments:
         return (self.s / self.n).float() if self.n else torch.zeros_like(self.s, dtype=torch.float32)
 
     def std(self, centred: bool = True, fallback: Tensor | None = None) -> Tensor:
-        """Standard deviation per column (root mean square if not ``centred``).
-
-        A column that never varies takes the mean scale of the columns that do: the axes of a
-        vector keep one scale, so the unused axis of a planar scene (the wedge's y: the ball
-        never moves along the ridge) is not decoded at 1 m/step, which turned every small
-        output error on that axis into centimetres of motion. When no column varies, each
-        takes ``fallback`` (default 1).
-        """
+        """Standard deviation per column (RMS if not ``centred``); a constant column takes the mean scale
+        of the others (an unused axis is not decoded at 1 m/step), or ``fallback`` when none varies."""
         fallback = torch.ones_like(self.s, dtype=torch.float32) if fallback is None else fallback.float()
         if self.n == 0:
             return fallback
@@ -146,21 +136,11 @@ def _positions(store) -> Tensor:
 
 def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None = None,
                    reference_pitch: float | None = None) -> Normalizer:
-    r"""Fit a :class:`Normalizer` on training graphs or dataset windows.
-
-    Uses ``pos_seq`` (or ``prev_prev_pos, prev_pos, pos``) for velocities, their local changes and
-    heights; ``force_seq`` (or ``force``) for the force scale (root mean square over nonzero force
-    rows); ``mass`` for the log-mass statistics; ``child_to_parent`` offsets at the first frame for
-    the length scale. Static nodes are left out everywhere. Statistics without data stay at the
-    identity.
-
-    ``reference_pitch`` (a pitch-aware model's, :mod:`hrn_pyg.nn.pitch`): the offsets of the
-    length scale are measured as that model reads them, each divided by its graph's
-    :math:`s = p / p_{ref}` (graphs of several pitches then share one scale); velocities,
-    heights and forces stay in metres.
-
-    Returns ``normalizer`` (a new one if None) with its buffers overwritten and ``fitted`` True.
-    """
+    """Fit a :class:`Normalizer` on training graphs or dataset windows: velocities, their local
+    changes and heights from ``pos_seq`` (or the three positions), the force scale (RMS over nonzero
+    rows), log-mass statistics, and the length scale from the ``child_to_parent`` offsets, static
+    nodes left out. ``reference_pitch``: offsets divided by each graph's :math:`s = p / p_{ref}`.
+    Returns ``normalizer`` (a new one if None), fitted."""
     vel, loc, root, height, log_mass, force, length = (
         _Moments(3), _Moments(3), _Moments(3), _Moments(1), _Moments(1), _Moments(3), _Moments(1)
     )
@@ -216,13 +196,9 @@ def fit_normalizer(graphs: Iterable[HeteroData], normalizer: Normalizer | None =
 
 
 def isotropic_horizontal(normalizer: Normalizer) -> Normalizer:
-    r"""Make the normaliser's statistics those of the symmetrised data, in place.
-
-    Averaged over all turns about z, a vector's horizontal mean is 0 and each horizontal
-    component's second moment is :math:`\tfrac12(\mu_x^2 + \sigma_x^2 + \mu_y^2 + \sigma_y^2)`;
-    vertical statistics are unchanged. Applies to the velocity, local / root target and force
-    statistics; returns ``normalizer``.
-    """
+    r"""Make the statistics those of the data averaged over all turns about z, in place: horizontal
+    mean 0, each horizontal second moment :math:`\tfrac12(\mu_x^2 + \sigma_x^2 + \mu_y^2 +
+    \sigma_y^2)`, for velocity, targets and force; returns ``normalizer``."""
     pairs = (("velocity_mean", "velocity_std"), ("local_mean", "local_std"), ("root_mean", "root_std"))
     with torch.no_grad():
         for mean_name, std_name in pairs:

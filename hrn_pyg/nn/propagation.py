@@ -15,14 +15,11 @@ class PropagationModule(nn.Module):
         \Delta e(i) = \sum_{j \in \mathcal{N}(i)}
             \eta\bigl(s_j,\ s_i,\ e_j,\ x_j - x_i\ [,\ \bar x_j - \bar x_i]\bigr)
 
-    The HRN uses three of these with separate weights, each adding to the running effect
-    :math:`e \leftarrow e + \Delta e`, in order: leaf-to-ancestor (L2A, edges ``leaf_to_ancestor``),
-    within-siblings (WS, ``within_siblings``), ancestor-to-descendant (A2D,
-    ``ancestor_to_descendant``). :math:`s` is the state vector, :math:`e` the effect so far and
-    :math:`x` the (scaled) position; a node without incoming edges gets an exact zero. With
-    ``rest_offsets`` the edge also carries its offset in the rest shape :math:`\bar x` (as
-    MeshGraphNets feeds mesh-space coordinates), which lets a deformed body see how far it is
-    from its rest shape.
+    The HRN runs three with separate weights, each adding :math:`e \leftarrow e + \Delta e`:
+    leaf-to-ancestor (L2A), within-siblings (WS), ancestor-to-descendant (A2D), over the edge sets
+    of those names. :math:`s` is the state, :math:`e` the effect so far, :math:`x` the scaled
+    position, :math:`\bar x` the rest shape (with ``rest_offsets``, as MeshGraphNets' mesh-space
+    coordinates); a node without incoming edges gets an exact zero.
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.
@@ -34,10 +31,9 @@ class PropagationModule(nn.Module):
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, effect :math:`(|\mathcal{V}|, D)`,
           pos :math:`(|\mathcal{V}|, 3)`, edge_index :math:`(2, |\mathcal{E}|)`,
-          mask :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)` (needed with a mask),
-          rest_pos :math:`(|\mathcal{V}|, 3)` (needed with ``rest_offsets``), optionally
-          degree :math:`(|\mathcal{V}|,)` and rest_offset :math:`(|\mathcal{E}|, 3)` when the
-          caller has them (:meth:`forward`)
+          mask :math:`(B, H)` or None, batch :math:`(|\mathcal{V}|,)` (with a mask),
+          rest_pos :math:`(|\mathcal{V}|, 3)` (with ``rest_offsets``), optionally
+          degree :math:`(|\mathcal{V}|,)` and rest_offset :math:`(|\mathcal{E}|, 3)`
         - **output:** effect increment :math:`(|\mathcal{V}|, D)`
     """
 
@@ -66,11 +62,9 @@ class PropagationModule(nn.Module):
         degree: Tensor | None = None,
         rest_offset: Tensor | None = None,
     ) -> Tensor:
-        """The effect increment; ``degree`` ``(N,)`` (the in-degree of ``edge_index``,
-        :func:`~hrn_pyg.nn.mlp.in_degree`) and ``rest_offset`` ``(E, 3)`` (the edges' rest
-        offsets :math:`\bar x_j - \bar x_i`, :func:`edge_offsets` of ``rest_pos``) may be given
-        by a caller that has them (a rollout: the hierarchy does not change); the result is the
-        same, bit for bit."""
+        """The effect increment; ``degree`` ``(N,)`` (:func:`~hrn_pyg.nn.mlp.in_degree`) and
+        ``rest_offset`` ``(E, 3)`` (:func:`edge_offsets` of ``rest_pos``) may be passed precomputed,
+        with the same result."""
         n = state.size(0)
         if state.dim() != 2 or state.size(1) != self.state_dim:
             raise ValueError(f"PropagationModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")

@@ -1,19 +1,13 @@
-"""Rigid shape matching: the predicted motion of a rigid object's leaves as one rigid transform.
+r"""Rigid shape matching: the predicted motion of a rigid object's leaves as one rigid transform.
 
-A rigid body cannot deform, so its leaves' predicted next positions are replaced by the rigid
-transform (rotation + translation) that fits them best in the mass-weighted least-squares sense,
-applied to the leaves' current positions (DPI-Net's shape matching, Li et al. 2019). The current
-positions of a rigid object are themselves a rigid image of its first state (ground truth, or the
-previous fitted step), so its shape holds at every horizon; gradients pass through the fit.
+A rigid body's predicted leaf positions are replaced by the rigid transform that fits them best
+(mass-weighted least squares), applied to its current leaves (DPI-Net's shape matching, Li et
+al. 2019), so its shape holds at every horizon; gradients pass through the fit.
 
-The rotation is the orthogonal polar factor of the 3x3 cross-covariance, computed with the
-scaled Newton iteration :math:`X \\leftarrow \\tfrac12(\\gamma X + \\gamma^{-1} X^{-\\top})`
-rather than an SVD: a cube's covariance has three equal singular values, where the SVD's
-gradient is undefined but the Newton iteration's is not. :math:`X^{-\\top}` is the cofactor
-matrix over the determinant (:func:`inverse_transpose`), in float64: a few elementwise ops on
-the whole batch and no host synchronisation, where a batched LAPACK inverse of 3x3 matrices
-costs about 40 dispatched ops and checks its pivots on the host (525 -> about 300 ops for the
-8 iterations, counted with ``torch.profiler``).
+The rotation is the polar factor of the 3x3 cross-covariance by the scaled Newton iteration
+:math:`X \leftarrow \tfrac12(\gamma X + \gamma^{-1} X^{-\top})`, not an SVD (whose gradient is
+undefined for a cube's three equal singular values), with :math:`X^{-\top}` in closed form
+(:func:`inverse_transpose`, float64, no host sync).
 """
 
 from __future__ import annotations
@@ -52,12 +46,9 @@ _COFACTOR = _cofactor_indices()
 
 
 def inverse_transpose(matrix: Tensor) -> Tensor:
-    r""":math:`M^{-\top} = \mathrm{cof}(M) / \det M` of each 3x3 matrix, in closed form.
-
-    The rows of the cofactor matrix are the cross products of the rows :math:`a, b, c` of
-    :math:`M`: :math:`(b \times c,\ c \times a,\ a \times b)`, and
-    :math:`\det M = a \cdot (b \times c)`. A singular matrix gives non-finite entries (callers
-    regularise first).
+    r""":math:`M^{-\top} = \mathrm{cof}(M) / \det M` of each 3x3 matrix: with rows :math:`a, b, c`,
+    :math:`\mathrm{cof}(M) = (b \times c,\ c \times a,\ a \times b)` and
+    :math:`\det M = a \cdot (b \times c)` (non-finite when singular).
 
     **Shapes:** matrix ``(..., 3, 3)``; returns ``(..., 3, 3)``.
     """
@@ -68,12 +59,9 @@ def inverse_transpose(matrix: Tensor) -> Tensor:
 
 
 def polar_rotation(matrix: Tensor, iterations: int = POLAR_ITERATIONS) -> Tensor:
-    r"""Orthogonal polar factor :math:`R` of each matrix :math:`M = R P` (:math:`P` symmetric
-    positive semi-definite), by the scaled Newton iteration.
-
-    float32 CPU matrices that need no gradient take :func:`polar_rotation_numpy` (the same
-    numbers, at less cost), the others :func:`polar_rotation_torch`, as does a step being
-    compiled (``torch.compile`` traces torch ops, not NumPy).
+    """Orthogonal polar factor :math:`R` of each :math:`M = R P` by the scaled Newton iteration:
+    :func:`polar_rotation_numpy` for float32 CPU matrices without gradient (unless compiling),
+    else :func:`polar_rotation_torch`.
 
     **Shapes:** matrix ``(G, 3, 3)``; returns ``(G, 3, 3)``.
     """
@@ -104,10 +92,8 @@ def polar_rotation_torch(matrix: Tensor, iterations: int = POLAR_ITERATIONS) -> 
 
 
 def polar_rotation_numpy(matrix: Tensor, iterations: int = POLAR_ITERATIONS) -> Tensor:
-    r""":func:`polar_rotation` of float32 CPU matrices that need no gradient: the iteration of
-    :func:`polar_rotation_torch` in NumPy on rows of 9 entries, the same float64 arithmetic (the
-    norms summed in another order, a difference float64 keeps far below what the cast back to
-    float32 can see) at a fraction of the cost of ~20 dispatched torch ops an iteration.
+    """:func:`polar_rotation_torch`'s iteration in NumPy float64 on rows of 9 entries (cheaper than
+    its dispatched ops; the same float32 result).
 
     **Shapes:** matrix ``(G, 3, 3)`` on the CPU; returns ``(G, 3, 3)`` in its dtype.
     """
@@ -141,10 +127,7 @@ def fit_rigid_motion(
         R_g = \mathrm{polar}\Bigl(\sum_{i \in g} m_i (\hat x_i - \hat c_g)(x_i - c_g)^\top\Bigr),
         \quad x'_i = \hat c_g + R_g (x_i - c_g)
 
-    :math:`R_g` minimises :math:`\sum_i m_i \lVert R (x_i - c_g) + \hat c_g - \hat x_i \rVert^2`
-    over rotations (Kabsch); the mass-weighted centre moves exactly as predicted.
-
-    Rows of zero mass take no part in any fit (their output row is then meaningless).
+    (Kabsch); the centre moves exactly as predicted. Rows of zero mass take no part.
 
     **Shapes:** current, predicted ``(L, 3)``; mass ``(L,)``; group ``(L,)`` long in
     ``0..num_groups-1``; returns ``(L, 3)``.

@@ -15,11 +15,8 @@ class NextStateModule(nn.Module):
         \hat{u}_i = \psi(s_i, e_i), \qquad
         v^{loc}_i(t+1) = v^{loc}_i(t) + \mu_{r(i)} + \sigma_{r(i)} \odot \hat{u}_i
 
-    :math:`\hat u_i` is the network's normalised output; the decoding on the right (done by
-    :func:`hrn_pyg.sim.step.decode` with the model's :class:`~hrn_pyg.nn.normalizer.Normalizer`)
-    turns it into the local velocity :math:`v_i(t+1) - v_{parent(i)}(t+1)`, with separate statistics
-    :math:`(\mu, \sigma)` for roots (global frame) and for the other nodes (parent frame). Static
-    particles (``is_static``) get an exact zero.
+    The module gives :math:`\hat u_i` (an exact zero on static particles); the decoding on the
+    right is :func:`hrn_pyg.sim.step.decode`'s, with root or local statistics.
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.
@@ -29,7 +26,7 @@ class NextStateModule(nn.Module):
     **Shapes:**
         - **input:** state :math:`(|\mathcal{V}|, S)`, effect :math:`(|\mathcal{V}|, D)`,
           is_static :math:`(|\mathcal{V}|,)` bool or None, mask :math:`(B, H)` or None,
-          batch :math:`(|\mathcal{V}|,)` (needed with a mask)
+          batch :math:`(|\mathcal{V}|,)` (with a mask)
         - **output:** normalised local velocity :math:`(|\mathcal{V}|, 3)`
     """
 
@@ -84,9 +81,7 @@ def to_global_velocity(local: Tensor, leaf_to_ancestor: Tensor) -> Tensor:
     .. math::
         v_i = v^{loc}_i + \sum_{a \in \mathrm{anc}(i)} v^{loc}_a
 
-    One scatter over the ``leaf_to_ancestor`` edges (row 0 the node, row 1 one of its ancestors).
-    Inverse of :func:`to_local_velocity` on a tree whose ``leaf_to_ancestor`` edges hold every
-    descendant/ancestor pair.
+    One scatter over ``leaf_to_ancestor``; the inverse of :func:`to_local_velocity`.
 
     **Shapes:** local :math:`(|\mathcal{V}|, \ldots, 3)`, leaf_to_ancestor :math:`(2, |\mathcal{E}_{L2A}|)`;
     returns the shape of ``local``.

@@ -1,34 +1,21 @@
 """The runner of ``hrn-pyg checkpoints``: carries out a recipe, one child process per step.
 
-One run does, for the selected models (``--only``, default all):
+For the selected models (``--only``, default all):
 
-1. ``hrn-pyg generate`` for each of their datasets into ``<data-dir>/<dataset>`` (it skips the
-   episodes already written, so a killed generation resumes);
-2. ``hrn-pyg train`` for each model into ``<runs-dir>/<model>``, up to ``--jobs`` at once, each
-   in its own process: skipped when ``model.pt`` exists and the run's ``recipe.json`` records the
-   same preset, options and dataset; ``--resume`` when ``last.pt`` exists; a run folder made
-   with other options is renamed aside (``<model>.replaced-<time>``), never deleted;
-2b. for a model with ``[[models.<name>.finetune]]`` tables: fine-tunes stage by stage, each
-   ``hrn-pyg train --init-from`` the previous stage's ``model.pt`` into
-   ``<runs-dir>/<model>.ft<i>``, with the same rules (skip, resume, replace; a stage is redone
-   when anything before it changes); the last stage is the model;
-2c. for a model with a ``[models.<name>.average]`` table: writes the weighted mean of the named
-   stages' weights into the last stage's folder as ``model.averaged.pt``, which is then the
-   model (redone only when a stage's ``model.pt`` or the weights change, ``averaged.json``);
-2d. for a model with a ``[models.<name>.apply]`` table: writes that model with the table's
-   applied options set as ``model.applied.pt``, which is then the model (redone only when its
-   source or the options change, ``applied.json``);
-3. for a model with a ``[models.<name>.calibrate]`` table: calibrates the run's model
-   (``model.pt``, ``model.averaged.pt`` or ``model.applied.pt``) into ``model.calibrated.pt`` (validation seeds only;
-   redone only when that file or the options change, ``calibration.json``);
-4. copies the model (the calibrated copy when there is one) to
-   ``<checkpoints-dir>/<model>.pt`` (and each alias) atomically and refreshes the model's entry
-   in ``<checkpoints-dir>/manifest.json`` (:mod:`hrn_pyg.recipe.manifest`), with the domain the
-   checkpoint records (:mod:`hrn_pyg.checkpoints.domain`). ``<checkpoints-dir>`` is
-   ``./checkpoints`` unless named; ``make checkpoints`` names the package's own folder.
+1. ``hrn-pyg generate`` each dataset into ``<data-dir>/<dataset>`` (resumes);
+2. ``hrn-pyg train`` each model into ``<runs-dir>/<model>``, up to ``--jobs`` at once: skipped
+   when ``model.pt`` exists with the same ``recipe.json``, ``--resume`` from ``last.pt``, a
+   folder made with other options renamed aside (never deleted); then the fine-tuning stages
+   (``<model>.ft<i>``, each ``--init-from`` the previous), the weighted average of stages
+   (``model.averaged.pt``) and the applied options (``model.applied.pt``), each redone only
+   when what it is made from changes;
+3. ``hrn-pyg calibrate`` into ``model.calibrated.pt`` where the recipe asks (validation seeds);
+4. copy the model to ``<checkpoints-dir>/<model>.pt`` (and aliases) atomically and refresh its
+   entry in ``manifest.json`` (:mod:`hrn_pyg.recipe.manifest`) with the checkpoint's domain.
+   ``<checkpoints-dir>`` is ``./checkpoints`` unless named.
 
-Every step is idempotent, so after a kill at any point the same command continues where it
-stopped. With :attr:`RunConfig.dry_run` it prints what would run and writes nothing.
+Every step is idempotent, so a killed run continues where it stopped. With
+:attr:`RunConfig.dry_run` it prints what would run and writes nothing.
 """
 
 from __future__ import annotations
@@ -198,10 +185,8 @@ class Runner:
             raise RuntimeError(f"dataset {dataset.name}: `{shown(args)}` exited with {rc}")
 
     def check_datasets(self, model: ModelRecipe, stage: int) -> None:
-        """Under ``--skip-generate``: raise ``FileNotFoundError`` unless every episode of the
-        datasets a stage trains on is here. The run checks each model's next stage up front and
-        every later stage before it trains, so a later stage's datasets may still be generating
-        while an earlier stage trains."""
+        """Under ``--skip-generate``: ``FileNotFoundError`` unless every episode a stage trains on is here
+        (checked per stage, so later datasets may still be generating)."""
         for name in (model.dataset, *model.extra_datasets(stage)):
             dataset = self.recipe.dataset(name)
             # a seed pybullet lost is done too: `generate` marks it .rejected and never makes it again
@@ -365,10 +350,8 @@ class Runner:
         return args + (["--device", self.config.device] if args and self.config.device else [])
 
     def calibrate(self, model: ModelRecipe) -> None:
-        """``hrn-pyg calibrate`` the run's model (:attr:`ModelRecipe.model_file`) into
-        ``model.calibrated.pt`` when the recipe asks for it; skipped when the copy exists and was
-        made from this model with these options (``calibration.json``). Raises ``RuntimeError``
-        when calibrate fails."""
+        """``hrn-pyg calibrate`` the run's model into ``model.calibrated.pt`` when the recipe asks, unless
+        made from this model with these options (``calibration.json``); ``RuntimeError`` on failure."""
         args = self.calibrate_command(model)
         if not args:
             return
@@ -431,11 +414,8 @@ class Runner:
         self.publish(model)
 
     def run(self) -> list[str]:
-        """Generate, train and publish; returns what failed (``"dataset X"``, model names).
-
-        A dataset that fails to generate stops the run (its models cannot train); a model that
-        fails to train is reported and the others go on.
-        """
+        """Generate, train and publish; returns what failed (``"dataset X"``, model names). A dataset
+        that fails stops the run; a model that fails is reported and the others go on."""
         if not self.config.dry_run and not self.config.skip_generate:
             self.config.data_dir.mkdir(parents=True, exist_ok=True)
         for dataset in self.datasets():

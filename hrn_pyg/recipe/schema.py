@@ -1,30 +1,24 @@
 """The recipe of ``hrn-pyg checkpoints``: ``data/recipes.toml`` read into frozen dataclasses.
 
-The recipe (TOML, read with :mod:`tomllib`) names every dataset (``[datasets.<name>]``: scene,
-episodes, steps, seed_offset, optional pitch, optional ``set`` table of scene-config fields)
-and every shipped model (``[models.<name>]``: dataset, preset, optional aliases, and a
-free-form ``[models.<name>.train]`` table of extra ``hrn-pyg train`` options: ``key = value``
-becomes ``--key value``, ``true`` a bare ``--key``, ``false`` nothing). A model may add
-fine-tuning stages (``[[models.<name>.finetune]]``, each a table of train options) and a
-``[models.<name>.calibrate]`` table of ``hrn-pyg calibrate`` options (a list of strings
-becomes one flag with several values); a ``[models.<name>.average]`` table (``stages``, a
-rising list of stage numbers ending with the last, and optional ``weights`` summing to one,
-equal by default) makes the model the weighted mean of those stages' weights
-(:mod:`hrn_pyg.checkpoints.average`), which is then calibrated and shipped; a
-``[models.<name>.apply]`` table of options that change how trained weights are applied
-(:data:`hrn_pyg.checkpoints.APPLIED_OPTIONS`, e.g. ``ground-projection-rigid = false``) sets them
-on that model before it is calibrated and shipped; a model whose dataset is a scene file is calibrated on
-the validation episodes of all its datasets (``--data`` each) rather than on fresh seeds. The train option ``extra-datasets`` names more recipe
-datasets whose episodes join the model's dataset in a stage. ``start = "<name>"`` starts a
-model's first training from the shipped checkpoint ``<name>`` (``--init-from``; its file's
-digest is part of the model's identity), and a recipe file's top-level ``datasets_from``
-borrows another recipe's datasets.
+The recipe (TOML) names every dataset (``[datasets.<name>]``: scene, episodes, steps,
+seed_offset, optional pitch and ``set`` table of scene-config fields) and every shipped model
+(``[models.<name>]``: dataset, preset, aliases, and a ``train`` table of ``hrn-pyg train``
+options: ``key = value`` is ``--key value``, ``true`` a bare ``--key``, ``false`` nothing). A
+model may add:
 
-:func:`load_recipe` and :func:`parse_recipe` validate everything up front: every problem is a
-one-line ``ValueError``. The dataclasses turn the recipe into ``hrn-pyg`` argument lists
-(:meth:`DatasetRecipe.generate_args`, :meth:`ModelRecipe.train_args`,
-:meth:`ModelRecipe.calibrate_args`) and :func:`shown` into the command line a person would
-type. Nothing here runs a process or writes a file.
+- ``[[models.<name>.finetune]]`` stages, each a table of train options;
+- ``[models.<name>.average]``: ``stages`` (rising, ending with the last) and ``weights``
+  (summing to one) of a weighted mean of stage weights (:mod:`hrn_pyg.checkpoints.average`);
+- ``[models.<name>.apply]``: options of :data:`hrn_pyg.checkpoints.APPLIED_OPTIONS` set on
+  the trained weights;
+- ``[models.<name>.calibrate]``: ``hrn-pyg calibrate`` options (a scene-file model calibrates
+  on the validation episodes of its datasets);
+- ``start = "<name>"``: start from a shipped checkpoint (``--init-from``, its digest part of
+  the identity); the train option ``extra-datasets`` joins more datasets.
+
+A top-level ``datasets_from`` borrows another recipe's datasets. :func:`load_recipe` validates
+everything up front (one-line ``ValueError``); the dataclasses give ``hrn-pyg`` argument lists
+and :func:`shown` the command line. Nothing here runs a process or writes a file.
 """
 
 from __future__ import annotations
@@ -179,10 +173,9 @@ class ModelRecipe:
 
     def identity(self, dataset: DatasetRecipe, stage: int = 0,
                  extra: Mapping[str, DatasetRecipe] | None = None) -> dict[str, Any]:
-        """What makes two trainings the same (paths and device do not); a fine-tuning stage is
-        the same only when every stage before it is too. ``extra``: the recipes of the datasets
-        named in ``extra-datasets`` options up to this stage (recorded only when there are any,
-        so the records of models without them stay as they were)."""
+        """What makes two trainings the same (not paths or device); a stage is the same only when every
+        stage before it is. ``extra``: the recipes of ``extra-datasets`` up to this stage (recorded
+        only when there are any)."""
         identity: dict[str, Any] = {"preset": self.preset, "options": [list(o) for o in self.options],
                                     "dataset": dataset.to_dict()}
         if self.start:
@@ -210,10 +203,9 @@ class ModelRecipe:
                        *option_flags(options, TRAIN_FLAGS)]
 
     def calibrate_args(self, scene: str, runs_dir: Path, data: Sequence[Path] = ()) -> list[str]:
-        """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``): the run's
-        model (:attr:`model_file`) into its calibrated copy; empty when the recipe has no calibrate table. With
-        ``data`` (episode folders) the starts are their validation episodes (``--data`` each,
-        the scenes named by the folders) instead of ``--scene``'s freshly simulated seeds."""
+        """``hrn-pyg calibrate`` arguments (without ``--device``, ``--no-progress``) for the run's model;
+        empty without a calibrate table. With ``data``, the starts are those folders' validation
+        episodes instead of ``--scene``'s fresh seeds."""
         if not self.calibrate:
             return []
         run = runs_dir / self.final_run
@@ -258,11 +250,8 @@ CALIBRATE_FLAGS: dict[str, str] = {"steps": "--horizon", "seeds": "--episode-see
 
 
 def option_flags(options: Mapping[str, OptionValue], flags_of: Mapping[str, str] | None = None) -> list[str]:
-    """``{"batch-size": 4, "ema": True, "amp": False}`` -> ``["--batch-size", "4", "--ema"]``.
-
-    Underscores in keys become dashes (``batch_size`` is ``--batch-size``); a key in
-    ``flags_of`` takes the option named there instead (``steps`` -> ``--train-steps``).
-    """
+    """``{"batch-size": 4, "ema": True, "amp": False}`` -> ``["--batch-size", "4", "--ema"]``;
+    underscores become dashes, and ``flags_of`` renames (``steps`` -> ``--train-steps``)."""
     flags: list[str] = []
     for key, value in options.items():
         flag = (flags_of or {}).get(key, "--" + key.replace("_", "-"))

@@ -1,23 +1,13 @@
 """Ground-truth evaluation of a trained policy: its episodes in the learned environment and the
 same actions replayed in pybullet.
 
-- :func:`record_episodes` runs the policy's deterministic actions in an
-  :class:`~hrn_pyg.rl.env.HRNEnv` and keeps everything a replay needs (start scene seed, goal,
-  actions, states, outcome).
-- :func:`evaluate_policy` scores those episodes: success rate and mean length in the
-  environment as configured.
-- :func:`replay_in_pybullet` applies one episode's actions open loop in the pybullet scene it
-  started from and judges the task's goal there.
-- :func:`closed_loop_in_pybullet` runs the policy itself in that pybullet scene: every step it
-  sees pybullet's own object roots, so it is judged by what it does in physics, apart from the
-  drift between the learned model and pybullet that an open-loop replay accumulates. Its loop,
-  :func:`control_in_pybullet`, takes any acting function of pybullet's frames (the planners'
-  too).
-- :func:`ground_truth_success` puts them side by side (the check ``hrn-pyg rl --model`` runs
-  after training).
-
-Training lives in :mod:`hrn_pyg.rl.ppo`, the learning curve's metrics in
-:mod:`hrn_pyg.rl.curves`.
+- :func:`record_episodes`: the policy's deterministic episodes in an
+  :class:`~hrn_pyg.rl.env.HRNEnv`, with what a replay needs;
+- :func:`evaluate_policy`: success rate and mean length in the environment;
+- :func:`replay_in_pybullet`: one episode's actions open loop in its pybullet scene;
+- :func:`closed_loop_in_pybullet`: the policy run in pybullet, seeing pybullet's states (its
+  loop :func:`control_in_pybullet` takes any acting function, the planners' too);
+- :func:`ground_truth_success`: them side by side (what ``hrn-pyg rl --model`` checks).
 """
 
 from __future__ import annotations
@@ -45,13 +35,9 @@ from hrn_pyg.rl.tasks import (
 
 @torch.no_grad()
 def evaluate_policy(policy: TensorDictModule, env: HRNEnv, episodes: int) -> tuple[float, float]:
-    """Success rate and mean episode length of the policy's deterministic actions.
-
-    Runs rounds of ``B`` parallel episodes (:func:`record_episodes`), each for up to
-    ``task.max_steps`` steps, and scores the first ``episodes``; an episode that never reaches the
-    goal counts ``max_steps``. The environment is used as configured (set ``dropout_rate = 0``
-    first to judge the deterministic model).
-    """
+    """Success rate and mean episode length of the policy's deterministic actions over ``episodes``
+    episodes (:func:`record_episodes`, rounds of ``B``); a failed episode counts ``max_steps``. The
+    environment is used as configured (``dropout_rate = 0`` judges the deterministic model)."""
     records = record_episodes(policy, env, episodes)
     success = sum(r["success"] for r in records) / len(records)
     length = sum(r["length"] for r in records) / len(records)
@@ -62,18 +48,10 @@ def replay_in_pybullet(actions: Tensor, task: str | TaskConfig, seed: int,
                        goal: Tensor | None = None, history_steps: int = 0) -> dict:
     """Replay a policy's actions ``(T, A)`` in the ground-truth pybullet scene of ``task``.
 
-    The ground-truth check of a policy: builds ``hrn_pyg.data.scene_file.make_scene(task, seed)``,
-    applies one per-object force ``(O, 3)`` per step (the mapping the environment uses) and
-    judges the task's goal on the object roots (mass-weighted leaf means; velocity = per-step
-    displacement) after every step, stopping at the first success (the ``hold_steps``-th
-    goal-reaching step in a row). ``goal`` ``(2,)`` is the
-    episode's goal point; ``None`` is allowed only for ``tower``, whose goal point is the
-    middle cube's initial position. For the comparison to mean anything the learned
-    environment's episode must start from this scene's initial state (the learned dynamics'
-    ``reset_states`` draws scenes by seed). ``history_steps`` zero-force steps are taken after
-    the scene's reset before the first action: :class:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics`
-    starts its episodes after ``HISTORY`` such steps (it needs ``x_{t-2}, x_{t-1}``), so
-    the replay of one of its episodes passes that number.
+    Builds ``make_scene(task, seed)``, takes ``history_steps`` zero-force steps (the learned
+    episodes start after ``HISTORY`` such steps), then applies one force ``(O, 3)`` per object per
+    step and judges the goal on the object roots after each, stopping at the first success.
+    ``goal`` ``(2,)``; None only for ``tower`` (the middle cube's start).
 
     Returns ``{"success": bool, "steps": int, "roots": (steps + 1, O, 6) tensor,
     "leaves": (steps + 1, L, 3) tensor}`` (index 0: the start, after the history steps).
@@ -146,17 +124,12 @@ FrameActionFn = Callable[[list[Tensor], Tensor], Tensor]
 
 def control_in_pybullet(act: FrameActionFn, task: str | TaskConfig, seed: int, goal: Tensor,
                         history_steps: int = HISTORY) -> dict:
-    """Control the pybullet scene ``seed`` of ``task`` closed loop against ``goal`` ``(2,)``.
+    """Control the pybullet scene ``seed`` of ``task`` closed loop against ``goal`` ``(2,)``: after
+    ``history_steps`` zero-force steps, ``act`` sees pybullet's leaves and roots each step, its
+    action is clipped and applied, and the goal judged, until it is held or ``max_steps``.
 
-    After the scene's reset and ``history_steps`` zero-force steps (as the learned episodes
-    start), every control step ``act`` sees pybullet's frames of leaves so far and the objects'
-    roots (mass-weighted leaf means and their last displacement), its action is clipped to the
-    force bound and applied, and the goal is judged on pybullet's roots, for up to
-    ``task.max_steps`` steps or until the goal is held.
-
-    Returns ``success``, ``steps`` (``max_steps`` when the goal was never held), ``actions``
-    ``(T, A)``, ``roots`` ``(T + 1, O, 6)``, and per control step the seconds ``act`` took
-    (``act_seconds``) and the seconds of pybullet's step (``physics_seconds``).
+    Returns ``success``, ``steps``, ``actions`` ``(T, A)``, ``roots`` ``(T + 1, O, 6)``, and per
+    step ``act_seconds`` and ``physics_seconds``.
     """
     task = get_task(task)
     if history_steps < 0:
@@ -203,13 +176,9 @@ def control_in_pybullet(act: FrameActionFn, task: str | TaskConfig, seed: int, g
 @torch.no_grad()
 def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, goal: Tensor,
                             history_steps: int = HISTORY) -> dict:
-    """Run a policy closed loop in the pybullet scene ``seed`` against ``goal`` ``(2,)``.
-
-    The loop of :func:`control_in_pybullet`: every step the policy ``act`` sees the observation
-    built from pybullet's own roots and the goal (the layout of :class:`~hrn_pyg.rl.env.HRNEnv`)
-    and returns an action ``(1, A)``; the goal is judged as in :func:`replay_in_pybullet`.
-    Returns ``{"success": bool, "steps": int}`` (``max_steps`` when the goal was never reached).
-    """
+    """Run a policy ``act`` closed loop in the pybullet scene ``seed`` (:func:`control_in_pybullet`),
+    seeing the observation of :class:`~hrn_pyg.rl.env.HRNEnv`'s layout built from pybullet's roots;
+    returns ``{"success": bool, "steps": int}``."""
     goal = torch.as_tensor(goal, dtype=torch.float32).cpu().reshape(2)
 
     def act_on_roots(_frames: list[Tensor], roots: Tensor) -> Tensor:
@@ -221,15 +190,9 @@ def closed_loop_in_pybullet(act: ActionFn, task: str | TaskConfig, seed: int, go
 
 @torch.no_grad()
 def record_episodes(policy: TensorDictModule, env: HRNEnv, episodes: int) -> list[dict]:
-    """Run the policy's deterministic actions in ``env`` and keep everything a replay needs.
-
-    The environment is used as configured, on its device; the records are CPU tensors (ready
-    for :func:`replay_in_pybullet` and numpy). Per episode: ``seed`` (the pybullet scene it started
-    from, ``env.dynamics.scene_seeds``; -1 for dynamics without one), ``goal`` ``(2,)``,
-    ``actions`` ``(T, A)`` (clipped to the action bounds, as the environment applies them),
-    ``states`` ``(T + 1, S)`` (start, then after each action), ``success`` (bool: the episode
-    ended by reaching the goal) and ``length`` ``T`` (steps until it ended).
-    """
+    """Run the policy's deterministic actions in ``env`` (as configured) and keep, per episode, on the
+    CPU: ``seed`` (its pybullet scene, -1 if none), ``goal`` ``(2,)``, ``actions`` ``(T, A)``
+    (clipped), ``states`` ``(T + 1, S)``, ``success`` and ``length`` ``T``."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     B, bound = env.batch_size[0], env.task.max_force
@@ -269,18 +232,12 @@ def ground_truth_success(policy: TensorDictModule, env: HRNEnv, episodes: int,
                          closed_loop: bool = False) -> dict[str, float]:
     """The ground-truth check: the policy's learned-model episodes replayed in pybullet.
 
-    Runs ``episodes`` deterministic episodes in the learned environment with dropout 0 and no
-    action noise (:func:`record_episodes`; the environment's settings are restored after),
-    then replays each episode's actions open loop in the pybullet scene it started from, after
-    the same ``HISTORY`` zero-force steps, against the same goal
-    (:func:`replay_in_pybullet`). An episode that failed or ran to ``max_steps`` counts as
-    length ``max_steps`` on either side (the convention of :func:`evaluate_policy`).
-
-    Returns ``model_success_rate``, ``model_mean_length``, ``pybullet_success_rate``,
-    ``pybullet_mean_length`` and ``agreement`` (fraction of episodes where both judge the same),
-    plus ``ground_truth_episodes``; with ``closed_loop`` also ``closed_loop_success_rate`` and
-    ``closed_loop_mean_length``: the policy run in each episode's pybullet scene against its
-    goal, seeing pybullet's states (:func:`closed_loop_in_pybullet`).
+    ``episodes`` deterministic episodes with dropout 0 and no action noise (:func:`record_episodes`;
+    settings restored after), each replayed open loop (:func:`replay_in_pybullet`); a failed
+    episode counts ``max_steps``. Returns ``model_success_rate``, ``model_mean_length``,
+    ``pybullet_success_rate``, ``pybullet_mean_length``, ``agreement`` and
+    ``ground_truth_episodes``; with ``closed_loop`` also ``closed_loop_success_rate`` and
+    ``closed_loop_mean_length`` (:func:`closed_loop_in_pybullet`).
     """
 
     saved = env.dropout_rate, env.action_noise_std

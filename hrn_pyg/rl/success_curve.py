@@ -1,32 +1,18 @@
-"""Evaluation apart from training: the success curve of a PPO run on fixed evaluation scenes.
+r"""Evaluation apart from training: the success curve of a PPO run on fixed evaluation scenes.
 
-Training curves mix exploration (sampled actions, action noise, dropout, relaxed rewards) with
-what the policy has learned. Every ``every`` updates a run is therefore also judged the same
-way whatever its mode: the policy's deterministic action, in the learned model at dropout rate
-0 without action noise, on the same ``episodes`` start scenes and goals every time (an
-environment whose generator is reset to ``seed`` before each evaluation), each episode's
-actions replayed open loop in pybullet, and the policy run closed loop in each episode's pybullet
-scene against its goal (:func:`~hrn_pyg.rl.evaluate.ground_truth_success`). The replay asks
-whether the model's episode happens in physics; the closed loop whether the policy succeeds in
-physics (where the model's drift over a long episode makes even a planner's replay fail, the
-closed loop is the judge of learning in pybullet).
-Dynamics without pybullet scenes (the point-mass stand-in) give the learned-model half only.
+Every ``every`` updates the policy is judged the same way whatever the training mode: its
+deterministic action, in the learned model at rate 0 without noise, on the same ``episodes``
+scenes and goals (a generator reset to ``seed``), each episode replayed open loop and run closed
+loop in pybullet (:func:`~hrn_pyg.rl.evaluate.ground_truth_success`). It draws nothing from the
+training's random streams. One row per evaluation goes to ``eval.csv`` (:data:`EVAL_FIELDS`).
 
-One row per evaluation goes to ``eval.csv`` (:data:`EVAL_FIELDS`), keyed by the number of
-updates done (``step``; 0 is the untrained policy) and the environment frames collected by
-then. From a curve of success :math:`s_i` at frames :math:`f_0 < f_1 < \\dots < f_n`:
-
-- frames to level :math:`\\ell`: :math:`\\min\\{f_i : s_i \\ge \\ell\\}`, :math:`+\\infty` when
-  never reached (:func:`frames_to_level`; levels 0.5 and 0.8, :data:`LEVELS`);
-- area under the success curve, normalised by the span of frames so that it lies in
-  :math:`[0, 1]` (:func:`success_auc`, trapezoid rule):
+From a curve of success :math:`s_i` at frames :math:`f_0 < \dots < f_n`: frames to level
+:math:`\ell`, :math:`\min\{f_i : s_i \ge \ell\}` (:func:`frames_to_level`, :data:`LEVELS`), and
 
 .. math::
-    \\mathrm{AUC} = \\frac{1}{f_n - f_0} \\sum_{i=0}^{n-1} (f_{i+1} - f_i)\\,\\frac{s_i + s_{i+1}}{2}.
+    \mathrm{AUC} = \frac{1}{f_n - f_0} \sum_{i=0}^{n-1} (f_{i+1} - f_i)\,\frac{s_i + s_{i+1}}{2}
 
-An evaluation draws nothing from the training's random streams (the policy is evaluated
-deterministically, the dynamics at rate 0 draw no masks, and the evaluation environment has its
-own generator), so a run with evaluations trains exactly like the same run without them.
+(:func:`success_auc`).
 """
 
 from __future__ import annotations
@@ -64,12 +50,11 @@ class EvalConfig:
     """When and on what a run is evaluated.
 
     Attributes:
-        every: updates between evaluations (0: none); the untrained policy (update 0) and the
-            last update are evaluated too.
-        episodes: fixed evaluation scenes, one environment each, stepped together.
-        seed: generator seed that draws the scenes and goals (:data:`EVAL_SEED`).
-        pybullet: replay every episode in pybullet when the dynamics has scenes to replay.
-        closed_loop: with ``pybullet``, also run the policy closed loop in each episode's scene.
+        every: updates between evaluations (0: none); update 0 and the last are evaluated too.
+        episodes: fixed evaluation scenes, one environment each.
+        seed: generator seed of the scenes and goals (:data:`EVAL_SEED`).
+        pybullet: replay every episode in pybullet when the dynamics has scenes.
+        closed_loop: with ``pybullet``, also run the policy closed loop.
     """
 
     every: int = 0
@@ -96,13 +81,8 @@ def evaluation_env(task: TaskConfig, dynamics: StochasticDynamics, config: EvalC
 
 
 def evaluate_point(policy: TensorDictModule, env: HRNEnv, config: EvalConfig) -> dict[str, float]:
-    """One evaluation on the fixed scenes: the generator of ``env`` is reset to ``config.seed``
-    first, so every call sees the same scenes and goals.
-
-    Returns ``model_success_rate``, ``model_mean_length`` and, with pybullet scenes,
-    ``pybullet_success_rate``, ``pybullet_mean_length``, ``agreement`` and (``closed_loop``)
-    ``closed_loop_success_rate``, ``closed_loop_mean_length``.
-    """
+    """One evaluation on the fixed scenes (``env``'s generator reset to ``config.seed``): the keys of
+    :func:`~hrn_pyg.rl.evaluate.ground_truth_success`, or only the model's without pybullet scenes."""
     env.rng.manual_seed(config.seed)
     if config.pybullet and hasattr(env.dynamics, "scene_seeds"):
         out = ground_truth_success(policy, env, config.episodes, closed_loop=config.closed_loop)

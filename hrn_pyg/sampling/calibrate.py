@@ -1,29 +1,19 @@
 """``hrn-pyg calibrate``: choose a model's sampling rate so its spread matches the physics'.
 
-On a few **validation** starts (episode seeds with ``seed % 10 == 8``; test seeds are refused)
-the ground truth is a perturbed-start pybullet ensemble
-(:func:`hrn_pyg.sampling.ensemble.ground_truth_ensemble`, 2 mm by default): the spread the
-simulator itself shows when the initial state is known to that precision. For every candidate
-(dropout rate, set of masked modules) the model draws ``k`` futures from step 2 of each start
-(:func:`hrn_pyg.sampling.sample.sample`, mask generator seeded with ``--sample-seed``), and
-at the last predicted step
+On a few **validation** starts (``seed % 10 == 8``; test seeds are refused) the truth is a
+perturbed-start pybullet ensemble (:func:`hrn_pyg.sampling.ensemble.ground_truth_ensemble`,
+2 mm by default). For every candidate (dropout rate, masked modules) the model draws ``k``
+futures (:func:`hrn_pyg.sampling.sample.sample`, seeded ``--sample-seed``); at the last step:
 
-* the **spread ratio** of a start is the mean over moving leaves of the samples' RMS distance
-  from their mean, over the same for the ensemble members
-  (:func:`~hrn_pyg.sampling.metrics.root_spread`, as ``benchmarks/uncertainty.py`` scores it);
-* the **energy score** is :func:`~hrn_pyg.sampling.metrics.energy_score` per moving leaf,
-  averaged over leaves and starts.
+* the **spread ratio**: the samples' RMS distance from their mean over the ensemble's, over
+  moving leaves (:func:`~hrn_pyg.sampling.metrics.root_spread`);
+* the **energy score** (:func:`~hrn_pyg.sampling.metrics.energy_score`) per moving leaf.
 
-The chosen candidate is the one whose median ``log(spread ratio)`` over the starts is closest
-to 0 (a ratio closest to 1 on the log scale: 0.5 and 2 are equally far); ties go to the lower
-energy score. Static leaves are left out (they never move).
-
-The choice is written into a copy of the checkpoint (default ``<name>.calibrated.pt`` beside
-the input; ``--in-place`` replaces the input; always atomically): the JSON config's
-``model.dropout_rate`` / ``model.dropout_modules`` become the chosen rate and modules, and a
-``calibration`` record beside ``model`` and ``train`` keeps how (scene, seeds, every candidate
-with its numbers, the date). :func:`hrn_pyg.checkpoints.load_model` reads such a file like any
-other; ``hrn-pyg sample``, the demo and the RL environment use its rate when given none.
+The chosen candidate has the median ``log(spread ratio)`` closest to 0, ties to the lower
+energy score (:func:`choose`). It is written into a copy of the checkpoint (default
+``<name>.calibrated.pt``; ``--in-place``; atomically): ``model.dropout_rate`` /
+``model.dropout_modules`` and a ``calibration`` record of how. ``hrn-pyg sample``, the demo and
+the RL environment use that rate when given none.
 """
 
 from __future__ import annotations
@@ -78,11 +68,8 @@ CRITERION = "median over starts of |log(spread ratio samples / ensemble)| at the
 
 # ----------------------------------------------------------------------------- argument checks
 def check_seeds(seeds: list[int] | tuple[int, ...]) -> list[int]:
-    """The seeds, each a validation seed (``seed % 10 == 8``); ValueError naming the first that is not.
-
-    Test seeds (``seed % 10 == 9``) are refused outright: the benchmark scores on them, so
-    choosing the rate there would fit the test.
-    """
+    """The seeds, each a validation seed (``seed % 10 == 8``); ValueError naming the first that is not
+    (test seeds would fit the rate to the test)."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("--episode-seeds must name at least one validation seed (seed % 10 == 8), e.g. 8,18,28")
@@ -136,10 +123,8 @@ def default_module_sets(allowed: tuple[str, ...]) -> list[tuple[str, ...]]:
 
 
 def parse_module_sets(values: list[str] | None, allowed: tuple[str, ...]) -> list[tuple[str, ...]]:
-    """``["force", "force,collision"]`` -> module sets; each module must be one ``allowed``.
-
-    None gives :func:`default_module_sets`.
-    """
+    """``["force", "force,collision"]`` -> module sets, each module ``allowed``; None:
+    :func:`default_module_sets`."""
     if not allowed:
         raise ValueError("the model takes dropout on no module (its dropout_modules is empty): nothing to calibrate")
     if values is None:
@@ -183,11 +168,8 @@ class Start:
 def build_start(scene: str, seed: int, steps: int, members: int,
                 perturbation: PerturbationConfig = PerturbationConfig(),
                 config: Any = None, episode: dict | None = None) -> Start:
-    """Simulate (or take) episode ``(scene, seed)`` and its perturbed-start ensemble.
-
-    The start is step :data:`~hrn_pyg.sampling.ensemble.HISTORY` of the unperturbed episode;
-    the truth is the ``members`` ensemble's leaves at step ``HISTORY + steps``.
-    """
+    """Simulate (or take) episode ``(scene, seed)`` and its perturbed-start ensemble: the start at step
+    :data:`~hrn_pyg.sampling.ensemble.HISTORY`, the truth the members' leaves ``steps`` later."""
     from hrn_pyg.data.episodes import simulate_episode
     from hrn_pyg.data.graph import STATIC
 
@@ -252,13 +234,9 @@ def data_starts(folder: str | Path, scene: str | None, limit: int) -> tuple[list
 # ----------------------------------------------------------------------------- scoring
 def score(model: HRN, start: Start, k: int, steps: int, rate: float, modules: tuple[str, ...],
           sample_seed: int = 0) -> tuple[float, float, int]:
-    """Spread ratio samples / ensemble, energy score (m) and the futures that fail the physics
-    report (:func:`implausible_futures`) of one candidate on one start; the spread and score are
-    of the finite futures (NaN, NaN when none is).
-
-    The ``k`` futures come from :func:`~hrn_pyg.sampling.sample.sample` with a CPU generator
-    seeded ``sample_seed`` (the same for every candidate and start).
-    """
+    """Spread ratio, energy score (m) and count of implausible futures (:func:`implausible_futures`) of
+    one candidate on one start, the first two over the finite futures (NaN if none); the ``k``
+    futures are drawn with a CPU generator seeded ``sample_seed``."""
     gen = torch.Generator().manual_seed(int(sample_seed))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a failed future is counted below
@@ -280,10 +258,10 @@ def score(model: HRN, start: Start, k: int, steps: int, rate: float, modules: tu
 
 
 def implausible_futures(start: Start, futures: Tensor) -> int:
-    """How many of the ``futures`` ``[k, steps, L, 3]`` of a start fail the physics report
-    (:mod:`hrn_pyg.sim.plausibility`): a blow-up, energy gained beyond the pushes' work by more
-    than :data:`~hrn_pyg.sim.plausibility.ENERGY_TOLERANCE`, or an interpenetration deeper than
-    the start's own pybullet episode's plus one pitch."""
+    """How many of the ``futures`` ``[k, steps, L, 3]`` fail the physics report
+    (:mod:`hrn_pyg.sim.plausibility`): a blow-up, energy gained beyond
+    :data:`~hrn_pyg.sim.plausibility.ENERGY_TOLERANCE`, or a penetration deeper than pybullet's own
+    plus a pitch."""
     reports, reference, scene = state_plausibility(start.graph, futures, start.forces)
     return sum(is_implausible(r, reference, scene.pitch) for r in reports)
 
@@ -312,11 +290,9 @@ def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energi
 
 
 def choose(candidates: list[dict], physics: bool = True) -> int:
-    """Index of the candidate whose median log spread ratio is closest to 0 among those whose
-    futures all pass the physics report (:func:`implausible_futures`); ties: lower energy score,
-    then the first (e.g. a module set with an idle module scores exactly like the set without
-    it); ``physics=False``: among all candidates. ValueError when every candidate has a future
-    that fails the report, or none spreads."""
+    """Index of the candidate whose median log spread ratio is closest to 0 among those whose futures
+    all pass the physics report (``physics=False``: among all); ties: lower energy score, then the
+    first. ValueError when none qualifies."""
     def key(i: int) -> tuple[float, float]:
         lr = candidates[i]["log_ratio_median"]
         return (math.inf if lr is None else abs(lr), candidates[i]["energy_score_m"])

@@ -1,16 +1,12 @@
 """``hrn-pyg sample``: K futures of one scene by Monte Carlo dropout, drawn like Fig. 6.
 
-The initial state comes from a test episode of a dataset folder (``--data``) or from a fresh
-pybullet episode (``--episode-seed``); the model's K sampled futures are drawn light, the simulator's
-ground truth dark, in a PNG of a few time columns and an animated GIF. Also writes
-``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]`` from the start state on, and the
-scene: ``leaf_object``, ``object_material``, ``pitch``, ``dt``, its meshes at rest,
-:meth:`hrn_pyg.export.SceneMeshes.to_arrays`). ``--export glb,ply,obj,vtk`` also writes the
-futures as the scene's own meshes (:mod:`hrn_pyg.export`); ``hrn-pyg view`` shows them in 3D.
-
-Without ``--rate`` the model's own rate is used: the one ``hrn-pyg calibrate`` chose (its config's
-``dropout_rate``), or :data:`UNCALIBRATED_RATE` for a model never calibrated (rate 0 in its
-config); ``samples.json`` says which (``rate``, ``rate_source``).
+The start comes from a test episode of ``--data`` or a fresh pybullet episode
+(``--episode-seed``); the K futures are drawn light, the ground truth dark, in a PNG and a GIF.
+Also ``samples.npz`` (``samples [K, T, L, 3]``, ``truth [T+1, L, 3]``, and the scene:
+``leaf_object``, ``object_material``, ``pitch``, ``dt``, its meshes at rest,
+:meth:`hrn_pyg.export.SceneMeshes.to_arrays`); ``--export glb,ply,obj,vtk`` writes the futures as
+the scene's meshes (:mod:`hrn_pyg.export`), which ``hrn-pyg view`` shows. Without ``--rate``:
+the calibrated ``dropout_rate``, or :data:`UNCALIBRATED_RATE` (``samples.json`` says which).
 """
 
 from __future__ import annotations
@@ -125,14 +121,14 @@ def check_sizes(k: int, last_step: int) -> None:
 
 
 def check_memory(k: int, steps: int, graph: HeteroData, width: int) -> None:
-    r"""ValueError when ``k`` futures of ``steps`` steps of ``graph`` need more than
-    :data:`MAX_SAMPLE_BYTES`, estimated before any is sampled as
+    r"""ValueError when ``k`` futures of ``steps`` steps of ``graph`` would need more than
+    :data:`MAX_SAMPLE_BYTES`, estimated as
 
     .. math:: k \bigl(3 \cdot 12\,(T + 1) L + 32\, w\, (N + E)\bigr)
 
-    bytes: the futures' float32 positions (three copies: the samples, their array and the
-    paths drawn) and a network pass's activations (eight of width :math:`w` per node and edge
-    of each of the :math:`k` copies of the graph)."""
+    bytes: three float32 copies of the futures and eight activations of width :math:`w` per node
+    and edge of each copy.
+    """
     leaves = int(graph[NODE].is_leaf.sum())
     size = k * (36 * (steps + 1) * leaves + 32 * width * (graph[NODE].num_nodes + graph.num_edges))
     if size > MAX_SAMPLE_BYTES:

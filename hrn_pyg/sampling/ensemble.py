@@ -1,15 +1,10 @@
 """Ground-truth ensembles: M pybullet rollouts of one episode from slightly perturbed starts.
 
-A learned model's samples are scored against what the simulator itself does when the initial
-state is known only up to a small error. Member ``m`` replays the episode (same seed, same drawn
-parameters, same scripted actions) after a :meth:`hrn_pyg.data.scenes.Scene.nudge` right after
-``reset``: every movable object is translated by a Gaussian offset of ``position_std`` in the
-horizontal plane (x, y; not z, which would push resting bodies into the ground) and, optionally,
-given a Gaussian velocity of ``velocity_std`` per axis. Static objects never move. The default,
-2 mm, is far below the voxel pitch (5 cm) yet enough to send a wedge ball to either side.
-
-:func:`episode_state` turns an episode into the model's initial state at a chosen step, with the
-ground-truth sequence attached the way dataset windows carry it.
+Member ``m`` replays the episode (same seed, parameters and actions) after a
+:meth:`hrn_pyg.data.scenes.Scene.nudge` at ``reset``: every movable object shifted by a Gaussian
+of ``position_std`` in x and y (not z) and optionally given a Gaussian velocity. The default,
+2 mm, is far below the pitch yet sends a wedge ball to either side. :func:`episode_state` turns
+an episode into a model's start state with its ground truth attached.
 """
 
 from __future__ import annotations
@@ -82,13 +77,10 @@ def ground_truth_ensemble(
     perturbation: PerturbationConfig = PerturbationConfig(),
     config: SceneSpec | None = None,
 ) -> np.ndarray:
-    """Leaf positions of ``members`` perturbed replays of episode ``(scene, seed)``.
-
-    Each member is :func:`hrn_pyg.data.episodes.simulate_episode` with an ``after_reset`` hook that
-    nudges the objects by :func:`draw_offsets` (one ``numpy`` generator seeded with
-    ``perturbation.seed`` serves all members in order, so the ensemble repeats). Leaves keep the
-    order of the unperturbed episode (same meshes, same objects). ``config``: the scene with
-    changed settings (:func:`hrn_pyg.data.scene_file.builtin_scene`); None: ``scene`` as it is.
+    """Leaf positions of ``members`` perturbed replays of episode ``(scene, seed)``
+    (:func:`hrn_pyg.data.episodes.simulate_episode` nudged by :func:`draw_offsets`, one generator
+    seeded ``perturbation.seed`` for all members). ``config``: the scene with changed settings;
+    None: ``scene``.
 
     **Shapes:** returns ``(members, S + 1, L, 3)`` float32, ``S`` = ``steps`` or the config's.
     """
@@ -112,14 +104,10 @@ def episode_state(
     steps: int | None = None,
     radius: float | None = None,
 ) -> HeteroData:
-    """The model's initial state at step ``start`` of an episode, carrying its ground truth.
-
-    Like a dataset window (:class:`hrn_pyg.data.dataset.EpisodeWindows`): the episode's static
-    structure (:func:`~hrn_pyg.data.graph.episode_structure`, the RL environment's too), the
-    state ``x_{start-2}, x_{start-1}, x_{start}`` with the force of step ``start``, and ``pos_seq (N, steps+3, 3)`` (``x_{start-2} .. x_{start+steps}``, ancestors
-    derived), ``force_seq (N, steps, 3)`` (zero on ancestors), and the graph-level ``pitch``
-    when the episode's ``params`` record one. ``steps`` defaults to all steps left in the episode.
-    """
+    """The model's start state at step ``start`` of an episode, carrying its ground truth as a dataset
+    window does: the structure (:func:`~hrn_pyg.data.graph.episode_structure`), the state and force
+    at ``start``, ``pos_seq (N, steps+3, 3)``, ``force_seq (N, steps, 3)`` and the ``pitch``.
+    ``steps`` defaults to the rest of the episode."""
     positions = torch.from_numpy(np.asarray(episode["positions"], dtype=np.float32))  # [S+1, L, 3]
     forces = torch.from_numpy(np.asarray(episode["forces"], dtype=np.float32))  # [S, L, 3]
     total = positions.shape[0] - 1

@@ -1,11 +1,9 @@
-"""Scores of a set of sampled futures against a ground-truth ensemble.
+r"""Scores of a set of sampled futures against a ground-truth ensemble.
 
-Notation: ``K`` samples :math:`X_1..X_K` and ``M`` ground-truth members :math:`y_1..y_M`, each a
-vector in :math:`\\mathbb{R}^D` (one time step; ``D`` = 3 for one particle or one object centre,
-``3L`` for a whole scene flattened). Extra dimensions between the first and the last (time,
-particles, ...) are kept: every score is computed per index of them. All distances are Euclidean
-and in metres. A deterministic model is the case ``K = 1``. Scores are computed on the samples'
-device (the truth is moved there) and returned there.
+``K`` samples :math:`X_1..X_K` and ``M`` members :math:`y_1..y_M`, each in
+:math:`\mathbb{R}^D` (``D`` = 3 for one point, ``3L`` for a flattened scene); dimensions between
+the first and the last are kept (a score per index). Euclidean, metres; ``K = 1`` is a
+deterministic model. Computed and returned on the samples' device.
 """
 
 from __future__ import annotations
@@ -38,10 +36,7 @@ def energy_score(samples: Tensor, truth: Tensor) -> Tensor:
         \mathrm{ES} = \frac{1}{M} \sum_{m=1}^{M} \frac{1}{K} \sum_{k=1}^{K} \lVert X_k - y_m \rVert
         \; - \; \frac{1}{2K^2} \sum_{k=1}^{K} \sum_{k'=1}^{K} \lVert X_k - X_{k'} \rVert
 
-    i.e. :math:`E\lVert X - y\rVert - \tfrac12 E\lVert X - X'\rVert` with the empirical
-    distribution of the samples (the pairwise term includes ``k = k'``, so ``K = 1`` gives the
-    plain distance :math:`\lVert X_1 - y \rVert`: a deterministic model scores its error). A
-    proper scoring rule: in expectation it is minimised by samples from the truth's distribution.
+    A proper scoring rule; ``K = 1`` gives the plain error :math:`\lVert X_1 - y \rVert`.
 
     **Shapes:** samples ``(K, *, D)``, truth ``(M, *, D)``; returns ``(*)``.
     """
@@ -58,8 +53,6 @@ def best_of_k_error(samples: Tensor, truth: Tensor) -> Tensor:
         \mathrm{BoK} = \frac{1}{M} \sum_{m=1}^{M} \min_{k} \frac{1}{L} \sum_{l=1}^{L}
             \lVert X_{k,l} - y_{m,l} \rVert
 
-    over the ``L`` particles (dimension -2) of 3-D positions (dimension -1).
-
     **Shapes:** samples ``(K, *, L, 3)``, truth ``(M, *, L, 3)``; returns ``(*)``.
     """
     samples, truth = _pair(samples, truth)
@@ -70,16 +63,10 @@ def best_of_k_error(samples: Tensor, truth: Tensor) -> Tensor:
 
 
 def coverage(samples: Tensor, truth: Tensor, per: str = "coordinate") -> Tensor:
-    r"""Fraction of the ground truth inside the samples' per-coordinate range.
-
-    With :math:`\ell_d = \min_k X_{k,d}` and :math:`u_d = \max_k X_{k,d}` (bounds included):
-
-    * ``per="coordinate"``: :math:`\frac{1}{MD} \sum_m \sum_d \mathbb{1}[\ell_d \le y_{m,d} \le u_d]`,
-      the fraction of (member, coordinate) pairs inside;
-    * ``per="member"``: :math:`\frac{1}{M} \sum_m \prod_d \mathbb{1}[\ell_d \le y_{m,d} \le u_d]`,
-      the fraction of members with *every* coordinate inside (stricter).
-
-    With ``K = 1`` the range is a point, so the coverage of a deterministic model is ~0.
+    r"""Fraction of the ground truth inside the samples' per-coordinate range
+    :math:`[\ell_d, u_d] = [\min_k X_{k,d}, \max_k X_{k,d}]`: ``per="coordinate"``
+    :math:`\frac{1}{MD} \sum_{m,d} \mathbb{1}[\ell_d \le y_{m,d} \le u_d]`, ``per="member"``
+    :math:`\frac{1}{M} \sum_m \prod_d \mathbb{1}[\ell_d \le y_{m,d} \le u_d]`.
 
     **Shapes:** samples ``(K, *, D)``, truth ``(M, *, D)``; returns ``(*)``.
     """
@@ -115,13 +102,10 @@ def object_centres(positions: Tensor, leaf_object: Tensor, leaf_mass: Tensor) ->
 
 
 def root_spread(centres: Tensor) -> Tensor:
-    r"""Spread of each object's root position over the samples (Fig. 10/11): the root mean square
-    distance from the samples' mean,
+    r"""Spread of each object's root over the samples (Fig. 10/11), the RMS distance from their mean:
 
     .. math:: \sigma_{t,o} = \Bigl(\frac{1}{K} \sum_k \lVert r_{k,t,o} - \bar r_{t,o} \rVert^2\Bigr)^{1/2},
         \qquad \bar r_{t,o} = \frac{1}{K} \sum_k r_{k,t,o}
-
-    (the population standard deviation of the 3-D position, axes combined).
 
     **Shapes:** centres ``(K, *, 3)`` (e.g. ``(K, T, O, 3)``); returns ``(*)``.
     """
@@ -134,11 +118,9 @@ def root_spread(centres: Tensor) -> Tensor:
 
 
 def side_fractions(coordinate: Tensor, ridge: float = 0.0) -> Tensor:
-    r"""Fraction of trajectories ending on each side of the wedge's ridge (order :data:`SIDES`).
-
-    ``coordinate`` is the final position of the ball across the ridge (the x of its centre: the
-    wedge's ridge runs along y at ``x = 0``). Returns
-    :math:`\bigl(\frac{1}{K}\#\{c_k < r\},\ \frac{1}{K}\#\{c_k \ge r\}\bigr)`; they sum to 1.
+    r"""Fraction of trajectories ending on each side (:data:`SIDES`) of the ridge at ``r``:
+    :math:`\bigl(\frac{1}{K}\#\{c_k < r\},\ \frac{1}{K}\#\{c_k \ge r\}\bigr)` of the ball's final
+    ``coordinate``.
 
     **Shapes:** coordinate ``(K,)``; returns ``(2,)``.
     """

@@ -1,12 +1,10 @@
 """K plausible futures of one scene by Monte Carlo graph-convolutional dropout (seed paper, 3.2).
 
-The K trajectories are K copies of the scene in *one* batched graph
-(:func:`hrn_pyg.data.graph.replicate`), rolled out together by the one rollout loop
-(:func:`hrn_pyg.sim.rollout.rollout`). At every prediction step a fresh dropout mask is drawn per
-copy and per masked module, a ``[K, H]`` table; the model looks up each node's and each edge's
-row by its batch id, so within one step one trajectory applies one mask everywhere (the
-"kernel" stays one function across its graph) while copies and steps differ. There is no Python
-loop over samples.
+The K trajectories are K copies of the scene in one batched graph
+(:func:`hrn_pyg.data.graph.replicate`) rolled out by the one rollout loop
+(:func:`hrn_pyg.sim.rollout.rollout`). Each step draws a fresh ``[K, H]`` mask per masked
+module; nodes and edges look up their copy's row, so one trajectory applies one mask everywhere
+in a step. No Python loop over samples.
 """
 
 from __future__ import annotations
@@ -78,13 +76,10 @@ def model_device(model: HRN) -> torch.device:
 
 
 def draw_masks(model: HRN, k: int, rate: float, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-    """:meth:`HRN.sample_masks` from a generator on any device, the masks on the model's device.
+    """:meth:`HRN.sample_masks` from a generator on any device (a CPU generator draws on the CPU, the
+    same numbers as for a CPU model), the masks moved to the model's device.
 
-    A :class:`torch.Generator` only draws on its own device: a CPU generator driving a CUDA
-    model draws on the CPU (the same numbers as a CPU model gets) and the masks are moved.
-
-    **Shapes:** ``{module: (k, hidden)}`` for every module of ``config.dropout_modules``
-    (``2 k`` rows for a mirror-averaged model: one mask per pass).
+    **Shapes:** ``{module: (k, hidden)}`` (``G k`` rows for a mirror-averaged model).
     """
     device = model_device(model)
     if generator is None or generator.device == device:
@@ -101,17 +96,13 @@ def make_masks_fn(
     generator: torch.Generator | None = None,
     modules: tuple[str, ...] | None = None,
 ) -> MasksFn | None:
-    r"""A ``masks_fn(t, graph)`` for :func:`hrn_pyg.sim.rollout.rollout` drawing fresh masks each step.
+    r"""A ``masks_fn(t, graph)`` for :func:`hrn_pyg.sim.rollout.rollout` drawing, each call and for
+    every module in ``modules`` (default ``config.dropout_modules``), one inverted-dropout mask per
+    trajectory copy from ``generator`` (:func:`draw_masks`):
 
-    Each call draws, for every module in ``modules`` (default: the model's
-    ``config.dropout_modules``), one inverted-dropout mask per trajectory copy,
+    .. math:: m^{(t)}_{b,h} = \mathbb{1}[u^{(t)}_{b,h} \ge p] / (1 - p), \qquad u \sim U[0, 1)
 
-    .. math:: m^{(t)}_{b,h} = \mathbb{1}[u^{(t)}_{b,h} \ge p] / (1 - p), \qquad u \sim U[0, 1),
-
-    in module order, from ``generator`` (the global generator if None; on any device, see
-    :func:`draw_masks`). Rate 0 returns None (no masks: exactly the deterministic model).
-
-    **Shapes:** each call returns ``{module: (k, hidden)}``.
+    Rate 0 returns None (the deterministic model). **Shapes:** ``{module: (k, hidden)}``.
     """
     check_sampling_args(k, 1, rate)
     modules = _check_modules(model, modules)
@@ -160,53 +151,39 @@ def sample(
 ) -> Tensor:
     r"""Sample ``k`` futures of one scene with Monte Carlo graph-convolutional dropout.
 
-    The scene is replicated ``k`` times into one batched graph and rolled out for ``steps``
-    steps; at step ``t`` copy ``b`` runs the model with its own mask :math:`m^{(t)}_b` on the
-    hidden activations of each module in ``modules`` (:func:`make_masks_fn`), the same mask on
-    every node and edge of that copy:
+    The scene is replicated ``k`` times into one batched graph; at step ``t`` copy ``b`` runs with
+    its own mask :math:`m^{(t)}_b` (:func:`make_masks_fn`) on every node and edge:
 
     .. math::
         x^{(b)}_{t+1} = f_\theta\bigl(x^{(b)}_{t}, x^{(b)}_{t-1}, x^{(b)}_{t-2}, F_t;\ m^{(t)}_b\bigr),
         \qquad b = 1..k
 
-    ``rate = 0`` draws no mask: every copy equals the deterministic rollout. With a seeded
-    ``generator`` the result repeats exactly. Runs without gradients, on the model's device:
-    the initial state and forces are moved there (the caller's graph is left as it is), and so
-    is the result (``.cpu()`` it for numpy).
+    Without gradients, on the model's device (the caller's graph is not changed); a seeded
+    ``generator`` or ``seed`` repeats exactly.
 
     Args:
-        model: a (trained) :class:`~hrn_pyg.nn.hrn.HRN` with a fitted normaliser.
-        initial_state: one scene's graph with ``prev_prev_pos``, ``prev_pos``, ``pos``
-            (e.g. a dataset window or :func:`hrn_pyg.sampling.ensemble.episode_state`).
+        model: a trained :class:`~hrn_pyg.nn.hrn.HRN` with a fitted normaliser.
+        initial_state: one scene's graph with ``prev_prev_pos``, ``prev_pos``, ``pos``.
         k: number of sampled trajectories, >= 1.
         steps: predicted steps, >= 1.
-        rate: dropout rate in [0, 1).
-        forces: external force of each step on each node ``[steps, N, 3]`` or leaf
-            ``[steps, L, 3]``; None is no force.
-        generator: source of the masks (None: torch's global generator of the model's device);
-            a CPU generator also serves a model on another device (:func:`draw_masks`).
-        modules: modules to mask (default: the model's ``config.dropout_modules``; each must be
-            in it).
-        sleep: objects at rest sleep, each copy's on its own (:mod:`hrn_pyg.sim.sleeping`; on by
-            default); None runs every object of every copy at every step.
-        effects: what the scene needs simulated (:class:`~hrn_pyg.data.effects.SceneEffects`, e.g.
-            :func:`hrn_pyg.data.scene_file.scene_effects`); None: what the data show.
-        seed: seeds the masks (a CPU generator of its own), the same futures on any device;
-            not with ``generator``.
-        fixed_shape: roll out with fixed-shape steps (:mod:`hrn_pyg.sim.fixed_shape`: no host read
-            inside a step, optionally CUDA graphs); the same futures as with ``sleep=None``,
-            which it needs.
+        rate: dropout rate in [0, 1); 0: every copy is the deterministic rollout.
+        forces: force per step on each node ``[steps, N, 3]`` or leaf ``[steps, L, 3]``; None: none.
+        generator: source of the masks (None: torch's global generator; :func:`draw_masks`).
+        modules: modules to mask (default and superset: ``config.dropout_modules``).
+        sleep: objects at rest sleep, each copy's on its own (:mod:`hrn_pyg.sim.sleeping`);
+            None runs every object at every step.
+        effects: what the scene needs simulated (:class:`~hrn_pyg.data.effects.SceneEffects`);
+            None: what the data show.
+        seed: seeds the masks with a CPU generator (the same futures on any device); not with
+            ``generator``.
+        fixed_shape: fixed-shape steps (:mod:`hrn_pyg.sim.fixed_shape`); needs ``sleep=None``.
 
-    A future whose prediction stops being finite (a blow-up) does not stop the others: it is
-    held from that step (:mod:`hrn_pyg.sim.rules`), returned as NaN from then on, and a
-    RuntimeWarning says how many failed. The model's rules after the network (cloth clearance,
-    the energy limit) apply to every future as to any rollout.
+    A future that stops being finite is held (:mod:`hrn_pyg.sim.rules`), NaN from then on, with a
+    RuntimeWarning; the model's rules after the network apply to every future.
 
     Returns:
-        Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps``. Only leaves are returned
-        (they are the scene's particles); ancestors are mass-weighted means of their leaves
-        (:func:`hrn_pyg.data.graph.leaf_to_ancestor_mean`, or
-        :func:`hrn_pyg.sampling.metrics.object_centres` for the roots).
+        Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps`` (ancestors are mass-weighted
+        means: :func:`hrn_pyg.sampling.metrics.object_centres` gives the roots).
 
     **Shapes:** initial state over ``N`` nodes, ``L`` of them leaves; output ``(k, steps, L, 3)``.
     """

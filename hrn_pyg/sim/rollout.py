@@ -1,12 +1,10 @@
 """The rollout loop: the model fed its own predictions, one :func:`~hrn_pyg.sim.step.step` a time.
 
 :func:`iterate` is the loop, a generator of :class:`~hrn_pyg.sim.step.Step`; :func:`unroll`
-keeps every step and :func:`rollout` their positions. Training unrolls through the same
-generator (with gradients), evaluation, sampling and the stability checks through
-:func:`rollout`. Before the first step the loop turns what the scene needs into an
-:class:`~hrn_pyg.data.effects.EffectPlan` (so no step asks the device whether its force is
-zero) and finds the scene's objects once; objects at rest sleep unless told not to
-(``sleep=``, :mod:`hrn_pyg.sim.sleeping`).
+keeps every step and :func:`rollout` their positions. Training, evaluation, sampling and the
+stability checks all run through it. Before the first step it makes the scene's
+:class:`~hrn_pyg.data.effects.EffectPlan` and objects once; objects at rest sleep unless told
+not to (:mod:`hrn_pyg.sim.sleeping`).
 """
 
 from __future__ import annotations
@@ -58,24 +56,16 @@ def iterate(
 ) -> Iterator[Step]:
     """Feed the model its own predictions for ``steps`` steps, yielding each :class:`Step`.
 
-    The initial graph's collision edges are recomputed with the model's radius first, so the
-    first step sees the same kind of edges as the later ones. ``forces`` ``[steps, N, 3]``
-    is the external force of each step; None means no external force at any step (the graph's
-    ``force`` attribute is not reused). ``masks_fn(t, graph)`` gives the dropout masks of step
-    ``t`` (None: deterministic); it always sees the whole graph. ``sleep`` lets objects at rest
-    sleep (:mod:`hrn_pyg.sim.sleeping`; an object the start's history shows at rest starts
-    asleep, ``SleepConfig.start_from_history``), on by default
-    (:data:`~hrn_pyg.sim.sleeping.DEFAULT_SLEEP`); ``sleep=None`` or ``enabled=False`` runs
-    every object at every step (the network alone: what training and ``hrn-pyg evaluate`` use).
-    ``effects`` is what the scene declares it needs (:class:`~hrn_pyg.data.effects.SceneEffects`;
-    None: what the data show): a scene in which nothing can touch gets no collision search at
-    all. The model's rules after the network (:mod:`hrn_pyg.sim.rules`: cloth clearance, the
-    energy limit) are made here once and applied at every step. ``hold_failed``: a copy of a
-    batch whose prediction is not finite is held where it is and the others go on (each
-    :class:`Step`'s ``failed`` says which copies have failed so far); else such a step is an
-    error. The arguments are checked, and the
-    plan, the start graph and the objects made, when
-    this is called; the steps run as they are taken from the iterator.
+    The start graph's collision edges are recomputed at the model's radius first. ``forces``
+    ``[steps, N, 3]``: the force of each step (None: none). ``masks_fn(t, graph)``: dropout masks of
+    step ``t`` (None: deterministic), seeing the whole graph. ``sleep``: objects at rest sleep
+    (:data:`~hrn_pyg.sim.sleeping.DEFAULT_SLEEP`); None runs every object at every step (as
+    training and ``hrn-pyg evaluate`` do). ``effects``: what the scene needs
+    (:class:`~hrn_pyg.data.effects.SceneEffects`; None: what the data show). The model's rules
+    after the network (:mod:`hrn_pyg.sim.rules`) are made once and applied every step.
+    ``hold_failed``: a batch copy whose prediction is not finite is held and the others go on
+    (``Step.failed``); else it is an error. Arguments are checked on the call; the steps run as
+    they are taken.
     """
     check_forces(graph, steps, forces)
     plan = plan_effects(graph, steps, forces, effects)

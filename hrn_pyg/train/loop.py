@@ -95,11 +95,8 @@ class _Run:
 
     def take_steps(self, batches: DataLoader, start: int, end: int, noise: torch.Generator | None,
                    turns: torch.Generator | None, progress: bool) -> int:
-        """Take steps ``start .. end-1`` (fewer once past ``time_limit``); returns the steps done.
-
-        At exit, also on Ctrl-C or an error, :meth:`close` keeps the finished steps (the step that
-        was running when an exception came is not counted as done).
-        """
+        """Take steps ``start .. end-1`` (fewer past ``time_limit``); returns the steps done. :meth:`close`
+        keeps the finished steps at exit, also on Ctrl-C or an error."""
         config = self.config
         bar = progress_bar(config.steps, f"train {config.preset}", "step", initial=start,
                            enabled=progress and self.place.rank == 0)
@@ -201,16 +198,11 @@ def train(config: TrainConfig, model_config: NetworkConfig | None = None, resume
           given_model_options: Collection[str] = ()) -> dict[str, Any]:
     """Run (or continue) one training job; returns the last logged row.
 
-    ``model_config``: an :class:`~hrn_pyg.nn.hrn.HRNConfig` for the ``hrn`` and ``ours``
-    presets, a :class:`~hrn_pyg.nn.gns.GNSConfig` for ``gns`` (None: the preset's default).
-    ``given_model_options``: the names of ``model_config``'s fields that were set on purpose
-    (the command line's ``--model-*`` options); with ``init_from`` they count as set even where
-    they equal the default (:func:`_fine_tuned_start`).
-
-    ``stop_after`` ends this call after that many more steps (with a checkpoint), as if it had
-    been interrupted: ``resume=True`` continues it. ``model.pt`` (weights, config and
-    normaliser, no optimiser) is written when the last step is done (step ``config.stop_at``
-    when it is set).
+    ``model_config``: :class:`~hrn_pyg.nn.hrn.HRNConfig` (``hrn``, ``ours``) or
+    :class:`~hrn_pyg.nn.gns.GNSConfig` (``gns``); None: the preset's. ``given_model_options``: the
+    fields set on purpose (``--model-*``), which win over ``init_from``'s
+    (:func:`_fine_tuned_start`). ``stop_after`` ends the call after that many more steps, with a
+    checkpoint (``resume=True`` continues). ``model.pt`` is written when the last step is done.
     """
     model_config = preset_model_config(config.preset, model_config)
     place = place_process(config)

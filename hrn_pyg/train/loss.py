@@ -37,16 +37,11 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
         \mathcal{L} = \sum_{k=1}^{T} w_{loc}\mathcal{L}_{loc}^{(k)} + w_{glob}\mathcal{L}_{glob}^{(k)}
             + w_{shape}\mathcal{L}_{shape}^{(k)} \; [+\, w_{rest}\mathcal{L}_{rest}^{(k)}]
 
-    Step ``k`` starts from the model's own prediction of step ``k-1`` (ground truth for
-    ``k = 1``). The local term compares velocities in the parent's frame, the global term the
-    positions of roots and leaves (at ``k = 1`` the same as their global velocity error), both
-    divided by the velocity scale; the shape term is the group or fully-connected
-    pairwise-distance error. With ``seq_len = 1`` this is the baseline HRN's one-step loss.
-    With ``config.w_rest > 0``, :func:`~hrn_pyg.losses.rest_velocity_loss` adds the absolute
-    velocity error of the objects at rest in the truth (step ``k``'s own prediction against the
-    true displacement ``x_{k+1} - x_k``).
-
-    A :class:`~hrn_pyg.nn.gns.GNS` is scored by :func:`acceleration_loss` instead.
+    Step ``k`` starts from the model's prediction of step ``k-1`` (the truth for ``k = 1``). Local
+    and global terms are velocity errors over the velocity scale, the shape term the group or
+    fully-connected pairwise-distance error, the rest term
+    (:func:`~hrn_pyg.losses.rest_velocity_loss`) with ``config.w_rest > 0``. A
+    :class:`~hrn_pyg.nn.gns.GNS` is scored by :func:`acceleration_loss`.
     """
     if isinstance(model, GNS):
         return acceleration_loss(model, window, config, generator, noise_generator)
@@ -107,8 +102,7 @@ def window_loss(model: HRN, window: HeteroData, seq_len: int, config: TrainConfi
 
 
 def resting_windows(window: HeteroData, seq_len: int, threshold: float) -> Tensor:
-    r"""``[B]`` bool: the windows of a batch whose scene is at rest over the frames an unroll of
-    ``seq_len`` steps reads, every moving leaf within ``threshold`` metres of where it starts:
+    r"""``[B]`` bool: the windows at rest over the frames an unroll of ``seq_len`` reads:
 
     .. math::
         \max_{i \text{ moving leaf of } b} \ \max_{0 \le t \le T + 2} \lVert x_i(t) - x_i(0) \rVert < \tau
@@ -141,21 +135,13 @@ def rest_rollout_length(max_steps: int, draw: str = "uniform", generator: torch.
 def held_rest_sequence(model: HRN, window: HeteroData, seq_len: int, max_steps: int, threshold: float,
                        generator: torch.Generator | None = None, draw: str = "uniform") -> Tensor:
     r"""The window's ``pos_seq`` ``[N, T+3, 3]`` with each scene at rest (:func:`resting_windows`)
-    replaced by the model's own rollout from it and the order to hold still there.
-
-    From the window's first three true frames the model runs :math:`R` steps on its own (no
-    gradient, no dropout, no sleeping, no external force), :math:`R` drawn from ``1..max_steps``
-    once per batch (:func:`rest_rollout_length`, by ``draw``); a resting scene's frames become
+    replaced by the model's own rollout from it, then the order to hold still there:
 
     .. math::
         \bigl(\hat x(R-2),\ \hat x(R-1),\ \hat x(R),\ \hat x(R),\ \dots,\ \hat x(R)\bigr)
 
-    so its inputs carry whatever the model's own rollout did to it (a soft body sinking, a cloth
-    creeping sideways) and every target is to stop there. Training only from the true rest state
-    never shows the model the states its slow drift leads to; this does, at the cost of
-    :math:`R` forward passes of the resting windows per batch (a batched window rolls only its
-    resting graphs). Windows not at rest keep their frames; a batch with none at rest costs
-    nothing.
+    with :math:`R` drawn from ``1..max_steps`` per batch (:func:`rest_rollout_length`; no gradient,
+    dropout, sleeping or force). The model so sees the states its own drift leads to.
     """
     store = window[NODE]
     seq = store.pos_seq
@@ -184,19 +170,14 @@ def held_rest_sequence(model: HRN, window: HeteroData, seq_len: int, max_steps: 
 def acceleration_loss(model: GNS, window: HeteroData, config: TrainConfig,
                       generator: torch.Generator | None = None,
                       noise_generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
-    r"""The GNS's one-step loss on a (batched) window: the mean squared error of the normalised
-    acceleration over the moving leaves and the three axes.
+    r"""The GNS's one-step loss: mean squared error of the normalised acceleration over moving leaves.
 
     .. math::
         \mathcal{L} = \Bigl\langle \bigl((\hat x_{t+1} - \tilde x_t) - (x_{t+1} - x_t)\bigr)^2
             / \sigma_a^2 \Bigr\rangle
 
-    :math:`\tilde x = x + n` are the inputs with per-leaf random-walk noise (``input_noise``,
-    none on static leaves), :math:`\hat x_{t+1}` the step's prediction from them. With
-    :math:`\tilde v_t = \tilde x_t - \tilde x_{t-1}` this is the error of the normalised
-    acceleration against the GNS paper's target :math:`(x_{t+1} + n_t) - \tilde x_t - \tilde v_t`:
-    the model learns to undo the velocity noise, not the position noise. The prediction runs
-    through the package's step (:func:`~hrn_pyg.sim.rollout.iterate`, no sleeping).
+    with noisy inputs :math:`\tilde x = x + n` (:func:`input_noise`, none on static leaves): the
+    GNS paper's target, so the model learns to undo velocity noise, not position noise.
     """
     store = window[NODE]
     if "pos_seq" not in store or store.pos_seq.size(1) < 4:
@@ -228,10 +209,8 @@ def input_noise(window: HeteroData, std: float, generator: torch.Generator | Non
         n_{t-2} = \epsilon_0, \quad n_{t-1} = \epsilon_0 + \epsilon_1, \quad
         n_t = \epsilon_0 + \epsilon_1 + \epsilon_2, \qquad \epsilon_k \sim \mathcal{N}(0, \sigma^2 / 3)
 
-    so the noise of ``x_t`` has standard deviation :math:`\sigma` and the input velocities are
-    perturbed consistently. Every leaf of a rigid object takes its root's draw (a rigid shift;
-    ``rigid_shift=False``: its own, as for the GNS), a static particle none; ancestor rows are
-    re-derived by ``set_state`` anyway.
+    A rigid object's leaves share their root's draw (``rigid_shift=False``: their own), static
+    particles get none.
     """
     store = window[NODE]
     n = store.num_nodes

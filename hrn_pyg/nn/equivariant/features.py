@@ -1,21 +1,12 @@
-r"""What the horizontally equivariant HRN reads of a scene, and how it writes a horizontal answer.
+"""What the horizontally equivariant HRN reads of a scene, and how it writes a horizontal answer.
 
-Gravity singles out the vertical axis; every horizontal direction is alike, and so is every
-mirror image in a vertical plane. The group of those maps is O(2) acting on :math:`(x, y)`. The
-network of :mod:`hrn_pyg.nn.equivariant` commutes with all of it by construction:
+The group is O(2) acting on :math:`(x, y)` (gravity singles out z). The network of
+:mod:`hrn_pyg.nn.equivariant` commutes with it by construction (as E(n)-equivariant graph
+networks do, Satorras et al. 2021): its MLPs read only invariants (heights, vertical
+components, horizontal lengths and dot products), and its horizontal outputs are weighted sums
+of the scene's horizontal vectors with MLP weights. So it has no horizontal direction of its own.
 
-- its MLPs read only *invariants*: heights and vertical components, lengths of horizontal
-  vectors and dot products of two of them (no turn or mirror changes these);
-- its horizontal outputs are *weighted sums of horizontal vectors* of the scene (edge offsets,
-  velocities, forces, and vector effects made so themselves), the weights being MLP outputs.
-
-A map :math:`g` of the scene then maps every horizontal output by the same :math:`g`, exactly (up
-to rounding): the network has no horizontal direction of its own, so no bias of its weights can
-push a resting body sideways (E(n)-equivariant graph networks, Satorras et al. 2021, build
-messages the same way for every rotation of space).
-
-A horizontal vector is the pair :math:`(x, y)` of a 3-vector, ``[..., 2]``; a set of ``C``
-vector channels of a node is ``[N, C, 2]``.
+A horizontal vector is ``[..., 2]``; ``C`` vector channels of a node are ``[N, C, 2]``.
 """
 
 from __future__ import annotations
@@ -62,12 +53,7 @@ def channel_length(channels: Tensor) -> Tensor:
 
 def squash(channels: Tensor) -> Tensor:
     r"""Each vector channel shrunk to a length under 1, its direction kept:
-    :math:`E_c / (1 + \lVert E_c \rVert)`.
-
-    Commutes with every turn and mirror, and keeps the vector effects bounded: a vector effect is
-    copied through the phases with a weight, and its dot products with edge offsets are read by
-    the next phase's MLP, so unbounded channels can feed on themselves (in a fresh network they
-    grew by about seven times a phase, and a rollout flew apart within a few steps).
+    :math:`E_c / (1 + \lVert E_c \rVert)`, so vector effects stay bounded through the phases.
 
     **Shapes:** ``[M, C, 2]`` -> ``[M, C, 2]``.
     """
@@ -75,11 +61,9 @@ def squash(channels: Tensor) -> Tensor:
 
 
 def invariant_state(state: Tensor) -> Tensor:
-    r"""A state vector (:data:`hrn_pyg.nn.hrn.STATE_LAYOUT`, velocity first) with its horizontal
-    velocity replaced by that velocity's length: :math:`[\lVert v_h \rVert, v_z, \dots]`.
-
-    Invariant only when the velocity's horizontal normalisation is (zero mean, one scale for x
-    and y: :func:`hrn_pyg.nn.normalizer.isotropic_horizontal`).
+    r"""A state vector (:data:`hrn_pyg.nn.hrn.STATE_LAYOUT`) with its horizontal velocity replaced by
+    its length, :math:`[\lVert v_h \rVert, v_z, \dots]` (invariant when the normaliser is,
+    :func:`hrn_pyg.nn.normalizer.isotropic_horizontal`).
 
     **Shapes:** ``[N, S]`` -> ``[N, S - 1]``.
     """
@@ -87,12 +71,11 @@ def invariant_state(state: Tensor) -> Tensor:
 
 
 def weighted_sum(weights: Tensor, basis: Tensor) -> Tensor:
-    r"""Channel :math:`c` of a row: :math:`\sum_k w_{k c}\, b_k` over the row's ``K`` horizontal
-    basis vectors. **Shapes:** weights ``[M, K, C]``, basis ``[M, K, 2]`` -> ``[M, C, 2]``.
+    r"""Channel :math:`c` of a row: :math:`\sum_k w_{k c}\, b_k` over its ``K`` horizontal basis vectors
+    (a batched matrix product; written out under ``torch.compile``, :func:`weighted_sum_elementwise`).
 
-    Eagerly one batched matrix product; under ``torch.compile`` the products and the sum over
-    ``k`` written out (:func:`weighted_sum_elementwise`), which the compiler fuses with the
-    operations around them (a batched product of ``M`` tiny matrices stays a call of its own)."""
+    **Shapes:** weights ``[M, K, C]``, basis ``[M, K, 2]`` -> ``[M, C, 2]``.
+    """
     if torch.compiler.is_compiling():
         return weighted_sum_elementwise(weights, basis)
     return torch.einsum("mkc,mkd->mcd", weights, basis)
@@ -105,11 +88,8 @@ def weighted_sum_elementwise(weights: Tensor, basis: Tensor) -> Tensor:
 
 
 def mean_vectors_by_index(vectors: Tensor, index: Tensor, count: Tensor) -> Tensor:
-    r"""Vector channels of edges averaged over their destinations: :math:`\sum_{e \to i} E_e /
-    \max(n_i, 1)` with :math:`n_i` the node's in-degree ``count`` (a row no edge reaches is an
-    exact zero). A mean, not a sum: a vector effect keeps the scale of the vectors it is made of
-    however many edges a node has (a root hears every leaf of its object), and it is copied on
-    through the next phases, where sums would compound.
+    r"""Vector channels of edges averaged over their destinations, :math:`\sum_{e \to i} E_e /
+    \max(n_i, 1)` with :math:`n_i` = ``count`` (a mean keeps the scale however many edges).
 
     **Shapes:** vectors ``[E, C, 2]``, index ``[E]``, count ``[num_rows]`` -> ``[num_rows, C, 2]``.
     """
