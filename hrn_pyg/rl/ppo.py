@@ -81,6 +81,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from hrn_pyg.commands.rl import add_arguments, add_training_arguments  # noqa: F401  the command's arguments, here too
 from hrn_pyg.rl.curves import curve_metrics, read_curve
 from hrn_pyg.rl.dynamics import PointMassDynamics, StochasticDynamics
 from hrn_pyg.rl.env import HRNEnv, near_miss_share, partial_hits
@@ -93,7 +94,7 @@ from hrn_pyg.rl.success_curve import (
     evaluation_env,
     read_eval,
 )
-from hrn_pyg.rl.tasks import MODES, TASKS, UNRELAXED_MODES, TaskConfig, get_task
+from hrn_pyg.rl.tasks import MODES, UNRELAXED_MODES, TaskConfig, get_task
 from hrn_pyg.sim.sleeping import DEFAULT_SLEEP
 from hrn_pyg.utils.checkpoint import (
     load_checkpoint,
@@ -104,7 +105,7 @@ from hrn_pyg.utils.checkpoint import (
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, file_sha256, json_safe
 from hrn_pyg.utils.metrics import CSVLog
-from hrn_pyg.utils.options import add_moved, add_no_progress, progress_bar
+from hrn_pyg.utils.options import progress_bar
 from hrn_pyg.utils.schedules import LinearSchedule
 from hrn_pyg.utils.stop import StopRequest
 from hrn_pyg.viz import plot_curves
@@ -545,54 +546,6 @@ class RunSetup:
     dynamics: StochasticDynamics
 
 
-def add_training_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options of a run's training and scoring, apart from its mode, seed and output:
-    shared by ``hrn-pyg rl`` and the sweeps over modes and seeds."""
-    d = PPOConfig()
-    parser.add_argument("--task", choices=sorted(TASKS), default="cube_push", help="the task")
-    parser.add_argument("--updates", type=int, default=d.updates, help="PPO updates per run")
-    parser.add_argument("--frames-per-batch", type=int, default=d.frames_per_batch,
-                        help="frames collected per update, over all environments")
-    parser.add_argument("--num-envs", type=int, default=d.num_envs, help="environments stepped together")
-    parser.add_argument("--epochs", type=int, default=d.epochs, help="passes over each batch")
-    parser.add_argument("--minibatch", type=int, default=d.minibatch, help="frames per gradient step")
-    parser.add_argument("--lr", type=float, default=d.lr, help="Adam's learning rate")
-    parser.add_argument("--threads", type=int, default=d.threads, help="torch threads per run")
-    parser.add_argument("--action-noise-std", type=float, default=d.action_noise_std,
-                        help="action_noise mode: noise std as a fraction of the force bound")
-    parser.add_argument("--dropout-rate", type=float, default=None,
-                        help="stochastic modes: dropout rate (default: the model's calibrated rate, "
-                             "else the task's)")
-    parser.add_argument("--anneal-updates", type=int, default=None,
-                        help="stochastic_annealed: updates to reach rate 0 (default: the task's)")
-    parser.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
-                        help="episodes scoring the final policy in the model")
-    parser.add_argument("--ground-truth-episodes", type=int, default=d.ground_truth_episodes,
-                        help="with --model: final-policy episodes replayed in pybullet (0: none)")
-    parser.add_argument("--eval-every", type=int, default=d.eval_every,
-                        help="every N updates: the deterministic policy at rate 0 on fixed evaluation "
-                             "scenes, in the model and (with --model) replayed in pybullet; eval.csv (0: none)")
-    parser.add_argument("--eval-scenes", type=int, default=d.eval_scenes,
-                        help="fixed evaluation scenes of --eval-every")
-    parser.add_argument("--model", default=None,
-                        help="learned HRN checkpoint, a path or a shipped model's name (e.g. cube_push); "
-                             "absent: point-mass development dynamics")
-    parser.add_argument("--strict", action="store_true",
-                        help="with --model: a task scene outside what the model was trained on is an "
-                             "error (exit 2), not a one-line warning")
-    parser.add_argument("--device", default=None,
-                        help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
-    add_no_progress(parser)
-    parser.add_argument("--no-sleep", action="store_true",
-                        help="with --model: every object runs at every step (default: objects the state "
-                             "shows at rest sleep until pushed or touched)")
-    parser.add_argument("--restart", action="store_true",
-                        help="start afresh (default: continue a run from its policy.pt)")
-    parser.add_argument("--init-policy", default=None,
-                        help="policy checkpoint the actor starts from (another run's policy.pt, or a "
-                             "planner's clone); the critic starts fresh")
-
-
 def setup_from_args(args: argparse.Namespace) -> RunSetup:
     """Check the options of :func:`add_training_arguments` and build what the runs share."""
     task = get_task(args.task)
@@ -624,17 +577,6 @@ def train_from_args(args: argparse.Namespace, setup: RunSetup, mode: str, seed: 
     print(f"{setup.task.name} {mode} seed {seed}: success {res['success_rate']:.2f}, "
           f"mean length {res['mean_episode_length']:.2f}{truth} ({res['seconds']:.0f} s)", flush=True)
     return res
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_training_arguments(parser)
-    parser.add_argument("--mode", choices=MODES, default="stochastic", help="the run's mode")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seeds the run's initialisation, batches, noise and environments")
-    parser.add_argument("--out", default=None, help="the run's folder (default: runs/rl/<task>/<mode>/seed<seed>)")
-    add_moved(parser, ("--num-seeds", "--seeds", "--first-seed", "--seed-start", "--modes"),
-              "the sweep over seeds and modes, `python -m experiments.rl.sweep` in a checkout; "
-              "`hrn-pyg rl` trains one run (--mode, --seed)")
 
 
 def run(args: argparse.Namespace) -> int:

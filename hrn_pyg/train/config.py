@@ -13,6 +13,12 @@ from hrn_pyg.nn.gns import NOISE_TO_VELOCITY_STD
 
 
 PRESETS = ("hrn", "ours", "gns")
+#: what each preset sets over the field defaults (:meth:`TrainConfig.for_preset`)
+PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
+    "hrn": {"seq_start": 1, "seq_end": 1, "shape_loss": "group"},
+    "ours": {"seq_start": 1, "seq_end": 6, "shape_loss": "full"},
+    "gns": {"seq_start": 1, "seq_end": 1, "lr": 1e-4, "input_noise_ratio": NOISE_TO_VELOCITY_STD},
+}
 
 
 SHAPE_LOSSES = ("group", "full")
@@ -190,14 +196,8 @@ class TrainConfig:
 
     @classmethod
     def for_preset(cls, preset: str, **overrides: Any) -> TrainConfig:
-        """The preset's defaults, then ``overrides`` (None values ignored)."""
-        base: dict[str, Any] = {"preset": preset}
-        if preset == "hrn":
-            base.update(seq_start=1, seq_end=1, shape_loss="group")
-        elif preset == "ours":
-            base.update(seq_start=1, seq_end=6, shape_loss="full")
-        elif preset == "gns":
-            base.update(seq_start=1, seq_end=1, lr=1e-4, input_noise_ratio=NOISE_TO_VELOCITY_STD)
+        """The preset's defaults (:data:`PRESET_OVERRIDES`), then ``overrides`` (None values ignored)."""
+        base: dict[str, Any] = {"preset": preset, **PRESET_OVERRIDES.get(preset, {})}
         base.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**base)
 
