@@ -13,10 +13,12 @@ import time
 
 import numpy as np
 import torch
+from torch_geometric.data import HeteroData
 
 import hrn_pyg
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import NODE
+from hrn_pyg.checkpoints import load_model, resolve_model
 from hrn_pyg.data.scene_file import builtin_scene, make_scene
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
@@ -188,6 +190,20 @@ SAMPLING_RATE = 0.3
 
 #: the scene and pybullet seed of the sampling benchmarks
 SAMPLING_SCENE, SAMPLING_SEED = "soft_bounce", 0
+
+
+def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroData,
+              device: torch.device | str | None = None) -> HRN:
+    """The scene's checkpoint, or (``random_init``, for checking a pipeline only) an untrained
+    :class:`HRN` with seed 0 whose normaliser is fitted on ``fit_on``; on ``device`` (None: the
+    CPU)."""
+    if not random_init:
+        return load_model(resolve_model(scene, path), device)
+    torch.manual_seed(0)
+    model = HRN(HRNConfig())
+    fit_normalizer([fit_on], model.normalizer)
+    model.eval()
+    return model if device is None else model.to(device)
 
 
 def sampling_setup(steps: int) -> tuple[HRN, object, torch.Tensor]:

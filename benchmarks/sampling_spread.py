@@ -24,10 +24,10 @@ import platform
 import numpy as np
 import torch
 
+from benchmarks.common import model_for
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.sampling.cli import model_for
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sampling.metrics import object_centres, root_spread
 from hrn_pyg.sampling.sample import sample

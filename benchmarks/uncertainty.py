@@ -48,11 +48,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.common import model_for
 from hrn_pyg.checkpoints import CHECKPOINT_DIR
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE, STATIC
 from hrn_pyg.nn.hrn import HRN
-from hrn_pyg.sampling.cli import model_for
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
     episode_state,

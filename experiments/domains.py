@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from hrn_pyg.checkpoints import MANIFEST_PATH, entry_datasets, entry_pitch_aware, read_manifest
+from hrn_pyg.checkpoints import MANIFEST_PATH, entry_datasets, read_manifest
 from hrn_pyg.checkpoints.domain import Domain, episode_domain, merge_all, with_pitch_range
 from hrn_pyg.data.dataset import split_of_seed
 from hrn_pyg.recipe.schema import RECIPE_PATH, DatasetRecipe, load_recipe
@@ -30,6 +31,17 @@ from hrn_pyg.utils.files import atomic_write_json
 EPISODES = 12
 #: training episodes simulated per dataset at least
 MIN_EPISODES = 4
+
+
+def entry_pitch_aware(entry: dict[str, Any]) -> bool:
+    """Whether a manifest entry's model reads the pitch: its training (or a stage's) was run
+    with ``--model-pitch-aware`` true."""
+    for command in [entry.get("train_command", ""), *entry.get("stage_commands", [])]:
+        words = shlex.split(command or "")
+        for i, word in enumerate(words[:-1]):
+            if word == "--model-pitch-aware" and words[i + 1].strip().lower() in ("1", "true", "yes", "on"):
+                return True
+    return False
 
 
 def episodes_to_measure(dataset: DatasetRecipe, most: int) -> int:

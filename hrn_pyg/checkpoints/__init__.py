@@ -247,17 +247,6 @@ def entry_datasets(entry: dict[str, Any]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(n for n in names if n))
 
 
-def entry_pitch_aware(entry: dict[str, Any]) -> bool:
-    """Whether a manifest entry's model reads the pitch: its training (or a stage's) was run
-    with ``--model-pitch-aware`` true."""
-    for command in [entry.get("train_command", ""), *entry.get("stage_commands", [])]:
-        words = shlex.split(command or "")
-        for i, word in enumerate(words[:-1]):
-            if word == "--model-pitch-aware" and words[i + 1].strip().lower() in ("1", "true", "yes", "on"):
-                return True
-    return False
-
-
 def shipped_model(name: str, entry: dict[str, Any]) -> ShippedModel:
     """A manifest ``entry`` as a :class:`ShippedModel`."""
     calibrated = entry.get("calibrated") or {}

@@ -58,23 +58,6 @@ def default_rate(model: HRN, calibrated: bool = False) -> tuple[float, str]:
     return UNCALIBRATED_RATE, "uncalibrated default"
 
 
-def model_for(scene: str, path: str | None, random_init: bool, fit_on: HeteroData,
-              device: torch.device | str | None = None) -> HRN:
-    """The scene's checkpoint, or (``random_init``, for checking a pipeline only) an untrained
-    :class:`HRN` with seed 0 whose normaliser is fitted on ``fit_on``; on ``device`` (None: the
-    CPU)."""
-    if not random_init:
-        return load_model(resolve_model(scene, path), device)
-    from hrn_pyg.nn.hrn import HRNConfig
-    from hrn_pyg.nn.normalizer import fit_normalizer
-
-    torch.manual_seed(0)
-    model = HRN(HRNConfig())
-    fit_normalizer([fit_on], model.normalizer)
-    model.eval()
-    return model if device is None else model.to(device)
-
-
 def initial_state(args: argparse.Namespace, steps: int | None,
                   source: str | SceneSpec | None = None) -> tuple[HeteroData, dict]:
     """The start graph (carrying ``pos_seq``/``force_seq``) and a description of its origin,

@@ -102,15 +102,6 @@ def test_train_a_pitch_aware_model_on_two_pitches_resume_and_read_its_domain(tmp
     assert "pitches 0.05-0.08 m" in capsys.readouterr().err
 
 
-def test_a_manifest_entry_trained_pitch_aware_is_known_by_its_command():
-    from hrn_pyg.checkpoints import entry_pitch_aware
-
-    assert entry_pitch_aware({"train_command": "hrn-pyg train --preset ours --model-pitch-aware true --data d"})
-    assert entry_pitch_aware({"train_command": "x", "stage_commands": ["hrn-pyg train --model-pitch-aware on"]})
-    assert not entry_pitch_aware({"train_command": "hrn-pyg train --model-pitch-aware false --data d"})
-    assert not entry_pitch_aware({})
-
-
 def test_the_checkpoints_table_shows_a_pitch_range():
     from hrn_pyg.checkpoints import ShippedModel
     from hrn_pyg.checkpoints.cli import COLUMNS, model_row
