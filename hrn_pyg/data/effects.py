@@ -1,24 +1,12 @@
-r"""What a scene needs simulated: :class:`SceneEffects`, and the per-rollout plan built from it.
+"""What a scene needs simulated: :class:`SceneEffects`, and the per-rollout plan built from it.
 
-A step of the HRN sums three kinds of effect on a particle (Fig. 2 of the seed paper): history,
-external force :math:`e_F` and collision :math:`e_C`. Many scenes need fewer: a lone soft cube
-bouncing on the ground has nothing to collide with, a ball dropped on a wedge is never pushed.
-A scene says so once (:class:`SceneEffects`, the ``effects`` of a scene file,
-:mod:`hrn_pyg.data.scene_file`), and :func:`plan_effects` turns the declaration, the graph and the
-rollout's forces into an :class:`EffectPlan` *before* the first step:
-
-* ``force_active[t]``: does step :math:`t` run the force module. Read from the force tensor
-  ``[S, N, 3]`` in one host transfer for the whole rollout, so no step has to ask the device
-  whether its force is zero (the per-step ``force.ne(0).any()`` of
-  :meth:`hrn_pyg.nn.hrn.HRN.forward` when nothing is planned);
-* ``collisions``: is there a collision search and a collision module at all. False when the
-  scene declares it, or when no batch copy holds two objects that can touch (a lone body; its
-  copies never collide with each other).
-
-A module or an edge set that is not needed is not built and not run; the result is the same as
-running it on empty input (the force module of a zero force and the collision module of no edge
-add nothing), which the tests check. A declaration that the data contradict (``forces=False``
-with a nonzero force) is an error rather than a silent change of the physics.
+A step sums history, force :math:`e_F` and collision :math:`e_C` effects; many scenes need
+fewer (a lone soft cube has nothing to collide with). A scene declares it once
+(:class:`SceneEffects`, a scene file's ``effects``) and :func:`plan_effects` turns that, the
+graph and the forces into an :class:`EffectPlan` before the first step: ``force_active[t]`` (one
+host transfer for the whole rollout) and ``collisions`` (False when declared or when no copy
+holds two objects that can touch). Skipping a module gives the same result as running it on
+empty input; a declaration the data contradict is an error.
 """
 
 from __future__ import annotations
@@ -72,12 +60,8 @@ def can_collide(graph: HeteroData) -> bool:
 
 def plan_effects(graph: HeteroData, steps: int, forces: Tensor | None,
                  declared: SceneEffects | None = None) -> EffectPlan:
-    """The :class:`EffectPlan` of a rollout of ``steps`` steps under ``forces`` ``[S, N, 3]``
-    (None: no force), honouring what the scene ``declared``.
-
-    Raises ValueError when the declaration and the data disagree (``forces=False`` with a
-    nonzero force).
-    """
+    """The :class:`EffectPlan` of ``steps`` steps under ``forces`` ``[S, N, 3]`` (None: none), as
+    ``declared``; ValueError when the declaration and the data disagree."""
     declared = declared or SceneEffects()
     if forces is None:
         active = [False] * steps

@@ -1,16 +1,14 @@
 r"""A rigid object's mesh moved by the best rigid transform of its leaves, frame by frame.
 
-The fit is the package's own shape matching (:func:`hrn_pyg.nn.rigid.rigid_motion`, Kabsch
-with the polar factor) from the object's leaves at rest :math:`x_i` to its leaves at frame
-:math:`t`, :math:`\hat x_i(t)`, every leaf weighted alike:
+The package's shape matching (:func:`hrn_pyg.nn.rigid.rigid_motion`) from the rest leaves
+:math:`x_i` to frame :math:`t`'s :math:`\hat x_i(t)`, equal weights, one batched fit:
 
 .. math::
     c = \tfrac1n \textstyle\sum_i x_i, \quad \hat c(t) = \tfrac1n \sum_i \hat x_i(t), \quad
     R(t) = \mathrm{polar}\Bigl(\sum_i (\hat x_i(t) - \hat c(t))(x_i - c)^\top\Bigr), \quad
     v(t) = \hat c(t) + R(t)\,(v - c)
 
-for every rest vertex :math:`v` of the mesh. Every frame of every object is one group of one
-batched fit (no loop over frames).
+for every rest vertex :math:`v` of the mesh.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
 """The meshes of a scene at rest, in the world frame, beside the leaves they were made from.
 
-A scene file's object is a mesh (a file, a primitive or a cloth sheet) sized and placed by what
-its seed drew (:func:`hrn_pyg.data.scene_file.posed_mesh`, :func:`~hrn_pyg.data.scene_file.quaternion`,
-``position``). Its leaves are made from that same posed mesh (voxel centres for a rigid or
-static object, the lattice nodes of a soft body, the vertices of a cloth), then placed by the
-same pose, so the mesh and the leaves agree exactly at step 0 of the episode: this module
-rebuilds both, as pybullet placed them, without running pybullet.
+A scene file's object is a mesh sized and placed by what its seed drew
+(:func:`hrn_pyg.data.scene_file.posed_mesh`); its leaves are made from the same posed mesh, so
+mesh and leaves agree exactly at step 0. This module rebuilds both without running pybullet.
 """
 
 from __future__ import annotations
@@ -46,11 +43,10 @@ def rotation_matrix(q: list[float] | np.ndarray | None) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ObjectMesh:
-    """One object's mesh and leaves at rest (step 0 of the episode), world frame.
+    """One object's mesh and leaves at rest (step 0), world frame.
 
-    **Shapes:** ``vertices (V, 3)`` float64, ``faces (F, 3)`` int64 into ``vertices``,
-    ``leaves (n, 3)`` float64: the object's rows ``leaf_start .. leaf_start + n - 1`` of the
-    scene's leaves.
+    **Shapes:** ``vertices (V, 3)`` float64, ``faces (F, 3)`` int64, ``leaves (n, 3)`` float64
+    (rows ``leaf_start .. leaf_start + n - 1`` of the scene's leaves).
     """
 
     index: int
@@ -145,13 +141,9 @@ class SceneMeshes:
 
 
 def scene_meshes(scene: str | SceneSpec, params: dict) -> SceneMeshes:
-    """The rest meshes and leaves of a scene and one seed's drawn ``params`` (``Scene.params``,
-    or the ``params`` an episode's JSON records), world frame.
-
-    A rigid or static object: the posed mesh and its voxel-centre leaves, rotated by the drawn
-    orientation and moved to ``position``; a soft body: the same mesh and its lattice nodes; a
-    cloth: its surface mesh (or the square sheet) whose vertices are its leaves.
-    """
+    """The rest meshes and leaves of a scene for one seed's drawn ``params``, world frame: a rigid or
+    static object's posed mesh and voxel leaves, a soft body's mesh and lattice nodes, a cloth's
+    surface whose vertices are its leaves."""
     spec = scene_spec(scene)
     pitch = float(spec.config.pitch)
     objects, start = [], 0

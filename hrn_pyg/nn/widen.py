@@ -1,24 +1,17 @@
-r"""A trained model's weights as the start of a larger one: a pitch-aware model from a plain
-one (:func:`widen_to_pitch_aware`), or one whose collision module reads the force from one whose
-does not (:func:`with_collision_force`).
+r"""A trained model's weights as the start of a larger one: a pitch-aware model from a plain one
+(:func:`widen_to_pitch_aware`), or a collision module that reads the force
+(:func:`with_collision_force`).
 
-**Pitch-aware.** A pitch-aware HRN (``HRNConfig.pitch_aware``, :mod:`hrn_pyg.nn.pitch`) reads one more state
-column than the plain model it may start from: :math:`\log_2(p / p_{ref})`, appended to the
-state vector :math:`s_i` of every particle. Every learned module takes its state vectors as the
-first blocks of its input (force :math:`[s_i, f_i]`, collision :math:`[s_i, s_j, \dots]`,
-history :math:`[s_i(t), s_i(t-1)]`, propagation :math:`[s_i, s_j, \dots]`, state
-:math:`[s_i, e_i]`), so only the first layer of each MLP grows: with :math:`k` state blocks of
-:math:`S` columns,
+A pitch-aware HRN reads one more state column, :math:`\log_2(p / p_{ref})`. Every module takes
+its state vectors as the first blocks of its input, so only each MLP's first layer grows, with
+one zero column after each of its :math:`k` state blocks:
 
 .. math::
     W_1 = [W^{(1)} \,|\, \dots \,|\, W^{(k)} \,|\, W^{rest}]
     \;\mapsto\;
-    [W^{(1)} \,|\, 0 \,|\, \dots \,|\, W^{(k)} \,|\, 0 \,|\, W^{rest}],
+    [W^{(1)} \,|\, 0 \,|\, \dots \,|\, W^{(k)} \,|\, 0 \,|\, W^{rest}]
 
-one zero column after each state block. Everything else is copied. At the reference pitch the
-new column is 0, the radius and the geometric scale are those of the plain model, and the
-widened model predicts what the plain one does, bit for bit; training then learns what the new
-column is for.
+At the reference pitch the widened model predicts what the plain one does, bit for bit.
 """
 
 from __future__ import annotations
@@ -48,11 +41,8 @@ def widen_state_blocks(weight: Tensor, blocks: int, old_state: int, new_state: i
 
 
 def widen_to_pitch_aware(model: HRN, **changes: Any) -> HRN:
-    """A pitch-aware :class:`HRN` holding ``model``'s weights (zero on the pitch column).
-
-    ``changes``: other fields of the new config (e.g. ``mirror_average=False``); they must keep
-    every layer's size. The result is in ``model``'s training mode.
-    """
+    """A pitch-aware :class:`HRN` holding ``model``'s weights (zero on the pitch column); ``changes``:
+    other config fields that keep every layer's size. In ``model``'s training mode."""
     config = _grown_config(model, "widen_to_pitch_aware", "pitch_aware", "is pitch-aware already", changes)
     wide = HRN(config)
     old_state, new_state = model.config.state_dim, config.state_dim
@@ -81,16 +71,9 @@ def _grown_config(model: HRN, caller: str, option: str, already: str, changes: d
 
 
 def with_collision_force(model: HRN, **changes: Any) -> HRN:
-    """An :class:`HRN` with ``HRNConfig.collision_force`` holding ``model``'s weights, the
-    collision module's weights on the force zero, so it predicts what ``model`` does (up to the
-    rounding of longer sums) until training moves them.
-
-    The collision MLP's first layer gains zero columns after each end's state block (the force,
-    or with ``equivariant`` the force's horizontal length and vertical part) and, equivariant, at
-    the end (the force's dot products with the edge's offset); the equivariant vector readout
-    gains zero rows for the two force vectors of its weighted sum. ``changes``: other fields of
-    the new config that keep every other layer's size. The result is in ``model``'s training mode.
-    """
+    """An :class:`HRN` with ``HRNConfig.collision_force`` holding ``model``'s weights and zero weights
+    on the force (the collision MLP's first layer, and the equivariant readout's rows of the force
+    vectors), so it predicts what ``model`` does. ``changes`` as in :func:`widen_to_pitch_aware`."""
     config = _grown_config(model, "with_collision_force", "collision_force", "reads the force already", changes)
     grown = HRN(config)
     old, new = model.collision, grown.collision

@@ -1,15 +1,10 @@
 """The records of ``hrn-pyg checkpoints``: each run's ``recipe.json`` and the checkpoints' manifest.
 
-A run folder's ``recipe.json`` (:data:`RUN_RECORD`) holds what the folder was trained with (its
-identity) and every train invocation (command, device, seconds, exit code). The checkpoints
-folder's ``manifest.json`` (:data:`MANIFEST_NAME`) holds one entry per shipped model: the
-dataset recipe, the exact commands, training steps, device, wall seconds of the training
-invocations that ended, the training seconds the runs' ``metrics.csv`` logged (sittings that were
-killed included), the stages whose weights were averaged (when they were), the calibrated rate and
-modules, and the SHA-256 of the checkpoint. Entries are
-built from the run records (:func:`model_entry`) and written atomically, only when they change
-(:func:`update_manifest`); :func:`copy_atomic` and :func:`sha256` publish the checkpoints
-themselves.
+A run folder's ``recipe.json`` (:data:`RUN_RECORD`) holds its identity and every train
+invocation (command, device, seconds, exit code). ``manifest.json`` (:data:`MANIFEST_NAME`)
+holds one entry per shipped model: dataset recipe, commands, steps, device, wall and logged
+training seconds, averaged stages, calibrated rate and modules, and the checkpoint's SHA-256,
+built by :func:`model_entry` and written atomically when it changes (:func:`update_manifest`).
 """
 
 from __future__ import annotations
@@ -41,10 +36,9 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 
 def logged_train_seconds(metrics: Path) -> float | None:
-    """The training time a run's ``metrics.csv`` logged, summed over its sittings: each sitting's
-    ``seconds`` column counts from its own start, so a row whose value is below the row before it
-    starts a new sitting, and a sitting counts its last row's value. A sitting that was killed
-    counts up to its last logged row. None when the file is missing or has no ``seconds``."""
+    """The training seconds a run's ``metrics.csv`` logged, summed over its sittings (a ``seconds``
+    value below the row before starts a new sitting; a sitting counts its last row); None when the
+    file or the column is missing."""
     try:
         with open(metrics, newline="") as fh:
             values = [float(row["seconds"]) for row in csv.DictReader(fh) if row.get("seconds")]
@@ -74,13 +68,9 @@ def copy_atomic(source: Path, target: Path) -> None:
 def model_entry(model: ModelRecipe, dataset: DatasetRecipe, data_dir: Path, runs_dir: Path, run: Path,
                 digest: str, train_command: Callable[[int], Sequence[str]],
                 calibrate_command: Callable[[], Sequence[str]]) -> dict[str, Any]:
-    """A model's manifest entry, from the records of its run folders under ``runs_dir``.
-
-    ``dataset`` is the model's dataset, ``run`` its final run folder and ``digest`` the SHA-256
-    of the published checkpoint; ``train_command(stage)`` is the command of a stage without a
-    finished invocation, ``calibrate_command()`` the calibrate command (asked only when the
-    recipe calibrates the model).
-    """
+    """A model's manifest entry from the records of its run folders under ``runs_dir``: ``dataset``,
+    final ``run`` folder and the checkpoint's ``digest``; ``train_command(stage)`` and
+    ``calibrate_command()`` give the commands of unfinished steps."""
     folders = [runs_dir / model.run_name(i) for i in range(model.num_stages)]
     # per stage: the invocations that ended, and the command that made its model.pt (its
     # last invocation), as one would type it afresh
@@ -124,10 +114,9 @@ def calibration_entry(model: ModelRecipe, run: Path, calibrate_command: Callable
 
 
 def update_manifest(path: Path, name: str, entry: dict[str, Any]) -> None:
-    """Set model ``name``'s entry in the manifest at ``path``, stamped with the time it changed;
-    the file is rewritten (atomically) only when the entry differs. An entry without a
-    ``domain`` keeps the old entry's when the checkpoint (its ``sha256``) is the same. Callers
-    writing from several threads hold one lock around it."""
+    """Set model ``name``'s entry in the manifest at ``path``, stamped with the time, rewriting the
+    file (atomically) only when it differs; an entry without ``domain`` keeps the old one's for the
+    same ``sha256``. Callers from several threads hold one lock."""
     manifest = read_json(path) or {}
     entries = manifest.get("checkpoints", {})
     old = dict(entries.get(name, {}))

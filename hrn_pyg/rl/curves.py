@@ -1,11 +1,5 @@
-"""The learning curve of a PPO run: reading, smoothing and its metrics.
-
-Every function here reads what :mod:`hrn_pyg.rl.ppo` writes (a run's ``log.csv``, one row per
-PPO update); nothing trains or steps an environment. :func:`read_curve`, :func:`smooth`,
-:func:`updates_to_reach` and :func:`curve_metrics`: a run's average episode length per update,
-its trailing moving average, the first update at which it reaches a level, and its final length
-and the updates taken to reach it.
-"""
+"""The learning curve of a PPO run (its ``log.csv``, one row per update): :func:`read_curve`,
+:func:`smooth`, :func:`updates_to_reach` and :func:`curve_metrics`."""
 
 from __future__ import annotations
 
@@ -41,11 +35,8 @@ def smooth(curve: list[float], window: int = SMOOTH_UPDATES) -> list[float]:
 
 
 def updates_to_reach(curve: list[float], level: float, window: int = SMOOTH_UPDATES) -> int | None:
-    """First update at which the smoothed curve is at or below ``level``; None if never.
-
-    Only full windows count (updates ``window - 1`` on): an average of the first one or two
-    noisy updates would otherwise "reach" a level by chance.
-    """
+    """First update at which the smoothed curve is at or below ``level`` (full windows only); None if
+    never."""
     smoothed = smooth(curve, window)
     for i in range(min(window, len(curve)) - 1, len(curve)):
         if smoothed[i] <= level:
@@ -54,15 +45,10 @@ def updates_to_reach(curve: list[float], level: float, window: int = SMOOTH_UPDA
 
 
 def curve_metrics(curve: list[float]) -> dict[str, float | int | None]:
-    r"""Final average episode length and the updates taken to reach it.
-
-    With :math:`\bar L` the curve smoothed over :data:`SMOOTH_UPDATES`, :math:`L_0` the mean of
-    its first :data:`SMOOTH_UPDATES` values and :math:`L_f` the mean of the last
-    :data:`FINAL_FRACTION` of updates,
-    ``updates_to_final`` is the first update with
-    :math:`\bar L \le L_f + (1 - \rho)(L_0 - L_f)`, :math:`\rho` = :data:`REACHED_FRACTION`
-    (None when :math:`L_0 - L_f <` :data:`MIN_DROP` steps: the run did not learn).
-    """
+    r"""Final average episode length and the updates taken to reach it: with :math:`\bar L` the
+    smoothed curve, :math:`L_0` the mean of the first :data:`SMOOTH_UPDATES` and :math:`L_f` of the
+    last :data:`FINAL_FRACTION`, the first update with :math:`\bar L \le L_f + (1 - \rho)(L_0 -
+    L_f)`, :math:`\rho` = :data:`REACHED_FRACTION` (None when :math:`L_0 - L_f <` :data:`MIN_DROP`)."""
     values = [v for v in curve if not math.isnan(v)]
     if not values:
         return {"final_length": None, "start_length": None, "updates_to_final": None}

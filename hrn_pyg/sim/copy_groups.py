@@ -1,16 +1,10 @@
 """One network pass over many copies of a scene, run as groups of copies that fit in the cache.
 
-K sampled futures, or a planner's candidates times K futures, are K copies of one scene in one
-batched graph. The pass gathers node features along every edge (``x_j`` for each edge ``j -> i``)
-and scatters messages back; once the K copies' features and messages outgrow the CPU's cache,
-each gather and scatter streams from main memory and the cost per copy climbs (soft_bounce, one
-thread: 0.66 ms per copy and step at K = 16, 1.15 ms at K = 256). Splitting the copies into
-groups of at most :data:`MAX_NODES_PER_GROUP` nodes and running the same pass on each group keeps
-the working set in cache; no copy reads another's nodes, so the answer is the same (up to the
-rounding of a matrix product over fewer rows).
-
-:func:`copy_groups` says where the groups are (or that one pass is best);
-:func:`group_inputs` cuts the network's inputs and dropout masks to one group.
+Once K copies' features and messages outgrow the CPU's cache, every gather and scatter streams
+from memory (soft_bounce, one thread: 0.66 ms per copy and step at K = 16, 1.15 ms at K = 256).
+Groups of at most :data:`MAX_NODES_PER_GROUP` nodes run the same pass each and give the same
+answer, since no copy reads another's nodes. :func:`copy_groups` says where the groups are;
+:func:`group_inputs` cuts the inputs and masks to one group.
 """
 
 from __future__ import annotations
@@ -45,11 +39,9 @@ class CopyGroup(NamedTuple):
 
 
 def copy_groups(inputs: HRNInputs, max_nodes: int = MAX_NODES_PER_GROUP) -> list[CopyGroup] | None:
-    """The groups of consecutive copies, each of at most ``max_nodes`` nodes (a copy larger than
-    that is a group of its own); None where one pass is the better choice: inputs on an
-    accelerator (a GPU wants the whole batch in one launch), a fixed-shape step (no host read
-    allowed), at most ``max_nodes`` nodes in all, or copies whose nodes are not laid out one
-    copy after another (``batch`` not sorted)."""
+    """The groups of consecutive copies, each of at most ``max_nodes`` nodes (a larger copy alone);
+    None where one pass is better: on an accelerator, in a fixed-shape step, with at most
+    ``max_nodes`` nodes, or with ``batch`` not sorted."""
     batch = inputs.batch
     n = batch.numel()
     if batch.device.type != "cpu" or inputs.options.fixed_shape or n <= max_nodes:
@@ -70,13 +62,9 @@ def copy_groups(inputs: HRNInputs, max_nodes: int = MAX_NODES_PER_GROUP) -> list
 
 
 def edge_groups(edge_index: Tensor, groups: list[CopyGroup], by: Tensor | None = None) -> list[Tensor] | None:
-    """``edge_index`` ``[2, E]`` cut into one ``[2, E_g]`` per group, renumbered from the group's
-    first node, each keeping the edges' order; None when an edge joins two groups.
-
-    With ``by`` (the ``[2, E]`` edges that ``edge_index``'s columns belong to), the columns of
-    ``edge_index`` are per-edge values (``[C, E]``, e.g. a weight per edge): they are cut as
-    ``by`` is, and not renumbered.
-    """
+    """``edge_index`` ``[2, E]`` cut into ``[2, E_g]`` per group, renumbered from the group's first
+    node, in order; None when an edge joins two groups. With ``by``, the columns are per-edge values
+    (``[C, E]``) cut as ``by`` is, not renumbered."""
     edges = edge_index if by is None else by
     if edges.size(1) == 0:
         return [edge_index] * len(groups)
