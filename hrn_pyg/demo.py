@@ -1,19 +1,15 @@
-"""``hrn-pyg demo``: the two-minute tour on the checkpoints shipped in ``hrn_pyg/checkpoints``.
+"""``hrn-pyg demo``: the two-minute tour on the shipped checkpoints.
 
-It is a script of the package's own commands (each step builds that command's parser from its
-module and runs it), so every picture it draws can be redrawn by hand:
+A script of the package's own commands, so every picture can be redrawn by hand:
 
-1. simulates a few held-out ``soft_bounce`` and ``cube_collision`` episodes in pybullet (test
-   seeds, never trained on) and prints a short Table 1 (``hrn-pyg evaluate``), HRN vs ours;
-2. samples 16 futures with Monte Carlo dropout on the wedge and on the soft cube
-   (``hrn-pyg sample``, at each model's calibrated rate, ``hrn-pyg calibrate``; 0.3 for a model
-   never calibrated): PNG and GIF each;
-3. runs the shipped cube-push policy in the learned environment and replays its actions in
-   pybullet (the ground-truth check).
+1. a short Table 1 (``hrn-pyg evaluate``) on held-out ``soft_bounce`` and ``cube_collision``
+   episodes, HRN vs ours;
+2. 16 futures (``hrn-pyg sample``) on the wedge and the soft cube, at each model's calibrated
+   rate (0.3 if never calibrated): PNG and GIF each;
+3. the shipped cube-push policy in the learned environment, replayed in pybullet.
 
-Everything lands under one output folder, named at the end. A step whose checkpoint is not
-shipped is skipped with a note naming the command that makes it. ``--device`` and
-``--no-progress`` are passed on to every step.
+Everything lands under one output folder; a step whose checkpoint is not shipped is skipped
+with a note. ``--device`` and ``--no-progress`` are passed on.
 """
 
 from __future__ import annotations

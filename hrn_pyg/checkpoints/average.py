@@ -1,18 +1,12 @@
-"""A weighted mean of model checkpoints' weights, written as one checkpoint.
+r"""A weighted mean of model checkpoints' weights, written as one checkpoint.
 
-Two checkpoints of one network trained from each other (the stages of a recipe model: each
-fine-tuning starts from the last one's weights) stay close enough in weight space for their
-element-wise mean to be a model in its own right; it can keep what each stage does well (one
-holds a pile at rest, the other matches a specialist). Given checkpoints
-:math:`\\theta^{(1)}, \\dots, \\theta^{(n)}` of the same network and weights :math:`w_i > 0`
-with :math:`\\sum_i w_i = 1`, every learned parameter of the result is
+Stages of one network trained from each other stay close in weight space, so their mean is a
+model too. With weights :math:`w_i > 0`, :math:`\sum_i w_i = 1`, every learned parameter is
 
 .. math::
-    \\theta_j = \\sum_{i=1}^{n} w_i \\, \\theta^{(i)}_j ,
+    \theta_j = \sum_{i=1}^{n} w_i \, \theta^{(i)}_j ,
 
-summed in the order given. Everything else (buffers such as the input normaliser's statistics,
-the network config, the training step, the domain) is the *last* checkpoint's: it is the
-model the mean stands for, and the others only lend it their weights.
+summed in the order given; everything else (buffers, config, step, domain) is the last one's.
 """
 
 from __future__ import annotations

@@ -49,23 +49,14 @@ def check_plausible(positions: np.ndarray, pitch: float, where: str) -> None:
 
 def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None, *,
                      after_reset: Callable[[Scene], None] | None = None) -> dict[str, np.ndarray]:
-    """Run one episode with the scene's scripted and random pushes; return the episode arrays.
+    """Run one episode of ``scene`` (a built-in name or a spec) with its scripted and random pushes;
+    ``steps`` overrides its length; ``after_reset(scene)`` runs before step 0 (e.g.
+    :meth:`Scene.nudge`). :class:`DivergedEpisode` if pybullet lost it (:func:`check_plausible`).
 
-    ``scene`` is a built-in scene's name or a spec (:func:`hrn_pyg.data.scene_file.builtin_scene`
-    with changed settings, or :func:`hrn_pyg.data.scene_file.read_scene_file`); ``steps``
-    overrides its episode length.
-
-    ``after_reset(scene)``, if given, runs once after ``reset()`` and before step 0 (e.g.
-    :meth:`Scene.nudge` to perturb the initial state of a ground-truth ensemble); the recorded
-    ``positions[0]`` is the state after it.
-
-    **Shapes** (``S`` steps, ``L`` leaves, ``O`` objects, ``N`` hierarchy nodes)
-    ``positions [S+1, L, 3]`` f32, ``forces [S, L, 3]`` f32, ``leaf_mass [L]`` f32,
-    ``leaf_object [L]`` i64, ``object_material [O]`` i64, ``object_stiffness [O]`` f32,
-    ``hierarchy_parent [N]`` i64, ``seed``/``scene``/``params``/``dt`` scalars; ``params`` is JSON
-    of what the seed drew, the scene's settings and (for a scene from a file) the file's text.
-
-    An episode pybullet lost (:func:`check_plausible`) raises :class:`DivergedEpisode`.
+    **Shapes** (``S`` steps, ``L`` leaves, ``O`` objects, ``N`` nodes): ``positions [S+1, L, 3]``
+    f32, ``forces [S, L, 3]`` f32, ``leaf_mass [L]`` f32, ``leaf_object [L]`` i64,
+    ``object_material [O]`` i64, ``object_stiffness [O]`` f32, ``hierarchy_parent [N]`` i64,
+    ``seed``/``scene``/``params`` (JSON of the draws, settings and file text)/``dt`` scalars.
     """
     spec = scene_spec(scene)
     if steps is not None:

@@ -1,23 +1,14 @@
 """``hrn-pyg generate``: simulate a scene's episodes in worker processes and write them.
 
-Episode ``i`` (``0 <= i < --episodes``) has seed ``--first-seed + i`` and is written as
-``<out>/episode_<seed:06d>.npz`` (:func:`hrn_pyg.data.io.save_episode`, atomic). A rerun skips
-files that exist, so a killed run loses at most the episodes in flight. ``--shard i/N`` keeps
-the episodes whose index is ``i`` modulo ``N``, so N machines can split one dataset.
-``<out>/meta.json`` (atomic) records the scene, its settings and the counts, and under
-``shards`` each shard's counts. Writers of one folder hold ``<out>/.lock``
-(:class:`~hrn_pyg.utils.files.FolderLock`): a writer whose scene or settings differ from those
-of meta.json stops with one line, however close together two start; writers of the same
-dataset (shards) run together and each adds its own record; the first writer of an idle folder
-removes the temporaries a killed one left. A run that fails leaves meta.json as it found it (none,
-when it made the folder's first). ``--scene-file
-FILE`` simulates a scene read from a TOML file (:mod:`hrn_pyg.data.scene_file`) instead of a
-built-in one; its meta.json keeps the file's text. ``--set NAME=VALUE`` changes a setting of
-either. An episode of a scene with soft bodies or cloth runs in a process of its own, so its
-bytes depend on its seed and settings only, not on the episodes generated before it. A seed
-that pybullet loses (:func:`hrn_pyg.data.episodes.check_plausible`) is not written: one line on
-stderr says why, ``<out>/episode_<seed:06d>.rejected`` keeps the reason (a rerun skips it), and
-meta.json counts it.
+Episode ``i`` has seed ``--first-seed + i`` and goes to ``<out>/episode_<seed:06d>.npz``
+(atomic); a rerun skips what exists. ``--shard i/N`` keeps the indices ``i`` modulo ``N``.
+``<out>/meta.json`` records the scene, settings and counts (per shard under ``shards``).
+Writers hold ``<out>/.lock`` (:class:`~hrn_pyg.utils.files.FolderLock`): one with other settings
+stops with one line; shards run together; a failed run leaves meta.json as it was.
+``--scene-file FILE`` reads a scene file (its text kept in meta.json); ``--set NAME=VALUE``
+changes a setting. Soft and cloth episodes run in processes of their own, so their bytes depend
+on seed and settings only. A seed pybullet loses (:func:`hrn_pyg.data.episodes.check_plausible`)
+is not written: one line says why and ``episode_<seed:06d>.rejected`` keeps the reason.
 """
 
 from __future__ import annotations

@@ -1,17 +1,13 @@
 r"""The scenes' symmetry about the vertical axis, used to augment training windows.
 
-Gravity points along :math:`-z` and the ground is the plane :math:`z = 0`, so turning a whole
-scene about the vertical axis, or mirroring it through a vertical plane, gives another scene the
-same physics would produce: every position, force and rest shape is mapped by one matrix
+Turning a scene about z or mirroring it in a vertical plane gives another scene of the same
+physics; every position, force and rest shape is mapped by
 
 .. math::
     Q = \begin{pmatrix} \pm\cos\theta & -\sin\theta & 0 \\ \pm\sin\theta & \cos\theta & 0 \\
         0 & 0 & 1 \end{pmatrix}, \qquad \theta \sim U[0, 2\pi),
 
-and heights, distances, masses and the hierarchy are unchanged. Training on windows mapped by a
-fresh :math:`Q` per copy gives the model no preferred horizontal direction to learn, and its
-normaliser then has no horizontal mean to add to every step: a resting body has nothing that
-pushes it sideways (:func:`hrn_pyg.nn.normalizer.isotropic_horizontal`).
+drawn per copy, so the model learns no preferred horizontal direction.
 """
 
 from __future__ import annotations
@@ -54,10 +50,8 @@ def random_vertical_symmetries(
 
 
 def apply_vertical_symmetry(window: HeteroData, symmetries: Tensor) -> HeteroData:
-    r"""A copy of ``window`` with every world-space vector of copy ``b`` mapped by
-    ``symmetries[b]`` (:data:`WORLD_VECTORS`, those present); edges and the other attributes are
-    shared. The map is linear, so it turns about the world origin; the model sees no absolute
-    horizontal position, and collision edges (distances) are unchanged.
+    """A copy of ``window`` with every world-space vector (:data:`WORLD_VECTORS`) of copy ``b`` mapped
+    by ``symmetries[b]`` about the origin; edges and other attributes shared.
 
     **Shapes:** ``symmetries`` ``[B, 3, 3]`` with ``B`` the window's copies (1 without ``batch``).
     """

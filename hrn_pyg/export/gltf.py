@@ -1,19 +1,10 @@
 """glTF 2.0 binary (``.glb``): every trajectory's meshes, animated, in one file.
 
-The file holds one node per trajectory (``truth``, ``future 00`` ...) under a root node that
-turns the package's z-up world into glTF's y-up one (Blender, three.js and other glTF readers
-then show the ground horizontal). Under a trajectory's node:
-
-* a rigid object is a node whose mesh is its rest mesh about the leaves' rest centre, animated
-  by ``translation`` and ``rotation`` channels (the rigid fit of :mod:`hrn_pyg.export.rigid_fit`);
-* a soft body or cloth is a mesh with one morph target per frame after the first (that frame's
-  displacement from the first), animated by a ``weights`` channel that shows frame ``t`` at time
-  ``t dt`` and blends linearly between frames;
-* a static object is drawn once, under the ``truth`` node.
-
-The ground truth is drawn opaque in its object colours, every future lighter and translucent.
-The JSON and binary chunks are written here with :mod:`struct` (the layout of the glTF 2.0
-specification), so the file needs no library to write.
+One node per trajectory (``truth``, ``future 00`` ...) under a root that turns z-up into glTF's
+y-up. A rigid object is its rest mesh animated by ``translation`` and ``rotation``
+(:mod:`hrn_pyg.export.rigid_fit`); a soft body or cloth has one morph target per frame and a
+``weights`` channel; a static object is drawn once under ``truth``. The truth is opaque, futures
+lighter and translucent. Written with :mod:`struct`, no library needed.
 """
 
 from __future__ import annotations

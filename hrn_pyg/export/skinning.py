@@ -1,25 +1,19 @@
 r"""A deformable mesh skinned to its leaves: weights fixed at rest, vertices as sums of leaves.
 
-Each rest vertex :math:`v` takes the :data:`SKIN_NEIGHBOURS` leaves nearest to it at rest,
-:math:`x_1 .. x_k`, and weights :math:`w` that reproduce it exactly and affinely,
+Each rest vertex :math:`v` takes its :data:`SKIN_NEIGHBOURS` nearest rest leaves
+:math:`x_1 .. x_k` and the weights that reproduce it affinely,
 
 .. math::
     \sum_j w_j = 1, \qquad \sum_j w_j x_j = v,
 
-the ones of least :math:`\sum_j w_j^2 / \phi_j` with :math:`\phi_j = 1 / (d_j^2 + h^2)`
-(:math:`d_j = \lVert x_j - v \rVert`, :math:`h` = :data:`SOFTENING` times the pitch; lengths in pitches): near
-leaves weigh most, a vertex on a leaf follows that leaf alone. In closed form, with
-:math:`B = [\mathbf 1^\top; (x_j - v)^\top] \in \mathbb R^{4 \times k}` and
+of least :math:`\sum_j w_j^2 / \phi_j`, :math:`\phi_j = 1 / (d_j^2 + h^2)` (:math:`h` =
+:data:`SOFTENING` pitches): with :math:`B = [\mathbf 1^\top; (x_j - v)^\top]` and
 :math:`\Phi = \mathrm{diag}(\phi)`,
 
 .. math:: w = \Phi B^\top (B \Phi B^\top)^{-1} e_1 .
 
-A frame's vertex is then :math:`v(t) = \sum_j w_j x_j(t)`. Because the weights sum to one and
-reproduce positions, leaves moved by any affine map :math:`x \mapsto A x + b` move every vertex
-by the same map (a rigid motion, a stretch, a shear), and the rest leaves give back the rest
-mesh. Where a vertex's neighbours are flat (all in one plane, as on a one-layer lattice),
-:math:`B \Phi B^\top` is singular; a ridge of :data:`RIDGE` times the trace of its spatial block keeps it solvable,
-and the vertex then keeps its offset from that plane only approximately.
+A frame's vertex is :math:`v(t) = \sum_j w_j x_j(t)`, so any affine motion of the leaves moves
+the mesh by the same map. Flat neighbourhoods get a ridge of :data:`RIDGE` times the trace.
 """
 
 from __future__ import annotations

@@ -14,14 +14,9 @@ class ForceModule(nn.Module):
     .. math::
         e_F(i) = \begin{cases} \phi_F(s_i, f_i) & f_i \ne 0 \\ 0 & f_i = 0 \end{cases}
 
-    :math:`s_i` is the particle's state vector and :math:`f_i` its (normalised) external force.
-    Only the particles with a nonzero force are fed to :math:`\phi_F`; every other row of the
-    output is exactly zero, so a scene without forces gets no contribution, bias included.
-    Nothing is passed along edges, so this is a plain module. ``dense=True`` runs
-    :math:`\phi_F` on every row and zeroes the rows without force instead: the same effect
-    (up to the rounding of a matrix product over other rows) with no data-dependent shape, so
-    the pass never waits for the device to say how many rows are pushed (the fixed-shape step
-    of :mod:`hrn_pyg.sim.fixed_shape`).
+    :math:`s_i` is the state, :math:`f_i` the normalised force. Only pushed rows are fed to
+    :math:`\phi_F`; the others are exactly zero. ``dense=True`` runs :math:`\phi_F` on every row and
+    zeroes those without force (no data-dependent shape, for :mod:`hrn_pyg.sim.fixed_shape`).
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.

@@ -9,12 +9,10 @@ from hrn_pyg.nn.mlp import MLP, MLPConfig
 
 
 class HistoryModule(nn.Module):
-    r"""Effect of the previous state on a particle (the HRN sees two consecutive graphs).
+    r"""Effect of the previous state on a particle (the HRN sees two consecutive graphs), every row.
 
     .. math::
         e_H(i) = \phi_H\bigl(s_i(t),\ s_i(t-1)\bigr)
-
-    Nothing is passed along edges, so this is a plain module applied to every row.
 
     Args:
         state_dim: size :math:`S` of a particle's state vector.

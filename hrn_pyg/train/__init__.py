@@ -1,32 +1,21 @@
 """``hrn-pyg train``: fit an HRN on an episode folder, as the baseline HRN or as *ours*, or the
 GNS baseline.
 
-Two presets (seed paper, section 3.1):
+Presets (seed paper, section 3.1):
 
 * ``hrn``: one step ahead on ground-truth inputs, local + global + **group** shape loss.
-* ``ours``: recurrent and state-invariant: the model's own predictions are fed back for ``T``
-  steps (parent states and collision edges recomputed every step, no hidden state), the loss is
-  summed over the steps with gradients through the whole unroll, ``T`` grows from 1 to 6 over
-  training; local + global + **fully-connected** shape loss.
-* ``gns``: the flat GNS baseline (:mod:`hrn_pyg.nn.gns`): one step ahead, the mean squared error
-  of the leaves' normalised accelerations, per-leaf random-walk input noise at
-  :data:`~hrn_pyg.nn.gns.NOISE_TO_VELOCITY_STD` of the fitted velocity scale, learning rate 1e-4
-  (the paper's); ``--model-*`` options are those of :class:`~hrn_pyg.nn.gns.GNSConfig`.
+* ``ours``: recurrent: the model's own predictions fed back for ``T`` steps (1 growing to 6),
+  gradients through the unroll; local + global + **fully-connected** shape loss.
+* ``gns``: the GNS baseline (:mod:`hrn_pyg.nn.gns`): one step, normalised acceleration error,
+  random-walk input noise (:data:`~hrn_pyg.nn.gns.NOISE_TO_VELOCITY_STD`), learning rate 1e-4.
 
-One training step draws a mini-batch of windows, unrolls, and takes one optimiser step with
-gradient clipping under a warm-up + cosine learning-rate schedule. Checkpoints are written
-atomically every ``checkpoint_every`` steps and at exit (also on Ctrl-C); ``--resume`` continues
-from the last one with the optimiser and random-number state, so the next loss is the one the
-uninterrupted run would have had. Under ``torchrun --nproc_per_node N`` the same command trains
-data-parallel (nccl on CUDA, gloo on CPU): each rank draws its own windows and gradients are
-averaged. ``--device`` (default CUDA when available) places the model and every batch;
-``--workers N`` assembles the batches in N background processes.
+A step draws a mini-batch of windows, unrolls, and takes one clipped optimiser step under a
+warm-up + cosine schedule. Checkpoints are atomic, every ``checkpoint_every`` steps and at exit;
+``--resume`` continues bit for bit. Under ``torchrun`` it trains data-parallel.
 
-The package by role: :mod:`~hrn_pyg.train.config` (:class:`TrainConfig`), :mod:`~hrn_pyg.train.loss`
-(the loss of one window), :mod:`~hrn_pyg.train.loader` (which windows a step draws),
-:mod:`~hrn_pyg.train.checkpointing` (what a run starts from and writes),
-:mod:`~hrn_pyg.train.distributed` (``torchrun``), :mod:`~hrn_pyg.train.loop` (:func:`train`) and
-:mod:`~hrn_pyg.train.cli` (the command line). The names below are the ones other code imports.
+Modules: :mod:`~hrn_pyg.train.config`, :mod:`~hrn_pyg.train.loss`, :mod:`~hrn_pyg.train.loader`,
+:mod:`~hrn_pyg.train.checkpointing`, :mod:`~hrn_pyg.train.distributed`,
+:mod:`~hrn_pyg.train.loop` (:func:`train`) and :mod:`~hrn_pyg.train.cli`.
 """
 
 from hrn_pyg.train.checkpointing import NORMALIZER_WINDOWS, model_payload, snapshot_path

@@ -73,20 +73,12 @@ def initial_model(config: TrainConfig, model_config: NetworkConfig, train_set: E
 
 
 def _fine_tuned_start(path: str, model_config: NetworkConfig, given: frozenset[str] = frozenset()) -> Network:
-    """The model of checkpoint ``path``, in training mode, for ``init_from``.
-
-    Its settings are the checkpoint's: a ``model_config`` that sets something else (anything
-    that differs from the checkpoint and either differs from the defaults or is named in
-    ``given``, the options set on purpose) is an error, not silently ignored;
-    except the options of :data:`APPLIED_OPTIONS`, which change how the same weights are applied
-    (``mirror_average``, ``mirror_planes``): set, they hold from this fine-tuning on. A
-    ``model_config`` with ``pitch_aware`` from a plain checkpoint starts a pitch-aware model from
-    its weights (:func:`hrn_pyg.nn.widen.widen_to_pitch_aware`, the new column's weights zero);
-    that new model takes the applied options of ``model_config`` as given (e.g. one pass, where
-    the checkpoint averaged over mirrors). One with ``collision_force`` from a checkpoint
-    without it starts the collision module's weights on the force at zero
-    (:func:`hrn_pyg.nn.widen.with_collision_force`).
-    """
+    """The model of checkpoint ``path``, in training mode, for ``init_from``, with the checkpoint's
+    settings: a ``model_config`` that sets something else (differing from the checkpoint and from
+    the defaults or in ``given``) is an error, except :data:`APPLIED_OPTIONS`. ``pitch_aware`` from
+    a plain checkpoint widens it (:func:`hrn_pyg.nn.widen.widen_to_pitch_aware`, taking
+    ``model_config``'s applied options), ``collision_force`` from one without starts those weights
+    at zero (:func:`hrn_pyg.nn.widen.with_collision_force`)."""
     model = load_model(path)
     if type(model.config) is not type(model_config):
         raise ValueError(f"init_from={path!r} is a {type(model).__name__}, this preset trains a "

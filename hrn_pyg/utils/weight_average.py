@@ -1,17 +1,11 @@
-r"""An exponential moving average of a network's weights (Polyak averaging).
-
-After every optimiser step each parameter's average moves toward the parameter,
+r"""An exponential moving average of a network's weights (Polyak averaging): after every optimiser
+step
 
 .. math::
     \bar w \leftarrow d\, \bar w + (1 - d)\, w ,
 
-so :math:`\bar w` weighs the last steps' weights by :math:`(1 - d)\, d^{k}` (an average over about
-:math:`1 / (1 - d)` steps). A late stage at a small learning rate still wanders between weights
-whose rare-event errors differ by a factor of two (a rollout of two cubes pushed into each other
-fails in one and not the next); the average of several of them sits in the middle of that
-wandering and is usually better than any of them.
-
-Buffers (the normaliser's statistics) are not averaged: they are the module's own.
+an average over about :math:`1 / (1 - d)` steps. Buffers (the normaliser's statistics) are not
+averaged.
 """
 
 from __future__ import annotations
@@ -24,15 +18,12 @@ from torch import Tensor, nn
 
 
 class WeightAverage:
-    """The running average :math:`\\bar w` of ``module``'s parameters at rate ``decay``.
-
-    Starts at the module's current parameters. :meth:`update` after each optimiser step;
-    :meth:`applied` puts the average into the module for a block (to save or score it) and
-    puts the trained weights back after; :meth:`state_dict` / :meth:`load_state_dict` keep it in
-    a checkpoint (a dict of tensors, safe for a weights-only load).
+    r"""The running average :math:`\bar w` of ``module``'s parameters at rate ``decay``, starting at
+    them: :meth:`update` after each optimiser step, :meth:`applied` swaps it in for a block,
+    :meth:`state_dict` / :meth:`load_state_dict` keep it in a checkpoint.
 
     Args:
-        module: the network; its parameters are read, never replaced outside :meth:`applied`.
+        module: the network; its parameters are replaced only inside :meth:`applied`.
         decay: :math:`d`, in ``(0, 1)``.
     """
 

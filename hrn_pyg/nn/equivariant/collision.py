@@ -26,20 +26,12 @@ class CollisionModule(nn.Module):
         e_C(i) &= \sum_j (W h_{ij} + b), \qquad
         E_C(i)_c = \frac{1}{n_i} \sum_j a_c(h_{ij})\, o_h + a'_c(h_{ij})\, (v_j - v_i)
 
-    :math:`\tilde s` is the invariant state, :math:`v` the normalised horizontal velocity
-    (:math:`\hat v = v / (1 + \lVert v \rVert)` where two velocities meet, so that no input grows
-    with the speed's square) and
-    :math:`x` the (scaled) position: the messages see how far apart the two particles are, across
-    and up, and how fast they close, but no direction of the world. The vectors are averaged over
-the :math:`n_i` edges into :math:`i` (:func:`~hrn_pyg.nn.equivariant.features.mean_vectors_by_index`),
-the scalar effect summed. An edge of weight 0
-    (``edge_weight``) adds an exact zero, as in :class:`hrn_pyg.nn.collision.CollisionModule`.
-
-    With ``reads_force`` the messages also read the external force :math:`f` (normalised) on both
-    ends, :math:`\lVert f_{i,h} \rVert,\ f_{i,z},\ \lVert f_{j,h} \rVert,\ f_{j,z},\ f_i \cdot o_h,\
-    f_j \cdot o_h`, and the vectors are also weighted sums of :math:`f_{i,h}` and :math:`f_{j,h}`:
-    a push on either body reaches the contact in the step it is applied, where without it the
-    contact learns of the push only from the overlap it has made one step later.
+    :math:`\tilde s` is the invariant state, :math:`v` the normalised horizontal velocity,
+    :math:`\hat v = v / (1 + \lVert v \rVert)`, :math:`x` the scaled position; vectors are averaged
+    over the :math:`n_i` edges into :math:`i`, scalars summed; an edge of weight 0 adds an exact
+    zero. With ``reads_force`` the messages also read :math:`\lVert f_{i,h} \rVert,\ f_{i,z},\
+    \lVert f_{j,h} \rVert,\ f_{j,z},\ f_i \cdot o_h,\ f_j \cdot o_h` and the vectors are also
+    weighted sums of :math:`f_{i,h}, f_{j,h}`.
 
     Args:
         state_dim: size :math:`S'` of an invariant state vector.

@@ -18,11 +18,7 @@ class HistoryModule(nn.Module):
         E_H(i)_c = a_c(h_i)\, v_i(t) + a'_c(h_i)\, v_i(t-1)
 
     :math:`\tilde s` is the invariant state (:func:`~hrn_pyg.nn.equivariant.features.invariant_state`),
-    :math:`v` the normalised horizontal velocity, :math:`\hat v = v / (1 + \lVert v \rVert)`
-    (a product of two raw velocities would grow with the speed's square, and an input that does
-    makes the network's output do so: :class:`~hrn_pyg.nn.equivariant.state.NextStateModule`),
-    :math:`h_i` the last hidden layer of :math:`\phi_H` and :math:`a, a'` linear in it: the
-    vectors turn with the scene.
+    :math:`v` the normalised horizontal velocity, :math:`\hat v = v / (1 + \lVert v \rVert)`.
 
     Args:
         state_dim: size :math:`S'` of an invariant state vector.

@@ -28,12 +28,9 @@ class PropagationModule(nn.Module):
         \Delta e(i) &= \sum_j (W h_{ij} + b), \qquad
         \Delta E(i)_c = \frac{1}{n_i} \sum_j a_c\, o_h\ [+\ b_c\, r_h]\ +\ d_c\, v_j\ +\ g_c\, E_{j,c}
 
-    with :math:`o = x_j - x_i` the edge's offset, :math:`r = \bar x_j - \bar x_i` its offset in
-    the rest shape (with ``rest_offsets``), :math:`v` the normalised horizontal velocity,
-    :math:`(e, E)` the effect so far, :math:`a, b, d, g` linear in :math:`h_{ij}` and
-    :math:`n_i` the in-degree (vectors are averaged, scalar effects summed). A vector
-    effect travels up and down the hierarchy as a weighted copy of itself (:math:`g`), so the
-    direction of a collision reaches the whole object; everything the MLP reads is invariant.
+    with :math:`o = x_j - x_i`, :math:`r = \bar x_j - \bar x_i` (with ``rest_offsets``), :math:`v`
+    the normalised horizontal velocity, :math:`(e, E)` the effect so far, :math:`a, b, d, g` linear
+    in :math:`h_{ij}` and :math:`n_i` the in-degree.
 
     Args:
         state_dim: size :math:`S'` of an invariant state vector.

@@ -18,12 +18,9 @@ class NextStateModule(nn.Module):
         \hat u_{i,z} = w^\top h_i + b \\
         \hat u_{i,h} &= \sum_c a_c(h_i)\, E_{i,c} + a_v(h_i)\, \frac{v_i}{1 + \lVert v_i \rVert}
 
-    decoded as :class:`hrn_pyg.nn.state.NextStateModule`'s output is (its statistics must be
-    isotropic in the horizontal for the decoding to keep the symmetry). Static particles get an
-    exact zero. Every vector of the sum is shorter than one (the effects are squashed, and so is
-    the velocity here), so the output grows at most as fast as the weights :math:`a(h_i)` do,
-    linearly in the inputs, as a plain MLP's output does: a weight times the raw velocity would
-    grow with its square, and an unrolled rollout went from 1e2 to 1e22 in five steps.
+    decoded as :class:`hrn_pyg.nn.state.NextStateModule`'s output (with horizontally isotropic
+    statistics); static particles get an exact zero. Every vector summed is shorter than one, so the
+    output grows linearly in the inputs, as a plain MLP's does.
 
     Args:
         state_dim: size :math:`S'` of an invariant state vector.
@@ -46,9 +43,8 @@ class NextStateModule(nn.Module):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        """``psi`` as every MLP; the horizontal readout at zero, so a fresh model predicts no
-        horizontal change (a readout of random weights scales each velocity by a random gain,
-        and an unrolled rollout of a gain over one grows without bound)."""
+        """``psi`` as every MLP; the horizontal readout at zero, so a fresh model predicts no horizontal
+        change."""
         self.psi.reset_parameters()
         nn.init.zeros_(self.vector.weight)
         nn.init.zeros_(self.vector.bias)
