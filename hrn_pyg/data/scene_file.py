@@ -1,72 +1,18 @@
-r"""Scenes from files: a TOML file of objects (any mesh, any material) and scripted pushes.
+"""Scenes from files: a TOML file of objects (any mesh, any material) and scripted pushes.
 
-.. code-block:: toml
+The format, with every key, is in docs/own_objects.md ("The file"): ``steps`` and the scene's
+settings, ``[[objects]]`` (``mesh``, ``material``, ``size``, ``mass``, ``position``, ``yaw``,
+...), ``[[pushes]]`` (a force, a velocity change or a random schedule), ``[settings]`` and
+``[draw]``. Any number or vector may be a range ``{ min = ..., max = ... }`` drawn per seed, or
+an expression (:mod:`hrn_pyg.data.expressions`). A seed's draws come in file order; objects that
+overlap at the start (oriented bounding boxes, deeper than :data:`TOUCHING`) are drawn again,
+up to :data:`OVERLAP_TRIES` times, unless ``pass_through`` or ``overlap = "allow"`` says so.
 
-    steps = 150                    # model steps per episode
-    engine = "pybullet"            # optional: the engine that simulates it, pybullet or mujoco
-    pitch = 0.02                   # optional: voxel size of the leaves (m), substeps, physics_hz,
-                                   # friction, rolling_friction (the ground's)
-
-    [[objects]]
-    mesh = "duck.obj"              # a file trimesh reads (relative to this file, absolute, or
-                                   # pybullet_data:<path> for pybullet's own) or a primitive:
-                                   # box, sphere, cylinder, capsule, cone, wedge; cloth: "sheet" (a
-                                   # square of side size on the lattice) or a surface mesh file;
-                                   # or a list of meshes (a * matches files), one drawn per seed
-    material = "rigid"             # rigid, soft, cloth or static
-    size = { min = 0.15, max = 0.25 }   # longest extent (m) after scaling; or scale = factor;
-                                   # a primitive also takes extents = [x, y, z] (m; a round one
-                                   # takes its diameter from x)
-    up = "z"                       # the mesh file's up axis: x, y or z (a Y-up OBJ: "y"); turned to z
-    mass = 0.5                     # kg
-    position = [0.0, 0.0, 0.3]     # m, the centre of the bounding box (a wedge: of its base)
-    yaw = { min = 0, max = 360 }   # degrees; or orientation = [x, y, z, w]
-    velocity = [0.5, 0.0, 0.0]     # m/s at the start
-    spin = [0.0, 0.0, 2.0]         # rad/s at the start
-    stiffness = 0.5                # soft and cloth: 0..1 over the package's fixed stiffness range
-                                   # (or pybullet's own exponent: log10_mu, log10_spring_k)
-    friction = 0.6
-
-    [[pushes]]
-    object = 0                     # index into objects (or a list of them)
-    steps = [20, 25]               # first and last model step of the push (every = n: each n-th)
-    force = [3.0, 0.0, 0.0]        # N on the centre of mass; or velocity = [...] (m/s, a change
-                                   # of velocity in one step), with towards = i a speed towards
-                                   # object i; spin = [...] (rad/s, soft and cloth); or a random
-                                   # schedule: random = { force = [0, 8], hold = [3, 8],
-                                   # pause = [0, 5], aim = i, aim_noise = [-0.3, 0.3] }
-
-Any number or vector may be a range ``{ min = ..., max = ... }`` (vectors element-wise), drawn
-per seed, so one file describes a whole dataset. A value may also be a string holding an
-expression (:mod:`hrn_pyg.data.expressions`) over the file's named ``[settings]`` (values a user
-changes with ``--set name=value``) and its ``[draw]`` table (values drawn per seed, in the
-table's order, with ``uniform`` and ``integer``), e.g. two cubes a drawn distance apart:
-
-.. code-block:: toml
-
-    [settings]
-    distance_range = [0.3, 0.6]
-    [draw]
-    distance = "uniform(distance_range)"
-    [[objects]]
-    position = "[-distance / 2, 0, 0.05]"
-
-The draws of a seed come in file order: the ``[draw]`` table, the objects' fields in the order
-above, then the pushes; a random push schedule draws along the episode. When two objects
-overlap at the start (their oriented bounding boxes, deeper than :data:`TOUCHING`), the whole
-draw is repeated (up to :data:`OVERLAP_TRIES` times) from the same seed's random stream;
-objects that overlap whatever is drawn are an error naming them. ``pass_through = [[i, j]]``
-lets two objects pass through each other (pybullet does not collide them, and they may start
-overlapping); ``overlap = "allow"`` keeps every draw as it comes.
-
-:func:`read_scene_file` reads and validates a file into a :class:`SceneSpec` (every mistake is
-one line naming the key); :meth:`SceneSpec.make_scene` gives the pybullet scene of a seed. The
-package's own scenes are such files (:data:`SCENES`, :func:`builtin_scene`).
-
-A file is bounded: its length (:data:`MAX_FILE_CHARS`), its counts of objects, pushes, draws,
-settings and mesh choices, its steps and substeps, the leaves of a cloth sheet, and every
-expression (:mod:`hrn_pyg.data.expressions`' limits); past one, a
-:class:`~hrn_pyg.data.expressions.LimitError` names it.
+:func:`read_scene_file` reads and validates a file into a :class:`SceneSpec` (every mistake one
+line naming the key); :meth:`SceneSpec.make_scene` gives the pybullet scene of a seed. The
+package's own scenes are such files (:data:`SCENES`, :func:`builtin_scene`). A file is bounded
+(:data:`MAX_FILE_CHARS`, counts of objects, pushes, draws, settings and mesh choices, steps,
+sheet leaves, expressions); past a limit a :class:`~hrn_pyg.data.expressions.LimitError` names it.
 """
 
 from __future__ import annotations
@@ -607,10 +553,9 @@ def read_scene_file(path: str | os.PathLike) -> SceneSpec:
 
 def toml_nesting(text: str) -> int:
     """How deep one key, table header or value of TOML ``text`` nests at most, read off the raw
-    characters (so that the parser never meets a file past :data:`MAX_NESTING`): outside
-    strings and comments, the open ``[`` and ``{`` plus the dots of the key being read
-    (``a.b.c = 1``: two dots, three tables). The dot of a number counts too (the count resets
-    at ``=``, ``,``, a bracket and the end of a line, so a value adds at most one)."""
+    characters so the parser never meets a file past :data:`MAX_NESTING`: outside strings and
+    comments, the open ``[`` and ``{`` plus the dots of the key being read (resetting at ``=``,
+    ``,``, a bracket and a line end)."""
     deepest = depth = dots = 0
     position = 0
     while (match := _TOML_SIGN.search(text, position)) is not None:
@@ -767,7 +712,7 @@ def _object(raw: Any, where: str, base: Path, known: set[str]) -> ObjectSpec:
     if material in ("soft", "cloth") and own not in raw and "stiffness" not in raw:
         values["stiffness"] = (np.array(0.5), np.array(0.5))
     up = raw.get("up", "z")
-    if up not in UP_ROTATIONS:
+    if not isinstance(up, str) or up not in UP_ROTATIONS:
         raise ValueError(f"{where}.up: the mesh's up axis is one of {', '.join(sorted(UP_ROTATIONS))}, got {up!r}")
     spec = ObjectSpec(meshes=meshes, material=material, up=up, **values)
     fixed = {k: v for k, v in values.items() if not isinstance(v, str)}

@@ -1,24 +1,16 @@
-"""The package's stability check of a long rollout: finite, bounded, above the ground, shapes kept.
+r"""The package's stability check of a long rollout: finite, bounded, above the ground, shapes kept.
 
-A learned simulator that is started from objects at rest and given no force should leave them
-there. :func:`stability_report` scores one such rollout ``x_1 .. x_S`` of a scene that started at
-``x_0`` against :class:`StabilityLimits`:
+:func:`stability_report` scores a force-free rollout ``x_1 .. x_S`` from ``x_0`` against
+:class:`StabilityLimits`:
 
-* ``finite``; ``max_move``: the largest distance of a movable leaf from where it started (at most
-  ``bound``, 50 m);
-* ``min_z``: the lowest movable leaf over the whole rollout (above ``-sink_depth``, one voxel
-  pitch: 5 cm below the ground plane ``z = 0``);
-* ``rigid_shape``: over rigid objects, the largest relative change of the mean pairwise leaf
-  distance :math:`\\bar d = \\frac{1}{P(P-1)}\\sum_{i \\ne j}\\lVert x_i - x_j\\rVert` between the
-  start and the end (at most ``rigid_change``, 1 %);
-* ``rest_drift``: the largest displacement of an object's mass-weighted centre between step
-  ``settle`` and the end (at most ``drift``, 5 cm);
-* ``soft_extent``: over soft bodies and cloth, the largest ratio of the height extent
-  (``max z - min z`` of the object's leaves) at the end to the start (reported, no limit).
+* ``finite``; ``max_move``: the farthest a movable leaf gets from its start (``bound``, 50 m);
+* ``min_z``: the lowest movable leaf (above ``-sink_depth``, 5 cm);
+* ``rigid_shape``: the largest relative change of a rigid object's mean pairwise leaf distance
+  :math:`\bar d = \frac{1}{P(P-1)}\sum_{i \ne j}\lVert x_i - x_j\rVert` (``rigid_change``, 1 %);
+* ``rest_drift``: the largest move of an object's centre after step ``settle`` (``drift``, 5 cm);
+* ``soft_extent``: soft and cloth height extent, end over start (reported).
 
-``passes_check`` is the first three (what every shipped model is held to over 1000 steps);
-``holds`` asks all five limits. :func:`hrn_pyg.evaluate.rest_check` runs the check from the
-resting end of a pybullet episode.
+``passes_check``: the first three; ``holds``: all five limits.
 """
 
 from __future__ import annotations
