@@ -1,15 +1,11 @@
 """``hrn-pyg check-data FOLDER``: is a folder of episode files one that training can read?
 
-Each ``episode_<seed:06d>.npz`` is read as :class:`~hrn_pyg.data.dataset.EpisodeWindows` reads it
-(:func:`~hrn_pyg.data.io.load_episode`: keys, dtypes, shapes, finite values), its static graph is
-built as training builds it (:func:`~hrn_pyg.data.graph.build_structure`), and the rest of
-``docs/data.md``'s "Episode format" is checked: every object's leaves hang under one root of
-their own, the ground is ``z = 0`` with z up (no leaf more than one pitch under it), no leaf
-jumps more than :data:`~hrn_pyg.data.episodes.MAX_STEP_DISPLACEMENT` in a step, ``dt > 0``,
-``params`` is JSON, and the episode is long enough for one training window. Every problem is one
-line ``FILE: what is wrong``; a folder with any is exit code 2. A clean folder prints one summary
-line (episodes per split, steps, leaves, materials, pitch, dt). Its arguments:
-:mod:`hrn_pyg.commands.check_data`.
+Each ``episode_<seed:06d>.npz`` is loaded (:func:`~hrn_pyg.data.io.load_episode`), its graph
+built (:func:`~hrn_pyg.data.graph.build_structure`), and the rest of ``docs/data.md``'s "Episode
+format" checked: one root per object, z up with no leaf more than a pitch under ``z = 0``, no
+jump past :data:`~hrn_pyg.data.episodes.MAX_STEP_DISPLACEMENT`, ``dt > 0``, JSON ``params``, one
+training window's length. Each problem is a line ``FILE: what is wrong`` (exit code 2); a clean
+folder prints one summary line.
 """
 
 from __future__ import annotations
@@ -46,11 +42,8 @@ class EpisodeSummary:
 
 
 def tree_roots(parent: np.ndarray) -> np.ndarray:
-    """The root of every node of a parent array ``[N]`` (roots have parent ``-1``), by pointer
-    jumping (``log2`` of the depth rounds); ValueError when the parents hold a cycle.
-
-    **Shapes** ``parent [N]`` -> ``[N]``.
-    """
+    """The root of every node of a parent array (roots have parent ``-1``), by pointer jumping;
+    ValueError on a cycle. **Shapes** ``parent [N]`` -> ``[N]``."""
     n = len(parent)
     up = np.where(parent < 0, np.arange(n), parent)
     for _ in range(max(n, 1).bit_length() + 1):

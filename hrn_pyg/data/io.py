@@ -1,9 +1,5 @@
-"""Episode files: one ``.npz`` per episode, written atomically, read without pickle.
-
-The zip members get a fixed timestamp, so the same episode always gives the same bytes (two
-seeded generations can be compared file to file). The keys and shapes are the "Episode file"
-table of ``docs/architecture.md``.
-"""
+"""Episode files: one ``.npz`` per episode, written atomically with fixed zip timestamps (the same
+episode gives the same bytes), read without pickle; keys and shapes in ``docs/architecture.md``."""
 
 from __future__ import annotations
 

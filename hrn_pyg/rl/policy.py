@@ -1,9 +1,8 @@
 """Trained PPO policies: the shipped ``cube_push_policy`` or a run's ``policy.pt``, by name or path.
 
-:func:`load_actor` reads a policy checkpoint written by ``hrn-pyg rl`` (weights-only load) into
-the actor of :func:`hrn_pyg.rl.ppo.build_actor_critic` for a given environment;
-:func:`load_policy` also builds that environment in the learned model the policy was trained in
-(the shipped ``cube_push`` dynamics by default), so that a shipped policy runs in two lines::
+:func:`load_actor` reads a policy checkpoint (weights-only) into the actor of
+:func:`hrn_pyg.rl.ppo.build_actor_critic`; :func:`load_policy` also builds the environment it
+was trained in::
 
     actor, env = load_policy("cube_push_policy")
     rollout = env.rollout(env.task.max_steps, actor)

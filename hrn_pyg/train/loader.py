@@ -35,10 +35,8 @@ def window_draw_weights(train_set: EpisodeWindows, folders: Sequence[str],
 
 def draw_windows(n: int, batch_size: int, seed: int, step: int, rank: int,
                   cumulative: Tensor | None = None) -> list[int]:
-    """The window indices of one step: a pure function of (seed, step, rank), so a resumed run
-    draws exactly what the uninterrupted one would have. Uniform over the ``n`` windows, or, with
-    ``cumulative`` (the windows' cumulative weights, :func:`window_draw_weights`), each window
-    with probability proportional to its weight."""
+    """The window indices of one step, a pure function of (seed, step, rank) so a resumed run draws
+    the same: uniform, or with ``cumulative`` weights (:func:`window_draw_weights`) proportional."""
     g = torch.Generator().manual_seed(seed * 1_000_003 + step * 7919 + rank * 104_729 + 1)
     if cumulative is None:
         return torch.randint(n, (batch_size,), generator=g).tolist()
@@ -93,12 +91,8 @@ def step_batches(train_set: EpisodeWindows, config: TrainConfig, place: Place, s
 
 def augmentation_streams(config: TrainConfig, rank: int,
                           start: int) -> tuple[torch.Generator | None, torch.Generator | None]:
-    """This rank's generators of the input noise (and the rest rollout's lengths) and of the symmetry
-    draws (None where off).
-
-    Both are streams of their own, apart from the global one that the dropout masks use, and
-    both are seeded with the first step, so a resumed run draws fresh noise and symmetries.
-    """
+    """This rank's generators of the input noise (and rest-rollout lengths) and of the symmetry draws
+    (None where off): streams of their own, seeded with the first step."""
     noise = (torch.Generator().manual_seed(config.seed * 7 + rank + 3 + start)
              if config.input_noise > 0 or config.rest_rollout > 0 else None)
     turns = torch.Generator().manual_seed(config.seed * 11 + rank + 5 + start) if config.augment_symmetry else None

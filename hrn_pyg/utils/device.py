@@ -1,9 +1,5 @@
-"""Choosing the torch device for a command (``--device``).
-
-``default_device()`` is CUDA when it is usable, else the CPU; ``resolve_device(name)`` turns a
-user's ``--device`` string into a :class:`torch.device`, refusing strings torch does not parse
-and CUDA requests on a machine without CUDA, each with a one-line :class:`ValueError`.
-"""
+"""Choosing the torch device for a command (``--device``): :func:`default_device` (CUDA when
+usable, else the CPU) and :func:`resolve_device`."""
 
 from __future__ import annotations
 
@@ -21,15 +17,9 @@ def default_device() -> torch.device:
 
 
 def resolve_device(name: str | None) -> torch.device:
-    """The device named by ``name`` (``None`` or ``""`` gives :func:`default_device`).
-
-    Accepts what :class:`torch.device` parses of the :data:`DEVICE_TYPES` (``"cpu"``, ``"cuda"``, ``"cuda:1"``).
-
-    Raises:
-        ValueError: ``name`` is not a device string torch knows, or names a device type not in
-            :data:`DEVICE_TYPES`; CUDA is asked for but
-            ``torch.cuda.is_available()`` is False; or a CUDA index past the visible devices.
-    """
+    """The device named by ``name`` (``None`` or ``""``: :func:`default_device`), one of
+    :data:`DEVICE_TYPES` as :class:`torch.device` parses it (``"cpu"``, ``"cuda"``, ``"cuda:1"``).
+    ValueError for another string, or CUDA (or a CUDA index) the machine does not have."""
     if name is None or not str(name).strip():
         return default_device()
     text = str(name).strip()

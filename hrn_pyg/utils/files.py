@@ -23,12 +23,8 @@ LOCK_NAME = ".lock"
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
-
-    The temporary file lives in the same folder, so ``os.replace`` is atomic on POSIX. On any
-    exception (``KeyboardInterrupt`` included) the temporary file is removed and ``path`` is left
-    as it was.
-    """
+    """Yield a temporary path beside ``path`` (same folder, so ``os.replace`` is atomic), renamed onto
+    ``path`` on success and removed on any exception (``KeyboardInterrupt`` included)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix + ".tmp", dir=path.parent)
@@ -64,12 +60,10 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
 class FolderLock:
     """This process as one writer of a folder, among others that may write it at the same time.
 
-    Two POSIX record locks (``fcntl.lockf``) on the folder's :data:`LOCK_NAME` file: byte 1 is
-    held shared by every writer for as long as it writes, and byte 0 exclusively for a short
-    read-check-write of a shared record (:meth:`exclusive`). :attr:`alone` says whether this
-    writer took byte 1 exclusively at the start, i.e. no other writer was active: only then are
-    temporaries a killed writer left (:func:`remove_temporaries`) safe to remove. The kernel
-    drops both locks when the process ends, however it ends. Use as a context manager.
+    Two POSIX record locks (``fcntl.lockf``) on the folder's :data:`LOCK_NAME`: byte 1 shared by
+    every writer while it writes, byte 0 exclusive for a short read-check-write (:meth:`exclusive`).
+    :attr:`alone`: this writer took byte 1 exclusively at the start, so temporaries a killed writer
+    left may be removed (:func:`remove_temporaries`). The kernel drops both when the process ends.
     """
 
     def __init__(self, folder: str | os.PathLike) -> None:

@@ -10,12 +10,8 @@ from hrn_pyg.utils.files import atomic_path
 
 
 class CSVLog:
-    """Append rows of named numbers to a CSV file; the header is written once.
-
-    Rows are flushed as they come, so a killed job keeps every finished row. On resume, rows
-    whose ``step`` is past the checkpoint are dropped first (``truncate_after``), so the log
-    stays one consistent history.
-    """
+    """Append rows of named numbers to a CSV file (header once, rows flushed as they come); on resume
+    ``truncate_after`` drops the rows past the checkpoint, so the log stays one history."""
 
     def __init__(self, path: str | os.PathLike, fields: list[str]):
         self.path = Path(path)

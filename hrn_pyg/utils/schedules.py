@@ -8,12 +8,11 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class LinearSchedule:
-    r"""A value moved linearly from ``start`` to ``end`` over ``steps`` updates, then held.
+    r"""A value moved linearly from ``start`` to ``end`` over ``steps`` updates, then held (dropout
+    annealing):
 
     .. math::
         v(u) = v_0 + (v_1 - v_0) \min(u / U, 1)
-
-    Used for dropout annealing (0.1 -> 0 over 1200 PPO updates in the seed paper).
     """
 
     start: float
@@ -33,13 +32,9 @@ class LinearSchedule:
 
 @dataclass(frozen=True)
 class SequenceLengthSchedule:
-    r"""Recurrent unroll length grown in equal stages from ``start`` to ``end``.
-
-    The training steps up to ``grow_until * total_steps`` are split into ``end - start + 1``
-    equal stages; stage ``s`` unrolls ``start + s`` steps; after that ``end`` is held. The seed
-    paper reports that 4 to 6 steps train well when reached gradually, and longer stop
-    convergence.
-    """
+    """Recurrent unroll length grown in equal stages from ``start`` to ``end`` over the first
+    ``grow_until * total_steps`` steps (stage ``s`` unrolls ``start + s``), then ``end`` (the seed
+    paper: 4 to 6 steps train well when reached gradually)."""
 
     start: int = 1
     end: int = 6

@@ -1,10 +1,7 @@
 """A polite stop for long loops: SIGINT / SIGTERM become a flag checked between units of work.
 
-A signal that arrives inside a library call (TorchRL's collector, a PPO minibatch) can be
-turned into another exception there, and the work since the last checkpoint is lost. Inside
-:class:`StopRequest` the first SIGINT or SIGTERM only sets :attr:`StopRequest.requested`; the
-loop checks it after each unit, writes its checkpoint and stops. A second signal interrupts at
-once (the previous handlers are back in place), so a stuck loop can still be killed.
+Inside :class:`StopRequest` the first signal only sets :attr:`StopRequest.requested`, so the
+loop can finish its unit, write its checkpoint and stop; a second one interrupts at once.
 """
 
 from __future__ import annotations
@@ -18,11 +15,8 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class StopRequest:
-    """Context manager: ``with StopRequest() as stop: ... if stop.requested: save; break``.
-
-    Outside the main thread (where Python cannot install handlers) it does nothing and
-    ``requested`` stays False.
-    """
+    """Context manager: ``with StopRequest() as stop: ... if stop.requested: save; break``; outside
+    the main thread it does nothing."""
 
     def __init__(self) -> None:
         self.requested = False
