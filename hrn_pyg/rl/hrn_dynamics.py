@@ -6,10 +6,15 @@ very same start. The flattened per-environment state is
 
 .. code-block:: text
 
-    [ x_{t-2} (L*3) | x_{t-1} (L*3) | x_t (L*3) | pool index (1) ]
+    [ x_{t-2} (L*3) | x_{t-1} (L*3) | x_t (L*3) | still (R) | asleep (R) | pool index (1) ]
 
-leaf positions only: ancestors are derived, collision edges recomputed, exactly as in every
-other rollout (:func:`hrn_pyg.sim.step.step`). One call of :meth:`HRNDynamics.sample_next`
+leaf positions (ancestors are derived, collision edges recomputed, exactly as in every other
+rollout, :func:`hrn_pyg.sim.step.step`) and each of the scene's ``R`` objects' sleep state
+(:class:`~hrn_pyg.sim.sleeping.SleepState`: consecutive still steps, asleep 0 or 1), carried
+from step to step as a sleeping rollout carries it. A still count of -1 stands for the state the
+history implies (:func:`~hrn_pyg.sim.sleeping.state_from_history`), where a sleeping rollout
+starts: a reset state and a state made from positions alone (:meth:`HRNDynamics.state_of`) hold
+it. One call of :meth:`HRNDynamics.sample_next`
 steps ``B`` environments times ``k`` samples as one batched graph, each copy with its own
 dropout masks (one per step per copy, the seed paper's graph-convolutional dropout).
 
@@ -54,10 +59,12 @@ from hrn_pyg.sim.sleeping import (
     DEFAULT_SLEEP,
     Objects,
     SleepConfig,
-    held_from_history,
+    SleepState,
     holds_movable,
     objects,
     predict_held,
+    state_from_history,
+    update,
 )
 from hrn_pyg.utils.checks import check_count, check_rate
 
@@ -93,7 +100,7 @@ class HRNDynamics:
     The pool, the structures and every state live on the model's device (:attr:`device`);
     the pybullet pool is built on the CPU and moved there once.
 
-    **Shapes:** states ``(B, 9 L + 1)``; roots ``(..., O, 6)``; forces ``(B, O, 3)`` Newton, one
+    **Shapes:** states ``(B, 9 L + 2 R + 1)`` (``R`` objects, static ones included); roots ``(..., O, 6)``; forces ``(B, O, 3)`` Newton, one
     per object, spread evenly over its leaves (the datasets' convention).
     """
 
@@ -147,7 +154,6 @@ class HRNDynamics:
         self.num_objects = int(self.task.num_objects)
         if int(leaf_object_t.max()) + 1 < self.num_objects:
             raise ValueError(f"scene {self.task.scene_name!r} has fewer objects than the task's {self.num_objects}")
-        self.state_dim = 9 * self.num_leaves + 1
         # every pool entry shares one hierarchy, the one an episode of the first pool scene is
         # given (its first frame's); each entry keeps its own masses and rest shape (its first
         # frame), so entry 0 is the very graph a rollout from that episode starts from
@@ -158,6 +164,8 @@ class HRNDynamics:
                                "hierarchy_parent": parent}, pitch=pitch).to(device)
             for i in range(len(pool_seeds))
         ]
+        self.num_roots = objects(self._structures[0]).count
+        self.state_dim = 9 * self.num_leaves + 2 * self.num_roots + 1
         self.pool_seeds = torch.tensor(list(pool_seeds), dtype=torch.long, device=device)
         self.pool = torch.from_numpy(pool).to(device)
         self.leaf_mass = leaf_mass.to(device)
@@ -183,28 +191,36 @@ class HRNDynamics:
                 f"dropout_modules={self.dropout_modules}, sleep={sleep_repr(self.sleep)})")
 
     # -- state layout -------------------------------------------------------------------------
-    def _split(self, states: Tensor) -> tuple[Tensor, Tensor]:
-        """``(..., S)`` -> positions ``(..., 3, L, 3)`` and pool index ``(...)`` long."""
+    def _split(self, states: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(..., S)`` -> positions ``(..., 3, L, 3)``, sleep state ``(..., 2, R)`` (still, asleep)
+        and pool index ``(...)`` long."""
         if states.shape[-1] != self.state_dim:
             raise ValueError(f"states must end in {self.state_dim}, got {tuple(states.shape)}")
-        pos = states[..., :-1].reshape(*states.shape[:-1], 3, self.num_leaves, 3)
-        return pos, states[..., -1].round().long()
+        positions = 9 * self.num_leaves
+        pos = states[..., :positions].reshape(*states.shape[:-1], 3, self.num_leaves, 3)
+        sleep = states[..., positions:-1].reshape(*states.shape[:-1], 2, self.num_roots)
+        return pos, sleep, states[..., -1].round().long()
 
-    def _join(self, pos: Tensor, index: Tensor) -> Tensor:
-        return torch.cat([pos.flatten(-3), index.to(pos.dtype).unsqueeze(-1)], dim=-1)
+    def _join(self, pos: Tensor, index: Tensor, sleep: Tensor | None = None) -> Tensor:
+        """``sleep`` ``(..., 2, R)``; None: the state the history implies (a still count of -1)."""
+        if sleep is None:
+            sleep = pos.new_tensor([[-1.0], [0.0]]).expand(*index.shape, 2, self.num_roots)
+        return torch.cat([pos.flatten(-3), sleep.flatten(-2), index.to(pos.dtype).unsqueeze(-1)], dim=-1)
 
     def leaf_history(self, states: Tensor) -> tuple[Tensor, Tensor]:
         """``(..., S)`` -> leaf positions ``(..., 3, L, 3)`` at ``t-2, t-1, t`` and pool index
         ``(...)`` long."""
-        return self._split(states)
+        pos, _, index = self._split(states)
+        return pos, index
 
     def state_of(self, leaf_pos: Tensor, index: Tensor) -> Tensor:
-        """The inverse of :meth:`leaf_history`: ``(..., 3, L, 3)`` and ``(...)`` -> ``(..., S)``."""
+        """``(..., 3, L, 3)`` and ``(...)`` -> ``(..., S)``, with the sleep state the history
+        implies: the inverse of :meth:`leaf_history` where the sleep state is that one."""
         return self._join(leaf_pos, index)
 
     def scene_seeds(self, states: Tensor) -> Tensor:
         """The pybullet seed each state's episode started from, ``(...)`` long."""
-        return self.pool_seeds[self._split(states)[1]]
+        return self.pool_seeds[self._split(states)[2]]
 
     # -- protocol -----------------------------------------------------------------------------
     def reset_states(self, batch: int, generator: torch.Generator) -> Tensor:
@@ -213,7 +229,7 @@ class HRNDynamics:
         return self._join(self.pool[index], index)
 
     def roots(self, states: Tensor) -> Tensor:
-        pos, index = self._split(states)  # [..., 3, L, 3], [...]
+        pos, _, index = self._split(states)  # [..., 3, L, 3], [...]
         mass = self.leaf_mass[index].unsqueeze(-2)  # [..., 1, L]: the same masses at every time
         centres = object_centres(pos[..., 1:, :, :], self.leaf_object, self.num_objects, mass)  # [..., 2, O, 3]
         centre_prev, centre_now = centres.unbind(-3)
@@ -227,7 +243,7 @@ class HRNDynamics:
         B = states.shape[0]
         if forces.shape != (B, self.num_objects, 3):
             raise ValueError(f"forces must be ({B}, {self.num_objects}, 3), got {tuple(forces.shape)}")
-        pos, index = self._split(states)  # [B, 3, L, 3], [B]
+        pos, sleep, index = self._split(states)  # [B, 3, L, 3], [B, 2, R], [B]
         # rate 0: the k samples are one deterministic prediction, made once per environment
         copies_per_env = k if rate > 0 else 1
         n = B * copies_per_env
@@ -236,11 +252,12 @@ class HRNDynamics:
             masks = {name: mask for name, mask in draw_masks(self.model, n, rate, generator).items()
                      if name in self.dropout_modules}
         leaf_pos = pos.repeat_interleave(copies_per_env, dim=0)  # [n, 3, L, 3]
-        new_pos = self.next_history(leaf_pos, index.repeat_interleave(copies_per_env),
-                                    forces.repeat_interleave(copies_per_env, dim=0), masks)
-        new_pos = new_pos.reshape(B, copies_per_env, 3, self.num_leaves, 3)
-        new_pos = new_pos.expand(B, k, 3, self.num_leaves, 3)
-        return self._join(new_pos, index[:, None].expand(B, k))
+        new_pos, new_sleep = self._advance(leaf_pos, index.repeat_interleave(copies_per_env),
+                                           forces.repeat_interleave(copies_per_env, dim=0), masks,
+                                           sleep.repeat_interleave(copies_per_env, dim=0))
+        new_pos = new_pos.reshape(B, copies_per_env, 3, self.num_leaves, 3).expand(B, k, 3, self.num_leaves, 3)
+        new_sleep = new_sleep.reshape(B, copies_per_env, 2, self.num_roots).expand(B, k, 2, self.num_roots)
+        return self._join(new_pos, index[:, None].expand(B, k), new_sleep)
 
     def next_positions(self, leaf_pos: Tensor, index: Tensor, forces: Tensor,
                        masks: dict[str, Tensor] | None = None) -> Tensor:
@@ -258,7 +275,15 @@ class HRNDynamics:
                      masks: dict[str, Tensor] | None = None) -> Tensor:
         """:meth:`next_positions` as the next step's history: leaf positions ``(n, 3, L, 3)`` at
         ``t-1, t, t+1``, where ``x_t`` is the one the next step reads its velocity from (moved by
-        the ground lift when the model's lift is not a motion, ``HRNConfig.ground_lift_velocity``)."""
+        the ground lift when the model's lift is not a motion, ``HRNConfig.ground_lift_velocity``).
+        The sleep state is the one the history implies (the planner's futures take it at every
+        step; an episode's step, :meth:`sample_next`, carries its own)."""
+        return self._advance(leaf_pos, index, forces, masks)[0]
+
+    def _advance(self, leaf_pos: Tensor, index: Tensor, forces: Tensor, masks: dict[str, Tensor] | None,
+                 sleep: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`next_history` from the sleep state ``sleep`` ``(n, 2, R)`` (None, or a still
+        count of -1: the one the history implies), and the sleep state after the step."""
         n = leaf_pos.shape[0]
         per_leaf = forces[:, self.leaf_object] / self._leaf_count[self.leaf_object, None]  # [n, L, 3]
         graph = self._batched_structure(index)
@@ -266,9 +291,20 @@ class HRNDynamics:
                           leaf_pos[:, 2].reshape(-1, 3), radius=collision_radius_of(self.model.config, graph),
                           force=per_leaf.reshape(-1, 3))
         objs = self._objects_of(graph, n)
-        held = held_from_history(self.sleep, graph, objs, graph[NODE].force) if self.sleep is not None else None
-        if held is not None and not holds_movable(held, graph):
-            held = None
+        held, after = None, None
+        if self.sleep is not None:  # the rule of hrn_pyg.sim.sleeping.sleeping_step
+            state = state_from_history(self.sleep, graph, objs)
+            if sleep is not None:
+                still, asleep = sleep[:, 0].reshape(-1), sleep[:, 1].reshape(-1)
+                known = still >= 0
+                state = SleepState(asleep=torch.where(known, asleep > 0.5, state.asleep),
+                                   still=torch.where(known, still.long(), state.still))
+            state = update(self.sleep, state, graph, graph[NODE].force, objs)
+            after = torch.stack([state.still.to(leaf_pos.dtype), state.asleep.to(leaf_pos.dtype)])
+            after = after.reshape(2, n, self.num_roots).transpose(0, 1)
+            held = state.asleep[objs.of_node]
+            if not holds_movable(held, graph):
+                held = None
         # every copy is pushed by its action: the force module runs (a zero row adds nothing)
         options = StepOptions(force_active=True, objects=(objs.of_node, objs.count))
         prediction = predict_held(self.model, graph, graph[NODE].force, masks, held, options)
@@ -279,7 +315,10 @@ class HRNDynamics:
         leaf = graph[NODE].is_leaf
         since = (leaf_pos[:, 2] if prediction.prev_pos is None
                  else prediction.prev_pos[leaf].reshape(n, self.num_leaves, 3))
-        return torch.stack([leaf_pos[:, 1], since, prediction.pos[leaf].reshape(n, self.num_leaves, 3)], dim=1)
+        if after is None:
+            after = leaf_pos.new_tensor([[-1.0], [0.0]]).expand(n, 2, self.num_roots)
+        history = torch.stack([leaf_pos[:, 1], since, prediction.pos[leaf].reshape(n, self.num_leaves, 3)], dim=1)
+        return history, after
 
     def _objects_of(self, graph: HeteroData, n: int) -> Objects:
         """The :class:`~hrn_pyg.sim.sleeping.Objects` of a batched graph of ``n`` copies, found
@@ -318,7 +357,7 @@ class HRNDynamics:
 def sleep_repr(sleep: SleepConfig | None) -> str:
     """The sleep settings a step of the environment uses, for a run's record.
 
-    Only ``enabled``, ``threshold`` and ``patience``: every step starts from
+    Only ``enabled``, ``threshold`` and ``patience``: every episode starts from
     :func:`~hrn_pyg.sim.sleeping.state_from_history`, so ``start_from_history`` (a rollout's option)
     changes nothing here and does not make a run another run when it is resumed.
     """

@@ -35,8 +35,7 @@ def showcase_policy(model: str | os.PathLike, policy: str | os.PathLike, out: st
     replays = [replay_in_pybullet(r["actions"], task, r["seed"], r["goal"], history_steps=HISTORY)
                for r in records]  # one pybullet scene per episode
     rec, real = records[0], replays[0]
-    L = dynamics.num_leaves
-    learned = rec["states"][:, :-1].reshape(-1, 3, L, 3)[:, 2].numpy()  # x_t after each action
+    learned = dynamics.leaf_history(rec["states"])[0][:, 2].numpy()  # x_t after each action
     pyb = real["leaves"].numpy()
     length = max(len(learned), len(pyb))
     pad = lambda a: np.concatenate([a, np.repeat(a[-1:], length - len(a), 0)]) if len(a) < length else a

@@ -57,19 +57,24 @@ def _forces(B: int, seed: int = 0) -> torch.Tensor:
 
 def test_protocol_and_shapes(dynamics):
     assert isinstance(dynamics, StochasticDynamics)
-    L = dynamics.num_leaves
-    assert dynamics.state_dim == 9 * L + 1 and dynamics.num_objects == 2
+    L, R = dynamics.num_leaves, dynamics.num_roots
+    assert dynamics.state_dim == 9 * L + 2 * R + 1 and dynamics.num_objects == 2 and R == 2
     states = dynamics.reset_states(6, torch.Generator().manual_seed(0))
-    assert states.shape == (6, 9 * L + 1)
+    assert states.shape == (6, 9 * L + 2 * R + 1)
     assert dynamics.roots(states).shape == (6, 2, 6)
+    # a reset state's sleep state is the one its history implies: still count -1
+    assert torch.equal(states[:, 9 * L:-1], torch.tensor([-1.0, -1.0, 0.0, 0.0]).expand(6, 4))
     samples = dynamics.sample_next(states, _forces(6), 3, 0.1, torch.Generator().manual_seed(1))
-    assert samples.shape == (6, 3, 9 * L + 1)
+    assert samples.shape == (6, 3, 9 * L + 2 * R + 1)
     assert dynamics.roots(samples).shape == (6, 3, 2, 6)
     # the history shifts by one step and the pool index rides along
-    pos = samples[..., :-1].reshape(6, 3, 3, L, 3)
-    before = states[:, None, :-1].reshape(6, 1, 3, L, 3)
-    assert torch.equal(pos[:, :, :2], before[:, :, 1:].expand(6, 3, 2, L, 3))
-    assert torch.equal(samples[..., -1], states[:, None, -1].expand(6, 3))
+    pos, index = dynamics.leaf_history(samples)
+    before, start = dynamics.leaf_history(states)
+    assert torch.equal(pos[:, :, :2], before[:, None, 1:].expand(6, 3, 2, L, 3))
+    assert torch.equal(index, start[:, None].expand(6, 3))
+    assert torch.equal(dynamics.state_of(before, start), states)
+    # both cubes pushed: awake, no still step counted
+    assert torch.equal(samples[..., 9 * L:-1], torch.zeros(6, 3, 4))
     assert torch.isfinite(samples).all()
 
 
@@ -82,14 +87,13 @@ def test_rate_zero_gives_k_copies_of_one_deterministic_step(dynamics, model):
     # the same step by hand: one unbatched graph per environment through hrn_pyg.sim.step.step
     per_object = torch.bincount(dynamics.leaf_object).float()
     for b in range(B):
-        index = int(states[b, -1])
-        x = states[b, :-1].reshape(3, L, 3)
+        x, index = dynamics.leaf_history(states[b])
         leaf_force = forces[b, dynamics.leaf_object] / per_object[dynamics.leaf_object, None]
-        graph = set_state(dynamics.structure_graph(index), x[0], x[1], x[2],
+        graph = set_state(dynamics.structure_graph(int(index)), x[0], x[1], x[2],
                           radius=model.config.collision_radius, force=leaf_force)
         with torch.no_grad():
             nxt = model_step(model, graph).pos[graph[NODE].is_leaf]
-        got = samples[b, 0, :-1].reshape(3, L, 3)[2]
+        got = dynamics.leaf_history(samples[b, 0])[0][2]
         torch.testing.assert_close(got, nxt, rtol=1e-5, atol=1e-6)
         assert not torch.allclose(got, x[2])  # the step moved something
 
@@ -102,16 +106,16 @@ def test_the_next_history_holds_the_x_t_a_ground_lift_moved(model):
 
     lifting = with_applied_options(model, ground_projection=True, ground_lift_velocity=False)
     dynamics = HRNDynamics(lifting, "cube_push", pool_seeds=POOL[:1])
-    L = dynamics.num_leaves
     states = dynamics.reset_states(1, torch.Generator().manual_seed(2))
-    x = states[0, :-1].reshape(3, L, 3).clone()
+    x, index = dynamics.leaf_history(states[0])
+    x = x.clone()
     x[..., 2] -= 0.05 + x[2, :, 2].min()  # the lowest leaf 5 cm under the ground, falling 1 cm a step
     x[0, :, 2] += 0.02
     x[1, :, 2] += 0.01
-    states = torch.cat([x.reshape(1, -1), states[:, -1:]], dim=1)
+    states = dynamics.state_of(x[None], index[None])
     forces = torch.zeros(1, 2, 3)
-    got = dynamics.sample_next(states, forces, 1, 0.0, torch.Generator().manual_seed(3))[0, 0, :-1].reshape(3, L, 3)
-    structure = dynamics.structure_graph(int(states[0, -1]))
+    got = dynamics.leaf_history(dynamics.sample_next(states, forces, 1, 0.0, torch.Generator().manual_seed(3)))[0][0, 0]
+    structure = dynamics.structure_graph(int(index))
     graph = set_state(structure, x[0], x[1], x[2], radius=lifting.config.collision_radius,
                       force=torch.zeros(structure[NODE].num_nodes, 3))
     with torch.no_grad():
@@ -138,12 +142,11 @@ def test_dropout_samples_differ_and_seeded_generator_repeats(dynamics):
 
 def test_roots_are_mass_weighted_leaf_means_by_hand(dynamics):
     states = dynamics.reset_states(4, torch.Generator().manual_seed(7))
-    L = dynamics.num_leaves
     roots = dynamics.roots(states)
     for b in range(4):
-        index = int(states[b, -1])
-        mass = dynamics.leaf_mass[index].double().numpy()
-        x = states[b, :-1].reshape(3, L, 3).double().numpy()
+        pos, index = dynamics.leaf_history(states[b])
+        mass = dynamics.leaf_mass[int(index)].double().numpy()
+        x = pos.double().numpy()
         for obj in range(2):  # two objects, each a weighted sum over its own leaves
             sel = dynamics.leaf_object.numpy() == obj
             w = mass[sel] / mass[sel].sum()
@@ -157,7 +160,7 @@ def test_scene_seeds_round_trip_to_the_pybullet_scene(dynamics):
     states = dynamics.reset_states(8, torch.Generator().manual_seed(8))
     seeds = dynamics.scene_seeds(states)
     assert seeds.shape == (8,) and set(seeds.tolist()) <= set(POOL)
-    assert torch.equal(seeds, torch.tensor(POOL)[states[:, -1].long()])
+    assert torch.equal(seeds, torch.tensor(POOL)[dynamics.leaf_history(states)[1]])
     nxt = dynamics.sample_next(states, _forces(8), 2, 0.1, torch.Generator().manual_seed(9))
     assert torch.equal(dynamics.scene_seeds(nxt), seeds[:, None].expand(8, 2))
     # the state is the named scene after HISTORY zero-force steps
@@ -170,7 +173,7 @@ def test_scene_seeds_round_trip_to_the_pybullet_scene(dynamics):
     finally:
         scene.close()
     expected = torch.tensor(np.stack(frames), dtype=torch.float32)
-    assert torch.equal(states[0, :-1].reshape(3, -1, 3), expected)
+    assert torch.equal(dynamics.leaf_history(states[0])[0], expected)
 
 
 def test_bad_input_raises(dynamics, model):
@@ -199,11 +202,11 @@ def test_dropout_only_on_the_task_modules(model):
     force_only = HRNDynamics(model, "cube_push", pool_seeds=POOL[:1])
     with_collision = HRNDynamics(both.eval(), "cube_push", pool_seeds=POOL[:1])
     states = force_only.reset_states(2, torch.Generator().manual_seed(0))
-    L = force_only.num_leaves
-    pos = states[:, :-1].reshape(2, 3, L, 3).clone()
+    pos, index = force_only.leaf_history(states)
+    pos = pos.clone()
     cube0, cube1 = force_only.leaf_object == 0, force_only.leaf_object == 1
     pos[:, :, cube1] = pos[:, :, cube0][:, :, : int(cube1.sum())] + 0.01  # cube 1 inside cube 0
-    states = torch.cat([pos.flatten(1), states[:, -1:]], 1)
+    states = force_only.state_of(pos, index)
     graph = set_state(force_only.structure_graph(0), *pos[0], radius=model.config.collision_radius)
     assert graph["particle", "collision", "particle"].edge_index.shape[1] > 0
     a = force_only.sample_next(states, _forces(2), 3, 0.3, torch.Generator().manual_seed(1))
@@ -352,16 +355,16 @@ def test_an_object_the_state_shows_at_rest_sleeps_unless_pushed(dynamics, model)
     from hrn_pyg.sim.sleeping import SleepConfig
 
     awake = HRNDynamics(model, "cube_push", pool_seeds=POOL, sleep=None)
-    B, L = 3, dynamics.num_leaves
+    B = 3
     states = dynamics.reset_states(B, torch.Generator().manual_seed(5))
     forces = torch.zeros(B, 2, 3)
     forces[:, 0, 0] = 10.0
     held = dynamics.sample_next(states, forces, 2, 0.0, torch.Generator())
     free = awake.sample_next(states, forces, 2, 0.0, torch.Generator())
     cube1 = dynamics.leaf_object == 1
-    now = states[:, :-1].reshape(B, 3, L, 3)[:, 2]
-    nxt_held = held[:, 0, :-1].reshape(B, 3, L, 3)[:, 2]
-    nxt_free = free[:, 0, :-1].reshape(B, 3, L, 3)[:, 2]
+    now = dynamics.leaf_history(states)[0][:, 2]
+    nxt_held = dynamics.leaf_history(held[:, 0])[0][:, 2]
+    nxt_free = awake.leaf_history(free[:, 0])[0][:, 2]
     assert torch.equal(nxt_held[:, cube1], now[:, cube1])
     assert not torch.equal(nxt_free[:, cube1], now[:, cube1])
     torch.testing.assert_close(nxt_held[:, ~cube1], nxt_free[:, ~cube1], rtol=1e-5, atol=1e-6)
@@ -369,8 +372,28 @@ def test_an_object_the_state_shows_at_rest_sleeps_unless_pushed(dynamics, model)
     assert HRNDynamics(model, "cube_push", pool_seeds=POOL, sleep=SleepConfig(enabled=False)).sleep is None
 
 
+def test_the_sleep_state_is_carried_from_step_to_step(model):
+    """Each object's still count and asleep flag ride in the state: an object awake with no still
+    step yet (every step still under a 1 m threshold) falls asleep after ``patience`` steps, as in
+    a sleeping rollout, while a reset state's history puts it to sleep at once."""
+    from hrn_pyg.sim.sleeping import SleepConfig
+
+    dyn = HRNDynamics(model, "cube_push", pool_seeds=POOL[:1], sleep=SleepConfig(threshold=1.0, patience=3))
+    block = slice(9 * dyn.num_leaves, -1)
+    zero, gen = torch.zeros(1, 2, 3), torch.Generator()
+    reset = dyn.reset_states(1, torch.Generator().manual_seed(0))
+    assert dyn.sample_next(reset, zero, 1, 0.0, gen)[0, 0, block].tolist() == [0.0, 0.0, 1.0, 1.0]
+    states = reset.clone()
+    states[0, block] = 0.0  # both cubes awake, no still step counted
+    seen = []
+    for _ in range(4):
+        states = dyn.sample_next(states, zero, 1, 0.0, gen)[:, 0]
+        seen.append(states[0, block].tolist())
+    assert seen == [[1.0, 1.0, 0.0, 0.0], [2.0, 2.0, 0.0, 0.0], [3.0, 3.0, 1.0, 1.0], [0.0, 0.0, 1.0, 1.0]]
+
+
 def test_a_run_record_names_only_the_sleep_settings_a_step_uses(model):
-    """The environment starts every step from the state's own history, so a rollout's
+    """The environment starts every episode from the state's own history, so a rollout's
     ``start_from_history`` does not change the dynamics, nor the record a resumed run checks;
     the threshold, the patience and sleeping off do."""
     from hrn_pyg.rl.hrn_dynamics import sleep_repr

@@ -174,8 +174,10 @@ def remake_rl() -> None:
     arrays = read()
     fresh = compute(stored_episodes(arrays), names=(), rl=True)
     for key in sorted(fresh):
-        moved = np.abs(fresh[key] - arrays[key]).max() if fresh[key].shape == arrays[key].shape else np.nan
-        print(f"{key}: moved up to {float(moved):.3g}")
+        if fresh[key].shape == arrays[key].shape:
+            print(f"{key}: moved up to {float(np.abs(fresh[key] - arrays[key]).max()):.3g}")
+        else:
+            print(f"{key}: shape {arrays[key].shape} -> {fresh[key].shape}")
     arrays.update(fresh)
     tmp = FILE.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, **arrays)

@@ -4,13 +4,12 @@ The shipped ``shapes`` model with every rule after the network on (:mod:`hrn_pyg
 energy limit, solid and cloth clearance) is started from the third frame of a pybullet episode
 and stepped by the plain rollout, the sleeping rollout, the sampler at rate 0 (one copy and three
 identical ones), the fixed-shape rollout (or its refusal), the RL environment's dynamics
-(:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.next_history`, ``next_positions``) and the planner's
-model step (:func:`~hrn_pyg.rl.planning.rollout_futures`). The environment's pool entry is the
-same pybullet start, and its graph is built by the same function as the rollout's
+(:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.sample_next`, which carries each object's sleep
+state in the environment's state as a sleeping rollout carries it, and ``next_positions``) and
+the planner's model step (:func:`~hrn_pyg.rl.planning.rollout_futures`). The environment's pool
+entry is the same pybullet start, and its graph is built by the same function as the rollout's
 (:func:`~hrn_pyg.data.graph.episode_structure`), so every path gives one answer up to float
-rounding. One known exception, marked: with sleeping on, the environment (which carries no sleep
-state between steps) puts an object to sleep as soon as its two steps of history are still,
-where a rollout waits ``SleepConfig.patience`` steps. Scenes: ``cube_collision`` (two rigid cubes), ``soft_bounce`` (a soft body),
+rounding. Scenes: ``cube_collision`` (two rigid cubes), ``soft_bounce`` (a soft body),
 ``multi_material`` (a cloth falling onto a rigid and a soft cube).
 """
 
@@ -136,15 +135,14 @@ def test_the_fixed_shape_rollout_gives_the_rollout_or_refuses(scene):
 
 
 def env_steps(env: HRNDynamics, steps: int, push: torch.Tensor | None = None) -> torch.Tensor:
-    """``[steps, L, 3]``: the environment's leaves after each :meth:`next_history` with the
-    per-object force ``push`` ``(O, 3)`` (None: zero)."""
-    history, index = env.leaf_history(env.reset_states(1, torch.Generator().manual_seed(0)))
+    """``[steps, L, 3]``: the environment's leaves after each step (:meth:`sample_next`, one
+    sample at rate 0) with the per-object force ``push`` ``(O, 3)`` (None: zero)."""
+    states = env.reset_states(1, torch.Generator().manual_seed(0))
     force = torch.zeros(1, env.num_objects, 3) if push is None else push[None]
     out = []
-    with torch.no_grad():
-        for _ in range(steps):
-            history = env.next_history(history, index, force)
-            out.append(history[0, 2])
+    for _ in range(steps):
+        states = env.sample_next(states, force, 1, 0.0, torch.Generator().manual_seed(0))[:, 0]
+        out.append(env.leaf_history(states)[0][0, 2])
     return torch.stack(out)
 
 
@@ -183,13 +181,7 @@ def test_a_pushed_environment_steps_as_the_pushed_rollout(scene, model):
     assert torch.allclose(env_steps(env, STEPS, push), leaves_of(graph, pushed), atol=ATOL)
 
 
-@pytest.mark.parametrize("name", [
-    "cube_collision",
-    pytest.param("soft_bounce", marks=pytest.mark.xfail(strict=True, reason=(
-        "the environment carries no sleep state between steps: an object still over its two "
-        "steps of history sleeps at once, where a rollout waits SleepConfig.patience steps"))),
-    "multi_material",
-])
+@pytest.mark.parametrize("name", list(SCENES))
 def test_the_sleeping_environment_steps_as_the_sleeping_rollout(name, model):
     episode = simulate_episode(name, SEED, steps=STEPS + HISTORY + 1)
     graph = episode_state(episode, start=HISTORY, steps=STEPS)
