@@ -32,10 +32,9 @@ class SceneEffects:
     """The effects a scene can call for; None leaves the choice to the data (the default).
 
     Attributes:
-        forces: True: external forces act (the force module runs on the steps whose force is
-            nonzero); False: never (the force module never runs; a nonzero force is an error).
-        collisions: True: objects can touch (collision search and module every step); False:
-            they cannot (no search, no collision module), e.g. a scene of one object.
+        forces: True: forces act (the force module runs where nonzero); False: never (a nonzero
+            force is an error).
+        collisions: True: objects can touch; False: no collision search or module (one object).
     """
 
     forces: bool | None = None

@@ -3,9 +3,6 @@
 >>> from hrn_pyg.export import scene_meshes, export_trajectories
 >>> meshes = scene_meshes(spec, scene.params)            # rest meshes and leaves, world frame
 >>> export_trajectories(meshes, {"truth": truth, "future_00": future}, "out", ("glb", "vtk"))
-
-A rigid object's mesh follows the best rigid transform of its leaves; a soft body's or cloth's
-is skinned to its leaves with weights fixed at rest (:mod:`hrn_pyg.export.skinning`).
 """
 
 from hrn_pyg.export.animate import ObjectFrames, Rig, rig

@@ -1,11 +1,7 @@
-"""Leaf trajectories as the scene's own meshes, frame by frame.
-
-A rigid or static object's mesh follows the best rigid transform of its leaves
-(:mod:`hrn_pyg.export.rigid_fit`); a soft body's or cloth's mesh is skinned to its leaves with
-weights fixed at rest (:mod:`hrn_pyg.export.skinning`). Every output of the package that holds
-leaf positions (a rollout ``[T, L, 3]``, sampled futures ``[K, T, L, 3]``, ``samples.npz``'s
-``truth`` and ``samples``) turns into meshes here.
-"""
+"""Leaf trajectories as the scene's own meshes, frame by frame: a rigid or static object's mesh
+follows its leaves' best rigid transform (:mod:`hrn_pyg.export.rigid_fit`), a soft body's or
+cloth's is skinned to them (:mod:`hrn_pyg.export.skinning`). Every leaf output of the package
+(``[T, L, 3]``, ``[K, T, L, 3]``, ``samples.npz``) turns into meshes here."""
 
 from __future__ import annotations
 

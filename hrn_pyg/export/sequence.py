@@ -1,9 +1,5 @@
-"""Per-frame mesh files: one ``.ply`` (or ``.obj``) per frame of each trajectory.
-
-``<out>/<trajectory>/frame_0000.ply`` holds every object of the scene at that frame, in object
-order, each vertex coloured by its object (PLY); a reader such as Blender's "import as mesh
-sequence" or ParaView's file series plays them. Written with trimesh's exporters.
-"""
+"""Per-frame mesh files: ``<out>/<trajectory>/frame_0000.ply`` (or ``.obj``), every object at that
+frame, vertices coloured by object (PLY), for Blender's mesh-sequence import or ParaView."""
 
 from __future__ import annotations
 

@@ -1,11 +1,10 @@
 """``hrn-pyg view RESULT``: ground truth and every sampled future in 3D, in the browser.
 
-``RESULT`` is the folder ``hrn-pyg sample`` wrote (or its ``samples.npz``). The command writes
-the viewer page (:mod:`hrn_pyg.export.viewer`: one self-contained HTML file that also opens from
-disk, without a server) beside it as ``viewer.html`` (or ``--out``), then serves that folder on
-``--host`` (127.0.0.1) and ``--port`` until interrupted; ``--no-serve`` writes the page only.
-A result with the scene's meshes (every ``samples.npz`` of a scene or scene file) shows them;
-one without shows the leaves.
+``RESULT`` is a folder of ``hrn-pyg sample`` (or its ``samples.npz``). The viewer page
+(:mod:`hrn_pyg.export.viewer`, one self-contained HTML file) is written beside it as
+``viewer.html`` (or ``--out``) and the folder served on ``--host`` (127.0.0.1) and ``--port``
+until interrupted; ``--no-serve`` writes the page only. The scene's meshes are shown where the
+result has them, else the leaves.
 """
 
 from __future__ import annotations

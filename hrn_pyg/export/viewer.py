@@ -1,13 +1,9 @@
 """The viewer page: ground truth and every sampled future in 3D, in one HTML file.
 
-Built with plotly (its ``plotly.min.js`` ships inside the ``plotly`` wheel and is written into
-the page), so the file opens from disk in any browser with WebGL, without a server or a network:
-the same file ``hrn-pyg view`` serves on 127.0.0.1. The page has
-
-* one trace per trajectory, the scene's meshes (or its leaves, for a result without meshes):
-  the ground truth dark and opaque, each future lighter and translucent, static objects and the
-  ground grey; a click on a legend entry hides or shows that trajectory;
-* a time slider and play / pause buttons (frames at the result's ``dt``, or faster with ``fps``).
+Built with plotly (its ``plotly.min.js`` written into the page), so it opens from disk in any
+browser with WebGL. One trace per trajectory (meshes, or leaves): the truth dark and opaque,
+futures lighter and translucent, static objects and the ground grey (a legend click hides one);
+a time slider and play / pause (frames at ``dt``, or ``fps``).
 """
 
 from __future__ import annotations

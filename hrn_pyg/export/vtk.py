@@ -1,9 +1,5 @@
-"""VTK for ParaView: one ``.vtu`` per frame of each trajectory and a ``.pvd`` collection that
-gives each file its time (``t dt`` seconds), written with meshio.
-
-``<out>/<trajectory>.pvd`` opens in ParaView as one time series; each frame's unstructured grid
-holds the scene's triangles with their object id as cell data ``object`` and as point data.
-"""
+"""VTK for ParaView (meshio): ``<out>/<trajectory>.pvd``, a time series of one ``.vtu`` per frame
+(time ``t dt``), the triangles with their object id as cell and point data ``object``."""
 
 from __future__ import annotations
 

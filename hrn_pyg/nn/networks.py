@@ -1,10 +1,6 @@
-"""Which network a saved model config builds: the HRN, or the GNS baseline.
-
-A model config (``HRNConfig.to_dict()`` or ``GNSConfig.to_dict()``, the ``model`` entry of every
-checkpoint's config) names its network in a ``network`` field; a config without one is an HRN,
-so every checkpoint written before the GNS existed loads as it always did. Training, loading
-and :func:`hrn_pyg.checkpoints.with_applied_options` build models through here.
-"""
+"""Which network a saved model config builds: the HRN, or the GNS baseline, by its ``network``
+field (none: an HRN, as in every checkpoint older than the GNS). Training, loading and
+:func:`hrn_pyg.checkpoints.with_applied_options` build models here."""
 
 from __future__ import annotations
 

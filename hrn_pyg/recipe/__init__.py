@@ -1,11 +1,7 @@
-"""``hrn-pyg checkpoints``: remake the shipped checkpoints from the recipe in ``data/recipes.toml``.
-
-:mod:`~hrn_pyg.recipe.schema` reads and validates the recipe, :mod:`~hrn_pyg.recipe.runner`
-generates the datasets, trains, calibrates and publishes each model (resuming where a killed
-run stopped), :mod:`~hrn_pyg.recipe.manifest` keeps the run records and the checkpoints'
-``manifest.json``, and :mod:`~hrn_pyg.recipe.cli` is the sub-command (``add_arguments``,
-``run``).
-"""
+"""``hrn-pyg checkpoints``: remake the shipped checkpoints from the recipe in ``data/recipes.toml``:
+:mod:`~hrn_pyg.recipe.schema` (the recipe), :mod:`~hrn_pyg.recipe.runner` (generate, train,
+calibrate, publish; resumable), :mod:`~hrn_pyg.recipe.manifest` (records) and
+:mod:`~hrn_pyg.recipe.cli` (the sub-command)."""
 
 from hrn_pyg.recipe.cli import add_arguments, config_from_args, run
 from hrn_pyg.recipe.manifest import MANIFEST_NAME, RUN_RECORD

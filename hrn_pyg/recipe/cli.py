@@ -1,9 +1,6 @@
-"""The command line of ``hrn-pyg checkpoints``: its options, turned into a :class:`RunConfig`.
-
-``add_arguments`` and ``run`` are what :mod:`hrn_pyg.cli` calls; ``run`` loads the recipe,
-carries it out with a :class:`~hrn_pyg.recipe.runner.Runner` and returns the exit code (1 when
-something failed; a rerun continues).
-"""
+"""The command line of ``hrn-pyg checkpoints``: ``add_arguments`` and ``run``, which carries the
+recipe out with a :class:`~hrn_pyg.recipe.runner.Runner` (exit code 1 when something failed; a
+rerun continues)."""
 
 from __future__ import annotations
 

@@ -130,14 +130,9 @@ def _json_object_reason(text: object, what: str) -> str | None:
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
-    """Read a checkpoint safely and check that it is one of ours.
-
-    Raises:
-        FileNotFoundError: ``path`` is not a file.
-        CheckpointError: the file cannot be read with a weights-only load (truncated, random
-            bytes, pickled objects) or holds something other than an hrn_pyg checkpoint; the
-            message is one line that names the file.
-    """
+    """Read a checkpoint safely and check that it is one of ours: FileNotFoundError for a missing
+    file, :class:`CheckpointError` (one line naming the file) for one a weights-only load cannot
+    read or that is not an hrn_pyg checkpoint."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")

@@ -1,9 +1,7 @@
-"""The modules of the horizontally equivariant HRN (``HRNConfig(equivariant=True)``): the force,
-collision, history, propagation and next-state modules of :mod:`hrn_pyg.nn`, rebuilt so that
-their MLPs read only what no turn about the vertical axis or mirror in a vertical plane changes,
-and their horizontal outputs are weighted sums of the scene's own horizontal vectors
-(:mod:`hrn_pyg.nn.equivariant.features`). One pass of the network is then exactly equivariant,
-with no average over transforms."""
+"""The modules of the horizontally equivariant HRN (``HRNConfig(equivariant=True)``): those of
+:mod:`hrn_pyg.nn` rebuilt so their MLPs read only invariants of turns about z and vertical
+mirrors and their horizontal outputs are weighted sums of the scene's vectors
+(:mod:`hrn_pyg.nn.equivariant.features`): one pass is exactly equivariant."""
 
 from hrn_pyg.nn.equivariant.collision import CollisionModule
 from hrn_pyg.nn.equivariant.force import ForceModule
