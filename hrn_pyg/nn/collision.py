@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_edges, check_force, check_state, in_degree, sum_by_index
 
 #: added under the square root of a squared distance so that its gradient stays finite when two
 #: particles coincide (d|x|/dx is undefined at 0)
@@ -66,24 +66,13 @@ class CollisionModule(nn.Module):
         edge_weight: Tensor | None = None,
         force: Tensor | None = None,
     ) -> Tensor:
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"CollisionModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
-        if pos.shape != (state.size(0), 3):
-            raise ValueError(f"CollisionModule: pos must be [N, 3], got {tuple(pos.shape)}")
-        if edge_index.dim() != 2 or edge_index.size(0) != 2:
-            raise ValueError(f"CollisionModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
-        if mask is not None and batch is None:
-            raise ValueError("CollisionModule: a dropout mask needs the node batch vector")
-        if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
-            raise ValueError(f"CollisionModule: edge_weight must be [{edge_index.size(1)}], "
-                             f"got {tuple(edge_weight.shape)}")
-        if self.reads_force and (force is None or force.shape != (state.size(0), 3)):
-            raise ValueError(f"CollisionModule: reads_force needs force [N, 3], got "
-                             f"{None if force is None else tuple(force.shape)}")
+        n = check_state("CollisionModule", state, self.state_dim)
+        check_edges("CollisionModule", n, pos, edge_index, mask, batch, edge_weight)
+        if self.reads_force:
+            check_force("CollisionModule: reads_force", force, n)
         # an edge takes the trajectory copy of its destination (both ends share one copy)
         src, dst = edge_index
         edge_batch = batch.index_select(0, dst) if mask is not None else None
-        n = state.size(0)
         # phi_C([s_i, s_j, x_i - x_j, |x_i - x_j|]) with its first layer split by input blocks,
         # each applied per node and gathered onto the edges
         node = torch.cat([state, force], dim=-1) if self.reads_force else state

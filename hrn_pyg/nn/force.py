@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_force, check_state
 
 
 class ForceModule(nn.Module):
@@ -46,10 +46,7 @@ class ForceModule(nn.Module):
         batch: Tensor | None = None,
         dense: bool = False,
     ) -> Tensor:
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"ForceModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
-        if force.shape != (state.size(0), 3):
-            raise ValueError(f"ForceModule: force must be [N, 3], got {tuple(force.shape)}")
+        check_force("ForceModule", force, check_state("ForceModule", state, self.state_dim))
         if dense:
             index = batch if (mask is not None and batch is not None) else None
             effect = self.phi(torch.cat([state, force], dim=-1), mask, index)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_state
 
 
 class HistoryModule(nn.Module):
@@ -41,8 +41,7 @@ class HistoryModule(nn.Module):
         mask: Tensor | None = None,
         batch: Tensor | None = None,
     ) -> Tensor:
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"HistoryModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+        check_state("HistoryModule", state, self.state_dim)
         if prev_state.shape != state.shape:
             raise ValueError(
                 f"HistoryModule: prev_state must match state {tuple(state.shape)}, got {tuple(prev_state.shape)}"

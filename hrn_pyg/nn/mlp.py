@@ -130,6 +130,34 @@ def sum_by_index(values: Tensor, index: Tensor, num_rows: int) -> Tensor:
     return values.new_zeros(num_rows, values.size(-1)).scatter_add_(0, expanded, values)
 
 
+
+def check_state(who: str, state: Tensor, state_dim: int) -> int:
+    """The node count ``N``; a one-line ValueError naming ``who`` unless ``state`` is ``[N, state_dim]``."""
+    if state.dim() != 2 or state.size(1) != state_dim:
+        raise ValueError(f"{who}: state must be [N, {state_dim}], got {tuple(state.shape)}")
+    return state.size(0)
+
+
+def check_edges(who: str, num_nodes: int, pos: Tensor, edge_index: Tensor, mask: Tensor | None,
+                batch: Tensor | None, edge_weight: Tensor | None = None) -> None:
+    """The checks an edge module makes before it reads its inputs: a one-line ValueError naming
+    ``who`` unless ``pos`` is ``[N, 3]``, ``edge_index`` ``[2, E]``, ``edge_weight`` ``[E]`` (when
+    given), and a dropout mask comes with the node batch vector."""
+    if pos.shape != (num_nodes, 3):
+        raise ValueError(f"{who}: pos must be [N, 3], got {tuple(pos.shape)}")
+    if edge_index.dim() != 2 or edge_index.size(0) != 2:
+        raise ValueError(f"{who}: edge_index must be [2, E], got {tuple(edge_index.shape)}")
+    if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
+        raise ValueError(f"{who}: edge_weight must be [{edge_index.size(1)}], got {tuple(edge_weight.shape)}")
+    if mask is not None and batch is None:
+        raise ValueError(f"{who}: a dropout mask needs the node batch vector")
+
+
+def check_force(who: str, force: Tensor | None, num_nodes: int) -> None:
+    """A one-line ValueError naming ``who`` unless ``force`` is ``[N, 3]`` (a module that reads it)."""
+    if force is None or force.shape != (num_nodes, 3):
+        raise ValueError(f"{who} needs force [N, 3], got {None if force is None else tuple(force.shape)}")
+
 class MLP(nn.Module):
     r"""Fully connected network with an optional per-trajectory mask on its hidden activations.
 

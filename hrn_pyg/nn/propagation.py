@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_edges, check_state, in_degree, sum_by_index
 
 
 class PropagationModule(nn.Module):
@@ -65,17 +65,10 @@ class PropagationModule(nn.Module):
         """The effect increment; ``degree`` ``(N,)`` (:func:`~hrn_pyg.nn.mlp.in_degree`) and
         ``rest_offset`` ``(E, 3)`` (:func:`edge_offsets` of ``rest_pos``) may be passed precomputed,
         with the same result."""
-        n = state.size(0)
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"PropagationModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+        n = check_state("PropagationModule", state, self.state_dim)
         if effect.shape != (n, self.effect_dim):
             raise ValueError(f"PropagationModule: effect must be [N, {self.effect_dim}], got {tuple(effect.shape)}")
-        if pos.shape != (n, 3):
-            raise ValueError(f"PropagationModule: pos must be [N, 3], got {tuple(pos.shape)}")
-        if edge_index.dim() != 2 or edge_index.size(0) != 2:
-            raise ValueError(f"PropagationModule: edge_index must be [2, E], got {tuple(edge_index.shape)}")
-        if mask is not None and batch is None:
-            raise ValueError("PropagationModule: a dropout mask needs the node batch vector")
+        check_edges("PropagationModule", n, pos, edge_index, mask, batch)
         src, dst = edge_index
         offset = edge_offsets(pos, edge_index)  # x_j - x_i
         if self.rest_offsets:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hrn_pyg.nn.mlp import MLP, MLPConfig
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_state
 
 
 class NextStateModule(nn.Module):
@@ -47,9 +47,7 @@ class NextStateModule(nn.Module):
         mask: Tensor | None = None,
         batch: Tensor | None = None,
     ) -> Tensor:
-        n = state.size(0)
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"NextStateModule: state must be [N, {self.state_dim}], got {tuple(state.shape)}")
+        n = check_state("NextStateModule", state, self.state_dim)
         if effect.shape != (n, self.effect_dim):
             raise ValueError(f"NextStateModule: effect must be [N, {self.effect_dim}], got {tuple(effect.shape)}")
         x = torch.cat([state, effect], dim=-1)

@@ -8,7 +8,7 @@ from torch import Tensor, nn
 from hrn_pyg.nn.collision import safe_norm
 from hrn_pyg.nn.equivariant.features import (check_edge_inputs, dot, horizontal, horizontal_length,
                                              mean_vectors_by_index, squash, weighted_sum)
-from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_force, check_state, in_degree, sum_by_index
 
 #: invariants of a collision edge: |o_h|, o_z, |o|, v_i . o_h, v_j . o_h, v^_i . v^_j (squashed velocities)
 EDGE_INVARIANTS = 6
@@ -66,17 +66,10 @@ class CollisionModule(nn.Module):
     def forward(self, state: Tensor, velocity: Tensor, pos: Tensor, edge_index: Tensor,
                 mask: Tensor | None = None, batch: Tensor | None = None,
                 edge_weight: Tensor | None = None, force: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        n = state.size(0)
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"equivariant CollisionModule: state must be [N, {self.state_dim}], "
-                             f"got {tuple(state.shape)}")
-        check_edge_inputs("equivariant CollisionModule", n, pos, velocity, edge_index, mask, batch)
-        if edge_weight is not None and edge_weight.shape != (edge_index.size(1),):
-            raise ValueError(f"equivariant CollisionModule: edge_weight must be [{edge_index.size(1)}], "
-                             f"got {tuple(edge_weight.shape)}")
-        if self.reads_force and (force is None or force.shape != (n, 3)):
-            raise ValueError(f"equivariant CollisionModule: reads_force needs force [N, 3], got "
-                             f"{None if force is None else tuple(force.shape)}")
+        n = check_state("equivariant CollisionModule", state, self.state_dim)
+        check_edge_inputs("equivariant CollisionModule", n, pos, velocity, edge_index, mask, batch, edge_weight)
+        if self.reads_force:
+            check_force("equivariant CollisionModule: reads_force", force, n)
         src, dst = edge_index
         edge_batch = batch.index_select(0, dst) if mask is not None else None
         offset = pos.index_select(0, dst) - pos.index_select(0, src)  # x_i - x_j

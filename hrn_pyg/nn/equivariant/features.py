@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from hrn_pyg.nn.collision import NORM_EPSILON
-from hrn_pyg.nn.mlp import sum_by_index
+from hrn_pyg.nn.mlp import check_edges, sum_by_index
 
 
 def horizontal(v: Tensor) -> Tensor:
@@ -100,14 +100,8 @@ def mean_vectors_by_index(vectors: Tensor, index: Tensor, count: Tensor) -> Tens
 
 
 def check_edge_inputs(who: str, num_nodes: int, pos: Tensor, velocity: Tensor, edge_index: Tensor,
-                      mask: Tensor | None, batch: Tensor | None) -> None:
-    """Raise a one-line ValueError naming ``who`` unless ``pos`` is ``[N, 3]``, ``velocity``
-    ``[N, 2]`` and ``edge_index`` ``[2, E]``, and a dropout mask comes with the batch vector
-    (the checks an edge module of this package makes before it reads its inputs)."""
-    if pos.shape != (num_nodes, 3) or velocity.shape != (num_nodes, 2):
-        raise ValueError(f"{who}: pos must be [N, 3] and velocity [N, 2], got {tuple(pos.shape)} and "
-                         f"{tuple(velocity.shape)}")
-    if edge_index.dim() != 2 or edge_index.size(0) != 2:
-        raise ValueError(f"{who}: edge_index must be [2, E], got {tuple(edge_index.shape)}")
-    if mask is not None and batch is None:
-        raise ValueError(f"{who}: a dropout mask needs the node batch vector")
+                      mask: Tensor | None, batch: Tensor | None, edge_weight: Tensor | None = None) -> None:
+    """:func:`~hrn_pyg.nn.mlp.check_edges`, and ``velocity`` must be ``[N, 2]``."""
+    check_edges(who, num_nodes, pos, edge_index, mask, batch, edge_weight)
+    if velocity.shape != (num_nodes, 2):
+        raise ValueError(f"{who}: velocity must be [N, 2], got {tuple(velocity.shape)}")

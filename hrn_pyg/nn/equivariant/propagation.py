@@ -7,7 +7,7 @@ from torch import Tensor, nn
 
 from hrn_pyg.nn.equivariant.features import (check_edge_inputs, channel_dot, dot, horizontal, horizontal_length,
                                              mean_vectors_by_index, weighted_sum)
-from hrn_pyg.nn.mlp import MLP, MLPConfig, in_degree, sum_by_index
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_state, in_degree, sum_by_index
 from hrn_pyg.nn.propagation import edge_offsets, given_rest_offset
 
 
@@ -68,10 +68,7 @@ class PropagationModule(nn.Module):
                 edge_index: Tensor, mask: Tensor | None = None, batch: Tensor | None = None,
                 rest_pos: Tensor | None = None, degree: Tensor | None = None,
                 rest_offset: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        n, c = state.size(0), self.channels
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"equivariant PropagationModule: state must be [N, {self.state_dim}], "
-                             f"got {tuple(state.shape)}")
+        n, c = check_state("equivariant PropagationModule", state, self.state_dim), self.channels
         if effect.shape != (n, self.effect_dim) or vectors.shape != (n, c, 2):
             raise ValueError(f"equivariant PropagationModule: effect must be [N, {self.effect_dim}] and "
                              f"vectors [N, {c}, 2], got {tuple(effect.shape)} and {tuple(vectors.shape)}")

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from hrn_pyg.nn.equivariant.features import channel_length, squash, weighted_sum
-from hrn_pyg.nn.mlp import MLP, MLPConfig
+from hrn_pyg.nn.mlp import MLP, MLPConfig, check_state
 
 
 class NextStateModule(nn.Module):
@@ -52,10 +52,7 @@ class NextStateModule(nn.Module):
     def forward(self, state: Tensor, velocity: Tensor, effect: Tensor, vectors: Tensor,
                 is_static: Tensor | None = None, mask: Tensor | None = None,
                 batch: Tensor | None = None) -> Tensor:
-        n, c = state.size(0), self.channels
-        if state.dim() != 2 or state.size(1) != self.state_dim:
-            raise ValueError(f"equivariant NextStateModule: state must be [N, {self.state_dim}], "
-                             f"got {tuple(state.shape)}")
+        n, c = check_state("equivariant NextStateModule", state, self.state_dim), self.channels
         if effect.shape != (n, self.effect_dim) or vectors.shape != (n, c, 2) or velocity.shape != (n, 2):
             raise ValueError(f"equivariant NextStateModule: effect must be [N, {self.effect_dim}], vectors "
                              f"[N, {c}, 2] and velocity [N, 2]")
