@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hrn_pyg.utils.options import add_no_progress
+from hrn_pyg.utils.options import add_no_progress, add_strict
 
 #: Long horizons of the second table (read at the episode's end where an episode is shorter).
 DEFAULT_LONG_HORIZONS = (50, 100)
@@ -15,9 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", action="append", required=True, metavar="NAME=PATH",
                         help="a checkpoint to score, e.g. --model hrn=runs/hrn/model.pt, or a shipped "
                              "model by name: --model shapes or --model ours=shapes (repeatable)")
-    parser.add_argument("--strict", action="store_true",
-                        help="data outside what a model was trained on is an error (exit 2), not a "
-                             "one-line warning")
+    add_strict(parser, "data")
     parser.add_argument("--rigid-fit", action="append", default=[], metavar="NAME",
                         help="score model NAME with the rigid fit applied to its rigid objects after the "
                              "network, e.g. a GNS trained without it: --model gns_rigid=runs/gns/model.pt "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from hrn_pyg.commands.configs import config_fields, source_constant
-from hrn_pyg.utils.options import add_moved, add_no_progress
+from hrn_pyg.utils.options import add_moved, add_no_progress, add_strict
 
 #: the names of :data:`hrn_pyg.rl.tasks.TASKS` (``tests/commands/test_configs.py`` holds them equal)
 TASK_NAMES = ("cube_push", "tower", "cube_push_stop", "cube_push_hold", "tower_aside", "tower_top_aside")
@@ -44,9 +44,7 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="learned HRN checkpoint, a path or a shipped model's name (e.g. cube_push); "
                              "absent: point-mass development dynamics")
-    parser.add_argument("--strict", action="store_true",
-                        help="with --model: a task scene outside what the model was trained on is an "
-                             "error (exit 2), not a one-line warning")
+    add_strict(parser, "with --model: a task scene")
     parser.add_argument("--device", default=None,
                         help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda if available, else cpu)")
     add_no_progress(parser)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from hrn_pyg.data.kinds import HISTORY, SCENES
-from hrn_pyg.utils.options import add_no_progress, add_renamed
+from hrn_pyg.utils.options import add_no_progress, add_renamed, add_strict
 
 #: sampling rate of a model that names none (config ``dropout_rate`` 0: never calibrated)
 UNCALIBRATED_RATE = 0.3
@@ -26,9 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="checkpoint: a path or a shipped model's name, e.g. shapes (`hrn-pyg models`; "
                              "default: the shipped model of --scene)")
-    parser.add_argument("--strict", action="store_true",
-                        help="a scene outside what the model was trained on is an error (exit 2), "
-                             "not a one-line warning")
+    add_strict(parser)
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--data", default=None, help="episode folder: use a window of its --split")
     source.add_argument("--episode-seed", type=int, default=9, dest="seed",

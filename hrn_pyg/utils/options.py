@@ -134,6 +134,14 @@ def add_no_progress(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="draw no progress bar on stderr")
 
 
+def add_strict(parser: argparse.ArgumentParser, what: str = "a scene") -> None:
+    """``--strict``: ``what`` outside a model's training domain is an error (exit 2), not a
+    one-line warning (``args.strict``)."""
+    parser.add_argument("--strict", action="store_true",
+                        help=f"{what} outside what the model was trained on is an error (exit 2), "
+                             "not a one-line warning")
+
+
 class LineProgress:
     """A progress bar's interface written as lines on stderr, for a log rather than a terminal:
     ``<desc>: <n>/<total> <unit> (<postfix>)`` when a stage begins (:meth:`set_postfix_str` with
