@@ -51,8 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for f in config_fields(*TRAIN_CONFIG):
         if f.name in ("preset", "data", "out"):
             continue
+        text = f"{helps.get(f.name, f.name)} ({preset_defaults(f.name)})"
         groups[group_of[f.name]].add_argument(train_flag(f.name), type=option_type(f.default), default=None,
-                                              dest=f.name, help=f"{helps.get(f.name, f.name)} ({preset_defaults(f.name)})")
+                                              dest=f.name, help=text)
     model_helps = config_help(*GNS_CONFIG) | config_help(*HRN_CONFIG)
     for f in model_fields():
         groups["model"].add_argument(f"--model-{f.name.replace('_', '-')}", type=option_type(f.default), default=None,
@@ -86,7 +87,8 @@ def model_fields() -> list[SourceField]:
     GNS has."""
     hrn = [f for f in config_fields(*HRN_CONFIG) if f.name not in ("dropout_modules", "skip_idle_modules")]
     names = {f.name for f in hrn}
-    return hrn + [f for f in config_fields(*GNS_CONFIG) if f.name not in names and f.name not in ("dropout_modules", "network")]
+    skipped = names | {"dropout_modules", "network"}
+    return hrn + [f for f in config_fields(*GNS_CONFIG) if f.name not in skipped]
 
 
 def _parse_bool(text: str) -> bool:

@@ -24,8 +24,8 @@ count and cached, and only the node attributes that differ between pool entries 
 and rest shapes) are gathered per step. Each entry's graph is built as an episode's
 (:func:`hrn_pyg.data.graph.episode_structure`: the hierarchy of the first pool scene's first
 frame, the entry's first frame as its rest shape), so the environment steps a scene exactly as a
-rollout from the same pybullet start does. At rate 0 the ``k`` samples are one deterministic prediction, computed
-once per environment and repeated. A step is one :func:`hrn_pyg.sim.sleeping.predict_held`
+rollout from the same pybullet start does. At rate 0 the ``k`` samples are one deterministic
+prediction, computed once per environment and repeated. A step is one :func:`hrn_pyg.sim.sleeping.predict_held`
 (the model's prediction with the objects at rest held still) and no next graph: the collision
 search that :func:`hrn_pyg.sim.step.step` would make for it is left out, since the next call
 builds its graph from the new state. The objects of a batch are found once per copy count, and
@@ -100,8 +100,9 @@ class HRNDynamics:
     The pool, the structures and every state live on the model's device (:attr:`device`);
     the pybullet pool is built on the CPU and moved there once.
 
-    **Shapes:** states ``(B, 9 L + 2 R + 1)`` (``R`` objects, static ones included); roots ``(..., O, 6)``; forces ``(B, O, 3)`` Newton, one
-    per object, spread evenly over its leaves (the datasets' convention).
+    **Shapes:** states ``(B, 9 L + 2 R + 1)`` (``R`` objects, static ones included); roots
+    ``(..., O, 6)``; forces ``(B, O, 3)`` Newton, one per object, spread evenly over its leaves
+    (the datasets' convention).
     """
 
     object_dim = ROOT_DIM

@@ -212,7 +212,8 @@ def sample(
         failed_at = None
     else:
         with torch.no_grad():
-            pos, failed_at = _rollout_holding_failed(model, batched, steps, forces_of_copies, masks_fn, sleep, effects, k)
+            pos, failed_at = _rollout_holding_failed(model, batched, steps, forces_of_copies, masks_fn, sleep,
+                                                     effects, k)
     futures = pos.reshape(steps, k, n, 3).index_select(2, leaf_index).transpose(0, 1).contiguous()
     if failed_at is not None and bool((failed_at < steps).any()):
         futures = mark_failed(futures, failed_at)

@@ -108,7 +108,8 @@ class ClothContact:
     static objects, the leaves; ``rigid`` ``[N]`` bool: the projected leaves of rigid objects,
     which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
     object; ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
-    count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and ``count``: every node's object;
+    count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and
+    ``count``: every node's object;
     ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and :math:`\\delta` in metres at each node's
     pitch.
     """
