@@ -28,12 +28,13 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.generate
 
-# Remake every shipped checkpoint from data/recipes.toml into hrn_pyg/checkpoints (data/README.md).
+# Remake every shipped checkpoint from data/recipes.toml into hrn_pyg/checkpoints (data/README.md;
+# experiments/recipe, a maintainer tool outside the wheel).
 # A rerun continues where a killed one stopped. Options pass through, e.g.
 # make checkpoints CHECKPOINTS_ARGS="--only wedge --jobs 4 --device cuda"
 CHECKPOINTS_ARGS ?=
 checkpoints: $(STAMP)
-	$(BIN)/hrn-pyg checkpoints --checkpoints-dir hrn_pyg/checkpoints $(CHECKPOINTS_ARGS)
+	$(BIN)/python -m experiments.recipe --checkpoints-dir hrn_pyg/checkpoints $(CHECKPOINTS_ARGS)
 
 # Mutation testing (mutmut, the optional `mutation` extra; not part of `make test` or CI): stats,
 # stability, the scene file's draws and expressions in turn, one process each, against their own

@@ -83,7 +83,6 @@ MODULES = (
     "hrn_pyg.rl.success_curve",
     "hrn_pyg.rl.curves",
     "hrn_pyg.rl.planning",
-    "hrn_pyg.recipe",
 )
 
 TARGET = Path(__file__).resolve().parent / "api.md"

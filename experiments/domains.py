@@ -24,7 +24,7 @@ from pathlib import Path
 from hrn_pyg.checkpoints import MANIFEST_PATH, entry_datasets, read_manifest
 from hrn_pyg.checkpoints.domain import Domain, episode_domain, merge_all, with_pitch_range
 from hrn_pyg.data.dataset import split_of_seed
-from hrn_pyg.recipe.schema import RECIPE_PATH, DatasetRecipe, load_recipe
+from experiments.recipe.schema import RECIPE_PATH, DatasetRecipe, load_recipe
 from hrn_pyg.utils.files import atomic_write_json
 
 #: training episodes simulated per dataset at most, by default

@@ -53,9 +53,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("hrn_pyg.rl.planning", "plan each action through the learned model (CEM over sampled "
              "futures), one closed-loop episode judged in pybullet"),
     "demo": ("hrn_pyg.demo", "the two-minute tour on the shipped checkpoints"),
-    "checkpoints": ("hrn_pyg.recipe", "remake the shipped checkpoints from data/recipes.toml"),
     "models": ("hrn_pyg.checkpoints.cli", "list the shipped models and what each was trained on"),
     "view": ("hrn_pyg.export.view", "ground truth and sampled futures in 3D in the browser (one HTML file, served on 127.0.0.1)"),
+}
+
+#: commands that left the package -> where they are (given, one line on stderr and exit code 2)
+MOVED: dict[str, str] = {
+    "checkpoints": "a maintainer's tool beside the package: `make checkpoints` (python -m experiments.recipe) "
+                   "in a checkout of the repository",
 }
 
 #: what each option name shared by two or more commands means (one meaning per name)
@@ -132,6 +137,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command in MOVED:
+        print(f"hrn-pyg {command}: {MOVED[command]}", file=sys.stderr)
+        return 2
     args = build_parser(command if command in COMMANDS else None).parse_args(argv)
     return run_reporting_errors(f"hrn-pyg {args.command}", args._run, args)
 

@@ -31,7 +31,7 @@ from hrn_pyg.utils.files import file_sha256
 
 #: the folder of the shipped checkpoints (this package's own folder)
 CHECKPOINT_DIR = Path(__file__).resolve().parent
-#: how each shipped checkpoint was made, and its domain (``hrn-pyg checkpoints`` writes it)
+#: how each shipped checkpoint was made, and its domain (``python -m experiments.recipe`` writes it)
 MANIFEST_PATH = CHECKPOINT_DIR / "manifest.json"
 #: shipped files that are policies (``hrn-pyg rl``), not models; :func:`hrn_pyg.rl.policy.load_policy` reads them
 POLICY_NAMES = ("cube_push_policy",)

@@ -8,7 +8,7 @@ command table does). The order, bottom first; a module may import from its own l
 (the package root is a layer entry for itself only, not for its submodules):
 
     utils, version -> data, viz, commands (a command's arguments, no torch) -> nn -> checkpoints -> sim -> train, losses, evaluate,
-    sampling -> rl -> recipe, demo, cli, the package root
+    sampling -> rl -> demo, cli, the package root
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ LAYERS = (
     ("hrn_pyg.sim",),
     ("hrn_pyg.train", "hrn_pyg.losses", "hrn_pyg.evaluate", "hrn_pyg.sampling", "hrn_pyg.export"),
     ("hrn_pyg.rl",),
-    ("hrn_pyg.recipe", "hrn_pyg.demo", "hrn_pyg.cli", "hrn_pyg"),
+    ("hrn_pyg.demo", "hrn_pyg.cli", "hrn_pyg"),
 )
 
 
@@ -222,7 +222,7 @@ def test_imports_by_name_are_seen(tmp_path):
 
 def test_the_command_table_of_cli_counts_as_its_imports():
     found = {target for target, _, _ in graph()["hrn_pyg.cli"]}
-    assert {"hrn_pyg.rl.ppo", "hrn_pyg.sampling.cli", "hrn_pyg.recipe", "hrn_pyg.demo"} <= found
+    assert {"hrn_pyg.rl.ppo", "hrn_pyg.sampling.cli", "hrn_pyg.checkpoints.cli", "hrn_pyg.demo"} <= found
 
 
 def experiments_imported(path: Path) -> list[tuple[str, int]]:

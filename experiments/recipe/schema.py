@@ -1,4 +1,4 @@
-"""The recipe of ``hrn-pyg checkpoints``: ``data/recipes.toml`` read into frozen dataclasses.
+"""The recipe of ``python -m experiments.recipe``: ``data/recipes.toml`` read into frozen dataclasses.
 
 The recipe (TOML) names every dataset (``[datasets.<name>]``: scene, episodes, steps,
 seed_offset, optional pitch and ``set`` table of scene-config fields) and every shipped model
@@ -317,7 +317,7 @@ def _parse_options(table: Any, where: str, kind: str = "train") -> tuple[tuple[s
         if not OPTION_PATTERN.fullmatch(key):
             raise ValueError(f"{where}.{kind}: {key!r} is not an option name")
         if key.replace("_", "-") in RESERVED_OPTIONS:
-            raise ValueError(f"{where}.{kind}: {key!r} is set by `hrn-pyg checkpoints` itself")
+            raise ValueError(f"{where}.{kind}: {key!r} is set by the recipe runner itself")
         if not isinstance(value, (str, int, float, bool)):
             raise ValueError(f"{where}.{kind}: {key!r} must be a string, number or boolean, got {value!r}")
         if key.replace("_", "-") == EXTRA_DATASETS:
@@ -336,7 +336,7 @@ def _parse_calibrate(table: Any, where: str) -> tuple[tuple[str, OptionValue | t
         if not OPTION_PATTERN.fullmatch(key):
             raise ValueError(f"{where}.calibrate: {key!r} is not an option name")
         if key.replace("_", "-") in RESERVED_CALIBRATE_OPTIONS:
-            raise ValueError(f"{where}.calibrate: {key!r} is set by `hrn-pyg checkpoints` itself")
+            raise ValueError(f"{where}.calibrate: {key!r} is set by the recipe runner itself")
         if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
             options.append((key, tuple(value)))
         elif isinstance(value, (str, int, float)) and not isinstance(value, bool):

@@ -1,8 +1,9 @@
-"""``hrn-pyg checkpoints`` (hrn_pyg.recipe): the recipe file, the commands, and a killed run
-that continues where it stopped without redoing finished work."""
+"""``python -m experiments.recipe`` (``make checkpoints``): the recipe file, the commands, and a
+killed run that continues where it stopped without redoing finished work."""
 
 from __future__ import annotations
 
+import argparse
 import csv
 import hashlib
 import json
@@ -15,21 +16,24 @@ from pathlib import Path
 
 import pytest
 
-from hrn_pyg.checkpoints import CHECKPOINT_DIR
-from hrn_pyg.cli import main
-from hrn_pyg.recipe import (
+from experiments.recipe import (
     MANIFEST_NAME,
     RUN_RECORD,
     RunConfig,
     Runner,
+    add_arguments,
+    config_from_args,
     load_recipe,
     option_flags,
     parse_recipe,
 )
-from hrn_pyg.recipe.manifest import logged_train_seconds
-from hrn_pyg.recipe.schema import CALIBRATE_FLAGS
+from experiments.recipe import main as recipe_main
+from experiments.recipe.manifest import logged_train_seconds, read_json, update_manifest
+from experiments.recipe.schema import CALIBRATE_FLAGS
+from hrn_pyg.checkpoints import CHECKPOINT_DIR
+from hrn_pyg.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 TINY_MODEL = {"model-hidden": 8, "model-depth": 1, "model-effect-dim": 8, "batch-size": 2,
               "threads": 1, "warmup": 2, "eval-every": 1000}
 
@@ -60,7 +64,7 @@ def _write_recipe(path: Path, b_steps: int = 4) -> Path:
 
 
 def _args(tmp: Path, *extra: str) -> list[str]:
-    return ["checkpoints", "--recipe", str(tmp / "recipes.toml"), "--data-dir", str(tmp / "data"),
+    return ["--recipe", str(tmp / "recipes.toml"), "--data-dir", str(tmp / "data"),
             "--runs-dir", str(tmp / "runs"), "--checkpoints-dir", str(tmp / "ckpt"), *extra]
 
 
@@ -143,8 +147,8 @@ def test_bad_recipes_are_refused(change, word):
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
     _write_recipe(tmp_path / "recipes.toml")
-    assert main(_args(tmp_path, "--only", "zzz")) == 2
-    assert main(_args(tmp_path, "--skip-generate")) == 2
+    assert recipe_main(_args(tmp_path, "--only", "zzz")) == 2
+    assert recipe_main(_args(tmp_path, "--skip-generate")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "zzz" in err[0] and "missing" in err[1]
     assert not (tmp_path / "runs").exists() and not (tmp_path / "ckpt").exists()
@@ -173,8 +177,8 @@ def test_dry_run_prints_the_commands_and_writes_nothing(tmp_path):
 
 def _kill_once_training(tmp: Path, run: Path) -> None:
     """Start the recipe in a child process group; SIGKILL the group once ``run`` has a checkpoint."""
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.Popen([sys.executable, "-m", "hrn_pyg.cli", *_args(tmp, "--jobs", "1")], cwd=tmp,
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-m", "experiments.recipe", *_args(tmp, "--jobs", "1")], cwd=tmp,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=env)
     try:
         deadline = time.time() + 300  # generous: a loaded machine starts torch slowly
@@ -205,7 +209,7 @@ def test_killed_run_continues_and_finished_work_is_not_redone(tmp_path):
     assert [i["rc"] for i in _record(runs / "a")["invocations"]] == [None]  # killed mid-run
     episodes = _mtimes(data, "episode_*.npz")
 
-    assert main(_args(tmp_path, "--jobs", "2")) == 0
+    assert recipe_main(_args(tmp_path, "--jobs", "2")) == 0
     assert _mtimes(data, "episode_*.npz") == episodes
     calls = _record(runs / "a")["invocations"]
     assert len(calls) == 2 and calls[1]["command"].endswith("--resume") and calls[1]["rc"] == 0
@@ -227,13 +231,13 @@ def test_killed_run_continues_and_finished_work_is_not_redone(tmp_path):
     # a third run has nothing to do, with other threads too (like the device, not part of a run's identity)
     before = {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
               "calls": {n: len(_record(runs / n)["invocations"]) for n in ("a", "b")}}
-    assert main(_args(tmp_path, "--threads", "2")) == 0
+    assert recipe_main(_args(tmp_path, "--threads", "2")) == 0
     assert before == {"models": _mtimes(runs, "*/model.pt"), "ckpt": _mtimes(ckpt, "*"),
                       "calls": {n: len(_record(runs / n)["invocations"]) for n in ("a", "b")}}
 
     # changed options retrain that model only; the old run folder is kept aside
     _write_recipe(tmp_path / "recipes.toml", b_steps=5)
-    assert main(_args(tmp_path, "--only", "b")) == 0
+    assert recipe_main(_args(tmp_path, "--only", "b")) == 0
     assert len(list(runs.glob("b.replaced-*"))) == 1
     manifest = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]
     assert manifest["b"]["steps"] == 5 and manifest["a"] == a
@@ -244,7 +248,7 @@ def test_time_limit_pauses_a_training_and_the_same_command_continues_it(tmp_path
     _write_recipe(tmp_path / "recipes.toml")
     runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
     # a limit far below one step's time: each model stops after its first step, unpublished
-    assert main(_args(tmp_path, "--only", "a", "--time-limit", "0.0001")) == 0
+    assert recipe_main(_args(tmp_path, "--only", "a", "--time-limit", "0.0001")) == 0
     out = capsys.readouterr().out
     assert "paused at the time limit: a" in out and "up to date" not in out
     assert (runs / "a" / "last.pt").exists() and not (runs / "a" / "model.pt").exists()
@@ -253,7 +257,7 @@ def test_time_limit_pauses_a_training_and_the_same_command_continues_it(tmp_path
     assert first["invocations"][0]["command"].endswith("--time-limit 0.0001") and first["invocations"][0]["rc"] == 0
 
     # the limit is a property of the sitting, not of the training: no retraining from scratch
-    assert main(_args(tmp_path, "--only", "a")) == 0
+    assert recipe_main(_args(tmp_path, "--only", "a")) == 0
     calls = _record(runs / "a")["invocations"]
     assert calls[0] == first["invocations"][0] and calls[1]["command"].endswith("--resume")
     assert not list(runs.glob("a.replaced-*"))
@@ -293,7 +297,7 @@ def test_a_calibrate_table_ships_the_calibrated_copy_and_is_not_redone(tmp_path)
     assert option_flags(dict(recipe.models[0].calibrate), CALIBRATE_FLAGS) == [
         "--episode-seeds", "8", "--rates", "0.05,0.2", "--module-sets", "force", "collision", "--k", "2",
         "--members", "2", "--horizon", "2"]
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
     shipped = ckpt / "b.pt"
     assert shipped.read_bytes() == (runs / "b" / "model.calibrated.pt").read_bytes()
@@ -305,7 +309,7 @@ def test_a_calibrate_table_ships_the_calibrated_copy_and_is_not_redone(tmp_path)
     assert entry["calibrated"]["rate"] == record["rate"] and entry["calibrate_command"].startswith(
         f"hrn-pyg calibrate --scene cube_collision --model {runs / 'b' / 'model.pt'} ")
     before = _mtimes(runs / "b", "model*.pt")
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     assert _mtimes(runs / "b", "model*.pt") == before
 
 
@@ -348,7 +352,7 @@ def test_finetune_stages_start_from_the_stage_before_and_ship_the_last(tmp_path)
     assert model.train_args(Path("d"), runs, 1)[-12:] == [
         "--init-from", str(runs / "b" / "model.pt"), "--train-steps", "3", "--seq-start", "3", "--seq-end", "3",
         "--lr", "0.0001", "--threads", "1"]
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     assert (ckpt / "b.pt").read_bytes() == (runs / "b.ft1" / "model.pt").read_bytes()
     tuned = json.loads((runs / "b.ft1" / "config.json").read_text())["train"]
     assert tuned["init_from"] == str(runs / "b" / "model.pt") and tuned["seq_end"] == 3
@@ -357,10 +361,10 @@ def test_finetune_stages_start_from_the_stage_before_and_ship_the_last(tmp_path)
     assert entry["stage_commands"][1] == entry["train_command"] and "--init-from" in entry["train_command"]
     # nothing to redo; a changed first stage redoes both (the fine-tune's start changed)
     before = _mtimes(runs, "*/model.pt")
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     assert _mtimes(runs, "*/model.pt") == before
     (tmp_path / "recipes.toml").write_text(text.replace("steps = 2\n", "steps = 4\n", 1))
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     assert len(list(runs.glob("b.replaced-*"))) == 1 and len(list(runs.glob("b.ft1.replaced-*"))) == 1
 
 
@@ -521,7 +525,7 @@ def test_skip_generate_checks_each_stage_before_it_trains(tmp_path, capsys):
     (tmp_path / "recipes.toml").write_text(text)
     recipe = load_recipe(tmp_path / "recipes.toml")
     assert main(recipe.dataset("tiny").generate_args(tmp_path / "data") + ["--no-progress"]) == 0
-    assert main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 1
+    assert recipe_main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 1
     failed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("FAILED")]
     assert len(failed) == 1 and "dataset 'more' missing" in failed[0] and "b.ft1" in failed[0]
     runs = tmp_path / "runs"
@@ -531,7 +535,7 @@ def test_skip_generate_checks_each_stage_before_it_trains(tmp_path, capsys):
     lost.unlink()
     lost.with_suffix(".rejected").write_text("pybullet lost it\n")
     before = _mtimes(runs, "b/model.pt")
-    assert main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu", "--skip-generate")) == 0
     assert (tmp_path / "ckpt" / "b.pt").read_bytes() == (runs / "b.ft1" / "model.pt").read_bytes()
     assert _mtimes(runs, "b/model.pt") == before  # the first stage was not trained again
 
@@ -560,7 +564,7 @@ def test_an_average_table_ships_the_mean_of_the_stages_and_is_not_redone(tmp_pat
                                                   .splitlines()[1:]) + "\n"
     (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.average", {"stages": [0, 1],
                                                                                    "weights": [0.25, 0.75]}))
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     runs, ckpt = tmp_path / "runs", tmp_path / "ckpt"
     assert (ckpt / "b.pt").read_bytes() == (runs / "b.ft1" / "model.averaged.pt").read_bytes()
     first, last, shipped = (load_model(p) for p in (runs / "b" / "model.pt", runs / "b.ft1" / "model.pt", ckpt / "b.pt"))
@@ -573,10 +577,10 @@ def test_an_average_table_ships_the_mean_of_the_stages_and_is_not_redone(tmp_pat
     entry = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]["b"]
     assert entry["averaged"] == {"stages": [0, 1], "weights": [0.25, 0.75]}
     before = _mtimes(runs / "b.ft1", "model*.pt")
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     assert _mtimes(runs / "b.ft1", "model*.pt") == before
     (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.average", {"stages": [0, 1]}))
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     after = _mtimes(runs / "b.ft1", "model*.pt")
     assert after["model.pt"] == before["model.pt"] and after["model.averaged.pt"] != before["model.averaged.pt"]
     for (_, a), (_, b), (_, mean) in zip(first.named_parameters(), last.named_parameters(),
@@ -600,7 +604,7 @@ def test_an_apply_table_sets_applied_options_on_the_shipped_model_and_is_not_red
     text += _toml_table("models.b.average", {"stages": [0, 1]})
     (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.apply", {"ground-projection": True,
                                                                                  "cloth_clearance": 0.2}))
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     run, ckpt = tmp_path / "runs" / "b.ft1", tmp_path / "ckpt"
     assert (ckpt / "b.pt").read_bytes() == (run / "model.applied.pt").read_bytes()
     trained, shipped = load_model(run / "model.averaged.pt"), load_model(ckpt / "b.pt")
@@ -613,10 +617,10 @@ def test_an_apply_table_sets_applied_options_on_the_shipped_model_and_is_not_red
     entry = json.loads((ckpt / MANIFEST_NAME).read_text())["checkpoints"]["b"]
     assert entry["applied"] == {"ground_projection": True, "cloth_clearance": 0.2}
     before = _mtimes(run, "model*.pt")
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     assert _mtimes(run, "model*.pt") == before
     (tmp_path / "recipes.toml").write_text(text + _toml_table("models.b.apply", {"ground-projection": True}))
-    assert main(_args(tmp_path, "--device", "cpu")) == 0
+    assert recipe_main(_args(tmp_path, "--device", "cpu")) == 0
     after = _mtimes(run, "model*.pt")
     assert after["model.averaged.pt"] == before["model.averaged.pt"] and after["model.applied.pt"] != before["model.applied.pt"]
     assert load_model(ckpt / "b.pt").config.cloth_clearance == 0.0
@@ -668,3 +672,20 @@ def test_logged_training_time_sums_the_sittings_a_kill_left_unrecorded(tmp_path)
     assert logged_train_seconds(tmp_path / "missing.csv") is None
     metrics.write_text("step,loss\n0,0.1\n")
     assert logged_train_seconds(metrics) is None
+
+
+def test_the_manifest_keeps_a_domain_while_the_file_is_the_same(tmp_path):
+    path = tmp_path / "manifest.json"
+    update_manifest(path, "m", {"sha256": "a", "domain": {"pitches": [0.05]}})
+    update_manifest(path, "m", {"sha256": "a", "steps": 2})
+    assert read_json(path)["checkpoints"]["m"]["domain"] == {"pitches": [0.05]}
+    update_manifest(path, "m", {"sha256": "b", "steps": 2})  # another file: its domain is unknown
+    assert "domain" not in read_json(path)["checkpoints"]["m"]
+
+
+def test_checkpoints_go_under_the_working_directory_by_default():
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    config = config_from_args(parser.parse_args([]))
+    assert str(config.checkpoints_dir) == "checkpoints" == str(RunConfig().checkpoints_dir)
+    assert not config.checkpoints_dir.is_absolute()

@@ -1,4 +1,5 @@
-"""The records of ``hrn-pyg checkpoints``: each run's ``recipe.json`` and the checkpoints' manifest.
+"""The records of ``python -m experiments.recipe``: each run's ``recipe.json`` and the checkpoints'
+manifest.
 
 A run folder's ``recipe.json`` (:data:`RUN_RECORD`) holds its identity and every train
 invocation (command, device, seconds, exit code). ``manifest.json`` (:data:`MANIFEST_NAME`)
@@ -18,7 +19,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from hrn_pyg.recipe.schema import CALIBRATED_NAME, DatasetRecipe, ModelRecipe, shown
+from experiments.recipe.schema import CALIBRATED_NAME, DatasetRecipe, ModelRecipe, shown
 from hrn_pyg.utils.files import atomic_write, atomic_write_json
 
 #: where the shipped checkpoints live
@@ -126,5 +127,5 @@ def update_manifest(path: Path, name: str, entry: dict[str, Any]) -> None:
     if old == entry:
         return
     entries[name] = {**entry, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    atomic_write_json(path, {"about": "how each checkpoint here was made: `hrn-pyg checkpoints` "
+    atomic_write_json(path, {"about": "how each checkpoint here was made: `make checkpoints` "
                                       "from data/recipes.toml", "checkpoints": dict(sorted(entries.items()))})

@@ -1,15 +1,23 @@
-"""The command line of ``hrn-pyg checkpoints``: ``add_arguments`` and ``run``, which carries the
-recipe out with a :class:`~hrn_pyg.recipe.runner.Runner` (exit code 1 when something failed; a
-rerun continues)."""
+"""The command line of ``python -m experiments.recipe``: ``add_arguments`` and ``run``, which
+carries the recipe out with a :class:`~experiments.recipe.runner.Runner` (exit code 1 when
+something failed; a rerun continues), and ``main``."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
-from hrn_pyg.recipe.runner import DEFAULT_CHECKPOINTS_DIR, RunConfig, Runner
-from hrn_pyg.recipe.schema import RECIPE_PATH, load_recipe
+from experiments.command import script_main
+
+from experiments.recipe.runner import DEFAULT_CHECKPOINTS_DIR, RunConfig, Runner
+from experiments.recipe.schema import RECIPE_PATH, load_recipe
+
+
+#: how the command is run (from the checkout's root; ``make checkpoints`` runs it)
+PROG = "python -m experiments.recipe"
+DESCRIPTION = "remake the shipped checkpoints from data/recipes.toml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     runner = Runner(load_recipe(config.recipe), config, say=lambda line: print(line, flush=True))
     failed = runner.run()
     if failed:
-        print(f"hrn-pyg checkpoints: failed: {', '.join(failed)}; rerun to continue", file=sys.stderr)
+        print(f"{PROG}: failed: {', '.join(failed)}; rerun to continue", file=sys.stderr)
         return 1
     if runner.paused:
         print(f"paused at the time limit: {', '.join(runner.paused)}; rerun the same command to continue")
@@ -57,3 +65,7 @@ def run(args: argparse.Namespace) -> int:
     if not config.dry_run:
         print(f"checkpoints up to date: {', '.join(m.name for m in runner.models)}")
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return script_main(PROG, DESCRIPTION, add_arguments, run, argv)

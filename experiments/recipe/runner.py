@@ -1,4 +1,4 @@
-"""The runner of ``hrn-pyg checkpoints``: carries out a recipe, one child process per step.
+"""The runner of ``python -m experiments.recipe``: carries out a recipe, one child process per step.
 
 For the selected models (``--only``, default all):
 
@@ -11,7 +11,7 @@ For the selected models (``--only``, default all):
    when what it is made from changes;
 3. ``hrn-pyg calibrate`` into ``model.calibrated.pt`` where the recipe asks (validation seeds);
 4. copy the model to ``<checkpoints-dir>/<model>.pt`` (and aliases) atomically and refresh its
-   entry in ``manifest.json`` (:mod:`hrn_pyg.recipe.manifest`) with the checkpoint's domain.
+   entry in ``manifest.json`` (:mod:`experiments.recipe.manifest`) with the checkpoint's domain.
    ``<checkpoints-dir>`` is ``./checkpoints`` unless named.
 
 Every step is idempotent, so a killed run continues where it stopped. With
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hrn_pyg.recipe.manifest import (
+from experiments.recipe.manifest import (
     MANIFEST_NAME,
     RUN_RECORD,
     copy_atomic,
@@ -40,7 +40,7 @@ from hrn_pyg.recipe.manifest import (
     sha256,
     update_manifest,
 )
-from hrn_pyg.recipe.schema import (
+from experiments.recipe.schema import (
     APPLIED_NAME,
     AVERAGED_NAME,
     CALIBRATED_NAME,
@@ -388,7 +388,7 @@ class Runner:
         self._update_manifest(model, run, digest)
 
     def manifest_entry(self, model: ModelRecipe, run: Path, digest: str) -> dict[str, Any]:
-        """The model's manifest entry (:func:`~hrn_pyg.recipe.manifest.model_entry`) with this
+        """The model's manifest entry (:func:`~experiments.recipe.manifest.model_entry`) with this
         runner's commands."""
         return model_entry(model, self.recipe.dataset(model.dataset), self.config.data_dir, self.config.runs_dir,
                            run, digest, lambda stage: self.train_command(model, stage),
