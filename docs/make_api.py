@@ -58,7 +58,6 @@ MODULES = (
     "hrn_pyg.nn.equivariant.state",
     "hrn_pyg.checkpoints",
     "hrn_pyg.checkpoints.domain",
-    "hrn_pyg.checkpoints.average",
     "hrn_pyg.sim.step",
     "hrn_pyg.sim.rollout",
     "hrn_pyg.sim.sleeping",

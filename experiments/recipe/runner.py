@@ -308,7 +308,7 @@ class Runner:
                               for (stage, weight), source in zip(model.average, sources, strict=True)]}
         if (run / AVERAGED_NAME).is_file() and read_json(run / AVERAGE_RECORD) == record:
             return
-        from hrn_pyg.checkpoints.average import write_average  # imports torch
+        from experiments.recipe.weights import write_average  # imports torch
 
         try:
             write_average(sources, weights, run / AVERAGED_NAME)
@@ -331,7 +331,7 @@ class Runner:
         record = {"model_sha256": sha256(run / model.trained_file), "options": [list(o) for o in model.apply]}
         if (run / APPLIED_NAME).is_file() and read_json(run / APPLY_RECORD) == record:
             return
-        from hrn_pyg.checkpoints import write_applied  # imports torch
+        from experiments.recipe.weights import write_applied  # imports torch
 
         try:
             write_applied(run / model.trained_file, options, run / APPLIED_NAME)

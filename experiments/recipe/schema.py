@@ -8,7 +8,7 @@ model may add:
 
 - ``[[models.<name>.finetune]]`` stages, each a table of train options;
 - ``[models.<name>.average]``: ``stages`` (rising, ending with the last) and ``weights``
-  (summing to one) of a weighted mean of stage weights (:mod:`hrn_pyg.checkpoints.average`);
+  (summing to one) of a weighted mean of stage weights (:mod:`experiments.recipe.weights`);
 - ``[models.<name>.apply]``: options of :data:`hrn_pyg.checkpoints.APPLIED_OPTIONS` set on
   the trained weights;
 - ``[models.<name>.calibrate]``: ``hrn-pyg calibrate`` options (a scene-file model calibrates
@@ -351,7 +351,7 @@ def _parse_average(table: Any, where: str, num_stages: int) -> tuple[tuple[int, 
     """``[models.<name>.average]``: ``stages`` (at least two stage numbers, rising, the last
     one the model's last stage, whose config and normaliser the mean keeps) and ``weights``
     (one per stage, > 0, summing to one; equal when left out)."""
-    from hrn_pyg.checkpoints.average import check_average_weights  # imports torch; only for a recipe that averages
+    from experiments.recipe.weights import check_average_weights  # imports torch; only for a recipe that averages
 
     if not isinstance(table, Mapping):
         raise ValueError(f"{where}: 'average' must be a table with 'stages' (and 'weights')")

@@ -25,7 +25,7 @@ from hrn_pyg.checkpoints.domain import Domain, dataset_domain, with_pitch_range
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.networks import (NetworkConfig, applied_options, build_network, config_from_dict,
                                  network_from_dict)
-from hrn_pyg.utils.checkpoint import CheckpointError, bounded_json, load_checkpoint, save_checkpoint
+from hrn_pyg.utils.checkpoint import CheckpointError, bounded_json, load_checkpoint
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import file_sha256
 
@@ -285,15 +285,3 @@ def with_applied_options(model: HRN, **options: Any) -> HRN:
             setattr(changed, attribute, getattr(model, attribute))
     return changed.to(model.normalizer.velocity_std.device).train(model.training)
 
-
-def write_applied(source: str | os.PathLike, options: dict[str, Any], target: str | os.PathLike) -> None:
-    """Write ``source`` (a path or shipped name) to ``target`` atomically with the
-    :data:`APPLIED_OPTIONS` ``options`` set; ValueError for another option or a refused value,
-    before anything is written."""
-    path = model_path(source)
-    changed = with_applied_options(load_model(path), **options)  # checks the options and their values
-    payload = {key: value for key, value in load_checkpoint(path).items() if key != "format"}
-    config = json.loads(payload["config"])
-    config["model"] = changed.config.to_dict()
-    payload["config"] = json.dumps(config)
-    save_checkpoint(target, payload)

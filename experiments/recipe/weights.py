@@ -1,4 +1,5 @@
-r"""A weighted mean of model checkpoints' weights, written as one checkpoint.
+r"""The weights a recipe publishes: a weighted mean of checkpoints' weights written as one
+checkpoint (:func:`write_average`), and a checkpoint with applied options (:func:`write_applied`).
 
 Stages of one network trained from each other stay close in weight space, so their mean is a
 model too. With weights :math:`w_i > 0`, :math:`\sum_i w_i = 1`, every learned parameter is
@@ -11,13 +12,15 @@ summed in the order given; everything else (buffers, config, step, domain) is th
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
-from hrn_pyg.checkpoints import load_model, model_path
+from hrn_pyg.checkpoints import load_model, model_path, with_applied_options
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 
 #: how far the weights' sum may be from one
@@ -78,4 +81,17 @@ def write_average(sources: Sequence[str | os.PathLike], weights: Sequence[float]
     state = average_state([c["model"] for c in checkpoints], values, parameters)
     payload = {key: value for key, value in checkpoints[-1].items() if key != "format"}
     payload["model"] = state
+    save_checkpoint(target, payload)
+
+
+def write_applied(source: str | os.PathLike, options: dict[str, Any], target: str | os.PathLike) -> None:
+    """Write ``source`` (a path or shipped name) to ``target`` atomically with the
+    :data:`~hrn_pyg.checkpoints.APPLIED_OPTIONS` ``options`` set; ValueError for another option or a
+    refused value, before anything is written."""
+    path = model_path(source)
+    changed = with_applied_options(load_model(path), **options)  # checks the options and their values
+    payload = {key: value for key, value in load_checkpoint(path).items() if key != "format"}
+    config = json.loads(payload["config"])
+    config["model"] = changed.config.to_dict()
+    payload["config"] = json.dumps(config)
     save_checkpoint(target, payload)

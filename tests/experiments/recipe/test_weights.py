@@ -1,4 +1,4 @@
-"""``hrn_pyg.checkpoints.average``: the weighted mean of checkpoints' weights, and only of their
+"""``experiments.recipe.weights``: the weighted mean of checkpoints' weights, and only of their
 weights."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from hrn_pyg.checkpoints import checkpoint_path, load_model
-from hrn_pyg.checkpoints.average import check_average_weights, write_average
+from experiments.recipe.weights import check_average_weights, write_average
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 
 
