@@ -1,4 +1,5 @@
-"""What more than one benchmark measures with: scenes, timed episodes and timed rollouts.
+"""What more than one benchmark measures with: scenes, timed episodes and timed rollouts, and the
+scores of sampled futures that only the benchmarks report (best of k, coverage, ridge sides).
 
 The one helper module of ``benchmarks/`` (and of the experiments that time a model against
 pybullet, ``experiments/``): a script imports from here, never from another script. Run the
@@ -13,16 +14,19 @@ import time
 
 import numpy as np
 import torch
+from torch import Tensor
 from torch_geometric.data import HeteroData
 
 import hrn_pyg
 from hrn_pyg.data.episodes import simulate_episode
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.graph import NODE, object_span
+from hrn_pyg.data.graph import object_centres as graph_object_centres
 from hrn_pyg.checkpoints import load_model, resolve_model
 from hrn_pyg.data.scene_file import builtin_scene, make_scene
 from hrn_pyg.nn.hrn import HRN, HRNConfig
 from hrn_pyg.nn.normalizer import fit_normalizer
 from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.sampling.metrics import paired
 from hrn_pyg.sim.fixed_shape import FixedShapeConfig, FixedShapeSimulator
 
 
@@ -217,3 +221,81 @@ def sampling_setup(steps: int) -> tuple[HRN, object, torch.Tensor]:
     model.eval()
     forces = window[NODE].force_seq.transpose(0, 1).contiguous()  # [steps, N, 3]
     return model, window, forces
+
+
+# --------------------------------------------------------------------------------------------
+# scores of sampled futures beside hrn_pyg.sampling.metrics (energy_score, root_spread)
+
+#: the two sides of the wedge's ridge, in the order :func:`side_fractions` returns them
+SIDES = ("below", "above")
+
+
+def best_of_k_error(samples: Tensor, truth: Tensor) -> Tensor:
+    r"""Mean particle distance of the closest sample, averaged over the ground-truth members.
+
+    .. math::
+        \mathrm{BoK} = \frac{1}{M} \sum_{m=1}^{M} \min_{k} \frac{1}{L} \sum_{l=1}^{L}
+            \lVert X_{k,l} - y_{m,l} \rVert
+
+    **Shapes:** samples ``(K, *, L, 3)``, truth ``(M, *, L, 3)``; returns ``(*)``.
+    """
+    samples, truth = paired(samples, truth)
+    if samples.dim() < 3 or samples.shape[-1] != 3:
+        raise ValueError(f"samples must be [K, ..., L, 3], got {tuple(samples.shape)}")
+    error = (samples.unsqueeze(1) - truth.unsqueeze(0)).norm(dim=-1).mean(dim=-1)  # [K, M, *]
+    return error.min(dim=0).values.mean(dim=0)
+
+
+def coverage(samples: Tensor, truth: Tensor, per: str = "coordinate") -> Tensor:
+    r"""Fraction of the ground truth inside the samples' per-coordinate range
+    :math:`[\ell_d, u_d] = [\min_k X_{k,d}, \max_k X_{k,d}]`: ``per="coordinate"``
+    :math:`\frac{1}{MD} \sum_{m,d} \mathbb{1}[\ell_d \le y_{m,d} \le u_d]`, ``per="member"``
+    :math:`\frac{1}{M} \sum_m \prod_d \mathbb{1}[\ell_d \le y_{m,d} \le u_d]`.
+
+    **Shapes:** samples ``(K, *, D)``, truth ``(M, *, D)``; returns ``(*)``.
+    """
+    if per not in ("coordinate", "member"):
+        raise ValueError(f"per must be 'coordinate' or 'member', got {per!r}")
+    samples, truth = paired(samples, truth)
+    low, high = samples.min(dim=0).values, samples.max(dim=0).values
+    inside = (truth >= low) & (truth <= high)  # [M, *, D]
+    if per == "member":
+        return inside.all(dim=-1).to(samples.dtype).mean(dim=0)
+    return inside.to(samples.dtype).mean(dim=(0, -1))
+
+
+def object_centres(positions: Tensor, leaf_object: Tensor, leaf_mass: Tensor) -> Tensor:
+    r"""Mass-weighted centre of each object's leaves: the position of its hierarchy root.
+
+    .. math:: r_o = \sum_{l \in o} m_l x_l \Big/ \sum_{l \in o} m_l
+
+    **Shapes:** positions ``(*, L, 3)``, leaf_object ``(L,)`` in ``0..O-1``, leaf_mass ``(L,)``;
+    returns ``(*, O, 3)``.
+    """
+    positions = torch.as_tensor(positions)
+    leaf_object = torch.as_tensor(leaf_object, device=positions.device).long()
+    leaf_mass = torch.as_tensor(leaf_mass, device=positions.device).to(positions.dtype)
+    if positions.dim() < 2 or positions.shape[-1] != 3:
+        raise ValueError(f"positions must be [..., L, 3], got {tuple(positions.shape)}")
+    n_leaves = positions.shape[-2]
+    if leaf_object.shape != (n_leaves,) or leaf_mass.shape != (n_leaves,):
+        raise ValueError(f"leaf_object and leaf_mass must be [{n_leaves}], got {tuple(leaf_object.shape)}, {tuple(leaf_mass.shape)}")
+    if bool((leaf_mass <= 0).any()) or bool((leaf_object < 0).any()):
+        raise ValueError("leaf_mass must be > 0 and leaf_object >= 0")
+    return graph_object_centres(positions, leaf_object, object_span(leaf_object), leaf_mass)
+
+
+def side_fractions(coordinate: Tensor, ridge: float = 0.0) -> Tensor:
+    r"""Fraction of trajectories ending on each side (:data:`SIDES`) of the ridge at ``r``:
+    :math:`\bigl(\frac{1}{K}\#\{c_k < r\},\ \frac{1}{K}\#\{c_k \ge r\}\bigr)` of the ball's final
+    ``coordinate``.
+
+    **Shapes:** coordinate ``(K,)``; returns ``(2,)``.
+    """
+    coordinate = torch.as_tensor(coordinate)
+    if coordinate.dim() != 1 or coordinate.numel() < 1:
+        raise ValueError(f"coordinate must be [K>=1], got {tuple(coordinate.shape)}")
+    if not bool(torch.isfinite(coordinate).all()):
+        raise ValueError("coordinate contains NaN or infinite values")
+    below = (coordinate < ridge).to(torch.float64).mean()
+    return torch.stack([below, 1.0 - below])

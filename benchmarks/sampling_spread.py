@@ -24,12 +24,12 @@ import platform
 import numpy as np
 import torch
 
-from benchmarks.common import model_for
+from benchmarks.common import model_for, object_centres
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE
 from hrn_pyg.nn.hrn import HRN
 from hrn_pyg.sampling.ensemble import episode_state
-from hrn_pyg.sampling.metrics import object_centres, root_spread
+from hrn_pyg.sampling.metrics import root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json
 from hrn_pyg.viz import save_figure

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hrn_pyg.sampling.metrics import object_centres
+from benchmarks.common import object_centres
 
 #: the wedge scene's ball is object 0; the ridge runs along y at x = 0
 BALL, RIDGE_X = 0, 0.0

@@ -8,9 +8,9 @@ dropout) and k dropout samples at each ``--rates`` are scored at the last predic
 
 * energy score per particle (:func:`~hrn_pyg.sampling.metrics.energy_score` on each leaf's
   3-D position, mean over leaves; metres, lower is better),
-* best-of-k error (:func:`~hrn_pyg.sampling.metrics.best_of_k_error`: mean leaf distance of the
+* best-of-k error (:func:`~benchmarks.common.best_of_k_error`: mean leaf distance of the
   closest sample, averaged over members; metres),
-* coverage (:func:`~hrn_pyg.sampling.metrics.coverage`, per coordinate: fraction of the
+* coverage (:func:`~benchmarks.common.coverage`, per coordinate: fraction of the
   members' leaf coordinates inside the samples' [min, max]),
 Leaves of static objects are left out of every score.
 
@@ -21,7 +21,7 @@ Leaves of static objects are left out of every score.
   and samples (m^2; the seed's claim is that sampling does not spoil roll-out quality: issue 13
   asks for at most 1.5x the deterministic rollout's),
 * wedge only: fraction of trajectories whose ball centre ends at ``x < 0`` / ``x >= 0``
-  (:func:`~hrn_pyg.sampling.metrics.side_fractions`), samples against the ensemble.
+  (:func:`~benchmarks.common.side_fractions`), samples against the ensemble.
 
 Run: ``python -m benchmarks.uncertainty [--scenes wedge,soft_bounce,cube_collision]
 [--k 16] [--rates 0.05,0.1,0.3] [--members 16] [--steps 20] [--seeds 9,19,29]
@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import model_for
+from benchmarks.common import best_of_k_error, coverage, model_for, object_centres, side_fractions
 from hrn_pyg.checkpoints import CHECKPOINT_DIR
 from hrn_pyg.data.episodes import simulate_episode
 from hrn_pyg.data.graph import HISTORY, NODE, STATIC
@@ -58,14 +58,7 @@ from hrn_pyg.sampling.ensemble import (
     episode_state,
     ground_truth_ensemble,
 )
-from hrn_pyg.sampling.metrics import (
-    best_of_k_error,
-    coverage,
-    energy_score,
-    object_centres,
-    root_spread,
-    side_fractions,
-)
+from hrn_pyg.sampling.metrics import energy_score, root_spread
 from hrn_pyg.sampling.sample import sample
 from hrn_pyg.utils.files import atomic_write_json
 

@@ -5,7 +5,7 @@ For each ridge episode (balls dropped within a few millimetres of the ridge, the
 ``wedge_ridge`` dataset's settings read from its ``meta.json``), this script compares
 
 * the model's probability of ending at ``x < 0``: the share of ``k`` dropout samples whose ball
-  centre ends there (:func:`~hrn_pyg.sampling.metrics.side_fractions`), at each ``--rates``
+  centre ends there (:func:`~benchmarks.common.side_fractions`), at each ``--rates``
   (default: the checkpoint's calibrated rate), and the deterministic rollout's side (0 or 1);
 * two pybullet ensembles of the same episode whose start is shifted by a Gaussian in x and y
   (``--fine-std``, 2 mm, and ``--coarse-std``, 1 cm): the share of members ending at ``x < 0``.

@@ -183,7 +183,7 @@ def sample(
 
     Returns:
         Leaf positions ``[k, steps, L, 3]`` at ``t+1 .. t+steps`` (ancestors are mass-weighted
-        means: :func:`hrn_pyg.sampling.metrics.object_centres` gives the roots).
+        means: :func:`hrn_pyg.data.graph.object_centres` gives the roots).
 
     **Shapes:** initial state over ``N`` nodes, ``L`` of them leaves; output ``(k, steps, L, 3)``.
     """

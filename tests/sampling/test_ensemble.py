@@ -7,14 +7,13 @@ import pytest
 import torch
 
 from hrn_pyg.data.episodes import simulate_episode
-from hrn_pyg.data.graph import NODE
+from hrn_pyg.data.graph import NODE, object_centres
 from hrn_pyg.sampling.ensemble import (
     PerturbationConfig,
     draw_offsets,
     episode_state,
     ground_truth_ensemble,
 )
-from hrn_pyg.sampling.metrics import object_centres
 
 STEPS = 4
 
@@ -36,10 +35,9 @@ def test_perturbation_moves_the_ball_sideways_only_and_repeats(reference):
     members = ground_truth_ensemble("wedge", 5, 3, steps=STEPS, perturbation=pert)
     again = ground_truth_ensemble("wedge", 5, 3, steps=STEPS, perturbation=pert)
     np.testing.assert_array_equal(members, again)
-    centres = object_centres(torch.as_tensor(members[:, 0]), torch.as_tensor(reference["leaf_object"]),
-                             torch.as_tensor(reference["leaf_mass"]))
-    ref = object_centres(torch.as_tensor(reference["positions"][0]), torch.as_tensor(reference["leaf_object"]),
-                         torch.as_tensor(reference["leaf_mass"]))
+    obj, mass = torch.as_tensor(reference["leaf_object"]).long(), torch.as_tensor(reference["leaf_mass"])
+    centres = object_centres(torch.as_tensor(members[:, 0]), obj, 2, mass)
+    ref = object_centres(torch.as_tensor(reference["positions"][0]), obj, 2, mass)
     shift = (centres - ref).numpy()  # [M, O=2 (ball, wedge), 3]
     rng = np.random.default_rng(4)
     for m in range(3):
