@@ -27,7 +27,7 @@ was trained with) is printed and kept in the JSON.
 **Rest.** With ``--rest-steps N`` (0: off) every episode of a count that ends with every object at
 rest (:func:`hrn_pyg.evaluate.rest.objects_at_rest` of pybullet's positions) is rolled out ``N``
 steps from its last state, the network alone, and judged by the package's stability check
-(:func:`hrn_pyg.evaluate.rest_check`: finite, within 50 m, no leaf more than one pitch
+(:func:`experiments.scores.rest_check`: finite, within 50 m, no leaf more than one pitch
 under the ground, rigid shapes within 1 %, drift under 5 cm). An episode that has not come to
 rest by its end is counted as such (give a longer ``--steps``, e.g. 240, for a pile to settle).
 
@@ -54,12 +54,13 @@ from hrn_pyg.checkpoints import load_model
 from hrn_pyg.checkpoints.domain import dataset_domain, report_outside
 from hrn_pyg.data.io import load_episode
 from hrn_pyg.data.scene_file import read_scene_file
-from hrn_pyg.evaluate import evaluate_model, rest_check, summarise
+from hrn_pyg.evaluate import evaluate_model, summarise
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
 
 from benchmarks.common import DEFAULT_MESHES, pile_scene_text, time_rollout
 from experiments.episode_cache import cached_episodes, episode_leaves, windows_of
+from experiments.scores import rest_check
 
 ERRORS = ("position", "shape")
 
@@ -96,7 +97,7 @@ def run_count(model, count: int, args, meshes: tuple[str, ...]) -> dict:
 
 def rest_rows(model, folder: Path, seeds: list[int], steps: int) -> list[dict]:
     """The stability check of ``steps`` steps from the resting end of each episode of ``seeds``
-    (:func:`hrn_pyg.evaluate.rest_check`; an episode not at rest at its end: a row saying so)."""
+    (:func:`experiments.scores.rest_check`; an episode not at rest at its end: a row saying so)."""
     rows = []
     for seed in seeds:
         report = rest_check(model, load_episode(folder / f"episode_{seed:06d}.npz"), steps)

@@ -6,7 +6,7 @@ time is measured:
 1. **Unseen meshes.** For each ``--unseen`` folder (episodes of a scene file; every episode, as
    ``hrn-pyg evaluate --split all``): windows ``--stride`` steps apart, rolled out with the
    episode's own forces; at each horizon (``--horizons``, default 15 and 50) the position and
-   shape MSE of every object (:func:`hrn_pyg.evaluate.per_object_errors`), grouped by the mesh
+   shape MSE of every object (:func:`experiments.scores.per_object_errors`), grouped by the mesh
    the seed drew for it and its material. Beside each group: the same model's error on its
    **own test split** (the ``--own`` folders' ``test`` splits, per material; ``--own-split val``
    when choosing between checkpoints) and the ratio.
@@ -18,7 +18,7 @@ time is measured:
 3. **Rest.** For every mesh and material of the unseen folders, the first ``--rest-episodes``
    episodes whose ground truth ends with every object at rest: the model started from the last
    three states and run ``--rest-steps`` steps with no force, scored by the package's stability
-   check (:func:`hrn_pyg.evaluate.rest_check`; objects should rest from step 0). With
+   check (:func:`experiments.scores.rest_check`; objects should rest from step 0). With
    ``--pybullet-rest WORK`` pybullet's own continuation of each such episode (the same seed run
    ``--rest-steps`` further, in a process of its own, kept under ``WORK`` and reused) is scored
    by the same check: an episode pybullet does not hold either was not at rest, whatever its last
@@ -58,6 +58,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch
 
+from experiments.scores import per_object_errors, rest_check
 from hrn_pyg.checkpoints import load_model, with_applied_options
 from hrn_pyg.data.dataset import EpisodeWindows
 from hrn_pyg.data.episodes import simulate_episode
@@ -68,8 +69,6 @@ from hrn_pyg.evaluate import (
     comparison_figure,
     evaluate_model,
     guarded_rollout,
-    per_object_errors,
-    rest_check,
     select_windows,
     summarise,
 )
@@ -263,7 +262,7 @@ def pybullet_continuation(folder: Path, seed: int, extra_steps: int, work: Path)
 
 def pybullet_rest_report(episode, continuation, steps: int) -> dict:
     """The stability check of pybullet's own ``steps`` frames after the end of ``episode``
-    (from ``continuation``, the same seed run longer), as :func:`hrn_pyg.evaluate.rest_check`
+    (from ``continuation``, the same seed run longer), as :func:`experiments.scores.rest_check`
     scores the model from there; ``replay_diff`` is how far the continuation strays from the
     episode over the episode's frames (above :data:`REPLAY_TOLERANCE` it is not the same run and
     the report says ``same_run`` false)."""

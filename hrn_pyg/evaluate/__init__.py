@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -39,10 +38,8 @@ from hrn_pyg.commands.evaluate import DEFAULT_LONG_HORIZONS, add_arguments  # no
 from hrn_pyg.data.dataset import EpisodeWindows, episode_steps
 from hrn_pyg.data.graph import HISTORY, NODE, copy_object_ids, object_span
 from hrn_pyg.losses import full_shape_loss, shape_groups
-from hrn_pyg.evaluate.rest import REST_SPEED, REST_STEPS, objects_at_rest, rest_metrics
-from hrn_pyg.sampling.ensemble import episode_state
+from hrn_pyg.evaluate.rest import REST_SPEED, REST_STEPS, rest_metrics
 from hrn_pyg.sim.rollout import iterate, rollout
-from hrn_pyg.sim.stability import StabilityLimits, stability_report
 from hrn_pyg.sim.step import NEXT_POS
 from hrn_pyg.utils.device import resolve_device
 from hrn_pyg.utils.files import atomic_write_json, atomic_write_text
@@ -119,33 +116,6 @@ def guarded_rollout(model, windows: list, steps: int, device: torch.device | str
         if not _diverged(err):
             raise
     return pred, np.array([done + 1], dtype=np.int64)  # steps 1..done were finite
-
-
-def per_object_errors(pred: Tensor, truth: Tensor, graph: Batch) -> dict[str, Tensor]:
-    r"""Position and shape error of each object of each trajectory copy at one time.
-
-    Position: the mean over the object's moving leaves of :math:`\frac{1}{3}\lVert \hat x_l - x_l
-    \rVert^2`; shape: the pairwise-distance error over its leaves. Row ``c * O + o`` is object
-    ``o`` of copy ``c``; a static object is NaN.
-
-    **Shapes:** ``pred``, ``truth`` ``[N, 3]``; returns ``{"position": [B*O], "shape": [B*O]}``.
-    """
-    store = graph[NODE]
-    leaf_index, groups = shape_groups(graph)  # moving leaves, one group per (copy, object)
-    span = object_span(store.object)
-    copies = int(store.batch.max()) + 1 if "batch" in store else 1
-    rows = copies * span
-    pos_err = (pred - truth)[leaf_index].pow(2).mean(-1)
-    position = scatter(pos_err, groups, dim=0, dim_size=rows, reduce="mean")
-    shape = torch.full((rows,), float("nan"), dtype=pred.dtype, device=pred.device)
-    present = torch.unique(groups)
-    for g in present.tolist():  # a few objects per copy
-        member = groups == g
-        shape[g] = full_shape_loss(pred[leaf_index[member]], truth[leaf_index[member]], groups[member])
-    empty = torch.ones(rows, dtype=torch.bool, device=pred.device)
-    empty[present] = False
-    position[empty] = float("nan")
-    return {"position": position, "shape": shape}
 
 
 @torch.no_grad()
@@ -356,25 +326,6 @@ def comparison_figure(models: dict[str, Any], window, path: Path, times=(0, 5, 1
             pred = rollout(model, graph, steps, forces, sleep=None)
         rows[name] = torch.cat([store.pos[None], pred])[:, leaves].cpu().numpy()
     rollout_grid(rows, list(times), object_colors(store.object[leaves].cpu().numpy()), path)
-
-
-def rest_check(model, episode: Mapping[str, Any], steps: int,
-               limits: StabilityLimits = StabilityLimits()) -> dict[str, float | bool] | None:
-    """:func:`hrn_pyg.sim.stability.stability_report` of ``steps`` force-free steps of ``model`` from
-    the last state of ``episode``; None when pybullet's objects are not all at rest there
-    (:func:`hrn_pyg.evaluate.rest.objects_at_rest`)."""
-    truth = torch.as_tensor(episode["positions"], dtype=torch.float32)
-    obj = torch.as_tensor(episode["leaf_object"], dtype=torch.long)
-    count = int(obj.max()) + 1
-    if not bool(objects_at_rest(truth, obj, torch.ones_like(obj, dtype=torch.bool), count).all()):
-        return None
-    graph = episode_state(episode, start=truth.shape[0] - 2, steps=1)
-    del graph[NODE].pos_seq, graph[NODE].force_seq
-    with torch.no_grad():
-        try:
-            return stability_report(rollout(model, graph, steps, sleep=None), graph, settle=0, limits=limits)
-        except ValueError as exc:  # left the finite numbers
-            return {"finite": False, "passes_check": False, "holds": False, "error": str(exc)}
 
 
 def _parse_models(specs: list[str]) -> dict[str, str]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hrn_pyg import evaluate
+from experiments import scores
 
 ROOT = Path(__file__).resolve().parents[2]
 MESHES = ROOT / "data" / "shapes" / "meshes"
@@ -61,7 +61,7 @@ def test_the_rest_section_checks_piles_that_end_at_rest(tmp_path, capsys, monkey
             "--rest-steps", "3", "--work", str(tmp_path / "work"), "--out", str(tmp_path / "r.json")]
     falling = bench.main(argv)["rows"][0]["rest"]
     assert falling == [{"seed": 0, "at_rest": False}]
-    monkeypatch.setattr(evaluate, "objects_at_rest", lambda truth, obj, mask, count: mask[:count])
+    monkeypatch.setattr(scores, "objects_at_rest", lambda truth, obj, mask, count: mask[:count])
     rows = bench.main(argv)["rows"][0]["rest"]
     assert len(rows) == 1 and rows[0]["at_rest"] and rows[0]["finite"] and isinstance(rows[0]["holds"], bool)
     assert "rest: holds / at rest, largest drift" in capsys.readouterr().out
