@@ -29,7 +29,6 @@ MODULES = (
     "hrn_pyg.data.hierarchy",
     "hrn_pyg.data.voxelise",
     "hrn_pyg.data.meshes",
-    "hrn_pyg.data.procedural",
     "hrn_pyg.data.effects",
     "hrn_pyg.data.scenes",
     "hrn_pyg.data.expressions",

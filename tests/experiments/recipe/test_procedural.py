@@ -1,4 +1,4 @@
-"""Procedural shapes (hrn_pyg.data.procedural): deterministic, unit-sized, filled as the union of
+"""Procedural shapes (experiments.recipe.procedural): deterministic, unit-sized, filled as the union of
 their pieces with the cavities left open, really concave where meant to be, and written to files
 that a rerun leaves byte for byte as they were."""
 
@@ -13,7 +13,7 @@ import pytest
 import trimesh
 
 from hrn_pyg.data.meshes import clean_mesh, load_mesh, solid_points
-from hrn_pyg.data.procedural import (
+from experiments.recipe.procedural import (
     KINDS,
     convex_pieces,
     main,
@@ -193,7 +193,7 @@ def test_a_cup_that_coarse_v_hacd_fills_is_decomposed_at_a_finer_resolution(tmp_
 
 
 def test_the_roof_is_a_closed_gable_with_its_ridge_on_the_y_axis():
-    from hrn_pyg.data.procedural import gable_roof
+    from experiments.recipe.procedural import gable_roof
 
     roof = gable_roof(width=0.4, length=0.3, eaves=0.08, ridge=0.2)
     assert roof.is_watertight and roof.is_convex
@@ -205,7 +205,7 @@ def test_the_roof_is_a_closed_gable_with_its_ridge_on_the_y_axis():
         gable_roof(eaves=0.3, ridge=0.2)
 
 
-SHIPPED = Path(__file__).resolve().parents[2] / "data" / "shapes" / "meshes"
+SHIPPED = Path(__file__).resolve().parents[3] / "data" / "shapes" / "meshes"
 
 
 def test_the_shipped_meshes_are_what_the_generator_makes_byte_for_byte():

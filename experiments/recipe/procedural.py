@@ -25,7 +25,7 @@ A concave shape is the concatenation of closed convex pieces overlapping by :dat
 (never sharing an edge), so trimesh reads the union as closed with no boolean engine;
 :func:`union_volume` measures it.
 
-``python -m hrn_pyg.data.procedural --out DIR --per-kind N --seed S`` writes
+``python -m experiments.recipe.procedural --out DIR --per-kind N --seed S`` writes
 ``DIR/<kind>_<i:03d>.obj`` (:func:`make_shape` ``(kind, S + i)``) and ``DIR/index.json``.
 """
 
@@ -266,9 +266,9 @@ def write_shapes(out: str | Path, per_kind: int, seed: int = 0, kinds: Sequence[
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m hrn_pyg.data.procedural --out DIR --per-kind N --seed S [--kinds ...]``; a bad
+    """``python -m experiments.recipe.procedural --out DIR --per-kind N --seed S [--kinds ...]``; a bad
     argument is one line on stderr and exit code 2."""
-    parser = argparse.ArgumentParser(prog="python -m hrn_pyg.data.procedural",
+    parser = argparse.ArgumentParser(prog="python -m experiments.recipe.procedural",
                                      description="Write procedural training shapes as OBJ files and an index.")
     parser.add_argument("--out", required=True, help="folder for the OBJ files and index.json")
     parser.add_argument("--per-kind", type=int, required=True, help="shapes of each kind")
