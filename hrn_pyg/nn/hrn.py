@@ -70,8 +70,7 @@ class HRNConfig(NetworkConfig):
         collision_radius: metres; leaves of different objects closer than this interact.
         dropout_rate: default rate of :meth:`HRN.sample_masks` (0: deterministic).
         dropout_modules: which sub-modules accept a dropout mask (names from :data:`MODULE_NAMES`).
-        skip_idle_modules: skip the force / collision module when there is no force / collision
-            edge (same result; False runs them on empty input).
+        skip_idle_modules: skip the force / collision module without force / collision edges.
         rigid_fit: replace the predicted leaf motion of every rigid object by its best rigid
             transform (:func:`hrn_pyg.nn.rigid.fit_rigid_motion`), in training and at inference.
         rigid_fit_rest: fit that transform from the object's rest shape (``rest_pos``) rather than
@@ -80,21 +79,18 @@ class HRNConfig(NetworkConfig):
             (``graph['particle'].rest_pos``), so an elastic restoring effect is learnable.
         ground_contact: a state column :math:`\mathrm{clip}(z / r_c, -1, 1)`, the distance to the
             ground saturated beyond the collision radius.
-        mirror_average: frame averaging over the reflections of ``mirror_planes``,
-            :math:`u = \frac{1}{|G|} \sum_{M \in G} M^{-1} f(M s)`: exactly equivariant under them, one
-            pass per element; :meth:`HRN.sample_masks` draws a mask for each.
-        mirror_planes: the group averaged over: ``"x"`` (x = 0; two passes), ``"xy"`` (x = 0,
-            y = 0 and the half-turn about z; four) or ``"d4"`` (also x and y exchanged: the eight
-            symmetries of the square voxel lattice).
+        mirror_average: frame averaging over the group of ``mirror_planes``,
+            :math:`u = \frac{1}{|G|} \sum_{M \in G} M^{-1} f(M s)`, one pass (and mask) per element.
+        mirror_planes: ``"x"`` (x = 0; two passes), ``"xy"`` (x = 0, y = 0, the half-turn about z;
+            four) or ``"d4"`` (also x and y exchanged: the square lattice's eight symmetries).
         pitch_aware: read each scene relative to its voxel pitch :math:`p` (:mod:`hrn_pyg.nn.pitch`)
             with :math:`s = p / p_{ref}`: collision radius :math:`r_c s`, positions divided by
             :math:`s`, and a last state column :math:`\log_2 s`.
         reference_pitch: :math:`p_{ref}` (m), where a pitch-aware model reads a scene as a plain one.
         ground_projection: after the rigid fit, keep every moving leaf on or above :math:`z = 0`
-            (:func:`hrn_pyg.sim.step.ground_projected_positions`): a rigid object lifted as a whole
-            by its lowest leaf's depth, a soft or cloth leaf alone.
+            (:func:`hrn_pyg.sim.step.ground_projected_positions`; a rigid object lifted whole).
         ground_projection_rigid: the ground projection also lifts rigid objects (False: only soft
-            and cloth leaves; a rigid leaf is a voxel centre and may rest up to a pitch under).
+            and cloth leaves).
         rigid_ground_depth: pitches under the plane a rigid object's lowest leaf may lie before it
             is lifted (back to that depth); 0 lifts every rigid leaf onto the plane.
         rigid_ground_speed: the furthest (pitches) a rigid object's leaves may move in the step for
@@ -104,21 +100,15 @@ class HRNConfig(NetworkConfig):
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into rigid objects'
             leaves (False drops them, :func:`within_siblings_of`; a setting to train with).
         corotated_rest: with ``rest_offsets``, each soft body's and cloth's rest shape is turned
-            every step by the best-fitting rotation onto its current leaves
-            (:func:`hrn_pyg.sim.step.corotated_rest_positions`), so rest offsets read deformation,
-            not orientation (a setting to train with).
+            every step onto its current leaves (:func:`hrn_pyg.sim.step.corotated_rest_positions`).
         cloth_clearance: pitches in front of another object's surface to which a cloth leaf that a
-            step leaves inside it is moved back (:mod:`hrn_pyg.sim.cloth_contact`; 0: off). A rule
-            after the network (:mod:`hrn_pyg.sim.rules`).
-        solid_clearance: the same rule for soft and rigid leaves (a rigid object moved as a whole
-            by the longest push its leaves need; 0: off).
+            step leaves inside it is moved back (:mod:`hrn_pyg.sim.cloth_contact`; 0: off).
+        solid_clearance: the same rule for soft and rigid leaves (a rigid object moved whole; 0: off).
         energy_limit: no step ends with more energy per scene copy than it started with plus the
-            pushes' work (:mod:`hrn_pyg.sim.energy`): the objects that gained energy move by the
-            fraction of their step that closes the balance. A rule after the network.
+            pushes' work (:mod:`hrn_pyg.sim.energy`).
         equivariant: the network of :mod:`hrn_pyg.nn.equivariant`, exactly equivariant in one pass
-            under turns about z and mirrors in vertical planes (MLPs read invariants, horizontal
-            outputs are weighted sums of the scene's horizontal vectors). Needs a horizontally
-            isotropic normaliser; not with ``mirror_average``.
+            under turns about z and vertical mirrors; needs a horizontally isotropic normaliser,
+            not with ``mirror_average``.
         vector_channels: :math:`C`, the horizontal vectors each effect carries (``equivariant``).
         collision_force: the collision module also reads the external force on both ends of an
             edge, so pushed bodies resist in the step of the push.

@@ -18,18 +18,12 @@ it. One call of :meth:`HRNDynamics.sample_next`
 steps ``B`` environments times ``k`` samples as one batched graph, each copy with its own
 dropout masks (one per step per copy, the seed paper's graph-convolutional dropout).
 
-Speed (the environment step is the RL loop's cost): every pool entry shares one hierarchy, so
-the batched static graph depends only on the number of copies; it is collated once per copy
-count and cached, and only the node attributes that differ between pool entries (the masses
-and rest shapes) are gathered per step. Each entry's graph is built as an episode's
-(:func:`hrn_pyg.data.graph.episode_structure`: the hierarchy of the first pool scene's first
-frame, the entry's first frame as its rest shape), so the environment steps a scene exactly as a
-rollout from the same pybullet start does. At rate 0 the ``k`` samples are one deterministic
-prediction, computed once per environment and repeated. A step is one :func:`hrn_pyg.sim.sleeping.predict_held`
-(the model's prediction with the objects at rest held still) and no next graph: the collision
-search that :func:`hrn_pyg.sim.step.step` would make for it is left out, since the next call
-builds its graph from the new state. The objects of a batch are found once per copy count, and
-the force module is told that a force acts, so the step asks the device nothing it need not.
+Each pool entry's graph is built as an episode's (:func:`hrn_pyg.data.graph.episode_structure`),
+so the environment steps a scene exactly as a rollout from the same pybullet start does. Speed:
+the entries share one hierarchy, so the batched graph is collated once per copy count and only
+the masses and rest shapes are gathered per step; at rate 0 the ``k`` samples are one prediction
+repeated; a step is one :func:`hrn_pyg.sim.sleeping.predict_held` without the next graph's
+collision search (the next call builds its graph from the new state).
 """
 
 from __future__ import annotations

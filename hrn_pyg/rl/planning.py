@@ -30,23 +30,11 @@ closed loop plans once per held action.
 - ``risk``: :math:`S_i = \bar R_i - c\, \sigma_i` (mean minus ``risk_std`` times the standard
   deviation over the K futures, population form), which prefers a sequence whose futures agree.
 
-**Cross-entropy method** (:func:`cem`, TorchRL's ``CEMPlanner`` in spirit): a Gaussian
-:math:`\mathcal N(\mu, \sigma^2)` over ``(H, A)``, ``N`` samples clipped to the bounds (sample 0
-is :math:`\mu` itself), the ``E`` best by score give the next :math:`\mu, \sigma`
-(:math:`\sigma \ge` ``min_std`` :math:`F_{\max}`); after ``iterations`` the best sequence seen is
-returned. Between control steps :math:`\mu` is the last plan shifted by one step (warm start).
-TorchRL's planners roll candidates out through a batch-locked environment with one future per
-candidate and its global random stream; here the K futures per candidate, shared masks and a
-generator of the planner's own are the point, so the loop is written out.
-
-**Gradient refinement** (:func:`refine`): a few Adam steps on the chosen sequence through the
-differentiable rollout, minimising :math:`-S` (the same score and masks as the search), each
-step projected back into the bounds; the best sequence seen is kept, so the loss never rises.
-
-**Closed loop** (:func:`plan_episode`): at every control step the state is rebuilt from
-pybullet's own leaves (the last three frames), the plan is redone, its first action is applied in
-pybullet, and the task's goal is judged there, as :func:`~hrn_pyg.rl.evaluate.closed_loop_in_pybullet`
-judges a policy.
+**Cross-entropy method** (:func:`cem`, TorchRL's ``CEMPlanner`` in spirit, written out for the
+K futures per candidate with shared masks), warm-started from the last plan shifted by one step;
+then optionally **gradient refinement** (:func:`refine`) through the differentiable rollout. The
+**closed loop** (:func:`plan_episode`) plans from pybullet's own leaves at every control step and
+judges the goal there.
 
 **Shapes:** state ``(S,)``; actions ``(N, H, A)``; roots ``(N, K, H, O, 6)``; returns
 ``(N, K)``; scores ``(N,)``.

@@ -16,23 +16,13 @@ single-process collector (``torchrl.collectors.Collector``, the 0.14 name of
   next state is one of the ``k`` samples drawn at random and only its own goal test rewards
   (the ablation that separates a stochastic model from an optimistic reward).
 
-Every update logs the partial-hit share of its batch two ways: over all its steps
-(``partial_hit_share``, the fraction at which some but not all of the ``k`` samples met the goal,
-:func:`~hrn_pyg.rl.env.partial_hits`, the only steps at which relaxation changes a reward) and
-over its goal-reaching steps, those with at least one sample in the goal (``near_miss_share``,
-:func:`~hrn_pyg.rl.env.near_miss_share`; empty when no step reached the goal).
-
-``--init-policy PATH`` starts the actor from a policy checkpoint (another run's ``policy.pt``,
-or a task's planner cloned into an actor by ``python -m experiments.rl.clone`` in a checkout);
-the critic starts fresh. The file's SHA-256 is part of the run's identity
-(``init_policy_sha256``), so a run resumes only from the same initial policy.
-
-The rate of the stochastic modes is ``--dropout-rate`` when given, else the model's calibrated
-rate (``hrn-pyg calibrate``; :attr:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.calibrated_rate`), else
-the task's ``dropout_rate``.
-
-Without ``--model`` the environment steps :class:`~hrn_pyg.rl.dynamics.PointMassDynamics`, an
-analytic **development / smoke-test** dynamics; its curves are not the paper's result.
+Every update logs the partial-hit share of its batch (steps at which some but not all of the
+``k`` samples met the goal, :func:`~hrn_pyg.rl.env.partial_hits`) and its near-miss share over
+the goal-reaching steps (:func:`~hrn_pyg.rl.env.near_miss_share`). ``--init-policy PATH``
+starts the actor from a policy checkpoint (its SHA-256 is part of the run's identity); the
+stochastic modes' rate is ``--dropout-rate``, else the model's calibrated rate, else the task's.
+Without ``--model`` the environment steps :class:`~hrn_pyg.rl.dynamics.PointMassDynamics`, a
+development dynamics whose curves are not the paper's result.
 
 Output (``--out``, default ``runs/rl/<task>/<mode>/seed<seed>``)::
 
@@ -49,17 +39,8 @@ Output (``--out``, default ``runs/rl/<task>/<mode>/seed<seed>``)::
                    (:func:`~hrn_pyg.rl.curves.curve_metrics`) and, with --model, the pybullet
                    ground-truth check
 
-With ``--model``, the run ends with :func:`~hrn_pyg.rl.evaluate.ground_truth_success`: the
-final policy's episodes in the learned model (dropout 0) are replayed open loop in pybullet
-from the same start scene and goal and run closed loop there, and the success rates are
-reported side by side.
-
-This module holds the training of one run: configuration, mode settings, actor-critic, the PPO
-loop with its log and checkpoint, and the command. Its parts that read a command line
-(:func:`add_training_arguments`, :func:`setup_from_args`, :func:`train_from_args`) also serve
-the sweeps over modes and seeds that compare the modes (``experiments/rl/sweep.py`` beside the
-package); the evaluation of a policy is :mod:`hrn_pyg.rl.evaluate`, the curve's metrics
-:mod:`hrn_pyg.rl.curves`.
+The sweeps over modes and seeds (``experiments/rl/sweep.py``) reuse :func:`add_training_arguments`,
+:func:`setup_from_args` and :func:`train_from_args`.
 """
 
 from __future__ import annotations
@@ -120,24 +101,11 @@ class PPOConfig:
     """PPO hyper-parameters (standard clipped PPO; the seed paper does not give its own).
 
     ``frames_per_batch`` frames are collected per update from ``num_envs`` environments stepped
-    together (so ``frames_per_batch / num_envs`` steps each); the batch is then used for
-    ``epochs`` passes of ``frames_per_batch / minibatch`` gradient steps. ``threads`` caps
-    torch's intra-op threads during training: the networks are tiny, and more threads than free
-    cores made one update ten times slower on the 2-core development machine.
-
-    Defaults (docs/rl.md): one update collects one 10-step episode's worth of frames from 16
-    environments (160 frames). With the learned cube_push HRN at k = 5 that was measured at
-    about 0.8 s per update at rate 0.1 and 0.25 s at rate 0 (1 thread, 2 cores shared with a
-    few other jobs), so a 100-update run takes under 2 minutes on a quiet core; on a machine
-    oversubscribed ~5x it took ~4 s (rate 0) per update. ``gamma = 0.9`` makes a shorter
-    successful episode clearly worth more than a longer one (0.9^3 vs 0.9^8 against 0.99^3 vs
-    0.99^8) and ``lr = 3e-3``; with them PPO on the point-mass cube_push stand-in reached its
-    final length in about 50 updates, where ``gamma = 0.99, lr = 1e-3`` had not started to
-    learn after 150.
-
-    ``eval_every`` > 0 evaluates the policy apart from training every that many updates on
-    ``eval_scenes`` fixed scenes (:mod:`hrn_pyg.rl.success_curve`, ``eval.csv``); neither setting
-    changes training, so neither is part of a run's identity when it resumes.
+    together; the batch is used for ``epochs`` passes of ``frames_per_batch / minibatch`` gradient
+    steps. ``threads`` caps torch's intra-op threads (the networks are tiny). ``gamma = 0.9``
+    makes a shorter successful episode clearly worth more than a longer one. ``eval_every`` > 0
+    evaluates the policy every that many updates on ``eval_scenes`` fixed scenes
+    (:mod:`hrn_pyg.rl.success_curve`); neither is part of a run's identity.
     """
 
     updates: int = 100

@@ -47,60 +47,39 @@ class TrainConfig:
         w_local, w_global, w_shape: loss weights.
         train_dropout: dropout rate on ``model.dropout_modules`` while training (0: none).
         checkpoint_every, eval_every: steps between checkpoints / validation scores.
-        snapshot_every: keep the model (weights, config and normaliser, like ``model.pt``) every
-            that many steps in ``snapshots/step_<step>.pt``, so a model can be selected on
-            validation afterwards; 0: none.
-        ema_decay: keep an exponential moving average of the weights,
-            ``w_avg <- d * w_avg + (1 - d) * w`` after every optimiser step
-            (:class:`~hrn_pyg.utils.weight_average.WeightAverage`), starting at the run's first
-            weights: the average is the run's model (``model.pt``, snapshots) and is what the
-            validation loss scores, and ``last.pt`` keeps both it and the trained weights, so a
-            resumed run continues the same average. It spans about ``1 / (1 - d)`` steps
-            (0.997: about 330). 0: off, the last weights are the model.
+        snapshot_every: keep the model every that many steps in ``snapshots/step_<step>.pt``
+            (for selection on validation); 0: none.
+        ema_decay: ``d`` of a moving average of the weights, ``w_avg <- d * w_avg + (1 - d) * w``
+            after every step (:class:`~hrn_pyg.utils.weight_average.WeightAverage`, about
+            ``1 / (1 - d)`` steps): the run's model and what validation scores; 0: off.
         seed: seeds the model initialisation, the window draws and the dropout masks.
         threads: torch intra-op threads (0: leave torch's default).
         input_noise: standard deviation (m) of a random walk added to the input positions
-            ``x_{t-2}, x_{t-1}, x_t`` of each window (GNS's remedy for error accumulation); the
-            first step's velocity target is measured from the noisy ``x_t``. Rigid objects get one
-            shift per object, so their inputs stay rigid (``gns``: every leaf its own walk, and
-            the target corrects the velocity noise only, as the GNS paper's).
-        input_noise_ratio: with ``input_noise`` 0, the noise is this fraction of the mean
-            per-axis velocity scale of the fitted normaliser (the ``gns`` preset's
-            :data:`~hrn_pyg.nn.gns.NOISE_TO_VELOCITY_STD`); the resolved ``input_noise`` is what
-            ``config.json`` records. 0: off.
+            ``x_{t-2}, x_{t-1}, x_t`` (GNS's remedy for error accumulation), one shift per rigid
+            object (``gns``: one per leaf, the target correcting the velocity noise only).
+        input_noise_ratio: with ``input_noise`` 0, the noise as a fraction of the normaliser's
+            mean velocity scale (``gns``: :data:`~hrn_pyg.nn.gns.NOISE_TO_VELOCITY_STD`); 0: off.
         device: where the model and batches live ("" : CUDA when available, else CPU).
         workers: background processes assembling batches (0: in the training process).
-        stop_at: end the training after this many of its ``steps`` (the learning-rate schedule
-            still spans ``steps``) and write ``model.pt`` of that step: a stage that keeps an
-            early point of a longer schedule; 0: train all ``steps``.
-        time_limit: minutes after which this call stops as if interrupted (checkpoint written,
-            ``--resume`` continues); 0: no limit. For fixed-length sittings and lent machines.
-        augment_symmetry: map every training window by a random turn about the vertical axis
-            (and a mirror half the time), one per copy, and give the normaliser the symmetric
-            statistics (no horizontal mean): :mod:`hrn_pyg.data.symmetry`.
+        stop_at: end after this many of ``steps`` (the schedule still spans ``steps``) and write
+            that step's ``model.pt``; 0: train all ``steps``.
+        time_limit: minutes after which this call stops as if interrupted (``--resume``
+            continues); 0: no limit.
+        augment_symmetry: turn every window about the vertical axis at random (a mirror half the
+            time), with symmetric normaliser statistics (:mod:`hrn_pyg.data.symmetry`).
         w_rest: weight of :func:`~hrn_pyg.losses.rest_velocity_loss`, the absolute velocity error
             of the objects the ground truth has at rest (0: off, the seed paper's loss).
         rest_threshold: metres per step under which a root's true velocity counts as rest.
         rest_rollout: R >= 1 starts every window whose scene is at rest from the model's own
-            rollout of 1 to R steps (drawn per batch, no gradient) and trains it to hold the state
-            it reached (:func:`held_rest_sequence`), so the slow creep of a long rollout from rest
-            is seen where it happens, away from the true rest state; 0: off.
+            rollout of 1 to R steps (no gradient) and trains it to hold that state
+            (:func:`held_rest_sequence`); 0: off.
         rest_rollout_draw: how R is drawn from 1..rest_rollout each batch: uniform, or log
-            (log-uniform, as many draws in 1-16 as in 16-256, so long rollouts are seen without
-            paying for one every batch).
-        init_from: a model checkpoint (``model.pt``) to start from instead of a fresh network:
-            its weights, normaliser and model settings are kept, the optimiser starts anew
-            (fine-tuning); "" : a fresh network. Ignored when a run resumes.
-        extra_data: more episode folders, comma-separated, whose episodes join ``data``'s in
-            every split (e.g. a fine-tuning on a mix of the scene's data and a dataset of one
-            situation it must learn); "" : ``data`` alone. A seed repeats across them only
-            between different scenes (``meta.json``).
-        data_weights: ``name=weight`` pairs, comma-separated, ``name`` a folder of ``data`` or
-            ``extra_data`` by its last path component: each window of that folder is drawn
-            ``weight`` times as often as a window of a folder not named (weight 1). Windows are
-            otherwise drawn uniformly, so a folder's share of the batches is its share of the
-            windows; a weight corrects that (a small dataset of one situation the model must
-            learn, a large one it knows). "" : every window equally likely.
+            (log-uniform).
+        init_from: a ``model.pt`` to fine-tune (weights, normaliser and model settings kept, a
+            fresh optimiser); "" : a fresh network. Ignored when a run resumes.
+        extra_data: more episode folders, comma-separated, joining ``data``'s in every split.
+        data_weights: ``name=weight`` pairs, comma-separated, ``name`` a folder's last path
+            component: its windows are drawn ``weight`` times as often as others (default 1).
     """
 
     preset: str = "ours"
