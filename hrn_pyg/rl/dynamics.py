@@ -10,10 +10,7 @@ means, ``hrn_pyg.sampling`` gives the ``k`` batched futures).
 every object is a sphere-like point mass under the applied force, gravity, ground friction and
 (optionally) position-projected contacts. Its "dropout" is Gaussian noise whose spread follows
 the relative standard deviation of an inverted-dropout unit, so rate 0 is exactly deterministic.
-It lets the environment, the collectors and PPO be built and tested before a trained HRN exists.
-
-Velocities follow the package convention: a velocity is the per-step displacement,
-``v_t = x_t - x_{t-1}``, so ``x_{t+1} = x_t + v_{t+1}``.
+Velocities are per-step displacements, ``v_t = x_t - x_{t-1}``.
 """
 
 from __future__ import annotations

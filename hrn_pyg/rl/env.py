@@ -1,22 +1,10 @@
 """A TorchRL environment whose step is a (learned, stochastic) physics predictor.
 
 Each step samples ``k`` next states (5 in the seed paper) with Monte Carlo dropout and applies
-**reward relaxation** (seed paper, section 3.3; :func:`choose_next`, called by the step): if any
-sample reaches the goal, the agent is rewarded 1 and the episode terminates (the first such
-sample becomes the next state); otherwise
-one sample, drawn uniformly with the environment's generator, becomes the next state, and the
-reward is the task's ``step_penalty`` (0 by default, so returns are 1 on success and 0 otherwise
-and the discount alone favours short episodes). The episode is truncated after
-``task.max_steps`` steps. A task with ``hold_steps`` :math:`H > 1` ends (and rewards 1) only
-after :math:`H` goal-reaching steps in a row; each of them is judged over the samples as above.
-
-Without relaxation (``relax=False``, the ``stochastic_unrelaxed`` training mode) the drawn
-sample is the next state whatever the others do, and the reward is that sample's own goal test:
-the environment is stochastic but is not judged optimistically. Every step also reports how
-many of the ``k`` samples met the goal (``goal_hits``), so that one can tell how often the
-spread of the samples straddles the goal (:func:`partial_hits`), which is the only case in
-which relaxation changes anything, and how often it does so among the steps that reach the goal
-(:func:`near_miss_share`).
+**reward relaxation** (seed paper, section 3.3; :func:`choose_next`): a step rewards 1 and ends
+the episode if any sample reaches the goal, else one sample drawn at random is the next state
+(:class:`HRNEnv` gives the rule, the unrelaxed variant and ``hold_steps``). ``goal_hits`` counts
+the samples in the goal, for :func:`partial_hits` and :func:`near_miss_share`.
 """
 
 from __future__ import annotations
@@ -293,9 +281,6 @@ def near_miss_share(goal_hits: Tensor, k: int, mask: Tensor | None = None) -> fl
     .. math:: \frac{\#\{0 < h < k\}}{\#\{h > 0\}},
 
     counted over the steps where ``mask`` is True (None: all). None when no step met the goal.
-    Under relaxation an episode ends at its first goal-reaching step (``hold_steps`` 1), so the
-    partial-hit share over all steps is at most one over the mean episode length; this share
-    is not capped.
 
     **Shapes**: goal_hits any, mask the same (bool) -> a number.
     """
