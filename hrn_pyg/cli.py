@@ -1,26 +1,15 @@
 """The ``hrn-pyg`` command: one entry point, one sub-command per job.
 
-Each sub-command lives in the module that does the work; that module exposes
-``add_arguments(parser)`` and ``run(args) -> int``. Bad input raises ``ValueError`` (or
-``FileNotFoundError``) with a message naming the problem; here it becomes one line on stderr
-and exit code 2.
+A sub-command's work is one module's ``run(args) -> int``; its ``add_arguments(parser)`` is in
+the torch-free :mod:`hrn_pyg.commands` where there is one (:func:`arguments_module`). Bad input
+raises ``ValueError`` (or ``FileNotFoundError``); here it becomes one line on stderr, exit code 2.
 
-One name, one meaning, across every sub-command (:data:`MEANINGS` says what each shared
-name means; ``tests/test_command_line.py`` checks it, and holds the experiment scripts beside the
-package, ``python -m experiments.rl.<script>``, to the same rule):
-
-* a count and a list never share a name: a count is a plain plural (``--episodes``,
-  ``--updates``) or ``--num-<things>`` where the things are listed elsewhere (``--num-envs``,
-  a sweep's ``--num-seeds``); a list is the plural alone (``--episode-seeds 8,18``, ``--horizons 5,15``,
-  a sweep's ``--modes``);
-* steps say which: ``--episode-steps`` (model steps of a simulated episode), ``--horizon``
-  (model steps predicted from a start), ``--train-steps`` (optimiser steps);
-* seeds say what they seed: ``--seed`` (a run's own random draws: initialisation, batches,
-  noise), ``--episode-seed`` / ``--episode-seeds`` (the pybullet episodes simulated),
-  ``--first-seed`` (the first of consecutive seeds, one per episode or run counted by another
-  option), ``--sample-seed`` (the dropout masks of sampled futures);
-* every ``--help`` shows each default (:class:`~hrn_pyg.utils.options.HelpFormatter`); a command
-  that draws a progress bar takes ``--no-progress``; ``--scene`` takes the built-in scenes only.
+One name, one meaning, across every sub-command and the experiment scripts (:data:`MEANINGS`;
+``tests/test_command_line.py`` checks it): a count is a plain plural (``--episodes``) or
+``--num-<things>``, a list the plural alone (``--episode-seeds 8,18``); steps and seeds say which
+(``--episode-steps``, ``--horizon``, ``--train-steps``; ``--seed``, ``--episode-seed``,
+``--first-seed``, ``--sample-seed``); every ``--help`` shows each default; a command that draws
+a progress bar takes ``--no-progress``; ``--scene`` takes the built-in scenes only.
 
 An old spelling of a renamed option still works for one release with a one-line warning on
 stderr (:func:`~hrn_pyg.utils.options.add_renamed`; :data:`RENAMED` lists them).
