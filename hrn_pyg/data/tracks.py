@@ -14,17 +14,10 @@ into the episode format of ``docs/data.md``:
   clustered (:func:`~hrn_pyg.data.hierarchy.build_hierarchy`);
 * every ``frame_stride``-th frame is kept, each step's force the mean of its frames'.
 
-Two ``.npz`` layouts are read (:data:`FORMATS`), without pickle:
-
-``npz`` (:func:`save_tracks` writes it)
-    ``positions [T, P, 3]`` (m), ``object [P]`` (any integers, numbered in increasing order),
-    ``material [P]`` (codes 0-3 or names, one per object); optional ``mass [P]`` (kg),
-    ``forces [T-1, P, 3]`` (N), ``stiffness [O]`` (0..1), ``dt`` (s), ``pitch`` (m).
-
-``learning_to_simulate`` (GNS's datasets)
-    ``position [T, N, dim]`` (``dim`` 2 or 3) and ``particle_type [N]``, or ``position_<i>`` /
-    ``particle_type_<i>`` per trajectory; each type one object, its material from
-    ``particle_materials``; ``dt`` given.
+Two ``.npz`` layouts are read without pickle (:data:`FORMATS`; the keys of each are in
+docs/data.md, "Your own trajectories"): ``npz`` (:func:`save_tracks` writes it) and
+``learning_to_simulate`` (GNS's datasets, each particle type one object of a material from
+``particle_materials``).
 
 Positions are turned so that ``up`` becomes z (2-D ``(x, y)`` becomes ``(x, 0, y)``) and
 shifted so that the height ``ground`` is ``z = 0``.
