@@ -17,6 +17,11 @@ MATERIALS = ("rigid", "soft", "cloth", "static")
 #: Material codes: the value of ``object_material`` and the column of ``graph['particle'].material``
 #: (static objects never move).
 RIGID, SOFT, CLOTH, STATIC = (MATERIALS.index(name) for name in ("rigid", "soft", "cloth", "static"))
+#: The six tetrahedra of the Kuhn (Freudenthal) split of a lattice cell, as indices into its
+#: corners numbered ``i + 2 j + 4 k`` for corner offset ``(i, j, k)``. Every one shares the main
+#: diagonal 0-7 and neighbouring cells split their common face the same way, so the mesh is
+#: conforming without any parity bookkeeping.
+KUHN_TETS = ((0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7))
 #: Model states before the current one that a state carries (``x_{t-2}, x_{t-1}`` before ``x_t``).
 HISTORY = 2
 #: Gravity (m/s^2), along -z in every scene.

@@ -17,20 +17,15 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from hrn_pyg.data import kinds
 from hrn_pyg.utils.files import atomic_write_text
 
 #: Relative tolerance when snapping voxel centres to integer lattice indices (float round-off
 #: from trimesh's transform is ~1e-16 of the pitch; anything above 1e-3 means "not on a lattice").
 LATTICE_SNAP_TOL = 1e-3
 
-#: The six tetrahedra of the Kuhn (Freudenthal) split of a unit cube, as indices into the cube's
-#: corners numbered ``i + 2 j + 4 k`` for corner offset ``(i, j, k)``. Every tet shares the main
-#: diagonal 0-7 and neighbouring cubes split their common face the same way, so the mesh is
-#: conforming without any parity bookkeeping.
-KUHN_TETS = np.array(
-    [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]],
-    dtype=np.int64,
-)
+#: :data:`hrn_pyg.data.kinds.KUHN_TETS` as an array.
+KUHN_TETS = np.array(kinds.KUHN_TETS, dtype=np.int64)
 
 
 def _check_mesh(mesh: trimesh.Trimesh) -> None:

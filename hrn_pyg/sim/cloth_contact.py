@@ -42,18 +42,49 @@ that :mod:`hrn_pyg.sim.penetration` counts cloth leaves inside, so a leaf that t
 alone on a flat face is not counted there. Asking every nearby plane, not only the nearest,
 keeps a leaf beside a convex edge or corner (behind the corner's diagonal plane, in front of the
 face's) where it is; a leaf inside a concave notch may be missed, never pushed wrongly. Pairs
-come from the step's collision edges at :math:`x_t` (radius above :math:`\rho` plus a step's
-move). Only cloth leaves move; the object is not pushed back (the network already decided its
-motion), and a cloth leaf held still by sleeping stays where it is.
+come from the step's collision edges at :math:`x_t` and from the leaves within :math:`\rho` of
+each other at :math:`x_{t+1}` (a fast body crosses several pitches in one step). Only the
+projected leaves move; a leaf held still by sleeping stays where it is.
+
+**Stopped where it enters.** A leaf whose step from :math:`x_t` ends inside another object's
+solid (the tetrahedra of :mod:`hrn_pyg.sim.penetration` at :math:`x_{t+1}`, the solid the
+plausibility report measures depth in) is stopped just before the fraction of its step at
+which it enters; a rigid object takes the smallest fraction of its leaves. This only
+shortens steps, so it adds no energy; the planes above then push out what is left.
+
+**Out of the solid.** The planes see a leaf only within :math:`\rho` of the surface, and a
+deformed soft body's turned normals may not match its surface. So a second pass asks the solid
+itself: a projected leaf in a tetrahedron of another object moves to :math:`\delta` beyond the
+nearest *anchor* of the tetrahedron's corners (each leaf's nearest surface leaf at rest), along
+the anchor's turned normal. A rigid object moves whole by its leaves' longest push; of two
+bodies of one material the smaller moves whole, out of the larger, and of two rigid bodies also
+back off the larger's leaves inside it.
+
+**A soft body gives way.** A leaf :math:`q` of another object that is not cloth inside a
+tetrahedron of a soft body moves that tetrahedron's corners :math:`v` along a direction
+:math:`n` until :math:`(x_v - x_q) \cdot n \ge \delta`: the tetrahedron then lies beyond a
+plane through :math:`q`, so :math:`q` is out of it. :math:`n` is whichever of :math:`q`'s
+outward normal (at its anchor) and the soft body's inward normals at its corners' anchors needs
+the shortest longest push; each corner moves by its longest push, in :data:`GIVE_WAY_PASSES`
+passes. This keeps a box's corner out of a soft body draped over it, and the larger of two soft
+bodies out of the smaller.
+
+**Stretch limit.** Before and after the passes above, no lattice edge of a soft body (two leaves
+one pitch apart at rest) is longer than :data:`STRETCH_LIMIT` times its rest length: an edge
+over it has both ends moved towards each other by the excess, equal and opposite, so the body's
+centre of mass stays. In pybullet's validation episodes edges stretch to at most 1.3-2.5 times
+their length, more only in a small body at 0.025 m; a network's future stretched further has
+tetrahedra so long that another body's leaves fall inside them far from any surface.
 
 **Shapes.** :func:`cloth_contact` gives a :class:`ClothContact` of a graph with ``N`` nodes once
 per rollout; :meth:`ClothContact.project` maps ``pos`` ``[N, 3]`` to ``[N, 3]``, and calling
 the contact maps a step's prediction (positions and velocities) to the projected one, which is
-how a rollout applies it (``StepOptions.position_projection``).
+how :class:`~hrn_pyg.sim.rules.StepRules` applies it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,14 +95,24 @@ from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import CHILD_TO_PARENT, COLLISION, NODE, leaf_to_ancestor_mean, node_pitch
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
+from hrn_pyg.data.radius import collision_edges
 from hrn_pyg.nn.rigid import rigid_motion
 from hrn_pyg.nn.state import to_local_velocity
+from hrn_pyg.sim.penetration import CELL_TETS, INSIDE_TOLERANCE, lattice_cells
 from hrn_pyg.sim.step import Prediction, object_of
 
 #: a leaf is on the surface when its neighbours' mean offset is longer than this many pitches
 SURFACE_OFFSET = 0.1
 #: the neighbourhood of a leaf at rest, in pitches (the 26 lattice neighbours, with slack)
 NEIGHBOURHOOD = 1.8
+#: passes of the soft bodies' giving way in one step
+GIVE_WAY_PASSES = 4
+#: a soft body's lattice edges stretch at most this many times their rest length
+STRETCH_LIMIT = 2.5
+#: passes of the stretch limit in one step
+STRETCH_PASSES = 4
+#: the share of its step a leaf stopped where it enters a solid ends before it
+ENTRY_MARGIN = 1.0 / 64
 
 
 def surface_normals(rest: np.ndarray, pitch: float) -> np.ndarray:
@@ -97,6 +138,80 @@ def surface_normals(rest: np.ndarray, pitch: float) -> np.ndarray:
     return normals
 
 
+def padded_rows(owner: np.ndarray, item: np.ndarray, rows: int) -> np.ndarray:
+    """``[rows, M]``: the ``item`` of each row, from pairs ``(owner[i], item[i])``, padded with
+    -1 (``M`` the most items of one row, at least 1)."""
+    order = np.argsort(owner, kind="stable")
+    owner, item = owner[order], item[order]
+    count = np.bincount(owner, minlength=rows)
+    table = np.full((rows, max(int(count.max(initial=0)), 1)), -1, dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    table[owner, np.arange(len(owner)) - start[owner]] = item
+    return table
+
+
+@dataclass(frozen=True)
+class SolidMesh:
+    """One object's solid (:mod:`hrn_pyg.sim.penetration`) at rest, in its leaves' indices:
+    ``tets [K, 4]``, ``leaf_tets [P, M]`` the tetrahedra of the cells each leaf is a corner of
+    (padded with -1), ``anchor [P]`` each leaf's nearest surface leaf (-1: none) and ``edges
+    [E, 2]`` the lattice edges (leaves one pitch apart at rest)."""
+
+    tets: np.ndarray
+    leaf_tets: np.ndarray
+    anchor: np.ndarray
+    edges: np.ndarray
+
+
+def solid_mesh(rest: np.ndarray, normal: np.ndarray, pitch: float) -> SolidMesh:
+    """The :class:`SolidMesh` of one object that is not cloth from its leaves at rest ``[P, 3]``
+    and their :func:`surface_normals`; no tetrahedra when the leaves are not on a lattice (as a
+    rest shape taken from a deformed frame may not be) or form no full cell."""
+    try:
+        cells = lattice_cells(rest, pitch)
+    except ValueError:
+        cells = np.zeros((0, 8), dtype=np.int64)
+    tets = cells[:, CELL_TETS].reshape(-1, 4)
+    tet_of_cell = np.arange(len(tets)).reshape(-1, len(CELL_TETS))  # [C, 6]
+    leaf_tets = padded_rows(np.repeat(cells.reshape(-1), len(CELL_TETS)),
+                            np.repeat(tet_of_cell, 8, axis=0).reshape(-1), len(rest))
+    anchor = np.full(len(rest), -1, dtype=np.int64)
+    surface = np.flatnonzero(np.linalg.norm(normal, axis=1) > 0)
+    if len(surface):
+        anchor = surface[cKDTree(rest[surface]).query(rest)[1]]
+    edges = cKDTree(rest).query_pairs((1.0 + 1e-2) * pitch, output_type="ndarray").reshape(-1, 2)
+    return SolidMesh(tets, leaf_tets, anchor, edges.astype(np.int64))
+
+
+def unique_pairs(first: Tensor, second: Tensor) -> tuple[Tensor, Tensor]:
+    """The distinct pairs ``(first[i], second[i])`` (``[P]`` long each, at least 0), sorted."""
+    if first.numel() == 0:
+        return first, second
+    span = int(second.max()) + 1
+    key = torch.unique(first * span + second)
+    return key // span, key % span
+
+
+def scene_solid_mesh(meshes: list[tuple[np.ndarray, SolidMesh]], rows: int) -> SolidMesh:
+    """One :class:`SolidMesh` over a scene's ``rows`` nodes from each object's rows and mesh
+    (local indices): indices made global, the tables padded alike."""
+    width = max([mesh.leaf_tets.shape[1] for _, mesh in meshes], default=1)
+    leaf_tets = np.full((rows, width), -1, dtype=np.int64)
+    anchor = np.full(rows, -1, dtype=np.int64)
+    tets, edges, count = [], [], 0
+    for at, mesh in meshes:
+        tets.append(at[mesh.tets])
+        edges.append(at[mesh.edges])
+        leaf_tets[at, : mesh.leaf_tets.shape[1]] = np.where(mesh.leaf_tets >= 0, mesh.leaf_tets + count, -1)
+        anchor[at] = np.where(mesh.anchor >= 0, at[mesh.anchor.clip(min=0)], -1)
+        count += len(mesh.tets)
+
+    def joined(parts: list[np.ndarray], width: int) -> np.ndarray:
+        return np.concatenate(parts, dtype=np.int64) if parts else np.zeros((0, width), dtype=np.int64)
+
+    return SolidMesh(joined(tets, 4), leaf_tets, anchor, joined(edges, 2))
+
+
 @dataclass(frozen=True)
 class ClothContact:
     """The constants of :func:`cloth_contact` for one graph of ``N`` nodes (module docstring).
@@ -109,9 +224,9 @@ class ClothContact:
     which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
     object; ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
     count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and
-    ``count``: every node's object;
-    ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and :math:`\\delta` in metres at each node's
-    pitch.
+    ``count``: every node's object; ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and
+    :math:`\\delta` in metres at each node's pitch; ``tets``, ``leaf_tets``, ``anchor``,
+    ``edges``: the scene's :class:`SolidMesh` in node indices.
     """
 
     rest: Tensor
@@ -128,46 +243,232 @@ class ClothContact:
     count: int
     reach: Tensor
     clearance: Tensor
+    tets: Tensor
+    leaf_tets: Tensor
+    anchor: Tensor
+    edges: Tensor
 
-    def current_normals(self, pos: Tensor, rows: Tensor | None = None) -> Tensor:
-        """The rest normals of ``rows`` (default: all ``N``) turned with their objects onto
-        ``pos`` ``[N, 3]`` (static objects: as at rest), ``[len(rows), 3]``."""
-        rows = torch.arange(pos.size(0), device=pos.device) if rows is None else rows
+    def rotations(self, pos: Tensor) -> Tensor:
+        """``[R, 3, 3]``: each object's best rotation from the rest leaves onto ``pos`` ``[N, 3]``
+        (the identity where it is not finite)."""
         _, _, rotation = rigid_motion(self.rest, pos, self.leaf.to(pos.dtype), self.group, self.count)
         eye = torch.eye(3, dtype=pos.dtype, device=pos.device).expand_as(rotation)
-        rotation = torch.where(torch.isfinite(rotation).all(dim=(1, 2), keepdim=True), rotation, eye)
+        return torch.where(torch.isfinite(rotation).all(dim=(1, 2), keepdim=True), rotation, eye)
+
+    def current_normals(self, pos: Tensor, rows: Tensor | None = None, rotation: Tensor | None = None) -> Tensor:
+        """The rest normals of ``rows`` (default: all ``N``) turned with their objects onto
+        ``pos`` ``[N, 3]`` (static objects: as at rest), ``[len(rows), 3]``; ``rotation``: the
+        :meth:`rotations` of ``pos`` if the caller has them."""
+        rows = torch.arange(pos.size(0), device=pos.device) if rows is None else rows
+        rotation = self.rotations(pos) if rotation is None else rotation
         normal = self.normal[rows]
         turned = torch.einsum("nij,nj->ni", rotation[self.group[rows]], normal)
         return torch.where(self.static[rows].unsqueeze(-1), normal, turned)
 
+    def contact_pairs(self, graph: HeteroData, pos: Tensor) -> tuple[Tensor, Tensor]:
+        """The step's ordered leaf pairs ``(a, b)`` (``[P]`` each) of different objects: the
+        collision edges at :math:`x_t` and the leaves within reach at ``pos`` (:math:`x_{t+1}`:
+        a fast body may cross several pitches in a step), both ways."""
+        store = graph[NODE]
+        leaves = torch.nonzero(self.leaf).flatten()
+        batch = store.batch[leaves] if "batch" in store else None
+        near = leaves[collision_edges(pos[leaves].detach(), store.object[leaves], self.reach[leaves], batch)]
+        src, dst = torch.cat([graph[COLLISION].edge_index, near], dim=1)
+        return torch.cat([dst, src]), torch.cat([src, dst])
+
+    def movers(self, c: Tensor, j: Tensor, movable: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Of the :meth:`contact_pairs` ``(c, j)``, those of a movable projected leaf ``c`` and a
+        leaf ``j`` of an object that is not cloth, of two bodies of one material only the smaller
+        giving way."""
+        cloth = self.cloth if movable is None else self.cloth & movable
+        solid = self.leaf & (self.kind != CLOTH)
+        keep = cloth[c] & solid[j] & (self.group[c] != self.group[j])
+        same = self.kind[c] == self.kind[j]
+        size_c, size_j = self.size[self.group[c]], self.size[self.group[j]]
+        yields = (size_c < size_j) | ((size_c == size_j) & (self.group[c] < self.group[j]))
+        keep = keep & (~same | yields)
+        return c[keep], j[keep]
+
     def project(self, graph: HeteroData, pos: Tensor, movable: Tensor | None = None) -> Tensor:
         """``pos`` ``[N, 3]`` (:math:`x_{t+1}`, a step of ``graph`` at :math:`x_t`) with every
-        cloth leaf that is inside another object moved out (module docstring) and the ancestors
-        re-derived; returned as it is, the same tensor, when no leaf moves. ``movable`` ``[N]``
-        bool (optional): only these rows may move (a step with sleeping objects: the awake ones).
-        """
-        src, dst = graph[COLLISION].edge_index
-        cloth_end = torch.cat([dst, src])
-        solid_end = torch.cat([src, dst])
-        cloth = self.cloth if movable is None else self.cloth & movable
-        keep = cloth[cloth_end] & self.surface[solid_end] & (self.group[cloth_end] != self.group[solid_end])
-        # two bodies of one material give way one way only: the smaller is kept out of the larger
-        same = self.kind[cloth_end] == self.kind[solid_end]
-        size_c, size_j = self.size[self.group[cloth_end]], self.size[self.group[solid_end]]
-        yields = (size_c < size_j) | ((size_c == size_j) & (self.group[cloth_end] < self.group[solid_end]))
-        keep = keep & (~same | yields)
-        if not bool(keep.any()):
+        projected leaf that is inside another object stopped where it entered or moved out, and
+        soft bodies giving way (module docstring, in that order), the ancestors re-derived;
+        returned as it is, the same tensor, when no leaf moves. ``movable`` ``[N]`` bool
+        (optional): only these rows may move (a step with sleeping objects: the awake ones)."""
+        pos = self.limit_stretch(graph, pos, movable)
+        a, b = self.contact_pairs(graph, pos)
+        c, j = self.movers(a, b, movable)
+        if c.numel() == 0:
             return pos
-        c, j = cloth_end[keep], solid_end[keep]
+        leaf, tet = self.tets_near(c, j)  # the tetrahedra each projected leaf may be in
+        pos = self.entry_clamp(graph, pos, leaf, tet)
+        rotation = self.rotations(pos)
+        pos = self.apply(graph, pos, *self.plane_pushes(graph, pos, c, j, rotation))
+        same = self.kind[leaf] == self.kind[self.tets[tet, 0]]
+        rows, push, _ = self.solid_pushes(pos, leaf[~same], tet[~same], rotation)
+        pos = self.apply(graph, pos, rows, push)
+        rows, push, _ = self.solid_pushes(pos, leaf[same], tet[same], rotation)
+        pos = self.shift_whole(graph, pos, self.group[rows], push, movable)
+        # of two rigid bodies the smaller also moves back off the larger's leaves inside it
+        rigid = self.rigid_rows[c] & self.rigid_rows[j]
+        back, back_tet = self.tets_near(j[rigid], c[rigid])
+        rows, push, owner = self.solid_pushes(pos, back, back_tet, rotation)
+        pos = self.shift_whole(graph, pos, owner, -push, movable)
+        give = self.cloth & (self.kind == SOFT)  # the projected leaves of soft bodies
+        give = give if movable is None else give & movable
+        keep = give[b] & (self.kind[a] != CLOTH) & (self.group[a] != self.group[b]) & (self.anchor[a] >= 0)
+        leaf, tet = self.tets_near(a[keep], b[keep])  # leaves of other objects near a soft body's
+        for _ in range(GIVE_WAY_PASSES):
+            moved = self.give_way(graph, pos, leaf, tet, give)
+            if moved is pos:
+                break
+            pos = moved
+        return self.limit_stretch(graph, pos, movable)
+
+    def limit_stretch(self, graph: HeteroData, pos: Tensor, movable: Tensor | None) -> Tensor:
+        """``pos`` with no lattice edge of a soft body longer than :data:`STRETCH_LIMIT` times its
+        rest length: each such edge's ends move towards each other by the excess (the movable
+        end alone if the other is held), shared out over the edges of its busier end, for
+        :data:`STRETCH_PASSES` passes. ``pos`` itself when no edge is too long."""
+        free = self.cloth & (self.kind == SOFT)
+        free = free if movable is None else free & movable
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        keep = free[i] | free[j]
+        i, j = i[keep], j[keep]
+        if i.numel() == 0:
+            return pos
+        longest = STRETCH_LIMIT * (self.rest[j] - self.rest[i]).norm(dim=-1)
+        moved = pos
+        for _ in range(STRETCH_PASSES):
+            arm = moved[j] - moved[i]
+            length = arm.norm(dim=-1)
+            over = length > longest
+            if not bool(over.any()):
+                break
+            share_i, share_j = free[i].to(pos.dtype), free[j].to(pos.dtype)
+            edges_of = torch.zeros(pos.size(0), dtype=pos.dtype, device=pos.device)
+            edges_of.index_add_(0, i, over.to(pos.dtype)).index_add_(0, j, over.to(pos.dtype))
+            # equal and opposite moves (the centre of mass stays), shared out over a leaf's edges
+            relax = torch.maximum(edges_of[i], edges_of[j]).clamp(min=1.0) * (share_i + share_j)
+            excess = torch.where(over, (length - longest) / length.clamp(min=1e-12), 0.0)  # a share of the edge
+            pull = arm * (excess / relax).unsqueeze(-1)
+            moved = moved.index_add(0, i, pull * share_i.unsqueeze(-1)).index_add(0, j, -pull * share_j.unsqueeze(-1))
+        return pos if moved is pos else leaf_to_ancestor_mean(moved, graph)
+
+    def give_way(self, graph: HeteroData, pos: Tensor, q: Tensor, tet: Tensor, give: Tensor) -> Tensor:
+        """``pos`` with the soft bodies' tetrahedra moved off the leaves of other objects inside
+        them (module docstring), for the pairs ``(q, tet)`` (``[P]`` each) of a leaf and a soft
+        body's tetrahedron; only the ``give`` ``[N]`` rows move. ``pos`` itself when none is
+        inside."""
+        if q.numel() == 0:
+            return pos
+        x = pos.double()
+        hit = self.inside_tets(x, x[q], tet)
+        q, tet = q[hit], tet[hit]
+        if q.numel() == 0:
+            return pos
+        corners = self.tets[tet]  # [H, 4]
+        rotation = self.rotations(pos)
+        anchors = self.anchor[corners]  # [H, 4]
+        own = self.current_normals(pos, self.anchor[q], rotation).unsqueeze(1)  # [H, 1, 3]
+        theirs = -self.current_normals(pos, anchors.clamp(min=0).flatten(), rotation).view(-1, 4, 3)
+        direction = torch.cat([own, theirs], dim=1).double()  # [H, 5, 3]: the candidates
+        height = torch.einsum("hkc,hdc->hdk", x[corners] - x[q].unsqueeze(1), direction)  # [H, 5, 4]
+        amount = (self.clearance[corners].double().unsqueeze(1) - height).clamp(min=0.0)
+        usable = torch.cat([torch.ones_like(anchors[:, :1], dtype=torch.bool), anchors >= 0], dim=1)
+        cost = torch.where(usable, amount.amax(dim=2), torch.inf)
+        best = cost.argmin(dim=1)
+        pick = torch.arange(best.numel(), device=best.device)
+        normal, amount = direction[pick, best].unsqueeze(1), amount[pick, best]  # [H, 1, 3], [H, 4]
+        rows, amount = corners.reshape(-1), amount.reshape(-1)
+        push = (amount.view(-1, 4, 1) * normal).reshape(-1, 3)
+        ok = give[rows] & (amount > 0)
+        rows, amount, push = rows[ok], amount[ok], push[ok]
+        if rows.numel() == 0:
+            return pos
+        longest = amount.new_zeros(pos.size(0)).scatter_reduce(0, rows, amount, "amax")
+        index = torch.where(amount == longest[rows], torch.arange(rows.numel(), device=rows.device), rows.numel())
+        first = rows.new_full((pos.size(0),), rows.numel()).scatter_reduce(0, rows, index, "amin")
+        has = torch.nonzero(first < rows.numel()).flatten()
+        moved = pos.clone()
+        moved[has] = (x[has] + push[first[has]]).to(pos.dtype)
+        return leaf_to_ancestor_mean(moved, graph)
+
+    def tets_near(self, c: Tensor, j: Tensor) -> tuple[Tensor, Tensor]:
+        """The distinct pairs ``(leaf, tet)`` of each leaf ``c`` and the tetrahedra of the cells
+        its pair ``j`` is a corner of."""
+        keep = self.leaf_tets[j, 0] >= 0
+        candidates = self.leaf_tets[j[keep]]  # [P, M]
+        which, column = torch.nonzero(candidates >= 0, as_tuple=True)
+        return unique_pairs(c[keep][which], candidates[which, column])
+
+    def barycentric(self, x: Tensor, point: Tensor, tet: Tensor) -> tuple[Tensor, Tensor]:
+        """The barycentric coordinates ``[P, 4]`` of each ``point`` ``[P, 3]`` in its ``tet`` at
+        ``x`` ``[N, 3]``, and ``[P]`` bool whether the tetrahedron is not flattened (a flattened one
+        holds nothing; its coordinates are not meaningful)."""
+        corners = x[self.tets[tet]]  # [P, 4, 3]
+        edges = corners[:, 1:] - corners[:, :1]
+        usable = torch.linalg.det(edges).abs() > 1e-12 * edges.norm(dim=2).prod(dim=1)
+        safe = torch.where(usable.view(-1, 1, 1), edges, torch.eye(3, dtype=x.dtype, device=x.device))
+        b = torch.linalg.solve(safe.transpose(1, 2), (point - corners[:, 0]).unsqueeze(-1)).squeeze(-1)
+        return torch.cat([1.0 - b.sum(dim=1, keepdim=True), b], dim=1), usable
+
+    def inside_tets(self, x: Tensor, point: Tensor, tet: Tensor) -> Tensor:
+        """``[P]`` bool: whether each ``point`` ``[P, 3]`` lies in its ``tet`` at ``x`` ``[N, 3]``
+        (closed)."""
+        bary, usable = self.barycentric(x, point, tet)
+        return usable & (bary >= -INSIDE_TOLERANCE).all(dim=1)
+
+    def entry_clamp(self, graph: HeteroData, pos: Tensor, leaf: Tensor, tet: Tensor) -> Tensor:
+        r"""``pos`` with each ``leaf`` whose step from :math:`x_t` passes into its ``tet`` (pairs
+        ``[P]`` each, :meth:`tets_near`) stopped where it enters (module docstring); leaves already inside at
+        :math:`x_t` are left to the pushes. Along the step :math:`x_t + \alpha (x_{t+1} - x_t)`
+        a leaf's barycentric coordinates in a tetrahedron (at :math:`x_{t+1}`) are affine in
+        :math:`\alpha`, so where it enters each one is exact: the least :math:`\alpha` at which
+        all four are at least 0; the leaf stops :data:`ENTRY_MARGIN` of its step before the
+        first."""
+        if leaf.numel() == 0:
+            return pos
+        x, start = pos.double(), graph[NODE].pos.double()
+        before, usable = self.barycentric(x, start[leaf], tet)
+        after, _ = self.barycentric(x, x[leaf], tet)
+        slope = after - before
+        bound = (-INSIDE_TOLERANCE - before) / torch.where(slope == 0, torch.ones_like(slope), slope)
+        infinity = torch.full_like(bound, torch.inf)
+        enters = torch.where(slope > 0, bound, -infinity).amax(dim=1).clamp(min=0.0)
+        leaves = torch.where(slope < 0, bound, infinity).amin(dim=1).clamp(max=1.0)
+        never = ((slope == 0) & (before < -INSIDE_TOLERANCE)).any(dim=1)
+        crossing = usable & ~never & (enters <= leaves)
+        first = x.new_full((pos.size(0),), torch.inf).scatter_reduce(0, leaf[crossing], enters[crossing], "amin")
+        ends_in = torch.isfinite(first) & (first > 0)
+        ends_in &= ~torch.zeros_like(ends_in).index_fill_(0, leaf[crossing & (enters <= 0)], True)
+        if not bool(ends_in.any()):
+            return pos
+        alpha = torch.where(ends_in, (first - ENTRY_MARGIN).clamp(min=0.0), torch.ones_like(first))
+        if bool(self.rigid_rows.any()):
+            smallest = alpha.new_ones(self.count).scatter_reduce(0, self.group[ends_in & self.rigid_rows],
+                                                                 alpha[ends_in & self.rigid_rows], "amin")
+            alpha = torch.where(self.rigid_rows, smallest[self.group], alpha)
+        clamped = start + alpha.unsqueeze(-1) * (x - start)
+        moved = self.leaf & (alpha < 1)
+        return leaf_to_ancestor_mean(torch.where(moved.unsqueeze(-1), clamped.to(pos.dtype), pos), graph)
+
+    def plane_pushes(self, graph: HeteroData, pos: Tensor, c: Tensor, j: Tensor,
+                     rotation: Tensor) -> tuple[Tensor, Tensor]:
+        """The pushes of the near planes: ``rows [M]`` leaves and ``push [M, 3]`` (m), one per
+        leaf behind every plane of an object's surface leaves within reach."""
+        keep = self.surface[j]
+        c, j = c[keep], j[keep]
         arm = pos[c] - pos[j]
         distance = arm.norm(dim=-1)
         # a leaf that moved far in the step may be that far in: the reach grows by its step
         reach = self.reach[c] + (pos[c] - graph[NODE].pos[c]).norm(dim=-1)
         near = distance < reach
         c, j, arm, distance = c[near], j[near], arm[near], distance[near]
+        empty = (c[:0], pos[:0])
         if c.numel() == 0:
-            return pos
-        normal = self.current_normals(pos, j)
+            return empty
+        normal = self.current_normals(pos, j, rotation)
         height = (arm * normal).sum(-1)  # s_cj
         # one row per (cloth leaf, object) pair: inside when behind every near plane of that object
         pair, slot = torch.unique(c * self.count + self.group[j], return_inverse=True)
@@ -176,12 +477,60 @@ class ClothContact:
         nearest = distance.new_full((pair.numel(),), torch.inf).scatter_reduce(0, slot, distance, "amin")
         chosen = torch.nonzero(inside & (distance == nearest[slot])).flatten()
         if chosen.numel() == 0:
-            return pos
+            return empty
         # one push per cloth leaf: its first chosen pair (a tie in distance, or a leaf inside two objects)
         first = c.new_full((pos.size(0),), c.numel()).scatter_reduce(0, c[chosen], chosen, "amin")
         picked = first[first < c.numel()]
-        push = (self.clearance[c[picked]] - height[picked]).unsqueeze(-1) * normal[picked]
-        leaf_rows = c[picked]
+        return c[picked], (self.clearance[c[picked]] - height[picked]).unsqueeze(-1) * normal[picked]
+
+    def solid_pushes(self, pos: Tensor, leaf: Tensor, tet: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The pushes out of the solids, for the pairs ``(leaf, tet)`` (``[P]`` each,
+        :meth:`tets_near`): ``rows [M]`` and ``push [M, 3]`` (m), one per leaf that lies in its
+        tetrahedron, to the clearance beyond the nearest anchor of that tetrahedron's corners, and
+        the object ``[M]`` each is pushed out of."""
+        empty = (leaf[:0], pos[:0], leaf[:0])
+        x = pos.double()
+        inside = self.inside_tets(x, x[leaf], tet)
+        anchor = self.anchor[self.tets[tet[inside]]]  # [H, 4]
+        leaf = leaf[inside].unsqueeze(1).expand_as(anchor)[anchor >= 0]
+        anchor = anchor[anchor >= 0]
+        if leaf.numel() == 0:
+            return empty
+        leaf, anchor = unique_pairs(leaf, anchor)
+        gap = (x[anchor] - x[leaf]).norm(dim=-1)
+        nearest = gap.new_full((pos.size(0),), torch.inf).scatter_reduce(0, leaf, gap, "amin")
+        index = torch.where(gap == nearest[leaf], torch.arange(leaf.numel(), device=leaf.device), leaf.numel())
+        first = leaf.new_full((pos.size(0),), leaf.numel()).scatter_reduce(0, leaf, index, "amin")
+        picked = first[first < leaf.numel()]
+        leaf, anchor = leaf[picked], anchor[picked]
+        normal = self.current_normals(pos, anchor, rotation)
+        return leaf, pos[anchor] + self.clearance[leaf].unsqueeze(-1) * normal - pos[leaf], self.group[anchor]
+
+    def shift_whole(self, graph: HeteroData, pos: Tensor, owner: Tensor, push: Tensor,
+                    movable: Tensor | None) -> Tensor:
+        """``pos`` with each object of ``owner [M]`` moved whole (its projected, movable leaves)
+        by the longest of its ``push [M, 3]``; ``pos`` itself when there is none."""
+        if owner.numel() == 0:
+            return pos
+        length = push.norm(dim=-1)
+        longest = length.new_zeros(self.count).scatter_reduce(0, owner, length, "amax")
+        index = torch.where(length == longest[owner], torch.arange(owner.numel(), device=owner.device), owner.numel())
+        first = owner.new_full((self.count,), owner.numel()).scatter_reduce(0, owner, index, "amin")
+        shift = push.new_zeros(self.count, 3)
+        has = first < owner.numel()
+        shift[has] = push[first[has]]
+        rows = self.cloth if movable is None else self.cloth & movable
+        moved = rows & (longest > 0)[self.group]
+        if not bool(moved.any()):
+            return pos
+        return leaf_to_ancestor_mean(torch.where(moved.unsqueeze(-1), pos + shift[self.group], pos), graph)
+
+    def apply(self, graph: HeteroData, pos: Tensor, leaf_rows: Tensor, push: Tensor) -> Tensor:
+        """``pos`` with each of ``leaf_rows`` moved by its ``push`` (a rigid object's leaves: the
+        whole object by their longest push) and the ancestors re-derived; ``pos`` itself when
+        there is no push."""
+        if leaf_rows.numel() == 0:
+            return pos
         whole = self.rigid[leaf_rows]
         if bool(whole.any()):  # a rigid object moves as a whole, by its leaves' longest push
             owner, length = self.group[leaf_rows[whole]], push[whole].norm(dim=-1)
@@ -243,10 +592,13 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
     groups = group.cpu().numpy()
     has_solid = solid_leaf.cpu().numpy()
     pitches = pitch.double().cpu().numpy()
+    meshes = []
     for obj in np.unique(groups[has_solid]):
         rows = np.flatnonzero((groups == obj) & has_solid)
         found = surface_normals(points[rows], float(pitches[rows[0]]))
         normal[torch.from_numpy(rows).to(rest.device)] = torch.from_numpy(found).to(rest)
+        meshes.append((rows, solid_mesh(points[rows], found, float(pitches[rows[0]]))))
+    solids = scene_solid_mesh(meshes, len(points))
     surface = solid_leaf & (normal.norm(dim=-1) > 0)
     if not bool(surface.any()):
         return None
@@ -256,4 +608,6 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
                         rigid=projected & rigid_rows, rigid_rows=rigid_rows, kind=material,
                         size=torch.zeros(count, dtype=torch.long, device=group.device).index_add(
                             0, group, leaf.long()), group=group, count=count,
-                        reach=reach * pitch, clearance=gap * pitch)
+                        reach=reach * pitch, clearance=gap * pitch,
+                        **{name: torch.from_numpy(value).to(group.device)
+                           for name, value in dataclasses.asdict(solids).items()})

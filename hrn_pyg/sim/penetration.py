@@ -3,7 +3,7 @@ r"""Cloth leaves inside other objects: does a cloth pass through what it falls o
 **Definition.** Every object that is not cloth (rigid, soft or static) is a set of leaves on a
 cubic lattice of pitch :math:`p` in its own frame. Its *solid* is the union of the lattice cells
 whose eight corners are all its leaves, each cell cut into the six Kuhn tetrahedra
-(:data:`hrn_pyg.data.voxelise.KUHN_TETS`, the cut pybullet's soft bodies are made of) whose
+(:data:`hrn_pyg.data.kinds.KUHN_TETS`, the cut pybullet's soft bodies are made of) whose
 corners are leaves. At rest this is the object's voxel occupancy (a cube of side :math:`p`
 around every leaf) shrunk by half a pitch; as the leaves move the solid moves with them, rigidly
 with a rigid object and deformed with a soft body. A cloth leaf is *inside* at a step when it
@@ -47,9 +47,10 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from hrn_pyg.data.io import episode_pitch
-from hrn_pyg.data.kinds import CLOTH, MATERIALS
-from hrn_pyg.data.voxelise import KUHN_TETS
+from hrn_pyg.data.kinds import CLOTH, KUHN_TETS, MATERIALS
 
+#: the corners of each tetrahedron of a lattice cell (:data:`~hrn_pyg.data.kinds.KUHN_TETS`)
+CELL_TETS = np.array(KUHN_TETS, dtype=np.int64)
 #: a leaf lies in a tetrahedron when its barycentric coordinates are all at least minus this
 INSIDE_TOLERANCE = 1e-6
 #: how far (in pitches) a rest position may lie from its lattice point, and two leaves' distance
@@ -142,8 +143,8 @@ def object_solids(rest: Tensor, leaf_object: Tensor, object_material: Tensor, pi
         members = np.flatnonzero(objects == obj)
         cells = lattice_cells(points[members], pitch, f"object {obj} ({MATERIALS[material]})")
         if len(cells):
-            tets.append(members[cells[:, KUHN_TETS].reshape(-1, 4)])
-            owners.append(np.full(len(cells) * len(KUHN_TETS), obj))
+            tets.append(members[cells[:, CELL_TETS].reshape(-1, 4)])
+            owners.append(np.full(len(cells) * len(CELL_TETS), obj))
     cloth_of_leaf = object_material[leaf_object] == CLOTH
     return ObjectSolids(
         tets=torch.from_numpy(np.concatenate(tets) if tets else np.zeros((0, 4), dtype=np.int64)),

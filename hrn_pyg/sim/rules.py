@@ -7,11 +7,12 @@ loop (:func:`~hrn_pyg.sim.rollout.iterate`), the sleeping step, the fixed-shape 
 sampler and the RL dynamics (environment and planner). In order:
 
 1. **Failed copies held** (``hold_failed``): a copy of a batch whose prediction holds NaN or inf
-   stays where it is, with zero velocity, and is recorded in :attr:`StepRules.failed`; the
-   other copies go on. Without it a non-finite prediction is an error of the step.
+   (checked before the other rules and after them) stays where it is, with zero velocity, and is
+   recorded in :attr:`StepRules.failed`; the other copies go on. Without it a non-finite prediction is an error of the step.
 2. **Clearance** (``HRNConfig.cloth_clearance``, ``HRNConfig.solid_clearance``,
-   :mod:`hrn_pyg.sim.cloth_contact`): a leaf of a cloth (or of a soft body or a rigid object) left
-   inside another object is moved back out.
+   :mod:`hrn_pyg.sim.cloth_contact`): a leaf of a cloth (or of a soft body or a rigid object) is
+   stopped where it enters another object, or moved back out; a soft body gives way to what is
+   inside it and is stretched no further than a limit.
 3. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
    with more energy than it started with plus the work of its pushes.
 
@@ -77,6 +78,8 @@ class StepRules:
         if self.energy:
             prediction = limit_energy(graph, prediction, self.objects, force, movable, self.rigid_from_rest,
                                       self.host_reads)
+        if self.hold_failed and (self.cloth is not None or self.energy):  # what the rules made, too
+            prediction = self.hold_non_finite(graph, prediction)
         return prediction
 
     def hold_non_finite(self, graph: HeteroData, prediction: Prediction) -> Prediction:

@@ -14,10 +14,10 @@ import torch
 from toy_scene import toy_model, toy_window
 
 from hrn_pyg.checkpoints import with_applied_options
-from hrn_pyg.data.graph import NODE, build_structure, set_pitch, set_state
+from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_pitch, set_state
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sim.cloth_contact import cloth_contact, surface_normals
+from hrn_pyg.sim.cloth_contact import STRETCH_LIMIT, cloth_contact, surface_normals
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
 from hrn_pyg.sim.rollout import rollout
 
@@ -278,3 +278,103 @@ def test_solid_clearance_keeps_soft_and_rigid_leaves_out_and_moves_a_rigid_body_
     else:  # each leaf by its own push; the upper ones stay
         assert torch.allclose(small[~lower], torch.zeros(int((~lower).sum()), 3))
         assert float(small[2, 2]) == pytest.approx(0.02 + 0.2 * PITCH, abs=1e-6)
+
+
+def leaves_inside(graph, pos: torch.Tensor, of: int) -> int:
+    """How many leaves of object ``of`` lie in another object's solid at ``pos``."""
+    store = graph[NODE]
+    leaf = torch.nonzero(store.is_leaf).flatten()
+    material = store.material.argmax(dim=1)
+    objects = store.object[leaf]
+    kinds = torch.zeros(int(objects.max()) + 1, dtype=torch.long).index_put_((objects,), material[leaf])
+    solids = object_solids(store.rest_pos[leaf], objects, kinds, PITCH)
+    x = pos[leaf].double()
+    corners = x[solids.tets]
+    edges = corners[:, 1:] - corners[:, :1]
+    solid = torch.linalg.det(edges).abs() > 1e-9  # a flattened tetrahedron holds nothing
+    corners, edges, owner = corners[solid], edges[solid], solids.tet_object[solid]
+    b = torch.linalg.solve(edges.transpose(1, 2)[None], (x[:, None] - corners[None, :, 0]).unsqueeze(-1)).squeeze(-1)
+    inside = (torch.cat([1 - b.sum(-1, keepdim=True), b], -1) >= -1e-6).all(-1)
+    inside &= objects[:, None] != owner[None]
+    return int(inside.any(dim=1)[objects == of].sum())
+
+
+@pytest.mark.parametrize("material", [RIGID, SOFT])
+def test_a_fast_step_into_a_solid_is_stopped_where_it_enters(material):
+    """x_t: the small cube far above the box (no collision edge); x_{t+1}: the cube moved whole
+    into the box's middle, every leaf inside its solid. The step is stopped where the cube enters:
+    no leaf is left inside, a rigid cube moves as one, and no leaf ends below the box's top."""
+    graph, n_box = box_and_small_cube(material, (0.05, 0.05, 1.0))
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    pos[n_box:n_box + 8] += torch.tensor([0.10, 0.10, 0.15 - 1.0])
+    assert graph[COLLISION].edge_index.numel() == 0
+    assert leaves_inside(graph, pos, of=1) == 8
+    moved = contact.project(graph, pos)
+    assert leaves_inside(graph, moved, of=1) == 0
+    assert torch.equal(moved[:n_box], pos[:n_box])  # a static box never moves
+    top = PITCH * (BOX_SIDE - 1)
+    assert float(moved[n_box:n_box + 8, 2].min()) >= top - 1e-6
+    shift = moved[n_box:n_box + 8] - pos[n_box:n_box + 8]
+    if material == RIGID:  # one move for all leaves
+        assert torch.allclose(shift, shift[:1].expand(8, 3), atol=1e-6) and float(shift[0].norm()) > 0
+
+
+def test_two_soft_bodies_sunk_into_each_other_are_parted():
+    """A soft 2x2x2 cube sunk 1.2 pitches into the top of a soft 4x4x4 box, with no move in the
+    step (so the surface planes reach only its upper leaves): afterwards no leaf of either body is
+    in the other's solid, the box's bottom layer stays where it was, and no leaf moves more than
+    three pitches."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(SOFT, (0.1, 0.1, top - 0.12))
+    graph[NODE].material[:n_box] = torch.nn.functional.one_hot(torch.tensor(SOFT), 4).to(graph[NODE].material)
+    graph[NODE].is_static[:n_box] = False
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    assert leaves_inside(graph, pos, of=1) == 8
+    moved = contact.project(graph, pos)
+    assert leaves_inside(graph, moved, of=1) == 0 and leaves_inside(graph, moved, of=0) == 0
+    bottom = pos[:n_box, 2] < 0.5 * PITCH
+    assert torch.equal(moved[:n_box][bottom], pos[:n_box][bottom])
+    assert float((moved - pos).norm(dim=1).max()) < 3 * PITCH
+
+
+def test_a_soft_body_gives_way_to_a_static_object_inside_it():
+    """A static 2x2x2 cube sunk 0.8 pitch into the top of a soft 4x4x4 box: the cube cannot
+    move, so the box's tetrahedra move off its leaves; its bottom layer stays."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(SOFT, (0.1, 0.1, top - 0.08))
+    store = graph[NODE]
+    store.material[:n_box] = torch.nn.functional.one_hot(torch.tensor(SOFT), 4).to(store.material)
+    store.is_static[:n_box] = False
+    store.material[n_box:n_box + 8] = torch.nn.functional.one_hot(torch.tensor(STATIC), 4).to(store.material)
+    store.is_static[n_box:n_box + 8] = True
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = store.pos.clone()
+    assert leaves_inside(graph, pos, of=1) == 4
+    moved = contact.project(graph, pos)
+    assert leaves_inside(graph, moved, of=1) == 0
+    assert torch.equal(moved[n_box:n_box + 8], pos[n_box:n_box + 8])
+    bottom = pos[:n_box, 2] < 0.5 * PITCH
+    assert torch.equal(moved[:n_box][bottom], pos[:n_box][bottom])
+
+
+def test_a_soft_body_is_stretched_no_further_than_the_limit():
+    """One leaf of a soft cube, far from anything, pulled four pitches out: afterwards no lattice
+    edge is longer than STRETCH_LIMIT times its rest length (an edge squashed to nothing gives no
+    NaN), the cube's centre of mass stays, and a cube that is not stretched is returned as it
+    was."""
+    graph, n_box = box_and_small_cube(SOFT, (1.0, 1.0, 1.0))
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    assert contact.project(graph, pos) is pos
+    pos[n_box] += torch.tensor([-0.4, 0.0, 0.0])
+    pos[n_box + 7] = pos[n_box + 6]  # an edge of length 0 (leaves 6 and 7 are neighbours)
+    moved = contact.project(graph, pos)
+    assert bool(torch.isfinite(moved).all())
+    i, j = contact.edges.T
+    stretch = (moved[i] - moved[j]).norm(dim=1) / (contact.rest[i] - contact.rest[j]).norm(dim=1)
+    assert float(stretch.max()) <= STRETCH_LIMIT + 1e-5
+    cube = slice(n_box, n_box + 8)
+    assert torch.allclose(moved[cube].mean(0), pos[cube].mean(0), atol=1e-6)
+    assert torch.equal(moved[:n_box], pos[:n_box])
