@@ -46,10 +46,11 @@ come from the step's collision edges at :math:`x_t` and from the leaves within :
 each other at :math:`x_{t+1}` (a fast body crosses several pitches in one step). Only the
 projected leaves move; a leaf held still by sleeping stays where it is.
 
-**Stopped where it enters.** A leaf whose step from :math:`x_t` ends inside another object's
-solid (the tetrahedra of :mod:`hrn_pyg.sim.penetration` at :math:`x_{t+1}`, the solid the
-plausibility report measures depth in) is stopped just before the fraction of its step at
-which it enters; a rigid object takes the smallest fraction of its leaves. This only
+**Stopped where it enters.** A leaf whose step from :math:`x_t` takes it into another object's
+solid (the tetrahedra of :mod:`hrn_pyg.sim.penetration`, the solid the plausibility report
+measures depth in, moving from :math:`x_t` to :math:`x_{t+1}`) is stopped just before the
+fraction of its step at which it enters; a rigid object takes the smallest fraction of its
+leaves. This only
 shortens steps, so it adds no energy; the planes above then push out what is left.
 
 **Out of the solid.** The planes see a leaf only within :math:`\rho` of the surface, and a
@@ -422,16 +423,17 @@ class ClothContact:
     def entry_clamp(self, graph: HeteroData, pos: Tensor, leaf: Tensor, tet: Tensor) -> Tensor:
         r"""``pos`` with each ``leaf`` whose step from :math:`x_t` passes into its ``tet`` (pairs
         ``[P]`` each, :meth:`tets_near`) stopped where it enters (module docstring); leaves already inside at
-        :math:`x_t` are left to the pushes. Along the step :math:`x_t + \alpha (x_{t+1} - x_t)`
-        a leaf's barycentric coordinates in a tetrahedron (at :math:`x_{t+1}`) are affine in
-        :math:`\alpha`, so where it enters each one is exact: the least :math:`\alpha` at which
-        all four are at least 0; the leaf stops :data:`ENTRY_MARGIN` of its step before the
-        first."""
+        :math:`x_t` are left to the pushes. A leaf's barycentric coordinates in a tetrahedron
+        are taken from both at :math:`x_t` and both at :math:`x_{t+1}` and interpolated linearly
+        in :math:`\alpha` between them (exact when the tetrahedron does not move), so where it
+        enters is the least :math:`\alpha` at which all four are at least 0; the leaf moves by
+        that fraction of its step less :data:`ENTRY_MARGIN`."""
         if leaf.numel() == 0:
             return pos
         x, start = pos.double(), graph[NODE].pos.double()
-        before, usable = self.barycentric(x, start[leaf], tet)
-        after, _ = self.barycentric(x, x[leaf], tet)
+        before, usable = self.barycentric(start, start[leaf], tet)
+        after, usable_after = self.barycentric(x, x[leaf], tet)
+        usable = usable & usable_after
         slope = after - before
         bound = (-INSIDE_TOLERANCE - before) / torch.where(slope == 0, torch.ones_like(slope), slope)
         infinity = torch.full_like(bound, torch.inf)
