@@ -50,7 +50,7 @@ projected leaves move; a leaf held still by sleeping stays where it is.
 solid (the tetrahedra of :mod:`hrn_pyg.sim.penetration`, the solid the plausibility report
 measures depth in, moving from :math:`x_t` to :math:`x_{t+1}`) is stopped just before the
 fraction of its step at which it enters; a rigid object takes the smallest fraction of its
-leaves. This only
+leaves, and of two rigid bodies both are stopped where they enter each other. This only
 shortens steps, so it adds no energy; the planes above then push out what is left.
 
 **Out of the solid.** The planes see a leaf only within :math:`\rho` of the surface, and a
@@ -73,9 +73,12 @@ bodies out of the smaller.
 **Stretch limit.** Before and after the passes above, no lattice edge of a soft body (two leaves
 one pitch apart at rest) is longer than :data:`STRETCH_LIMIT` times its rest length: an edge
 over it has both ends moved towards each other by the excess, equal and opposite, so the body's
-centre of mass stays. In pybullet's validation episodes edges stretch to at most 1.3-2.5 times
-their length, more only in a small body at 0.025 m; a network's future stretched further has
-tetrahedra so long that another body's leaves fall inside them far from any surface.
+centre of mass stays. A future stretched further has tetrahedra so long that another body's
+leaves fall inside them far from any surface. The limit was chosen on the validation set of
+:mod:`hrn_pyg.sim.plausibility`: at 2.5 a small soft body still sank 5.6 cm into a larger one's
+stretched top. 1.5 leaves pybullet's large soft bodies room (in its validation episodes 99 of
+100 of their edges never pass 1.1-1.4 times their length) but is stiffer than some of its small
+ones (up to 2-3 times): a stiffer body, but a possible one.
 
 **Shapes.** :func:`cloth_contact` gives a :class:`ClothContact` of a graph with ``N`` nodes once
 per rollout; :meth:`ClothContact.project` maps ``pos`` ``[N, 3]`` to ``[N, 3]``, and calling
@@ -109,7 +112,7 @@ NEIGHBOURHOOD = 1.8
 #: passes of the soft bodies' giving way in one step
 GIVE_WAY_PASSES = 4
 #: a soft body's lattice edges stretch at most this many times their rest length
-STRETCH_LIMIT = 2.5
+STRETCH_LIMIT = 1.5
 #: passes of the stretch limit in one step
 STRETCH_PASSES = 4
 #: the share of its step a leaf stopped where it enters a solid ends before it
@@ -302,7 +305,10 @@ class ClothContact:
         if c.numel() == 0:
             return pos
         leaf, tet = self.tets_near(c, j)  # the tetrahedra each projected leaf may be in
-        pos = self.entry_clamp(graph, pos, leaf, tet)
+        # of two rigid bodies the larger is stopped where it enters the smaller too
+        rigid = self.rigid_rows[c] & self.rigid_rows[j]
+        back, back_tet = self.tets_near(j[rigid], c[rigid])
+        pos = self.entry_clamp(graph, pos, torch.cat([leaf, back]), torch.cat([tet, back_tet]))
         rotation = self.rotations(pos)
         pos = self.apply(graph, pos, *self.plane_pushes(graph, pos, c, j, rotation))
         same = self.kind[leaf] == self.kind[self.tets[tet, 0]]
@@ -311,8 +317,6 @@ class ClothContact:
         rows, push, _ = self.solid_pushes(pos, leaf[same], tet[same], rotation)
         pos = self.shift_whole(graph, pos, self.group[rows], push, movable)
         # of two rigid bodies the smaller also moves back off the larger's leaves inside it
-        rigid = self.rigid_rows[c] & self.rigid_rows[j]
-        back, back_tet = self.tets_near(j[rigid], c[rigid])
         rows, push, owner = self.solid_pushes(pos, back, back_tet, rotation)
         pos = self.shift_whole(graph, pos, owner, -push, movable)
         give = self.cloth & (self.kind == SOFT)  # the projected leaves of soft bodies
