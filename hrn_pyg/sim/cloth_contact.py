@@ -196,6 +196,19 @@ def unique_pairs(first: Tensor, second: Tensor) -> tuple[Tensor, Tensor]:
     return key // span, key % span
 
 
+def longest_per(index: Tensor, push: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """Of pushes ``[M, 3]`` in ``size`` groups (``index [M]``): each group's longest push
+    ``[size, 3]`` (the first of a tie; zero for a group with none) and its length ``[size]``."""
+    length = push.norm(dim=-1)
+    longest = length.new_zeros(size).scatter_reduce(0, index, length, "amax")
+    pick = torch.where(length == longest[index], torch.arange(index.numel(), device=index.device), index.numel())
+    first = index.new_full((size,), index.numel()).scatter_reduce(0, index, pick, "amin")
+    has = first < index.numel()
+    chosen = push.new_zeros(size, 3)
+    chosen[has] = push[first[has]]
+    return chosen, longest
+
+
 def scene_solid_mesh(meshes: list[tuple[np.ndarray, SolidMesh]], rows: int) -> SolidMesh:
     """One :class:`SolidMesh` over a scene's ``rows`` nodes from each object's rows and mesh
     (local indices): indices made global, the tables padded alike."""
@@ -388,15 +401,11 @@ class ClothContact:
         rows, amount = corners.reshape(-1), amount.reshape(-1)
         push = (amount.view(-1, 4, 1) * normal).reshape(-1, 3)
         ok = give[rows] & (amount > 0)
-        rows, amount, push = rows[ok], amount[ok], push[ok]
+        rows, push = rows[ok], push[ok]
         if rows.numel() == 0:
             return pos
-        longest = amount.new_zeros(pos.size(0)).scatter_reduce(0, rows, amount, "amax")
-        index = torch.where(amount == longest[rows], torch.arange(rows.numel(), device=rows.device), rows.numel())
-        first = rows.new_full((pos.size(0),), rows.numel()).scatter_reduce(0, rows, index, "amin")
-        has = torch.nonzero(first < rows.numel()).flatten()
-        moved = pos.clone()
-        moved[has] = (x[has] + push[first[has]]).to(pos.dtype)
+        shift, longest = longest_per(rows, push, pos.size(0))
+        moved = torch.where((longest > 0).unsqueeze(-1), (x + shift).to(pos.dtype), pos)
         return leaf_to_ancestor_mean(moved, graph)
 
     def tets_near(self, c: Tensor, j: Tensor) -> tuple[Tensor, Tensor]:
@@ -518,13 +527,7 @@ class ClothContact:
         by the longest of its ``push [M, 3]``; ``pos`` itself when there is none."""
         if owner.numel() == 0:
             return pos
-        length = push.norm(dim=-1)
-        longest = length.new_zeros(self.count).scatter_reduce(0, owner, length, "amax")
-        index = torch.where(length == longest[owner], torch.arange(owner.numel(), device=owner.device), owner.numel())
-        first = owner.new_full((self.count,), owner.numel()).scatter_reduce(0, owner, index, "amin")
-        shift = push.new_zeros(self.count, 3)
-        has = first < owner.numel()
-        shift[has] = push[first[has]]
+        shift, longest = longest_per(owner, push, self.count)
         rows = self.cloth if movable is None else self.cloth & movable
         moved = rows & (longest > 0)[self.group]
         if not bool(moved.any()):
@@ -539,10 +542,7 @@ class ClothContact:
             return pos
         whole = self.rigid[leaf_rows]
         if bool(whole.any()):  # a rigid object moves as a whole, by its leaves' longest push
-            owner, length = self.group[leaf_rows[whole]], push[whole].norm(dim=-1)
-            longest = length.new_zeros(self.count).scatter_reduce(0, owner, length, "amax")
-            chosen = torch.nonzero(length == longest[owner]).flatten()
-            shift = push.new_zeros(self.count, 3).index_copy(0, owner[chosen], push[whole][chosen])
+            shift, longest = longest_per(self.group[leaf_rows[whole]], push[whole], self.count)
             moved = self.rigid_rows & (longest > 0)[self.group]
             pos = torch.where(moved.unsqueeze(-1), pos + shift[self.group], pos)
             leaf_rows, push = leaf_rows[~whole], push[~whole]
