@@ -9,12 +9,16 @@ sampler and the RL dynamics (environment and planner). In order:
 1. **Failed copies held** (``hold_failed``): a copy of a batch whose prediction holds NaN or inf
    (checked before the other rules and after them) stays where it is, with zero velocity, and is
    recorded in :attr:`StepRules.failed`; the other copies go on. Without it a non-finite prediction is an error of the step.
-2. **Clearance** (``HRNConfig.cloth_clearance``, ``HRNConfig.solid_clearance``,
+2. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
+   with more energy than it started with plus the work of its pushes, judged on the network's
+   prediction.
+3. **Clearance** (``HRNConfig.cloth_clearance``, ``HRNConfig.solid_clearance``,
    :mod:`hrn_pyg.sim.cloth_contact`): a leaf of a cloth (or of a soft body or a rigid object) is
    stopped where it enters another object, or moved back out; a soft body gives way to what is
-   inside it and is stretched no further than a limit.
-3. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
-   with more energy than it started with plus the work of its pushes.
+   inside it and is stretched no further than a limit. It comes last because moving a body out
+   of another raises it: an energy limit after it would take part of that move back and leave
+   the body inside. Its stops only shorten steps, and a push is about as long as
+   the overlap it removes plus the clearance.
 
 **Shapes.** A :class:`StepRules` maps a :class:`~hrn_pyg.sim.step.Prediction` of a graph of
 ``N`` nodes (each tensor ``(N, 3)``) to another; ``failed`` is ``(R,)`` bool over the graph's
@@ -73,11 +77,11 @@ class StepRules:
                  movable: Tensor | None = None) -> Prediction:
         if self.hold_failed:
             prediction = self.hold_non_finite(graph, prediction)
-        if self.cloth is not None:
-            prediction = self.cloth(graph, prediction, movable)
         if self.energy:
             prediction = limit_energy(graph, prediction, self.objects, force, movable, self.rigid_from_rest,
                                       self.host_reads)
+        if self.cloth is not None:
+            prediction = self.cloth(graph, prediction, movable)
         if self.hold_failed and (self.cloth is not None or self.energy):  # what the rules made, too
             prediction = self.hold_non_finite(graph, prediction)
         return prediction

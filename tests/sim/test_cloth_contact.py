@@ -379,3 +379,24 @@ def test_a_soft_body_is_stretched_no_further_than_the_limit():
     cube = slice(n_box, n_box + 8)
     assert torch.allclose(moved[cube].mean(0), pos[cube].mean(0), atol=1e-6)
     assert torch.equal(moved[:n_box], pos[:n_box])
+
+
+@pytest.mark.parametrize("material", [RIGID, SOFT])
+def test_the_energy_limit_keeps_a_push_out_of_a_solid(material):
+    """A cube at rest sunk 0.3 pitch into a static box, a step that predicts no motion: the rules
+    with the energy limit and the solid clearance end the step with no leaf inside. The push out
+    raises the cube, so an energy limit applied after it would take the push back; it comes
+    first, on the network's prediction alone."""
+    from hrn_pyg.sim.rules import StepRules
+    from hrn_pyg.sim.step import Prediction, object_of
+
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(material, (0.1, 0.1, top - 0.03))
+    pos = graph[NODE].pos
+    assert leaves_inside(graph, pos, of=1) == 4
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    rules = StepRules(contact, energy=True, objects=object_of(graph))
+    still = torch.zeros_like(pos)
+    after = rules(graph, Prediction(pos.clone(), still, still))
+    assert leaves_inside(graph, after.pos, of=1) == 0
+    assert torch.equal(after.pos[:n_box], pos[:n_box])
