@@ -59,7 +59,9 @@ itself: a projected leaf in a tetrahedron of another object moves to :math:`\del
 nearest *anchor* of the tetrahedron's corners (each leaf's nearest surface leaf at rest), along
 the anchor's turned normal. A rigid object moves whole by its leaves' longest push; of two
 bodies of one material the smaller moves whole, out of the larger, and of two rigid bodies also
-back off the larger's leaves inside it.
+back off the larger's leaves inside it. A rigid object is never pushed by a soft body, by its
+planes or its solid: the soft body gives way to it instead (below); pushing a 1 kg box out of a
+soft body draped over it, a centimetre or two a step, made the box climb onto the soft body.
 
 **A soft body gives way.** A leaf :math:`q` of another object that is not cloth inside a
 tetrahedron of a soft body moves that tetrahedron's corners :math:`v` along a direction
@@ -79,6 +81,13 @@ leaves fall inside them far from any surface. The limit was chosen on the valida
 stretched top. 1.5 leaves pybullet's large soft bodies room (in its validation episodes 99 of
 100 of their edges never pass 1.1-1.4 times their length) but is stiffer than some of its small
 ones (up to 2-3 times): a stiffer body, but a possible one.
+
+**Motion and correction.** A step shortened by the first stretch limit or stopped where it
+enters is a motion: the node's velocity becomes its shorter move. The pushes out, the giving way
+and the last stretch limit are corrections of place, as in position-based dynamics'
+pre-stabilisation: the node keeps its predicted velocity and its :math:`x_t` moves with it, so a
+body moved out of another gains height but no speed, and the next step's network and energy
+limit do not read the push as a motion.
 
 **Shapes.** :func:`cloth_contact` gives a :class:`ClothContact` of a graph with ``N`` nodes once
 per rollout; :meth:`ClothContact.project` maps ``pos`` ``[N, 3]`` to ``[N, 3]``, and calling
@@ -312,20 +321,32 @@ class ClothContact:
         soft bodies giving way (module docstring, in that order), the ancestors re-derived;
         returned as it is, the same tensor, when no leaf moves. ``movable`` ``[N]`` bool
         (optional): only these rows may move (a step with sleeping objects: the awake ones)."""
+        return self.stop_and_push(graph, pos, movable)[1]
+
+    def stop_and_push(self, graph: HeteroData, pos: Tensor,
+                      movable: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`project` in its two parts, ``([N, 3], [N, 3])``: ``pos`` stretched no further
+        than the limit and stopped where it enters (a shorter step), and that with the pushes out,
+        the giving way and the last stretch limit (corrections of place); each the same tensor as
+        the one before it when it moves nothing."""
         pos = self.limit_stretch(graph, pos, movable)
         a, b = self.contact_pairs(graph, pos)
         c, j = self.movers(a, b, movable)
         if c.numel() == 0:
-            return pos
+            return pos, pos
         leaf, tet = self.tets_near(c, j)  # the tetrahedra each projected leaf may be in
         # of two rigid bodies the larger is stopped where it enters the smaller too
         rigid = self.rigid_rows[c] & self.rigid_rows[j]
         back, back_tet = self.tets_near(j[rigid], c[rigid])
-        pos = self.entry_clamp(graph, pos, torch.cat([leaf, back]), torch.cat([tet, back_tet]))
+        pos = stopped = self.entry_clamp(graph, pos, torch.cat([leaf, back]), torch.cat([tet, back_tet]))
         rotation = self.rotations(pos)
-        pos = self.apply(graph, pos, *self.plane_pushes(graph, pos, c, j, rotation))
-        same = self.kind[leaf] == self.kind[self.tets[tet, 0]]
-        rows, push, _ = self.solid_pushes(pos, leaf[~same], tet[~same], rotation)
+        # a rigid object is not pushed out of a soft body: the soft body gives way to it below
+        pushed = ~(self.rigid_rows[c] & (self.kind[j] == SOFT))
+        pos = self.apply(graph, pos, *self.plane_pushes(graph, pos, c[pushed], j[pushed], rotation))
+        host = self.kind[self.tets[tet, 0]]
+        same = self.kind[leaf] == host
+        other = ~same & ~(self.rigid_rows[leaf] & (host == SOFT))
+        rows, push, _ = self.solid_pushes(pos, leaf[other], tet[other], rotation)
         pos = self.apply(graph, pos, rows, push)
         rows, push, _ = self.solid_pushes(pos, leaf[same], tet[same], rotation)
         pos = self.shift_whole(graph, pos, self.group[rows], push, movable)
@@ -341,7 +362,7 @@ class ClothContact:
             if moved is pos:
                 break
             pos = moved
-        return self.limit_stretch(graph, pos, movable)
+        return stopped, self.limit_stretch(graph, pos, movable)
 
     def limit_stretch(self, graph: HeteroData, pos: Tensor, movable: Tensor | None) -> Tensor:
         """``pos`` with no lattice edge of a soft body longer than :data:`STRETCH_LIMIT` times its
@@ -549,19 +570,26 @@ class ClothContact:
         return leaf_to_ancestor_mean(pos.index_add(0, leaf_rows, push), graph)
 
     def __call__(self, graph: HeteroData, prediction: Prediction, movable: Tensor | None = None) -> Prediction:
-        """A step's :class:`~hrn_pyg.sim.step.Prediction` after :meth:`project`: a moved node's
-        velocity is its whole move from :math:`x_t` (the prediction's ``prev_pos`` when the ground
-        lift moved it), and the local velocities of a cloth that moved are derived anew. The
-        same prediction when nothing moves."""
+        """A step's :class:`~hrn_pyg.sim.step.Prediction` after :meth:`project`. A step shortened
+        by the stretch limit or stopped where it enters is a motion: the node's velocity is its
+        shorter move from :math:`x_t` (the prediction's ``prev_pos`` when the ground lift moved
+        it). A push out, the giving way and the last stretch limit are corrections of place: the
+        node keeps its velocity and its :math:`x_t` moves with it (the returned ``prev_pos``), so
+        moving a body out of another gives it no speed. The local velocities of an object that
+        moved are derived anew. The same prediction when nothing moves."""
         pos, local, velocity, prev_pos = prediction
-        projected = self.project(graph, pos, movable)
+        stopped, projected = self.stop_and_push(graph, pos, movable)
         if projected is pos:
             return prediction
         since = graph[NODE].pos if prev_pos is None else prev_pos
         moved = (projected != pos).any(-1)
         touched = torch.zeros(self.count, dtype=torch.bool, device=pos.device).index_fill_(
             0, self.group[moved], True)[self.group]
-        velocity = torch.where(moved.unsqueeze(-1), projected - since, velocity)
+        if stopped is not pos:
+            velocity = torch.where((stopped != pos).any(-1, keepdim=True), stopped - since, velocity)
+        if projected is not stopped:
+            pushed = (projected != stopped).any(-1, keepdim=True)
+            prev_pos = torch.where(pushed, projected - velocity, since)
         fresh = to_local_velocity(velocity, graph[CHILD_TO_PARENT].edge_index)
         return Prediction(projected, torch.where(touched.unsqueeze(-1), fresh, local), velocity, prev_pos)
 

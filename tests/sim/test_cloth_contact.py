@@ -17,7 +17,7 @@ from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_pitch, set_state
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sim.cloth_contact import STRETCH_LIMIT, cloth_contact, surface_normals
+from hrn_pyg.sim.cloth_contact import ENTRY_MARGIN, STRETCH_LIMIT, cloth_contact, surface_normals
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
 from hrn_pyg.sim.rollout import rollout
 
@@ -139,9 +139,11 @@ def _model() -> HRN:
     return toy_model(collision_radius=1.6 * PITCH, rest_offsets=True)
 
 
-def test_the_push_keeps_an_x_t_the_ground_lift_moved():
-    """A prediction whose ``prev_pos`` the ground lift moved (``HRNConfig.ground_lift_velocity``
-    False) keeps it through the push, and a pushed leaf's velocity is measured from it."""
+def test_a_stop_is_a_motion_and_a_push_out_a_correction_of_place():
+    """A cloth leaf falling from 2 cm over the box's top to 3 cm into it is stopped where it
+    enters (its velocity: that shorter move) and then pushed out to the clearance, which moves
+    its :math:`x_t` too (the returned ``prev_pos``), so the push gives it no speed; the same with
+    an :math:`x_t` a ground lift moved (``prev_pos`` given), where nodes nothing moved keep it."""
     from hrn_pyg.sim.step import Prediction
 
     top = PITCH * (BOX_SIDE - 1)
@@ -156,11 +158,15 @@ def test_the_push_keeps_an_x_t_the_ground_lift_moved():
     contact = cloth_contact(graph, clearance=0.2)
     plain = contact(graph, Prediction(pos, pos - now, pos - now))
     lifted = contact(graph, Prediction(pos, pos - since, pos - since, since))
-    assert plain.prev_pos is None and lifted.prev_pos is since
     torch.testing.assert_close(lifted.pos, plain.pos)
-    assert lifted.pos[n_box, 2] > pos[n_box, 2]  # pushed out
-    torch.testing.assert_close(lifted.velocity[n_box], lifted.pos[n_box] - since[n_box])
-    torch.testing.assert_close(plain.velocity[n_box], plain.pos[n_box] - now[n_box])
+    assert float(plain.pos[n_box, 2]) == pytest.approx(top + 0.2 * PITCH, abs=1e-6)  # pushed out
+    stopped = float(now[n_box, 2]) - 0.05 * (0.4 - ENTRY_MARGIN)  # where it enters, less the margin
+    assert float(plain.velocity[n_box, 2]) == pytest.approx(stopped - float(now[n_box, 2]), abs=1e-5)
+    assert float(lifted.velocity[n_box, 2]) == pytest.approx(stopped - float(since[n_box, 2]), abs=1e-5)
+    for result, start in ((plain, now), (lifted, since)):
+        torch.testing.assert_close(result.pos - result.prev_pos, result.velocity)  # x_t moved with the push
+        still = (result.pos == pos).all(-1) & graph[NODE].is_leaf
+        assert torch.equal(result.prev_pos[still], start[still])
 
 
 @pytest.mark.parametrize("sleep", [None, "default"])
