@@ -589,7 +589,9 @@ class ClothContact:
             velocity = torch.where((stopped != pos).any(-1, keepdim=True), stopped - since, velocity)
         if projected is not stopped:
             pushed = (projected != stopped).any(-1, keepdim=True)
-            prev_pos = torch.where(pushed, projected - velocity, since)
+            # the leaves' x_t moved by their push, the ancestors' derived from them
+            moved_since = leaf_to_ancestor_mean(torch.where(pushed, projected - velocity, since), graph)
+            prev_pos = torch.where(touched.unsqueeze(-1), moved_since, since)
         fresh = to_local_velocity(velocity, graph[CHILD_TO_PARENT].edge_index)
         return Prediction(projected, torch.where(touched.unsqueeze(-1), fresh, local), velocity, prev_pos)
 
