@@ -59,7 +59,10 @@ itself: a projected leaf in a tetrahedron of another object moves to :math:`\del
 nearest *anchor* of the tetrahedron's corners (each leaf's nearest surface leaf at rest), along
 the anchor's turned normal. A rigid object moves whole by its leaves' longest push; of two
 bodies of one material the smaller moves whole, out of the larger, and of two rigid bodies also
-back off the larger's leaves inside it. A rigid object is never pushed by a soft body, by its
+back off the larger's leaves inside it. Such a whole body moves by at most
+:data:`SHIFT_LIMIT` pitches a step (a rigid one: all its pushes of the step together; the smaller
+of two soft bodies: each push), so one deep in another climbs out over a few steps instead of
+jumping. A rigid object is never pushed by a soft body, by its
 planes or its solid: the soft body gives way to it instead (below); pushing a 1 kg box out of a
 soft body draped over it, a centimetre or two a step, made the box climb onto the soft body.
 
@@ -126,6 +129,9 @@ STRETCH_LIMIT = 1.5
 STRETCH_PASSES = 4
 #: the share of its step a leaf stopped where it enters a solid ends before it
 ENTRY_MARGIN = 1.0 / 64
+#: a whole body (a rigid object, or the smaller of two of one material) moves out of another by at
+#: most this many pitches a step
+SHIFT_LIMIT = 0.5
 
 
 def surface_normals(rest: np.ndarray, pitch: float) -> np.ndarray:
@@ -218,6 +224,12 @@ def longest_per(index: Tensor, push: Tensor, size: int) -> tuple[Tensor, Tensor]
     return chosen, longest
 
 
+def shortened(shift: Tensor, longest: Tensor) -> Tensor:
+    """Each row of ``shift`` ``[M, 3]`` with its length cut to at most ``longest`` ``[M]``."""
+    length = shift.norm(dim=-1, keepdim=True)
+    return shift * (longest.unsqueeze(-1) / length.clamp(min=1e-12)).clamp(max=1.0)
+
+
 def scene_solid_mesh(meshes: list[tuple[np.ndarray, SolidMesh]], rows: int) -> SolidMesh:
     """One :class:`SolidMesh` over a scene's ``rows`` nodes from each object's rows and mesh
     (local indices): indices made global, the tables padded alike."""
@@ -251,7 +263,7 @@ class ClothContact:
     object; ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
     count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and
     ``count``: every node's object; ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and
-    :math:`\\delta` in metres at each node's pitch; ``tets``, ``leaf_tets``, ``anchor``,
+    :math:`\\delta` in metres at each node's pitch, ``pitch`` ``[N]`` that pitch; ``tets``, ``leaf_tets``, ``anchor``,
     ``edges``: the scene's :class:`SolidMesh` in node indices.
     """
 
@@ -269,6 +281,7 @@ class ClothContact:
     count: int
     reach: Tensor
     clearance: Tensor
+    pitch: Tensor
     tets: Tensor
     leaf_tets: Tensor
     anchor: Tensor
@@ -356,6 +369,10 @@ class ClothContact:
         give = self.cloth & (self.kind == SOFT)  # the projected leaves of soft bodies
         give = give if movable is None else give & movable
         keep = give[b] & (self.kind[a] != CLOTH) & (self.group[a] != self.group[b]) & (self.anchor[a] >= 0)
+        if pos is not stopped and bool((self.rigid_rows & (pos != stopped).any(-1)).any()):
+            # a rigid body's corrections in all: at most the shift limit
+            whole = stopped + shortened(pos - stopped, SHIFT_LIMIT * self.pitch)
+            pos = leaf_to_ancestor_mean(torch.where(self.rigid_rows.unsqueeze(-1), whole, pos), graph)
         leaf, tet = self.tets_near(a[keep], b[keep])  # leaves of other objects near a soft body's
         for _ in range(GIVE_WAY_PASSES):
             moved = self.give_way(graph, pos, leaf, tet, give)
@@ -553,7 +570,8 @@ class ClothContact:
         moved = rows & (longest > 0)[self.group]
         if not bool(moved.any()):
             return pos
-        return leaf_to_ancestor_mean(torch.where(moved.unsqueeze(-1), pos + shift[self.group], pos), graph)
+        shift = shortened(shift[self.group], SHIFT_LIMIT * self.pitch)
+        return leaf_to_ancestor_mean(torch.where(moved.unsqueeze(-1), pos + shift, pos), graph)
 
     def apply(self, graph: HeteroData, pos: Tensor, leaf_rows: Tensor, push: Tensor) -> Tensor:
         """``pos`` with each of ``leaf_rows`` moved by its ``push`` (a rigid object's leaves: the
@@ -644,6 +662,6 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
                         rigid=projected & rigid_rows, rigid_rows=rigid_rows, kind=material,
                         size=torch.zeros(count, dtype=torch.long, device=group.device).index_add(
                             0, group, leaf.long()), group=group, count=count,
-                        reach=reach * pitch, clearance=gap * pitch,
+                        reach=reach * pitch, clearance=gap * pitch, pitch=pitch,
                         **{name: torch.from_numpy(value).to(group.device)
                            for name, value in dataclasses.asdict(solids).items()})

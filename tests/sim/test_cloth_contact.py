@@ -17,7 +17,7 @@ from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_pitch, set_state
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sim.cloth_contact import ENTRY_MARGIN, STRETCH_LIMIT, cloth_contact, surface_normals
+from hrn_pyg.sim.cloth_contact import ENTRY_MARGIN, SHIFT_LIMIT, STRETCH_LIMIT, cloth_contact, surface_normals
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
 from hrn_pyg.sim.rollout import rollout
 
@@ -327,10 +327,11 @@ def test_a_fast_step_into_a_solid_is_stopped_where_it_enters(material):
 
 
 def test_two_soft_bodies_sunk_into_each_other_are_parted():
-    """A soft 2x2x2 cube sunk 1.2 pitches into the top of a soft 4x4x4 box, with no move in the
-    step (so the surface planes reach only its upper leaves): afterwards no leaf of either body is
-    in the other's solid, the box's bottom layer stays where it was, and no leaf moves more than
-    three pitches."""
+    """A soft 2x2x2 cube sunk 1.2 pitches into the top of a soft 4x4x4 box, at rest (so the
+    surface planes reach only its upper leaves): within three steps of no motion no leaf of
+    either body is in the other's solid (the smaller cube moves whole by at most
+    :data:`SHIFT_LIMIT` pitches a step); the box's bottom layer stays where it was, and no leaf
+    moves more than three pitches in all."""
     top = PITCH * (BOX_SIDE - 1)
     graph, n_box = box_and_small_cube(SOFT, (0.1, 0.1, top - 0.12))
     graph[NODE].material[:n_box] = torch.nn.functional.one_hot(torch.tensor(SOFT), 4).to(graph[NODE].material)
@@ -338,7 +339,10 @@ def test_two_soft_bodies_sunk_into_each_other_are_parted():
     contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
     pos = graph[NODE].pos.clone()
     assert leaves_inside(graph, pos, of=1) == 8
-    moved = contact.project(graph, pos)
+    moved = pos
+    for _ in range(3):
+        before = moved
+        moved = contact.project(set_state(graph, before, before, before, radius=1.6 * PITCH), before)
     assert leaves_inside(graph, moved, of=1) == 0 and leaves_inside(graph, moved, of=0) == 0
     bottom = pos[:n_box, 2] < 0.5 * PITCH
     assert torch.equal(moved[:n_box][bottom], pos[:n_box][bottom])
@@ -406,3 +410,23 @@ def test_the_energy_limit_keeps_a_push_out_of_a_solid(material):
     after = rules(graph, Prediction(pos.clone(), still, still))
     assert leaves_inside(graph, after.pos, of=1) == 0
     assert torch.equal(after.pos[:n_box], pos[:n_box])
+
+
+def test_a_rigid_body_deep_in_another_climbs_out_a_limited_step_at_a_time():
+    """A rigid cube sunk 1.2 pitches into a static box, at rest: it moves whole, by at most
+    :data:`SHIFT_LIMIT` pitches a step (a longer jump reads as a burst of speed), and is out
+    within four steps."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top - 0.12))
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    moved = graph[NODE].pos.clone()
+    assert leaves_inside(graph, moved, of=1) > 0
+    steps = []
+    for _ in range(4):
+        before = moved
+        moved = contact.project(set_state(graph, before, before, before, radius=1.6 * PITCH), before)
+        shift = moved[n_box:n_box + 8] - before[n_box:n_box + 8]
+        torch.testing.assert_close(shift, shift[:1].expand(8, 3))  # whole
+        steps.append(float(shift[0].norm()))
+    assert max(steps) <= SHIFT_LIMIT * PITCH + 1e-6 and steps[0] == pytest.approx(SHIFT_LIMIT * PITCH)
+    assert leaves_inside(graph, moved, of=1) == 0
