@@ -104,8 +104,9 @@ class HRNConfig(NetworkConfig):
         cloth_clearance: pitches in front of another object's surface to which a cloth leaf that a
             step leaves inside it is moved back (:mod:`hrn_pyg.sim.cloth_contact`; 0: off).
         solid_clearance: the same rule for soft and rigid leaves (a rigid object moved whole; 0: off).
-        energy_limit: no step ends with more energy per scene copy than it started with plus the
-            pushes' work (:mod:`hrn_pyg.sim.energy`).
+        energy_limit: no step's prediction ends with more energy per scene copy than it started
+            with plus the pushes' work (:mod:`hrn_pyg.sim.energy`); the clearance after it may add
+            the height of an overlap it removes, never speed (:mod:`hrn_pyg.sim.rules`).
         equivariant: the network of :mod:`hrn_pyg.nn.equivariant`, exactly equivariant in one pass
             under turns about z and vertical mirrors; needs a horizontally isotropic normaliser,
             not with ``mirror_average``.
