@@ -59,10 +59,8 @@ itself: a projected leaf in a tetrahedron of another object moves to :math:`\del
 nearest *anchor* of the tetrahedron's corners (each leaf's nearest surface leaf at rest), along
 the anchor's turned normal. A rigid object moves whole by its leaves' longest push; of two
 bodies of one material the smaller moves whole, out of the larger, and of two rigid bodies also
-back off the larger's leaves inside it. Such a whole body moves by at most
-:data:`SHIFT_LIMIT` pitches a step (a rigid one: all its pushes of the step together; the smaller
-of two soft bodies: each push), so one deep in another climbs out over a few steps instead of
-jumping. A rigid object is never pushed by a soft body, by its
+back off the larger's leaves inside it. Each such whole move is at most :data:`SHIFT_LIMIT`
+pitches long, so a body deep in another climbs out over a few steps instead of jumping. A rigid object is never pushed by a soft body, by its
 planes or its solid: the soft body gives way to it instead (below); pushing a 1 kg box out of a
 soft body draped over it, a centimetre or two a step, made the box climb onto the soft body.
 
@@ -130,7 +128,7 @@ STRETCH_PASSES = 4
 #: the share of its step a leaf stopped where it enters a solid ends before it
 ENTRY_MARGIN = 1.0 / 64
 #: a whole body (a rigid object, or the smaller of two of one material) moves out of another by at
-#: most this many pitches a step
+#: most this many pitches a push
 SHIFT_LIMIT = 0.5
 
 
@@ -369,10 +367,6 @@ class ClothContact:
         give = self.cloth & (self.kind == SOFT)  # the projected leaves of soft bodies
         give = give if movable is None else give & movable
         keep = give[b] & (self.kind[a] != CLOTH) & (self.group[a] != self.group[b]) & (self.anchor[a] >= 0)
-        if pos is not stopped and bool((self.rigid_rows & (pos != stopped).any(-1)).any()):
-            # a rigid body's corrections in all: at most the shift limit
-            whole = stopped + shortened(pos - stopped, SHIFT_LIMIT * self.pitch)
-            pos = leaf_to_ancestor_mean(torch.where(self.rigid_rows.unsqueeze(-1), whole, pos), graph)
         leaf, tet = self.tets_near(a[keep], b[keep])  # leaves of other objects near a soft body's
         for _ in range(GIVE_WAY_PASSES):
             moved = self.give_way(graph, pos, leaf, tet, give)
@@ -583,7 +577,8 @@ class ClothContact:
         if bool(whole.any()):  # a rigid object moves as a whole, by its leaves' longest push
             shift, longest = longest_per(self.group[leaf_rows[whole]], push[whole], self.count)
             moved = self.rigid_rows & (longest > 0)[self.group]
-            pos = torch.where(moved.unsqueeze(-1), pos + shift[self.group], pos)
+            shift = shortened(shift[self.group], SHIFT_LIMIT * self.pitch)
+            pos = torch.where(moved.unsqueeze(-1), pos + shift, pos)
             leaf_rows, push = leaf_rows[~whole], push[~whole]
         return leaf_to_ancestor_mean(pos.index_add(0, leaf_rows, push), graph)
 

@@ -413,9 +413,9 @@ def test_the_energy_limit_keeps_a_push_out_of_a_solid(material):
 
 
 def test_a_rigid_body_deep_in_another_climbs_out_a_limited_step_at_a_time():
-    """A rigid cube sunk 1.2 pitches into a static box, at rest: it moves whole, by at most
-    :data:`SHIFT_LIMIT` pitches a step (a longer jump reads as a burst of speed), and is out
-    within four steps."""
+    """A rigid cube sunk 1.2 pitches into a static box, at rest: it moves whole, each push (the
+    planes', the solid's) at most :data:`SHIFT_LIMIT` pitches long (a longer jump reads as a
+    burst of speed), and is out within four steps."""
     top = PITCH * (BOX_SIDE - 1)
     graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top - 0.12))
     contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
@@ -428,5 +428,5 @@ def test_a_rigid_body_deep_in_another_climbs_out_a_limited_step_at_a_time():
         shift = moved[n_box:n_box + 8] - before[n_box:n_box + 8]
         torch.testing.assert_close(shift, shift[:1].expand(8, 3))  # whole
         steps.append(float(shift[0].norm()))
-    assert max(steps) <= SHIFT_LIMIT * PITCH + 1e-6 and steps[0] == pytest.approx(SHIFT_LIMIT * PITCH)
+    assert max(steps) <= 2 * SHIFT_LIMIT * PITCH + 1e-6 and max(steps) > SHIFT_LIMIT * PITCH
     assert leaves_inside(graph, moved, of=1) == 0
