@@ -50,7 +50,8 @@ projected leaves move; a leaf held still by sleeping stays where it is.
 solid (the tetrahedra of :mod:`hrn_pyg.sim.penetration`, the solid the plausibility report
 measures depth in, moving from :math:`x_t` to :math:`x_{t+1}`) is stopped just before the
 fraction of its step at which it enters; a rigid object takes the smallest fraction of its
-leaves, and of two rigid bodies both are stopped where they enter each other. This only
+leaves (fitted rigid again, since a turning body's leaves cut short by one fraction are not quite
+rigid), and of two rigid bodies both are stopped where they enter each other. This only
 shortens steps, so it adds no energy; the planes above then push out what is left.
 
 **Out of the solid.** The planes see a leaf only within :math:`\rho` of the surface, and a
@@ -113,7 +114,7 @@ from hrn_pyg.data.radius import collision_edges
 from hrn_pyg.nn.rigid import rigid_motion
 from hrn_pyg.nn.state import to_local_velocity
 from hrn_pyg.sim.penetration import CELL_TETS, INSIDE_TOLERANCE, lattice_cells
-from hrn_pyg.sim.step import Prediction, object_of
+from hrn_pyg.sim.step import Prediction, object_of, rigid_leaf_positions
 
 #: a leaf is on the surface when its neighbours' mean offset is longer than this many pitches
 SURFACE_OFFSET = 0.1
@@ -498,7 +499,10 @@ class ClothContact:
             alpha = torch.where(self.rigid_rows, smallest[self.group], alpha)
         clamped = start + alpha.unsqueeze(-1) * (x - start)
         moved = self.leaf & (alpha < 1)
-        return leaf_to_ancestor_mean(torch.where(moved.unsqueeze(-1), clamped.to(pos.dtype), pos), graph)
+        stopped = torch.where(moved.unsqueeze(-1), clamped.to(pos.dtype), pos)
+        if bool((moved & self.rigid_rows).any()):  # a turning body's leaves cut short are fitted rigid again
+            stopped = rigid_leaf_positions(graph, stopped, (self.group, self.count))
+        return leaf_to_ancestor_mean(stopped, graph)
 
     def plane_pushes(self, graph: HeteroData, pos: Tensor, c: Tensor, j: Tensor,
                      rotation: Tensor) -> tuple[Tensor, Tensor]:
