@@ -61,9 +61,9 @@ nearest *anchor* of the tetrahedron's corners (each leaf's nearest surface leaf 
 the anchor's turned normal. A rigid object moves whole by its leaves' longest push; of two
 bodies of one material the smaller moves whole, out of the larger, and of two rigid bodies also
 back off the larger's leaves inside it. Each such whole move is at most :data:`SHIFT_LIMIT`
-pitches long, so a body deep in another climbs out over a few steps instead of jumping. A rigid object is never pushed by a soft body, by its
-planes or its solid: the soft body gives way to it instead (below); pushing a 1 kg box out of a
-soft body draped over it, a centimetre or two a step, made the box climb onto the soft body.
+pitches long, so a body deep in another climbs out over a few steps instead of jumping. A rigid
+object is never pushed by a soft body, by its planes or its solid: the soft body gives way to it
+instead (below), since pushing a box out of a soft body draped over it lifts the box onto it.
 
 **A soft body gives way.** A leaf :math:`q` of another object that is not cloth inside a
 tetrahedron of a soft body moves that tetrahedron's corners :math:`v` along a direction
@@ -262,8 +262,8 @@ class ClothContact:
     object; ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
     count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and
     ``count``: every node's object; ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and
-    :math:`\\delta` in metres at each node's pitch, ``pitch`` ``[N]`` that pitch; ``tets``, ``leaf_tets``, ``anchor``,
-    ``edges``: the scene's :class:`SolidMesh` in node indices.
+    :math:`\\delta` in metres at each node's pitch, ``pitch`` ``[N]`` that pitch; ``tets``,
+    ``leaf_tets``, ``anchor``, ``edges``: the scene's :class:`SolidMesh` in node indices.
     """
 
     rest: Tensor

@@ -17,9 +17,8 @@ sampler and the RL dynamics (environment and planner). In order:
    stopped where it enters another object, or moved back out; a soft body gives way to what is
    inside it and is stretched no further than a limit. It comes last because moving a body out
    of another raises it: an energy limit after it would take part of that move back and leave
-   the body inside. Its stops only shorten steps; a push is about as long as the
-   overlap it removes plus the clearance and gives no speed (the body's :math:`x_t` moves with
-   it).
+   the body inside. Its stops only shorten steps; a push is about as long as the overlap
+   it removes plus the clearance and gives no speed (the body's :math:`x_t` moves with it).
 
 **Shapes.** A :class:`StepRules` maps a :class:`~hrn_pyg.sim.step.Prediction` of a graph of
 ``N`` nodes (each tensor ``(N, 3)``) to another; ``failed`` is ``(R,)`` bool over the graph's
