@@ -201,11 +201,11 @@ def solid_mesh(rest: np.ndarray, normal: np.ndarray, pitch: float) -> SolidMesh:
     return SolidMesh(tets, leaf_tets, anchor, edges.astype(np.int64))
 
 
-def unique_pairs(first: Tensor, second: Tensor) -> tuple[Tensor, Tensor]:
-    """The distinct pairs ``(first[i], second[i])`` (``[P]`` long each, at least 0), sorted."""
+def unique_pairs(first: Tensor, second: Tensor, span: int) -> tuple[Tensor, Tensor]:
+    """The distinct pairs ``(first[i], second[i])`` (``[P]`` long each, ``0 <= second < span``),
+    sorted (no host read)."""
     if first.numel() == 0:
         return first, second
-    span = int(second.max()) + 1
     key = torch.unique(first * span + second)
     return key // span, key % span
 
@@ -259,7 +259,7 @@ class ClothContact:
     leaves of cloth, and of soft bodies and rigid objects under a solid clearance), the rows of
     static objects, the leaves; ``rigid`` ``[N]`` bool: the projected leaves of rigid objects,
     which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
-    object; ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
+    object (``has_rigid``: whether there is one); ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
     count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and
     ``count``: every node's object; ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and
     :math:`\\delta` in metres at each node's pitch, ``pitch`` ``[N]`` that pitch; ``tets``,
@@ -274,6 +274,7 @@ class ClothContact:
     leaf: Tensor
     rigid: Tensor
     rigid_rows: Tensor
+    has_rigid: bool
     kind: Tensor
     size: Tensor
     group: Tensor
@@ -447,7 +448,7 @@ class ClothContact:
         keep = self.leaf_tets[j, 0] >= 0
         candidates = self.leaf_tets[j[keep]]  # [P, M]
         which, column = torch.nonzero(candidates >= 0, as_tuple=True)
-        return unique_pairs(c[keep][which], candidates[which, column])
+        return unique_pairs(c[keep][which], candidates[which, column], self.tets.size(0))
 
     def barycentric(self, x: Tensor, point: Tensor, tet: Tensor) -> tuple[Tensor, Tensor]:
         """The barycentric coordinates ``[P, 4]`` of each ``point`` ``[P, 3]`` in its ``tet`` at
@@ -493,7 +494,7 @@ class ClothContact:
         if not bool(ends_in.any()):
             return pos
         alpha = torch.where(ends_in, (first - ENTRY_MARGIN).clamp(min=0.0), torch.ones_like(first))
-        if bool(self.rigid_rows.any()):
+        if self.has_rigid:
             smallest = alpha.new_ones(self.count).scatter_reduce(0, self.group[ends_in & self.rigid_rows],
                                                                  alpha[ends_in & self.rigid_rows], "amin")
             alpha = torch.where(self.rigid_rows, smallest[self.group], alpha)
@@ -547,7 +548,7 @@ class ClothContact:
         anchor = anchor[anchor >= 0]
         if leaf.numel() == 0:
             return empty
-        leaf, anchor = unique_pairs(leaf, anchor)
+        leaf, anchor = unique_pairs(leaf, anchor, pos.size(0))
         gap = (x[anchor] - x[leaf]).norm(dim=-1)
         nearest = gap.new_full((pos.size(0),), torch.inf).scatter_reduce(0, leaf, gap, "amin")
         index = torch.where(gap == nearest[leaf], torch.arange(leaf.numel(), device=leaf.device), leaf.numel())
@@ -658,7 +659,8 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
     static = store.is_static | (material == STATIC)
     gap = torch.where(material == CLOTH, torch.full_like(pitch, clearance), torch.full_like(pitch, solid_clearance))
     return ClothContact(rest=rest, normal=normal, surface=surface, cloth=projected, static=static, leaf=leaf,
-                        rigid=projected & rigid_rows, rigid_rows=rigid_rows, kind=material,
+                        rigid=projected & rigid_rows, rigid_rows=rigid_rows,
+                        has_rigid=bool(rigid_rows.any()), kind=material,
                         size=torch.zeros(count, dtype=torch.long, device=group.device).index_add(
                             0, group, leaf.long()), group=group, count=count,
                         reach=reach * pitch, clearance=gap * pitch, pitch=pitch,

@@ -8,7 +8,8 @@ sampler and the RL dynamics (environment and planner). In order:
 
 1. **Failed copies held** (``hold_failed``): a copy of a batch whose prediction holds NaN or inf
    (checked before the other rules and after them) stays where it is, with zero velocity, and is
-   recorded in :attr:`StepRules.failed`; the other copies go on. Without it a non-finite prediction is an error of the step.
+   recorded in :attr:`StepRules.failed`; the other copies go on. Without it a non-finite
+   prediction is an error of the step.
 2. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
    with more energy than it started with plus the work of its pushes, judged on the network's
    prediction.
