@@ -430,3 +430,19 @@ def test_a_rigid_body_deep_in_another_climbs_out_a_limited_step_at_a_time():
         steps.append(float(shift[0].norm()))
     assert max(steps) <= 2 * SHIFT_LIMIT * PITCH + 1e-6 and max(steps) > SHIFT_LIMIT * PITCH
     assert leaves_inside(graph, moved, of=1) == 0
+
+
+def test_a_turning_rigid_body_stopped_where_it_enters_stays_rigid():
+    """x_t: the small rigid cube far above the box; x_{t+1}: turned by 60 degrees and moved into
+    the box. Cut short by one fraction of its step, its leaves would lie on chords of their arcs;
+    stopped, it is fitted rigid again: every distance between two of its leaves is as at rest."""
+    graph, n_box = box_and_small_cube(RIGID, (0.05, 0.05, 1.0))
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    cube = pos[n_box:n_box + 8]
+    centre = cube.mean(0)
+    pos[n_box:n_box + 8] = (cube - centre) @ turn(60.0).T + centre + torch.tensor([0.10, 0.10, 0.15 - 1.0])
+    moved = contact.project(graph, pos)
+    assert leaves_inside(graph, moved, of=1) == 0 and not torch.equal(moved, pos)
+    torch.testing.assert_close(torch.cdist(moved[n_box:n_box + 8], moved[n_box:n_box + 8]),
+                               torch.cdist(cube, cube), atol=1e-5, rtol=0.0)
