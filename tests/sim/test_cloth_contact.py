@@ -17,7 +17,8 @@ from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_pitch, set_state
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sim.cloth_contact import ENTRY_MARGIN, SHIFT_LIMIT, STRETCH_LIMIT, cloth_contact, surface_normals
+from hrn_pyg.sim.cloth_contact import (ENTRY_MARGIN, RIGID_DEPTH, SHIFT_LIMIT, STRETCH_LIMIT, cloth_contact,
+                                      surface_normals)
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
 from hrn_pyg.sim.rollout import rollout
 
@@ -249,9 +250,10 @@ def test_fixed_shape_steps_refuse_the_rule_where_it_acts_and_run_without_cloth()
     assert torch.equal(fixed, plain)
 
 
-def box_and_small_cube(material: int, offset) -> tuple:
-    """The 4x4x4 box of :func:`box_and_cloth`, static (object 0), and a 2x2x2 cube of ``material``
-    (object 1) whose corner leaf sits at ``offset``: the graph at rest, its pitch set."""
+def box_and_small_cube(material: int, offset, box_material: int = STATIC) -> tuple:
+    """The 4x4x4 box of :func:`box_and_cloth`, static unless ``box_material`` says (object 0), and a
+    2x2x2 cube of ``material`` (object 1) whose corner leaf sits at ``offset``: the graph at rest,
+    its pitch set."""
     box, small = lattice(BOX_SIDE), lattice(2, offset)
     n_box = len(box)
     n = n_box + len(small)
@@ -259,7 +261,7 @@ def box_and_small_cube(material: int, offset) -> tuple:
     mass = torch.full((n,), 0.1)
     obj = torch.tensor([0] * n_box + [1] * len(small))
     rest = torch.cat([box, small])
-    graph = build_structure(parent, mass, obj, torch.tensor([STATIC, material]), torch.tensor([1.0, 0.5]),
+    graph = build_structure(parent, mass, obj, torch.tensor([box_material, material]), torch.tensor([1.0, 0.5]),
                             rest_pos=rest, pitch=PITCH)
     return set_state(graph, rest, rest, rest, radius=1.6 * PITCH), n_box
 
@@ -446,3 +448,41 @@ def test_a_turning_rigid_body_stopped_where_it_enters_stays_rigid():
     assert leaves_inside(graph, moved, of=1) == 0 and not torch.equal(moved, pos)
     torch.testing.assert_close(torch.cdist(moved[n_box:n_box + 8], moved[n_box:n_box + 8]),
                                torch.cdist(cube, cube), atol=1e-5, rtol=0.0)
+
+
+@pytest.mark.parametrize("box", [RIGID, STATIC])
+def test_two_rigid_bodies_may_overlap_a_little(box):
+    """x_t: the small rigid cube just above the box; x_{t+1}: its lower leaves 0.3 pitch under the
+    box's top plane. Into a rigid box that is within :data:`RIGID_DEPTH` (the collision is left to
+    the network: nothing moves); a static box is not a rigid body, and the step is stopped."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top + 0.05), box_material=box)
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    pos[n_box:n_box + 8] -= torch.tensor([0.0, 0.0, 0.05 + 0.3 * PITCH])
+    assert 0.3 < RIGID_DEPTH and leaves_inside(graph, pos, of=1) == 4
+    moved = contact.project(graph, pos)
+    if box == RIGID:
+        assert moved is pos
+    else:
+        assert leaves_inside(graph, moved, of=1) == 0
+
+
+@pytest.mark.parametrize("down", [True, False])
+def test_a_rigid_body_sinking_into_another_is_held(down):
+    """x_t: the small rigid cube with its lower leaves 0.8 pitch into a rigid box (deeper than
+    :data:`RIGID_DEPTH`, so the entry stop does not see them); x_{t+1}: 0.1 pitch further down.
+    The cube is held at x_t (zero step) before the pushes; moving up instead, it is not held."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top - 0.08), box_material=RIGID)
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    start = graph[NODE].pos.clone()
+    pos = start.clone()
+    pos[n_box:n_box + 8] += torch.tensor([0.0, 0.0, -0.01 if down else 0.01])
+    stopped, projected = contact.stop_and_push(graph, pos)
+    cube = slice(n_box, n_box + 8)
+    if down:
+        assert torch.equal(stopped[cube], start[cube]) and torch.equal(stopped[:n_box], pos[:n_box])
+    else:
+        assert stopped is pos
+    assert float(projected[cube, 2].min()) > float(stopped[cube, 2].min())  # then pushed up, out
