@@ -470,15 +470,16 @@ def test_two_rigid_bodies_may_overlap_a_little(box):
 
 @pytest.mark.parametrize("down", [True, False])
 def test_a_rigid_body_sinking_into_another_is_held(down):
-    """x_t: the small rigid cube with its lower leaves 0.8 pitch into a rigid box (deeper than
+    """x_t: the small rigid cube with its lower leaves a pitch into a rigid box (deeper than
     :data:`RIGID_DEPTH`, so the entry stop does not see them); x_{t+1}: 0.1 pitch further down.
     The cube is held at x_t (zero step) before the pushes; moving up instead, it is not held."""
     top = PITCH * (BOX_SIDE - 1)
-    graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top - 0.08), box_material=RIGID)
+    graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top - 0.10), box_material=RIGID)
     contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
     start = graph[NODE].pos.clone()
     pos = start.clone()
     pos[n_box:n_box + 8] += torch.tensor([0.0, 0.0, -0.01 if down else 0.01])
+    assert 0.2 + RIGID_DEPTH < 0.9 + 0.2  # both ways the cube ends deeper than RIGID_DEPTH
     stopped, projected = contact.stop_and_push(graph, pos)
     cube = slice(n_box, n_box + 8)
     if down:
