@@ -61,11 +61,11 @@ so a collision the network resolves by itself is left to it (stopping every touc
 took their bounce and raised their position error at 50 steps by 45 %). The depth was chosen on
 the validation sets: at 0.5 pitch two thrown meshes were still stopped where the network had
 them part, at 0.9 and 1.0 a pile at pitch 0.025 settled more than a pitch deeper than
-pybullet's. A leaf already inside at
-:math:`x_t` is not seen by the entry stop, so a rigid body that sinks deeper than that into
-another (its leaf's step, less the other body's mean step, points inwards) is held at
-:math:`x_t`. A stopped or held body may leave another inside it, so the stops run again on the
-pairs of the new positions, up to :data:`STOP_PASSES` times.
+pybullet's. A leaf already inside at :math:`x_t` is not seen by the entry stop, so a rigid body
+that sinks deeper than that into another (its leaf's step, less the other body's mean step,
+points inwards) is held at :math:`x_t`. A stopped or held body may leave another inside it, so
+the stops run again on the pairs of the new positions, up to :data:`STOP_PASSES` times. A leaf
+inside one object at :math:`x_t` is still stopped where it enters another.
 
 **Out of the solid.** The planes see a leaf only within :math:`\rho` of the surface, and a
 deformed soft body's turned normals may not match its surface. So a second pass asks the solid
@@ -295,8 +295,9 @@ class ClothContact:
     leaves of cloth, and of soft bodies and rigid objects under a solid clearance), the rows of
     static objects, the leaves; ``rigid`` ``[N]`` bool: the projected leaves of rigid objects,
     which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
-    object (``has_rigid``: whether there is one); ``kind`` ``[N]`` long each node's material code and ``size`` ``[R]`` each object's leaf
-    count (of two bodies of one material only the smaller gives way); ``group`` ``[N]`` long and
+    object (``has_rigid``: whether there is one); ``kind`` ``[N]`` long each node's material code
+    and ``size`` ``[R]`` each object's leaf count (of two bodies of one material only the smaller
+    gives way); ``group`` ``[N]`` long and
     ``count``: every node's object; ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and
     :math:`\\delta` in metres at each node's pitch, ``pitch`` ``[N]`` that pitch; ``tets``,
     ``leaf_tets``, ``anchor``, ``edges``: the scene's :class:`SolidMesh` in node indices.
@@ -418,7 +419,7 @@ class ClothContact:
             pos = moved
         return stopped, self.limit_stretch(graph, pos, movable)
 
-    def step_pairs(self, graph: HeteroData, pos: Tensor, movable: Tensor | None) -> "StepPairs":
+    def step_pairs(self, graph: HeteroData, pos: Tensor, movable: Tensor | None) -> StepPairs:
         """The :class:`StepPairs` of a step that ends at ``pos`` ``[N, 3]``."""
         a, b = self.contact_pairs(graph, pos)
         c, j = self.movers(a, b, movable)
@@ -428,7 +429,7 @@ class ClothContact:
         back, back_tet = self.tets_near(j[rigid], c[rigid])
         return StepPairs(a, b, c, j, leaf, tet, back, back_tet)
 
-    def stop(self, graph: HeteroData, pos: Tensor, pairs: "StepPairs") -> Tensor:
+    def stop(self, graph: HeteroData, pos: Tensor, pairs: StepPairs) -> Tensor:
         """One pass of the stops: ``pos`` ``[N, 3]`` with the leaves of ``pairs`` that enter another
         object's solid in the step stopped where they enter (:meth:`entry_clamp`; between two rigid
         bodies only where the leaf ends more than :data:`RIGID_DEPTH` pitches in, or passes through)
@@ -438,6 +439,8 @@ class ClothContact:
         if leaf.numel() == 0:
             return pos
         between = self.rigid_rows[leaf] & self.rigid_rows[self.tets[tet, 0]]
+        if not (self.has_rigid and bool(between.any())):
+            return self.entry_clamp(graph, pos, leaf, tet)
         rows, push, owner = self.solid_pushes(pos, leaf[between], tet[between], self.rotations(pos))
         deep_rows, _, _ = self.beyond_rigid_depth(rows, push, owner)
         shallow = torch.zeros(pos.size(0), dtype=torch.bool, device=pos.device)
@@ -470,9 +473,8 @@ class ClothContact:
             return pos
         step = pos - start
         weight = self.rigid_rows.to(pos.dtype)
-        total = torch.zeros(self.count, 3, dtype=pos.dtype, device=pos.device).index_add(0, self.group, step * weight.unsqueeze(-1))
-        mean = total / torch.zeros(self.count, dtype=pos.dtype, device=pos.device).index_add(
-            0, self.group, weight).clamp(min=1.0).unsqueeze(-1)
+        total = pos.new_zeros(self.count, 3).index_add(0, self.group, step * weight.unsqueeze(-1))
+        mean = total / pos.new_zeros(self.count).index_add(0, self.group, weight).clamp(min=1.0).unsqueeze(-1)
         sinking = ((step[rows] - mean[host]) * push).sum(-1) < 0
         held = torch.zeros(self.count, dtype=torch.bool, device=pos.device).index_fill_(
             0, self.group[rows[sinking]], True)[self.group] & self.rigid_rows & (step != 0).any(-1)
