@@ -271,14 +271,16 @@ def _log(ratio: float) -> float:
 
 
 def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energies: list[float],
-              implausible: int = 0) -> dict:
+              implausible: int | list[int] = 0) -> dict:
     """One candidate's row: per-start numbers and their summaries (JSON-safe: no infinities);
-    ``implausible``: its futures that failed the physics report, over all starts."""
+    ``implausible``: its futures that failed the physics report, per start (or over all starts)."""
+    per_start = [int(n) for n in implausible] if isinstance(implausible, list) else None
     ratios = [r for r in ratios if not math.isnan(r)] or [0.0]
     energies = [e for e in energies if not math.isnan(e)] or [0.0]
     log_median = float(np.median([_log(r) for r in ratios]))
     return {
-        "implausible_futures": int(implausible),
+        "implausible_futures": sum(per_start) if per_start is not None else int(implausible),
+        **({"implausible_per_start": per_start} if per_start is not None else {}),
         "rate": float(rate), "modules": list(modules),
         "spread_ratios": [float(r) for r in ratios],
         "spread_ratio_median": float(math.exp(log_median)) if math.isfinite(log_median) else 0.0,
@@ -331,12 +333,12 @@ def calibrate(model: HRN, starts: list[Start], rates: tuple[float, ...], module_
     candidates = []
     try:
         for rate, modules in pairs:
-            ratios, energies, implausible = [], [], 0
+            ratios, energies, implausible = [], [], []
             for start in starts:
                 ratio, es, failures = score(model, start, k, steps, rate, modules, sample_seed)
                 ratios.append(ratio)
                 energies.append(es)
-                implausible += failures
+                implausible.append(failures)
                 bar.update(1)
             candidates.append(summarise(rate, modules, ratios, energies, implausible))
             bar.set_postfix(rate=rate, modules="+".join(modules), ratio=f"{candidates[-1]['spread_ratio_median']:.2f}")
@@ -346,14 +348,25 @@ def calibrate(model: HRN, starts: list[Start], rates: tuple[float, ...], module_
 
 
 def markdown(candidates: list[dict], chosen: int | None = None) -> str:
-    """The candidates as a markdown table; the chosen one is marked."""
-    lines = ["| rate | modules | spread ratio median | range | energy score (mm) | chosen |",
-             "|---:|---|---:|---|---:|:---:|"]
+    """The candidates as a markdown table (with their futures that failed the physics report); the
+    chosen one is marked."""
+    lines = ["| rate | modules | spread ratio median | range | energy score (mm) | implausible futures | chosen |",
+             "|---:|---|---:|---|---:|---:|:---:|"]
     for i, c in enumerate(candidates):
         lines.append(f"| {c['rate']:g} | {','.join(c['modules'])} | {c['spread_ratio_median']:.3g} | "
                      f"{c['spread_ratio_min']:.3g} - {c['spread_ratio_max']:.3g} | "
-                     f"{1e3 * c['energy_score_m']:.2f} | {'<-' if i == chosen else ''} |")
+                     f"{1e3 * c['energy_score_m']:.2f} | {c.get('implausible_futures', 0)} | "
+                     f"{'<-' if i == chosen else ''} |")
     return "\n".join(lines)
+
+
+def failing_everywhere(candidates: list[dict], names: list[str]) -> list[str]:
+    """The ``names`` of the starts (in the candidates' per-start order) where every candidate has a
+    future that fails the physics report."""
+    rows = [c["implausible_per_start"] for c in candidates if "implausible_per_start" in c]
+    if not rows:
+        return []
+    return [name for i, name in enumerate(names) if all(row[i] > 0 for row in rows)]
 
 
 # ----------------------------------------------------------------------------- checkpoint
@@ -438,7 +451,13 @@ def run(args: argparse.Namespace) -> int:
     # --- candidates ---------------------------------------------------------------------------
     candidates = calibrate(model, starts, rates, module_sets, args.k, args.steps, args.sample_seed,
                            progress=not args.no_progress)
-    best = choose(candidates, physics=not args.no_physics_check)
+    try:
+        best = choose(candidates, physics=not args.no_physics_check)
+    except ValueError as exc:  # the table says what each candidate did; the starts to blame are named
+        print(markdown(candidates))
+        names = [f"{name} seed {seed}" for name, _, seed, _ in plan]
+        blamed = failing_everywhere(candidates, names)
+        raise ValueError(f"{exc}" + (f" (failing at every rate: {', '.join(blamed)})" if blamed else "")) from None
     chosen = candidates[best]
     print(markdown(candidates, best))
     edge = grid_edge(chosen, rates)

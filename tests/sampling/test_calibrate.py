@@ -254,7 +254,17 @@ def test_a_rate_whose_futures_break_physics_is_rejected(checkpoint, tmp_path, ca
     argv = [a for a in calibrate_argv(checkpoint, "--episode-seeds", "8", "--rates", "0.1,0.3", "--module-sets",
                                       "force", "--out", str(out)) if a != "--no-physics-check"]
     assert main(argv) == 2
-    assert "fail the physics report" in capsys.readouterr().err and not out.exists()
+    captured = capsys.readouterr()
+    assert "fail the physics report" in captured.err and not out.exists()
+    assert "failing at every rate" in captured.err and "| implausible futures |" in captured.out
+
+
+def test_the_starts_failing_at_every_rate_are_named():
+    rows = [cal.summarise(0.1, ("force",), [0.5, 0.5], [0.1, 0.1], implausible=[0, 3]),
+            cal.summarise(0.3, ("force",), [1.0, 1.0], [0.1, 0.1], implausible=[1, 2])]
+    assert rows[1]["implausible_futures"] == 3 and rows[1]["implausible_per_start"] == [1, 2]
+    assert cal.failing_everywhere(rows, ["a seed 8", "b seed 18"]) == ["b seed 18"]
+    assert "| 3 |" in cal.markdown(rows)  # the table shows each candidate's failures
 
 
 def test_choose_skips_candidates_with_implausible_futures():
