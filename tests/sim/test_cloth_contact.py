@@ -487,3 +487,28 @@ def test_a_rigid_body_sinking_into_another_is_held(down):
     else:
         assert stopped is pos
     assert float(projected[cube, 2].min()) > float(stopped[cube, 2].min())  # then pushed up, out
+
+
+def test_a_leaf_inside_one_object_is_still_stopped_where_it_enters_another():
+    """x_t: a soft cube with its lower leaves 0.3 pitch into the top of a static box; x_{t+1}: moved
+    a metre sideways into a second static box. The leaves inside the first box are left to the
+    pushes there, but their step into the second is still stopped where it enters."""
+    first, second = lattice(BOX_SIDE), lattice(BOX_SIDE, (1.0, 0.0, 0.0))
+    top = PITCH * (BOX_SIDE - 1)
+    small = lattice(2, (0.15, 0.1, top - 0.03))
+    n_box = len(first)
+    n = 2 * n_box + len(small)
+    parent = torch.tensor([n] * n_box + [n + 1] * n_box + [n + 2] * len(small) + [-1, -1, -1])
+    obj = torch.tensor([0] * n_box + [1] * n_box + [2] * len(small))
+    rest = torch.cat([first, second, small])
+    graph = build_structure(parent, torch.full((n,), 0.1), obj, torch.tensor([STATIC, STATIC, SOFT]),
+                            torch.tensor([1.0, 1.0, 0.5]), rest_pos=rest, pitch=PITCH)
+    graph = set_state(graph, rest, rest, rest, radius=1.6 * PITCH)
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    pos = graph[NODE].pos.clone()
+    cube = slice(2 * n_box, n)
+    pos[cube] += torch.tensor([1.0, 0.0, 0.0])
+    assert leaves_inside(graph, graph[NODE].pos, of=2) == 4 and leaves_inside(graph, pos, of=2) == 4
+    stopped, _ = contact.stop_and_push(graph, pos)
+    lower = graph[NODE].pos[cube, 2] < top
+    assert bool((stopped[cube][lower, 0] <= 1.0).all())  # cut short before the second box's face (x = 1 m)
