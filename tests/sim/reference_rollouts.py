@@ -2,8 +2,9 @@
 checked to leave every model's predictions as they were (to rounding).
 
 ``python tests/sim/reference_rollouts.py --write`` remakes ``reference_rollouts.npz`` (only
-when the predictions are *meant* to change); ``--add NAME[,NAME]`` adds the rollouts of newly
-shipped checkpoints from the stored start states and keeps every other array as it is; ``--rl``
+when the predictions are *meant* to change); ``--add NAME[,NAME]`` adds (or replaces) the
+rollouts of newly shipped checkpoints from the stored start states and keeps every other array as
+it is; ``--rl``
 remakes only the RL environment's steps (``rl/...``, when the environment is meant to change);
 ``tests/sim/test_reference_rollouts.py`` compares.
 The start states are stored with the file (pybullet is not rerun), so the comparison is of the
@@ -25,6 +26,7 @@ from hrn_pyg.checkpoints import CHECKPOINT_DIR, load_model
 from hrn_pyg.data.graph import set_pitch
 from hrn_pyg.sampling.ensemble import episode_state
 from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
+from hrn_pyg.sim.rules import step_rules
 
 FILE = Path(__file__).with_name("reference_rollouts.npz")
 #: the scene each shipped model was trained on (its reference start states come from there)
@@ -109,7 +111,9 @@ def compute(episode_arrays: dict[str, dict[str, np.ndarray]], names: tuple[str, 
                 key = f"{name}/start{start}"
                 out[f"{key}/plain"] = rollout_nodes(model, state, STEPS, forces, sleep=None).numpy()
                 out[f"{key}/sleep"] = rollout_nodes(model, state, STEPS, forces).numpy()
-                if getattr(model.config, "network", "hrn") != "gns":  # the GNS has no fixed-shape step
+                # the GNS has no fixed-shape step; a model whose rules read the step's contacts is refused
+                rules = step_rules(model, state)
+                if getattr(model.config, "network", "hrn") != "gns" and (rules is None or rules.cloth is None):
                     out[f"{key}/fixed"] = fixed_shape_rollout(model, state, STEPS, forces).pos.numpy()
                 rate = float(model.config.dropout_rate) or 0.1
                 if model.config.dropout_modules:
@@ -160,7 +164,9 @@ def add(names: tuple[str, ...]) -> None:
     if unknown:
         raise SystemExit(f"--add: {unknown} are not in SCENE_OF")
     arrays = read()
-    arrays.update(compute(stored_episodes(arrays), names, rl=False))
+    episodes = stored_episodes(arrays)
+    arrays = {k: v for k, v in arrays.items() if not k.startswith(tuple(f"{n}/" for n in names))}  # replaced
+    arrays.update(compute(episodes, names, rl=False))
     digests = checkpoint_digests()
     arrays.update({f"digest/{k}": np.array(digests[k]) for k in names})
     tmp = FILE.with_suffix(".tmp.npz")

@@ -122,11 +122,12 @@ def test_the_fixed_shape_rollout_gives_the_rollout_or_refuses(scene):
                                       cloth_clearance=0.3)
     with pytest.raises(ValueError, match=r"fixed_shape_rollout: .*solid_clearance=0\.3.* hrn_pyg\.sim\.rollout$"):
         fixed_shape_rollout(every_rule, graph, STEPS)
-    cloth_only = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.3)
+    cloth_only = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.3, solid_clearance=0.0)
     if name == "multi_material":
         with pytest.raises(ValueError, match=r"\(cloth_clearance=0\.3\)"):
             fixed_shape_rollout(cloth_only, graph, STEPS)
-        allowed = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.0)
+        allowed = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.0,
+                                       solid_clearance=0.0)
     else:
         allowed = cloth_only
     with torch.no_grad():
