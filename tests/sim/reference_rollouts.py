@@ -4,8 +4,8 @@ checked to leave every model's predictions as they were (to rounding).
 ``python tests/sim/reference_rollouts.py --write`` remakes ``reference_rollouts.npz`` (only
 when the predictions are *meant* to change); ``--add NAME[,NAME]`` adds (or replaces) the
 rollouts of newly shipped checkpoints from the stored start states and keeps every other array as
-it is; ``--rl``
-remakes only the RL environment's steps (``rl/...``, when the environment is meant to change);
+it is; ``--rl`` remakes only the RL environment's steps (``rl/...``, when the environment is meant
+to change);
 ``tests/sim/test_reference_rollouts.py`` compares.
 The start states are stored with the file (pybullet is not rerun), so the comparison is of the
 model code alone.
