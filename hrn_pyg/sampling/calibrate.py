@@ -271,16 +271,16 @@ def _log(ratio: float) -> float:
 
 
 def summarise(rate: float, modules: tuple[str, ...], ratios: list[float], energies: list[float],
-              implausible: int | list[int] = 0) -> dict:
+              implausible: list[int] | None = None) -> dict:
     """One candidate's row: per-start numbers and their summaries (JSON-safe: no infinities);
-    ``implausible``: its futures that failed the physics report, per start (or over all starts)."""
-    per_start = [int(n) for n in implausible] if isinstance(implausible, list) else None
+    ``implausible``: its futures that failed the physics report, per start (None: none did)."""
+    per_start = [0] * len(ratios) if implausible is None else [int(n) for n in implausible]
     ratios = [r for r in ratios if not math.isnan(r)] or [0.0]
     energies = [e for e in energies if not math.isnan(e)] or [0.0]
     log_median = float(np.median([_log(r) for r in ratios]))
     return {
-        "implausible_futures": sum(per_start) if per_start is not None else int(implausible),
-        **({"implausible_per_start": per_start} if per_start is not None else {}),
+        "implausible_futures": sum(per_start),
+        "implausible_per_start": per_start,
         "rate": float(rate), "modules": list(modules),
         "spread_ratios": [float(r) for r in ratios],
         "spread_ratio_median": float(math.exp(log_median)) if math.isfinite(log_median) else 0.0,
@@ -355,7 +355,7 @@ def markdown(candidates: list[dict], chosen: int | None = None) -> str:
     for i, c in enumerate(candidates):
         lines.append(f"| {c['rate']:g} | {','.join(c['modules'])} | {c['spread_ratio_median']:.3g} | "
                      f"{c['spread_ratio_min']:.3g} - {c['spread_ratio_max']:.3g} | "
-                     f"{1e3 * c['energy_score_m']:.2f} | {c.get('implausible_futures', 0)} | "
+                     f"{1e3 * c['energy_score_m']:.2f} | {c['implausible_futures']} | "
                      f"{'<-' if i == chosen else ''} |")
     return "\n".join(lines)
 
@@ -363,10 +363,8 @@ def markdown(candidates: list[dict], chosen: int | None = None) -> str:
 def failing_everywhere(candidates: list[dict], names: list[str]) -> list[str]:
     """The ``names`` of the starts (in the candidates' per-start order) where every candidate has a
     future that fails the physics report."""
-    rows = [c["implausible_per_start"] for c in candidates if "implausible_per_start" in c]
-    if not rows:
-        return []
-    return [name for i, name in enumerate(names) if all(row[i] > 0 for row in rows)]
+    rows = [c["implausible_per_start"] for c in candidates]
+    return [name for i, name in enumerate(names) if rows and all(row[i] > 0 for row in rows)]
 
 
 # ----------------------------------------------------------------------------- checkpoint

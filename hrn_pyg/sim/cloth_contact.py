@@ -295,7 +295,8 @@ class ClothContact:
     leaves of cloth, and of soft bodies and rigid objects under a solid clearance), the rows of
     static objects, the leaves; ``rigid`` ``[N]`` bool: the projected leaves of rigid objects,
     which move with their object, and ``rigid_rows`` ``[N]`` bool every moving leaf of a rigid
-    object (``has_rigid``: whether there is one); ``kind`` ``[N]`` long each node's material code
+    object (``rigid_object`` ``[R]`` bool: the objects that have one; ``has_rigid``: whether any
+    does); ``kind`` ``[N]`` long each node's material code
     and ``size`` ``[R]`` each object's leaf count (of two bodies of one material only the smaller
     gives way); ``group`` ``[N]`` long and
     ``count``: every node's object; ``reach``, ``clearance`` ``[N]``: :math:`\\rho` and
@@ -311,6 +312,7 @@ class ClothContact:
     leaf: Tensor
     rigid: Tensor
     rigid_rows: Tensor
+    rigid_object: Tensor
     has_rigid: bool
     kind: Tensor
     size: Tensor
@@ -441,36 +443,42 @@ class ClothContact:
         between = self.rigid_rows[leaf] & self.rigid_rows[self.tets[tet, 0]]
         if not (self.has_rigid and bool(between.any())):
             return self.entry_clamp(graph, pos, leaf, tet)
-        rows, push, owner = self.solid_pushes(pos, leaf[between], tet[between], self.rotations(pos))
-        deep_rows, _, _ = self.beyond_rigid_depth(rows, push, owner)
+        rows, push, host = self.solid_pushes(pos, leaf[between], tet[between], self.rotations(pos))
+        within = self.within_rigid_depth(rows, push, host)
         shallow = torch.zeros(pos.size(0), dtype=torch.bool, device=pos.device)
-        shallow[rows] = True
-        shallow[deep_rows] = False
+        shallow[rows[within]] = True
         keep = ~(between & shallow[leaf])
         stopped = self.entry_clamp(graph, pos, leaf[keep], tet[keep])
-        return self.hold_sinking(graph, stopped, leaf[between], tet[between])
+        if stopped is pos:  # the depths found above still hold
+            deep = (rows[~within], push[~within], host[~within])
+        else:
+            deep = self.beyond_rigid_depth(*self.solid_pushes(stopped, leaf[between], tet[between],
+                                                              self.rotations(stopped)))
+        return self.hold_sinking(graph, stopped, *deep)
+
+
+    def within_rigid_depth(self, rows: Tensor, push: Tensor, host: Tensor) -> Tensor:
+        """``[M]`` bool: which pushes ``push [M, 3]`` of leaves ``rows [M]`` out of objects
+        ``host [M]`` are between two rigid bodies and no longer than the clearance plus
+        :data:`RIGID_DEPTH` pitches (an overlap left alone)."""
+        between = self.rigid_rows[rows] & self.rigid_object[host]
+        return between & (push.norm(dim=-1) <= self.clearance[rows] + RIGID_DEPTH * self.pitch[rows])
 
     def beyond_rigid_depth(self, rows: Tensor, push: Tensor, host: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Of pushes ``push [M, 3]`` of leaves ``rows [M]`` out of objects ``host [M]``, those not
-        between two rigid bodies or longer than the clearance plus :data:`RIGID_DEPTH` pitches."""
-        rigid_host = torch.zeros(self.count, dtype=torch.bool, device=rows.device).index_fill_(
-            0, self.group[self.rigid_rows], True)
-        between = self.rigid_rows[rows] & rigid_host[host]
-        keep = ~between | (push.norm(dim=-1) > self.clearance[rows] + RIGID_DEPTH * self.pitch[rows])
+        """Of pushes ``(rows, push, host)`` those not :meth:`within_rigid_depth`."""
+        keep = ~self.within_rigid_depth(rows, push, host)
         return rows[keep], push[keep], host[keep]
 
-    def hold_sinking(self, graph: HeteroData, pos: Tensor, leaf: Tensor, tet: Tensor) -> Tensor:
-        r"""``pos`` with every rigid body that has a leaf of the pairs ``(leaf, tet)`` more than
-        :data:`RIGID_DEPTH` pitches inside another rigid body and moving further in (its step less
-        the other body's mean leaf step, along the push out) held at :math:`x_t`; ``pos`` itself when
-        none is. A leaf inside another body at :math:`x_t` is left alone by :meth:`entry_clamp`, so a
-        body resting on another could otherwise sink into it step by step."""
-        if leaf.numel() == 0:
-            return pos
-        start = graph[NODE].pos
-        rows, push, host = self.beyond_rigid_depth(*self.solid_pushes(pos, leaf, tet, self.rotations(pos)))
+    def hold_sinking(self, graph: HeteroData, pos: Tensor, rows: Tensor, push: Tensor, host: Tensor) -> Tensor:
+        r"""``pos`` with every rigid body whose leaf ``rows [M]`` must be pushed ``push [M, 3]`` out of
+        rigid body ``host [M]`` (pushes beyond :data:`RIGID_DEPTH`, :meth:`beyond_rigid_depth`) and
+        moves further in (its step less the other body's mean leaf step, along the push out) held
+        at :math:`x_t`; ``pos`` itself when none is. A leaf inside another body at :math:`x_t` is
+        left alone by :meth:`entry_clamp`, so a body resting on another could otherwise sink into
+        it step by step."""
         if rows.numel() == 0:
             return pos
+        start = graph[NODE].pos
         step = pos - start
         weight = self.rigid_rows.to(pos.dtype)
         total = pos.new_zeros(self.count, 3).index_add(0, self.group, step * weight.unsqueeze(-1))
@@ -673,13 +681,18 @@ class ClothContact:
         by the longest of its ``push [M, 3]``; ``pos`` itself when there is none."""
         if owner.numel() == 0:
             return pos
-        shift, longest = longest_per(owner, push, self.count)
         rows = self.cloth if movable is None else self.cloth & movable
+        moved, shifted = self.moved_whole(pos, owner, push, rows)
+        return leaf_to_ancestor_mean(shifted, graph) if bool(moved.any()) else pos
+
+    def moved_whole(self, pos: Tensor, owner: Tensor, push: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+        """``([N] bool, [N, 3])``: the ``rows`` of the objects of ``owner [M]`` with a push, and
+        ``pos`` with them moved by their object's longest ``push [M, 3]``, at most
+        :data:`SHIFT_LIMIT` pitches (ancestors not re-derived)."""
+        shift, longest = longest_per(owner, push, self.count)
         moved = rows & (longest > 0)[self.group]
-        if not bool(moved.any()):
-            return pos
         shift = shortened(shift[self.group], SHIFT_LIMIT * self.pitch)
-        return leaf_to_ancestor_mean(torch.where(moved.unsqueeze(-1), pos + shift, pos), graph)
+        return moved, torch.where(moved.unsqueeze(-1), pos + shift, pos)
 
     def apply(self, graph: HeteroData, pos: Tensor, leaf_rows: Tensor, push: Tensor) -> Tensor:
         """``pos`` with each of ``leaf_rows`` moved by its ``push`` (a rigid object's leaves: the
@@ -689,10 +702,7 @@ class ClothContact:
             return pos
         whole = self.rigid[leaf_rows]
         if bool(whole.any()):  # a rigid object moves as a whole, by its leaves' longest push
-            shift, longest = longest_per(self.group[leaf_rows[whole]], push[whole], self.count)
-            moved = self.rigid_rows & (longest > 0)[self.group]
-            shift = shortened(shift[self.group], SHIFT_LIMIT * self.pitch)
-            pos = torch.where(moved.unsqueeze(-1), pos + shift, pos)
+            _, pos = self.moved_whole(pos, self.group[leaf_rows[whole]], push[whole], self.rigid_rows)
             leaf_rows, push = leaf_rows[~whole], push[~whole]
         return leaf_to_ancestor_mean(pos.index_add(0, leaf_rows, push), graph)
 
@@ -769,6 +779,8 @@ def cloth_contact(graph: HeteroData, clearance: float, reach: float = 1.0,
     gap = torch.where(material == CLOTH, torch.full_like(pitch, clearance), torch.full_like(pitch, solid_clearance))
     return ClothContact(rest=rest, normal=normal, surface=surface, cloth=projected, static=static, leaf=leaf,
                         rigid=projected & rigid_rows, rigid_rows=rigid_rows,
+                        rigid_object=torch.zeros(count, dtype=torch.bool, device=group.device).index_fill_(
+                            0, group[rigid_rows], True),
                         has_rigid=bool(rigid_rows.any()), kind=material,
                         size=torch.zeros(count, dtype=torch.long, device=group.device).index_add(
                             0, group, leaf.long()), group=group, count=count,

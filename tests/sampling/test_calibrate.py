@@ -268,8 +268,8 @@ def test_the_starts_failing_at_every_rate_are_named():
 
 
 def test_choose_skips_candidates_with_implausible_futures():
-    rows = [cal.summarise(0.1, ("force",), [0.5], [0.1], implausible=0),
-            cal.summarise(0.3, ("force",), [1.0], [0.1], implausible=2)]
+    rows = [cal.summarise(0.1, ("force",), [0.5], [0.1], implausible=[0]),
+            cal.summarise(0.3, ("force",), [1.0], [0.1], implausible=[2])]
     assert cal.choose(rows) == 0  # the better spread fails the report
     assert cal.choose(rows, physics=False) == 1
     with pytest.raises(ValueError, match="fail the physics report"):
