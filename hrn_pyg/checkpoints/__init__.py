@@ -39,7 +39,7 @@ POLICY_NAMES = ("cube_push_policy",)
 #: model options that change how trained weights are applied, not which weights there are: a
 #: fine-tuning or a benchmark may set them on a trained model (:func:`with_applied_options`)
 APPLIED_OPTIONS = ("mirror_average", "mirror_planes", "ground_projection", "ground_projection_rigid",
-                   "rigid_ground_depth", "rigid_ground_speed", "ground_lift_velocity", "rigid_leaf_siblings",
+                   "rigid_ground_depth", "rigid_ground_speed", "rigid_ground_lift", "ground_lift_velocity", "rigid_leaf_siblings",
                    "corotated_rest", "cloth_clearance", "rigid_fit_rest", "energy_limit",
                    "solid_clearance")
 

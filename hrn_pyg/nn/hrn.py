@@ -95,6 +95,8 @@ class HRNConfig(NetworkConfig):
             is lifted (back to that depth); 0 lifts every rigid leaf onto the plane.
         rigid_ground_speed: the furthest (pitches) a rigid object's leaves may move in the step for
             it to be lifted; a faster one is left where the network put it (0: any speed).
+        rigid_ground_lift: the furthest (pitches) a rigid object is lifted in one step; one sunk
+            deeper climbs out over several steps (0: all the way at once).
         ground_lift_velocity: a lift counts as motion, so the next step's velocity
             :math:`x_{t+1} - x_t` includes it; False moves ``prev_pos`` with the node too.
         rigid_leaf_siblings: the within-siblings phase also runs on the edges into rigid objects'
@@ -135,6 +137,7 @@ class HRNConfig(NetworkConfig):
     ground_projection_rigid: bool = True
     rigid_ground_depth: float = 0.0
     rigid_ground_speed: float = 0.0
+    rigid_ground_lift: float = 0.0
     ground_lift_velocity: bool = True
     rigid_leaf_siblings: bool = True
     corotated_rest: bool = False
@@ -172,6 +175,9 @@ class HRNConfig(NetworkConfig):
         if not 0.0 <= self.rigid_ground_speed < float("inf"):
             raise ValueError(f"HRNConfig.rigid_ground_speed must be a finite number of pitches >= 0, "
                              f"got {self.rigid_ground_speed}")
+        if not 0.0 <= self.rigid_ground_lift < float("inf"):
+            raise ValueError(f"HRNConfig.rigid_ground_lift must be a finite number of pitches >= 0, "
+                             f"got {self.rigid_ground_lift}")
         for name in ("cloth_clearance", "solid_clearance"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"HRNConfig.{name} must be in [0, 1) pitches, got {getattr(self, name)}")
@@ -553,6 +559,8 @@ class HRN(nn.Module):
                and c.rigid_ground_depth else "")
             + (f", rigid_ground_speed={c.rigid_ground_speed}" if c.ground_projection and c.ground_projection_rigid
                and c.rigid_ground_speed else "")
+            + (f", rigid_ground_lift={c.rigid_ground_lift}" if c.ground_projection and c.ground_projection_rigid
+               and getattr(c, "rigid_ground_lift", 0.0) else "")
             + (", ground_lift_velocity=False" if not c.ground_lift_velocity else "")
             + (f", mirror_average=True, mirror_planes={c.mirror_planes!r})" if c.mirror_average else ")")
         )

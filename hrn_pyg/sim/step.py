@@ -309,19 +309,20 @@ def decode(
                                     getattr(config, "ground_projection_rigid", True),
                                     getattr(config, "rigid_ground_depth", 0.0),
                                     getattr(config, "rigid_ground_speed", 0.0),
-                                    getattr(config, "ground_lift_velocity", True))
+                                    getattr(config, "ground_lift_velocity", True),
+                                    getattr(config, "rigid_ground_lift", 0.0))
     return Prediction(pos, local, velocity)
 
 
 def _lifted_above_ground(graph: HeteroData, prediction: Prediction, objects: tuple[Tensor, int] | None,
                          rigid: bool = True, rigid_depth: float = 0.0, rigid_speed: float = 0.0,
-                         lift_velocity: bool = True) -> Prediction:
+                         lift_velocity: bool = True, rigid_lift: float = 0.0) -> Prediction:
     """``decode``'s prediction after :func:`ground_projected_positions`: with ``lift_velocity`` the
     lift is part of the velocity, else it moves ``x_t`` too (``prev_pos``)."""
     pos, local, velocity = prediction.pos, prediction.local_velocity, prediction.velocity
     group, count = object_of(graph) if objects is None else objects
     lifted = leaf_to_ancestor_mean(ground_projected_positions(graph, pos, (group, count), rigid, rigid_depth,
-                                                              rigid_speed), graph)
+                                                              rigid_speed, rigid_lift), graph)
     if not lift_velocity:  # rows not lifted add an exact zero: their x_t stays bit for bit
         return Prediction(lifted, local, velocity, graph[NODE].pos + (lifted - pos))
     moved = (lifted != pos).any(-1)
@@ -332,7 +333,8 @@ def _lifted_above_ground(graph: HeteroData, prediction: Prediction, objects: tup
 
 
 def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int] | None = None,
-                               rigid: bool = True, rigid_depth: float = 0.0, rigid_speed: float = 0.0) -> Tensor:
+                               rigid: bool = True, rigid_depth: float = 0.0, rigid_speed: float = 0.0,
+                               rigid_lift: float = 0.0) -> Tensor:
     r"""``pos`` ``[N, 3]`` with every moving leaf on or above the ground plane :math:`z = 0`
     (a rigid object's leaves: on or above :math:`z = -\delta p`).
 
@@ -344,14 +346,17 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
     Other rows are returned bit for bit (ancestors need re-deriving). :math:`\delta_i` is
     ``rigid_depth`` on rigid leaves and 0 elsewhere, :math:`p_i` the node's pitch
     (:func:`~hrn_pyg.data.graph.node_pitch`). With ``rigid_speed`` :math:`s > 0` a rigid object is
-    lifted only while its leaves moved at most :math:`s\, p_j` this step; ``rigid=False`` lifts only
-    soft and cloth leaves. ``objects``: :func:`object_of` of ``graph``, if known.
+    lifted only while its leaves moved at most :math:`s\, p_j` this step; with ``rigid_lift``
+    :math:`c > 0` a rigid object rises at most :math:`c\, p_i` in one step (one sunk deep climbs out
+    over several steps instead of jumping, which would add :math:`m g` times the jump to its
+    energy); ``rigid=False`` lifts only soft and cloth leaves. ``objects``: :func:`object_of` of
+    ``graph``, if known.
     """
     store = graph[NODE]
     moving_leaf = store.is_leaf & ~store.is_static
     rigid_leaf = moving_leaf & store.material[:, RIGID].bool()
     under = -pos[:, 2]
-    pitch = node_pitch(graph).to(pos.dtype) if rigid and (rigid_depth > 0 or rigid_speed > 0) else None
+    pitch = node_pitch(graph).to(pos.dtype) if rigid and (rigid_depth > 0 or rigid_speed > 0 or rigid_lift > 0) else None
     if rigid and rigid_depth > 0:
         under = torch.where(rigid_leaf, under - rigid_depth * pitch, under)
     depth = torch.where(moving_leaf, under.clamp_min(0.0), torch.zeros_like(pos[:, 2]))
@@ -363,7 +368,10 @@ def ground_projected_positions(graph: HeteroData, pos: Tensor, objects: tuple[Te
         fast = moved > rigid_speed * pitch
         fastest = torch.zeros(count, dtype=torch.bool, device=pos.device).scatter_reduce(0, group, fast, "amax")
         deepest = torch.where(fastest, torch.zeros_like(deepest), deepest)
-    lift = torch.where(rigid_leaf, deepest[group] if rigid else torch.zeros_like(depth), depth)
+    rigid_rise = deepest[group] if rigid else torch.zeros_like(depth)
+    if rigid and rigid_lift > 0:
+        rigid_rise = torch.minimum(rigid_rise, rigid_lift * pitch)
+    lift = torch.where(rigid_leaf, rigid_rise, depth)
     return torch.where((lift > 0).unsqueeze(-1), pos + lift.unsqueeze(-1) * pos.new_tensor([0.0, 0.0, 1.0]), pos)
 
 

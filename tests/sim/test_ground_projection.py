@@ -18,7 +18,7 @@ SOFT, RIGID, STATIC = slice(0, 8), slice(8, 12), slice(12, 14)
 
 
 def _sunk(graph):
-    """The toy scene's leaves with the rigid square 7 cm under the ground at its lowest leaf, soft
+    """The toy scene's leaves with the rigid square 11 cm under the ground at its lowest leaf, soft
     leaf 0 at z = -0.02 and a static leaf at z = -0.1."""
     pos = graph[NODE].pos.clone()
     pos[RIGID, 2] -= 0.35
@@ -51,7 +51,7 @@ def test_without_rigid_objects_only_the_deformable_leaves_are_lifted():
 
 
 def test_a_rigid_object_may_lie_a_given_depth_under_the_plane():
-    """With ``rigid_depth`` 0.5 at pitch 0.1 a rigid object sunk 7 cm comes back to 5 cm under the
+    """With ``rigid_depth`` 0.5 at pitch 0.1 a rigid object sunk 11 cm comes back to 5 cm under the
     plane (lifted whole), one 4 cm under it stays bit for bit; soft leaves still go to the plane."""
     graph = set_pitch(toy_scene(), 0.1)
     pos = _sunk(graph)
@@ -82,6 +82,23 @@ def test_a_rigid_object_moving_faster_than_the_speed_limit_is_not_lifted():
     for bad in (-0.1, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="rigid_ground_speed"):
             HRNConfig(rigid_ground_speed=bad)
+
+
+def test_a_rigid_object_rises_at_most_the_lift_limit_in_one_step():
+    """``rigid_lift``: the square sunk 11 cm at pitch 0.1 rises 2 cm with a limit of 0.2 pitch (its
+    shape kept), and as far as without a limit when the limit exceeds its depth; soft leaves go
+    onto the plane either way."""
+    graph = set_pitch(toy_scene(), 0.1)
+    pos = _sunk(graph)
+    capped = ground_projected_positions(graph, pos, rigid_lift=0.2)
+    torch.testing.assert_close(capped[RIGID], pos[RIGID] + torch.tensor([0.0, 0.0, 0.02]))
+    assert capped[0, 2] == 0.0 and torch.equal(capped[STATIC], pos[STATIC])
+    assert torch.equal(ground_projected_positions(graph, pos, rigid_lift=1.5), ground_projected_positions(graph, pos))
+    for bad in (-0.1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="rigid_ground_lift"):
+            HRNConfig(rigid_ground_lift=bad)
+    model = with_applied_options(_model(), ground_projection=True, rigid_ground_lift=0.25)
+    assert "rigid_ground_lift=0.25" in repr(model)
 
 
 def test_the_rigid_ground_depth_is_checked_and_shown():
