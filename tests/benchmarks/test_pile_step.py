@@ -95,3 +95,15 @@ def test_a_tiny_pile_times_the_sizes_too(tmp_path):
     timing = row["models"]["shapes"]["fresh 16:2:1"]
     assert timing["ms"] > 0 and len(timing["ms_runs"]) == 1
     assert result["sizes"] == [[16, 2, 1]]
+
+
+def test_a_model_the_fixed_shape_steps_refuse_is_timed_eagerly_and_says_why(capsys):
+    """The shipped ``shapes`` keeps bodies out of each other, a rule the fixed-shape steps do not
+    run: ``--compile`` times it eagerly and the row says why it has no compiled run."""
+    bench = importlib.import_module("benchmarks.pile_step")
+    result = bench.main(["--counts", "2", "--steps", "6", "--repeats", "1", "--meshes",
+                         str(MESHES / "random_hull_000.obj"), "--model", "shapes", "--compile"])
+    (row,) = result["rows"]
+    assert row["compiled_skipped"].startswith("fixed_shape_rollout: this model moves leaves")
+    assert set(row["models"]["shapes"]) == {"as loaded"} and row["models"]["shapes"]["as loaded"]["ms"] > 0
+    assert "compiled: not timed (fixed_shape_rollout" in capsys.readouterr().out

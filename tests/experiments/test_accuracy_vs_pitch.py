@@ -90,3 +90,18 @@ def test_compile_adds_the_fixed_shape_steps_time_beside_pybullets(tmp_path, monk
         assert row["compile_s"] == 1.0
     assert made[0][NODE].pos.shape[0] > made[1][NODE].pos.shape[0]      # 0.05 m has more leaves than 0.08
     assert "| compiled ms/step | compiled / pybullet |" in capsys.readouterr().out
+
+
+def test_a_model_the_fixed_shape_steps_refuse_is_timed_eagerly_and_says_why(tmp_path, monkeypatch, capsys):
+    bench = _benchmark(monkeypatch)
+
+    def refused(model, state, steps):
+        raise ValueError("fixed_shape_rollout: this model moves leaves out of the objects they enter")
+
+    monkeypatch.setattr(bench, "compiled_rollout", refused)
+    result = bench.main(_argv(tmp_path, "refused.json") + ["--compile"])
+    for row in result["rows"]:
+        assert row["compiled_skipped"].startswith("fixed_shape_rollout: this model moves leaves")
+        assert "compiled_ms" not in row and row["model_ms"] > 0
+    out = capsys.readouterr().out
+    assert "compiled: not timed (fixed_shape_rollout" in out and "compiled ms/step" not in out
