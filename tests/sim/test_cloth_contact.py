@@ -250,11 +250,11 @@ def test_fixed_shape_steps_refuse_the_rule_where_it_acts_and_run_without_cloth()
     assert torch.equal(fixed, plain)
 
 
-def box_and_small_cube(material: int, offset, box_material: int = STATIC) -> tuple:
-    """The 4x4x4 box of :func:`box_and_cloth`, static unless ``box_material`` says (object 0), and a
-    2x2x2 cube of ``material`` (object 1) whose corner leaf sits at ``offset``: the graph at rest,
-    its pitch set."""
-    box, small = lattice(BOX_SIDE), lattice(2, offset)
+def box_and_small_cube(material: int, offset, box_material: int = STATIC, side: int = BOX_SIDE) -> tuple:
+    """The 4x4x4 box of :func:`box_and_cloth` (``side`` leaves a side), static unless
+    ``box_material`` says (object 0), and a 2x2x2 cube of ``material`` (object 1) whose corner
+    leaf sits at ``offset``: the graph at rest, its pitch set."""
+    box, small = lattice(side), lattice(2, offset)
     n_box = len(box)
     n = n_box + len(small)
     parent = torch.tensor([n] * n_box + [n + 1] * len(small) + [-1, -1])
@@ -468,25 +468,47 @@ def test_two_rigid_bodies_may_overlap_a_little(box):
         assert leaves_inside(graph, moved, of=1) == 0
 
 
-@pytest.mark.parametrize("down", [True, False])
-def test_a_rigid_body_sinking_into_another_is_held(down):
-    """x_t: the small rigid cube with its lower leaves a pitch into a rigid box (deeper than
-    :data:`RIGID_DEPTH`, so the entry stop does not see them); x_{t+1}: 0.1 pitch further down.
-    The cube is held at x_t (zero step) before the pushes; moving up instead, it is not held."""
-    top = PITCH * (BOX_SIDE - 1)
-    graph, n_box = box_and_small_cube(RIGID, (0.1, 0.1, top - 0.10), box_material=RIGID)
+@pytest.mark.parametrize("step", [(0.0, 0.0, -0.01), (0.01, 0.0, -0.01), (0.0, 0.0, 0.01)])
+def test_a_rigid_body_sinking_into_another_is_stopped_and_keeps_its_slide(step):
+    """x_t: the small rigid cube with its lower leaves a pitch into the middle of a 6x6x6 rigid
+    box's top (deeper than :data:`RIGID_DEPTH`, so the entry stop does not see them; pushed out
+    upwards); x_{t+1}: 0.1 pitch further down, straight or sliding along x too. The step down is
+    taken back (the cube's height stays within 0.01 pitch of x_t's) and at least 90 % of the slide
+    is kept; moving up instead, nothing is stopped. Then the pushes move it up, out."""
+    side = 6
+    top = PITCH * (side - 1)
+    graph, n_box = box_and_small_cube(RIGID, (0.2, 0.2, top - 0.10), box_material=RIGID, side=side)
     contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
     start = graph[NODE].pos.clone()
     pos = start.clone()
-    pos[n_box:n_box + 8] += torch.tensor([0.0, 0.0, -0.01 if down else 0.01])
-    assert 0.2 + RIGID_DEPTH < 0.9 + 0.2  # both ways the cube ends deeper than RIGID_DEPTH
+    pos[n_box:n_box + 8] += torch.tensor(step)
+    assert 0.2 + RIGID_DEPTH < 0.9 + 0.2  # the test's own set-up: both ways deeper than RIGID_DEPTH
     stopped, projected = contact.stop_and_push(graph, pos)
     cube = slice(n_box, n_box + 8)
-    if down:
-        assert torch.equal(stopped[cube], start[cube]) and torch.equal(stopped[:n_box], pos[:n_box])
+    if step[2] < 0:
+        moved = stopped[cube] - start[cube]
+        # each push out points at its leaf's anchor, so after a slide it leans back a little
+        assert bool((moved[:, 2].abs() < 0.01 * PITCH).all())
+        assert bool((moved[:, 0] >= 0.9 * step[0]).all()) and bool((moved[:, 0] <= step[0] + 1e-6).all())
+        assert bool((moved[:, 1].abs() < 1e-6).all()) and torch.equal(stopped[:n_box], pos[:n_box])
     else:
         assert stopped is pos
-    assert float(projected[cube, 2].min()) > float(stopped[cube, 2].min())  # then pushed up, out
+    assert float(projected[cube, 2].min()) > float(stopped[cube, 2].min())
+
+
+def test_a_rigid_body_whose_slide_takes_it_deeper_is_held():
+    """x_t: the small rigid cube on the corner edge of the rigid box, its lower leaves 0.8 pitch
+    into the top; x_{t+1}: 0.1 pitch down and 0.2 pitch along x, further into the box. Without
+    its step down it would still lie deeper in the box than at x_t, so it is held at x_t."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(RIGID, (0.0, 0.0, top - 0.08), box_material=RIGID)
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    start = graph[NODE].pos.clone()
+    pos = start.clone()
+    pos[n_box:n_box + 8] += torch.tensor([0.02, 0.0, -0.01])
+    stopped, _ = contact.stop_and_push(graph, pos)
+    assert torch.equal(stopped[n_box:n_box + 8], start[n_box:n_box + 8])
+    assert torch.equal(stopped[:n_box], pos[:n_box])
 
 
 def test_a_leaf_inside_one_object_is_still_stopped_where_it_enters_another():
