@@ -130,7 +130,7 @@ from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.data.radius import collision_edges
 from hrn_pyg.nn.rigid import rigid_motion
 from hrn_pyg.nn.state import to_local_velocity
-from hrn_pyg.sim.penetration import CELL_TETS, INSIDE_TOLERANCE, lattice_cells
+from hrn_pyg.sim.penetration import CELL_TETS, INSIDE_TOLERANCE, lattice_cells, tet_coordinates
 from hrn_pyg.sim.step import Prediction, object_of, rigid_leaf_positions
 
 #: a leaf is on the surface when its neighbours' mean offset is longer than this many pitches
@@ -516,6 +516,8 @@ class ClothContact:
         own = -(step[rows] * out).sum(-1)
         back, _ = longest_per(body, torch.minimum(inward, own).clamp(min=0.0).unsqueeze(-1) * out, self.count)
         slid = leaf_to_ancestor_mean(torch.where(moving.unsqueeze(-1), pos + back[self.group], pos), graph)
+        involved = stopped[self.group[leaf]] | stopped[self.group[self.tets[tet, 0]]]
+        leaf, tet = leaf[involved], tet[involved]  # the pairs that may hold a stopped body's depth
         allowed = pos.new_zeros(self.count).scatter_reduce(
             0, self.group, self.clearance + RIGID_DEPTH * self.pitch, "amax")
         deepest = torch.maximum(self.deepest_rigid(held, leaf, tet), allowed)
@@ -608,18 +610,21 @@ class ClothContact:
         """The barycentric coordinates ``[P, 4]`` of each ``point`` ``[P, 3]`` in its ``tet`` at
         ``x`` ``[N, 3]``, and ``[P]`` bool whether the tetrahedron is not flattened (a flattened one
         holds nothing; its coordinates are not meaningful)."""
-        corners = x[self.tets[tet]]  # [P, 4, 3]
-        edges = corners[:, 1:] - corners[:, :1]
-        usable = torch.linalg.det(edges).abs() > 1e-12 * edges.norm(dim=2).prod(dim=1)
-        safe = torch.where(usable.view(-1, 1, 1), edges, torch.eye(3, dtype=x.dtype, device=x.device))
-        b = torch.linalg.solve(safe.transpose(1, 2), (point - corners[:, 0]).unsqueeze(-1)).squeeze(-1)
-        return torch.cat([1.0 - b.sum(dim=1, keepdim=True), b], dim=1), usable
+        return tet_coordinates(x[self.tets[tet]], point)
 
     def inside_tets(self, x: Tensor, point: Tensor, tet: Tensor) -> Tensor:
         """``[P]`` bool: whether each ``point`` ``[P, 3]`` lies in its ``tet`` at ``x`` ``[N, 3]``
-        (closed)."""
-        bary, usable = self.barycentric(x, point, tet)
-        return usable & (bary >= -INSIDE_TOLERANCE).all(dim=1)
+        (closed). Only the points within a tetrahedron's bounding box (with the slack its
+        tolerance allows) are solved for."""
+        corners = x[self.tets[tet]]  # [P, 4, 3]
+        low, high = corners.amin(dim=1), corners.amax(dim=1)
+        slack = 4 * INSIDE_TOLERANCE * (high - low).amax(dim=1, keepdim=True)
+        near = ((point >= low - slack) & (point <= high + slack)).all(dim=1)
+        inside = torch.zeros_like(near)
+        if bool(near.any()):
+            bary, usable = tet_coordinates(corners[near], point[near])
+            inside[near] = usable & (bary >= -INSIDE_TOLERANCE).all(dim=1)
+        return inside
 
     def entry_clamp(self, graph: HeteroData, pos: Tensor, leaf: Tensor, tet: Tensor) -> Tensor:
         r"""``pos`` with each ``leaf`` whose step from :math:`x_t` passes into its ``tet`` (pairs

@@ -166,6 +166,23 @@ def episode_solids(episode: Mapping[str, Any]) -> ObjectSolids:
                          torch.as_tensor(np.asarray(episode["object_material"]), dtype=torch.long), pitch)
 
 
+def tet_coordinates(corners: Tensor, point: Tensor) -> tuple[Tensor, Tensor]:
+    r"""The barycentric coordinates ``[P, 4]`` of each ``point`` ``[P, 3]`` in the tetrahedron of
+    its ``corners`` ``[P, 4, 3]``, and ``[P]`` bool whether it is not flattened (a flattened one
+    holds nothing; its coordinates are not meaningful):
+
+    .. math::
+        q - x_0 = \sum_{k=1}^{3} b_k (x_k - x_0), \qquad b_0 = 1 - b_1 - b_2 - b_3,
+
+    flattened when :math:`|\det E| \le 10^{-12} \prod_k \lVert x_k - x_0 \rVert`, :math:`E` the
+    edges' matrix."""
+    edges = corners[:, 1:] - corners[:, :1]  # [P, 3, 3], rows x_k - x_0
+    usable = torch.linalg.det(edges).abs() > 1e-12 * edges.norm(dim=2).prod(dim=1)
+    safe = torch.where(usable.view(-1, 1, 1), edges, torch.eye(3, dtype=edges.dtype, device=edges.device))
+    b = torch.linalg.solve(safe.transpose(1, 2), (point - corners[:, 0]).unsqueeze(-1)).squeeze(-1)
+    return torch.cat([1.0 - b.sum(dim=1, keepdim=True), b], dim=1), usable
+
+
 def _inside_frame(x: Tensor, solids: ObjectSolids) -> Tensor:
     """``[L, 3]`` -> ``[C]`` bool: the cloth leaves inside a tetrahedron of another object."""
     inside = torch.zeros(solids.cloth_leaves, dtype=torch.bool)
@@ -180,16 +197,8 @@ def _inside_frame(x: Tensor, solids: ObjectSolids) -> Tensor:
     leaf, tet = torch.nonzero(near, as_tuple=True)
     if leaf.numel() == 0:
         return inside
-    edges = corners[tet, 1:] - corners[tet, :1]  # [P, 3, 3], rows x_i - x_0
-    det = torch.linalg.det(edges)
-    usable = det.abs() > 1e-12 * edges.norm(dim=2).prod(dim=1)  # a flattened tetrahedron holds nothing
-    leaf, tet, edges = leaf[usable], tet[usable], edges[usable]
-    if leaf.numel() == 0:
-        return inside
-    # q - x_0 = sum_i b_i (x_i - x_0): solve edges^T b = q - x_0
-    b = torch.linalg.solve(edges.transpose(1, 2), (q[leaf] - corners[tet, 0]).unsqueeze(-1)).squeeze(-1)
-    bary = torch.cat([1.0 - b.sum(dim=1, keepdim=True), b], dim=1)
-    hit = (bary >= -INSIDE_TOLERANCE).all(dim=1)
+    bary, usable = tet_coordinates(corners[tet], q[leaf])
+    hit = usable & (bary >= -INSIDE_TOLERANCE).all(dim=1)
     inside[leaf[hit]] = True
     return inside
 
