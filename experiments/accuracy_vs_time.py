@@ -378,8 +378,9 @@ def compiled_times(model, episode: dict, steps: int, repeats: int) -> dict:
     try:
         first, timed = compiled_rollout(model, state, steps)
     except ValueError as exc:  # fixed-shape steps refuse rules that read the step's contacts
-        print(f"compiled: not timed ({str(exc).splitlines()[0]})", flush=True)
-        return {"compiled_skipped": str(exc).splitlines()[0]}
+        reason = str(exc).splitlines()[0]
+        print(f"compiled: not timed ({reason})", flush=True)
+        return {"compiled_skipped": reason}
     runs = [timed()[0] for _ in range(repeats)]
     return {"compile_s": first, "compiled_ms": 1e3 * statistics.median(runs),
             "compiled_ms_runs": [1e3 * t for t in runs], "compiled_x_pybullet": statistics.median(runs)}
