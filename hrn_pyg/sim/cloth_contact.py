@@ -245,11 +245,6 @@ def longest_per(index: Tensor, push: Tensor, size: int) -> tuple[Tensor, Tensor]
     return chosen, longest
 
 
-def unit(vector: Tensor) -> Tensor:
-    """Each row of ``vector`` ``[M, 3]`` divided by its length (a zero row stays zero)."""
-    return vector / vector.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-
-
 def shortened(shift: Tensor, longest: Tensor) -> Tensor:
     """Each row of ``shift`` ``[M, 3]`` with its length cut to at most ``longest`` ``[M]``."""
     length = shift.norm(dim=-1, keepdim=True)
@@ -505,7 +500,7 @@ class ClothContact:
         total = pos.new_zeros(self.count, 3).index_add(0, self.group, step * weight.unsqueeze(-1))
         mean = total / pos.new_zeros(self.count).index_add(0, self.group, weight).clamp(min=1.0).unsqueeze(-1)
         sinking = ((step[rows] - mean[host]) * push).sum(-1) < 0
-        rows, host, out = rows[sinking], host[sinking], unit(push[sinking])
+        rows, host, out = rows[sinking], host[sinking], torch.nn.functional.normalize(push[sinking], dim=-1)
         body = self.group[rows]
         stopped = torch.zeros(self.count, dtype=torch.bool, device=pos.device).index_fill_(0, body, True)
         moving = stopped[self.group] & self.rigid_rows & (step != 0).any(-1)
@@ -529,7 +524,7 @@ class ClothContact:
         ``pos`` ``[N, 3]`` of its leaves in another object or of another's leaves in it, measured
         along the push's normal (0: none)."""
         rows, push, host, normal = self.solid_contacts(pos, leaf, tet, self.rotations(pos))
-        depth = (push * normal.to(push.dtype)).sum(-1).clamp(min=0.0).to(pos.dtype)
+        depth = (push * normal).sum(-1).clamp(min=0.0)
         return pos.new_zeros(self.count).scatter_reduce(0, torch.cat([self.group[rows], host]),
                                                         torch.cat([depth, depth]), "amax")
 
