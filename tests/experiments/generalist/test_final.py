@@ -110,15 +110,15 @@ def test_calibration_bar_reads_the_rate_stored_in_the_checkpoint(tmp_path):
 
 def test_missing_test_folders_are_made_with_their_seeds(tmp_path, monkeypatch):
     data, out = _data(tmp_path, with_test_folders=False), tmp_path / "out"
-    (data / "unseen_test5_cloth").mkdir()
-    (data / "unseen_test5_cloth" / "meta.json").write_text("{}")   # made already
+    (data / "unseen_test6_cloth").mkdir()
+    (data / "unseen_test6_cloth" / "meta.json").write_text("{}")   # made already
     ran = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
     argv = ["--model", "m.pt", "--data", str(data), "--out", str(out), "--only", "pitch"]
     assert script_main("f", "f", final.add_arguments, final.run, argv) == 0
     made = [c for c in ran if "generate" in c]
-    assert [c[c.index("--out") + 1] for c in made] == [str(data / "unseen_test5_rigid"), str(data / "unseen_test5_soft")]
-    assert [c[c.index("--first-seed") + 1] for c in made] == ["6400000", "7400000"]
+    assert [c[c.index("--out") + 1] for c in made] == [str(data / "unseen_test6_rigid"), str(data / "unseen_test6_soft")]
+    assert [c[c.index("--first-seed") + 1] for c in made] == ["6800000", "7500000"]
     assert made[0][:3] == [sys.executable, "-m", "hrn_pyg.cli"]
     scored = [c for c in ran if "generate" not in c]
     assert len(scored) == 1 and scored[0][scored[0].index("--out") + 1] == str(out / "pitch.json")
