@@ -20,7 +20,13 @@ for the final table), each the network alone, one torch thread:
    folders are under ``--data``: every window's position and shape error beside the own
    validation split and beside ``shapes_d4.pt``'s on the same rigid and soft windows (the one-pass
    bar), and rest as in 1: more meshes, so that a model that holds on the first two alone is not
-   chosen by chance.
+   chosen by chance. A **third mesh set** (``unseen_val3_*``: random_urdfs 050, 870 and 987,
+   ``data/shapes/unseen/validation3_*.toml``) is run the same way when its folders are there, and
+   the rigid and soft ratios to ``shapes_d4.pt`` are also given pooled over both sets' windows.
+5. **Piles at rest** (``experiments/many_objects.py``): piles of 10 of the second and third sets'
+   meshes (:data:`PILE_MESHES`), four seeds, 240 steps for pybullet to settle them, then 1000 steps of
+   the model from each settled pile, scored by the same stability check: the validation twin of
+   the final table's pile bar. The piles are kept under ``DATA/validation_piles``.
 
 Each benchmark writes its JSON under ``--out``; a rerun skips the ones whose JSON is there, so a
 stopped run continues. Run::
@@ -50,8 +56,18 @@ REPO = Path(__file__).resolve().parents[2]
 UNSEEN = ("unseen_val_rigid", "unseen_val_soft", "unseen_val_cloth")
 #: the second set of unseen validation folders, by material (optional)
 UNSEEN2 = ("unseen_val2_rigid", "unseen_val2_soft", "unseen_val2_cloth")
-#: the benchmarks of the second set, run only when its folders exist
-SECOND_SET = ("unseen2.json", "unseen2_shapes.json")
+#: the third set of unseen validation folders, by material (optional)
+UNSEEN3 = ("unseen_val3_rigid", "unseen_val3_soft", "unseen_val3_cloth")
+#: the further mesh sets, by the name of their benchmarks (``NAME.json``, ``NAME_shapes.json``),
+#: each run only when its folders exist
+MESH_SETS = {"unseen2": UNSEEN2, "unseen3": UNSEEN3}
+#: the ordinal a message names each further set by
+SET_ORDINALS = {"unseen2": "second", "unseen3": "third"}
+#: the meshes of the validation piles: the second and third sets' (random_urdfs 801, 881, 022,
+#: 050, 870, 987)
+PILE_MESHES = tuple(f"pybullet_data:random_urdfs/{n}/{n}.obj" for n in ("801", "881", "022", "050", "870", "987"))
+#: objects per validation pile (the final table's pile bar holds piles of this size)
+PILE_OBJECTS = 10
 #: the eight-pass generalist the one-pass bar compares with (a shipped name)
 BASELINE = "shapes_d4"
 #: the specialists the generalist is held to: (dataset folder, shipped model)
@@ -87,13 +103,17 @@ def commands(model: str, data: Path, out: Path, rest_episodes: int,
     cloth = [*python, "-m", "benchmarks.cloth_pass_through", "--model", model,
              "--episodes", str(data / "unseen_val_cloth"), "--limit", "6", "--awake",
              "--out", str(out / "cloth.json")]
-    unseen2 = unseen_shapes_command(model, out / "unseen2.json", [data / n for n in UNSEEN2], data / "shapes_drop",
-                                    "val", "--no-time", *rest_options)
-    baseline = unseen_shapes_command(BASELINE, out / "unseen2_shapes.json",
-                                     [data / n for n in UNSEEN2 if "cloth" not in n], data / "shapes_drop", "val",
-                                     "--no-rest", "--no-time")
-    return {"rest.json": rest, "parity.json": parity, "cloth.json": cloth,
-            "unseen2.json": unseen2, "unseen2_shapes.json": baseline}
+    further = {}
+    for name, folders in MESH_SETS.items():
+        further[f"{name}.json"] = unseen_shapes_command(model, out / f"{name}.json", [data / n for n in folders],
+                                                        data / "shapes_drop", "val", "--no-time", *rest_options)
+        further[f"{name}_shapes.json"] = unseen_shapes_command(
+            BASELINE, out / f"{name}_shapes.json", [data / n for n in folders if "cloth" not in n],
+            data / "shapes_drop", "val", "--no-rest", "--no-time")
+    piles = [*python, "-m", "experiments.many_objects", "--model", model, "--counts", str(PILE_OBJECTS),
+             "--meshes", ",".join(PILE_MESHES), "--steps", "240", "--episodes", "4", "--rest-steps", "1000",
+             "--repeats", "1", "--work", str(data / "validation_piles"), "--out", str(out / "piles.json")]
+    return {"rest.json": rest, "parity.json": parity, "cloth.json": cloth, **further, "piles.json": piles}
 
 
 def summary(out: Path) -> str:
@@ -102,8 +122,16 @@ def summary(out: Path) -> str:
     lines += rest_lines(read_json(out / "rest.json"))
     lines += parity_lines(read_json(out / "parity.json"))
     lines += cloth_lines(read_json(out / "cloth.json"))
-    unseen2 = read_json(out / "unseen2.json")
-    lines += rest_lines(unseen2) + unseen_lines(unseen2, read_json(out / "unseen2_shapes.json"))
+    pairs = []
+    for name in MESH_SETS:
+        unseen, baseline = read_json(out / f"{name}.json"), read_json(out / f"{name}_shapes.json")
+        lines += rest_lines(unseen) + unseen_lines(unseen, baseline)
+        if unseen is not None and baseline is not None:
+            pairs.append((unseen, baseline))
+    if len(pairs) > 1:
+        lines += [f"| unseen {material} meshes, {len(pairs)} sets pooled / {BASELINE}.pt, position t+15, t+50 | "
+                  f"{', '.join(f'{r:.2f}' for r in pair)} |" for material, pair in pooled_ratios(pairs).items()]
+    lines += pile_lines(read_json(out / "piles.json"))
     return "\n".join(lines)
 
 
@@ -126,6 +154,21 @@ def rest_lines(rest: dict | None) -> list[str]:
     return lines
 
 
+def pile_lines(piles: dict | None) -> list[str]:
+    """Table rows of ``experiments/many_objects.py``'s rest section: per pile size, the settled
+    piles that hold 1000 steps and the largest drift (a pile pybullet never settled counts as not
+    held, as in the final table)."""
+    lines = []
+    for row in (piles or {}).get("rows", []):
+        rows = row.get("rest") or []
+        at_rest = [r for r in rows if r["at_rest"]]
+        held = sum(bool(r.get("holds")) for r in at_rest)
+        drift = max((r.get("rest_drift", float("nan")) for r in at_rest), default=float("nan"))
+        lines.append(f"| 1000 steps from rest, piles of {row['objects']} | {held} of {len(rows)} hold "
+                     f"({len(rows) - len(at_rest)} not settled), largest drift {100 * drift:.1f} cm |")
+    return lines
+
+
 def parity_lines(parity: dict | None) -> list[str]:
     """Table rows of the model's errors as multiples of each specialist's."""
     lines = []
@@ -140,11 +183,11 @@ def _folder_names(result: dict | None) -> list[str]:
     return [Path(f).name for f in (result or {}).get("unseen_folders", [])]
 
 
-def pooled_error(result: dict, folders: Sequence[str], material: str, key: str) -> float:
-    """The mean ``key`` error (e.g. ``"position@50"``) of ``material``'s objects over the episode
-    folders ``folders`` only, pooled from ``experiments/generalist/unseen_shapes.py``'s per-folder means
-    (each weighted by its finite values). Raises ValueError when ``result`` has no per-folder
-    errors or no such object in those folders."""
+def folder_sums(result: dict, folders: Sequence[str], material: str, key: str) -> tuple[float, int]:
+    """``(sum, count)``: the ``key`` error (e.g. ``"position@50"``) of ``material``'s objects summed
+    over the episode folders ``folders`` of ``experiments/generalist/unseen_shapes.py``'s JSON, each
+    folder's mean weighted by its finite values, and how many those are. Raises ValueError when
+    ``result`` has no per-folder errors."""
     by_folder = (result.get("unseen") or {}).get("unseen_by_folder")
     if by_folder is None:
         raise ValueError(f"{result.get('model')}: no per-folder errors in its unseen_shapes.py JSON; run it again")
@@ -155,6 +198,13 @@ def pooled_error(result: dict, folders: Sequence[str], material: str, key: str) 
         if stats:
             finite = stats["objects"] - stats[f"diverged@{horizon}"]
             total, count = total + stats[key] * finite, count + finite
+    return total, count
+
+
+def pooled_error(result: dict, folders: Sequence[str], material: str, key: str) -> float:
+    """The mean ``key`` error of ``material``'s objects over the episode folders ``folders`` only
+    (:func:`folder_sums`). Raises ValueError when there is no such object in those folders."""
+    total, count = folder_sums(result, folders, material, key)
     if count == 0:
         raise ValueError(f"no {material} object in {', '.join(folders)}")
     return total / count
@@ -180,6 +230,25 @@ def unseen_ratios(unseen: dict | None, baseline: dict | None) -> tuple[float | N
                 model = [by_material[material][f"position@{h}"] for h in (15, 50)]
             ratios[material] = [m / old[material][f"position@{h}"] for m, h in zip(model, (15, 50), strict=True)]
     return own, ratios
+
+
+def pooled_ratios(pairs: Sequence[tuple[dict, dict]]) -> dict[str, list[float]]:
+    """Per material (rigid, soft): the model's position errors at t+15 and t+50 pooled over the
+    windows of several mesh sets, as multiples of ``shapes_d4.pt``'s pooled over the same windows.
+    ``pairs``: ``(model JSON, baseline JSON)`` of each set, pooled over the baseline's folders
+    (:func:`folder_sums`)."""
+    ratios = {}
+    for material in ("rigid", "soft"):
+        pooled = []
+        for key in ("position@15", "position@50"):
+            sums = [[folder_sums(result, _folder_names(baseline), material, key) for result in (unseen, baseline)]
+                    for unseen, baseline in pairs]
+            (model, model_n), (base, base_n) = [(sum(s[i][0] for s in sums), sum(s[i][1] for s in sums))
+                                                for i in (0, 1)]
+            pooled.append(None if not (model_n and base_n) else (model / model_n) / (base / base_n))
+        if None not in pooled:
+            ratios[material] = pooled
+    return ratios
 
 
 def unseen_lines(unseen: dict | None, baseline: dict | None) -> list[str]:
@@ -212,7 +281,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=Path("data"), help="folder of the episode folders")
     parser.add_argument("--out", type=Path, required=True, help="folder for the benchmarks' JSON")
     parser.add_argument("--rest-episodes", type=int, default=6, help="rest episodes per mesh and material")
-    parser.add_argument("--only", default="", help="rest,parity,cloth,unseen2,unseen2_shapes: run only these "
+    parser.add_argument("--only", default="", help="rest,parity,cloth,unseen2,unseen2_shapes,unseen3,unseen3_shapes,piles: "
+                                                   "run only these "
                                                    "(default: all)")
     parser.add_argument("--pybullet-rest", type=Path, default=None,
                         help="folder for pybullet's continuations of the rest episodes, shared by every "
@@ -226,19 +296,22 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted(wanted - set(commands("", args.data, args.out, 1)))
     if unknown:
         raise ValueError(f"--only: unknown {', '.join(n.removesuffix('.json') for n in unknown)}; "
-                         "choose from rest, parity, cloth, unseen2, unseen2_shapes")
+                         f"choose from {', '.join(n.removesuffix('.json') for n in commands('', args.data, args.out, 1))}")
     missing = [name for name in (*UNSEEN, "shapes_drop", *(f for f, _ in SPECIALISTS))
                if not (args.data / name).is_dir()]
     if missing:
         raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(missing)}")
     named = commands(args.model, args.data, args.out, args.rest_episodes, args.pybullet_rest)
-    absent = [name for name in UNSEEN2 if not (args.data / name).is_dir()]
-    if absent:
-        if wanted & set(SECOND_SET):
+    for name, folders in MESH_SETS.items():
+        absent = [folder for folder in folders if not (args.data / folder).is_dir()]
+        if not absent:
+            continue
+        jsons = {f"{name}.json", f"{name}_shapes.json"}
+        if wanted & jsons:
             raise FileNotFoundError(f"--data {args.data}: no folder {', '.join(absent)}")
-        print(f"the second mesh set is not run: no folder {', '.join(absent)} under {args.data} "
-              "(data/shapes/unseen/validation2_*.toml say how to make them)", flush=True)
-        named = {k: v for k, v in named.items() if k not in SECOND_SET}
+        print(f"the {SET_ORDINALS[name]} mesh set is not run: no folder {', '.join(absent)} under {args.data} "
+              f"(data/shapes/unseen/validation{name.removeprefix('unseen')}_*.toml say how to make them)", flush=True)
+        named = {k: v for k, v in named.items() if k not in jsons}
     run_missing(named, args.out, wanted)
     print(summary(args.out))
     return 0

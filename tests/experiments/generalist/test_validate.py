@@ -21,9 +21,10 @@ def _data(tmp_path):
 
 def test_the_commands_score_the_model_on_validation_episodes_only():
     cmds = validate.commands("m.pt", Path("d"), Path("o"), 6)
-    assert sorted(cmds) == ["cloth.json", "parity.json", "rest.json", "unseen2.json", "unseen2_shapes.json"]
+    assert sorted(cmds) == ["cloth.json", "parity.json", "piles.json", "rest.json", "unseen2.json",
+                            "unseen2_shapes.json", "unseen3.json", "unseen3_shapes.json"]
     for name, cmd in cmds.items():
-        model = "shapes_d4" if name == "unseen2_shapes.json" else "m.pt"   # the one-pass bar's baseline
+        model = "shapes_d4" if name.endswith("_shapes.json") else "m.pt"   # the one-pass bar's baseline
         assert cmd[cmd.index("--model") + 1] == model and cmd[cmd.index("--out") + 1] == str(Path("o") / name)
         assert not any("test" in word for word in cmd)
     rest, parity = cmds["rest.json"], cmds["parity.json"]
@@ -36,6 +37,10 @@ def test_the_commands_score_the_model_on_validation_episodes_only():
     assert [parity[i + 1] for i, w in enumerate(parity) if w == "--specialist"] == [
         f"{Path('d') / 'cube_collision'}=cube_collision", f"{Path('d') / 'soft_bounce'}=soft_bounce",
         f"{Path('d') / 'multi_material'}=multi_material"]
+    piles = cmds["piles.json"]   # piles of the second set's meshes, 1000 steps from rest
+    assert piles[piles.index("--meshes") + 1].split(",") == list(validate.PILE_MESHES)
+    assert piles[piles.index("--counts") + 1] == "10" and piles[piles.index("--rest-steps") + 1] == "1000"
+    assert piles[piles.index("--work") + 1] == str(Path("d") / "validation_piles")
 
 
 def test_a_rerun_skips_what_is_done_and_sums_it_up(tmp_path, monkeypatch, capsys):
@@ -49,6 +54,9 @@ def test_a_rerun_skips_what_is_done_and_sums_it_up(tmp_path, monkeypatch, capsys
         "shape@50": {"ratio": 1.1}}}}))
     (out / "cloth.json").write_text(json.dumps({"runs": [{"folders": {"unseen_val_cloth": {"summary": {
         "model": {"mean": 10.5}, "pybullet": {"mean": 0.12}}}}}]}))
+    (out / "piles.json").write_text(json.dumps({"rows": [{"objects": 10, "rest": [
+        {"at_rest": True, "holds": True, "rest_drift": 0.021}, {"at_rest": True, "holds": False, "rest_drift": 0.0526},
+        {"at_rest": False}]}]}))
 
     def no_run(*args, **kwargs):
         raise AssertionError("a finished benchmark ran again")
@@ -60,6 +68,7 @@ def test_a_rerun_skips_what_is_done_and_sums_it_up(tmp_path, monkeypatch, capsys
     table = capsys.readouterr().out
     assert "| rest, unseen_val_rigid | 1 of 2 hold |" in table and "| rest, unseen_val_soft | 1 of 1 hold |" in table
     assert "| 1.63, 1.20, 1.40, 1.10 |" in table and "| 10.50 (0.12) |" in table
+    assert "| 1000 steps from rest, piles of 10 | 1 of 3 hold (1 not settled), largest drift 5.3 cm |" in table
 
 
 def test_the_summary_counts_the_model_where_pybullet_holds(tmp_path):
@@ -90,13 +99,15 @@ def test_bad_input_is_one_line(tmp_path, capsys, extra, words):
 def test_the_second_mesh_set_runs_when_its_folders_are_there_and_is_summed_up(tmp_path, monkeypatch, capsys):
     data, out = _data(tmp_path), tmp_path / "out"
     out.mkdir()
-    for name in ("rest.json", "parity.json", "cloth.json"):
+    for name in ("rest.json", "parity.json", "cloth.json", "piles.json"):
         (out / name).write_text("{}")
     ran = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
     argv = ["--model", "m.pt", "--data", str(data), "--out", str(out)]
     assert script_main("v", "v", validate.add_arguments, validate.run, argv) == 0
-    assert ran == [] and "the second mesh set is not run: no folder unseen_val2_rigid" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert ran == [] and "the second mesh set is not run: no folder unseen_val2_rigid" in said
+    assert "the third mesh set is not run: no folder unseen_val3_rigid" in said
     with pytest.raises(FileNotFoundError, match="no folder unseen_val2_rigid"):
         validate.run(argparse.Namespace(model="m.pt", data=data, out=out, rest_episodes=6, only="unseen2",
                                         pybullet_rest=None))
@@ -149,3 +160,19 @@ def test_the_ratios_to_shapes_pt_compare_the_same_windows():
         validate.unseen_ratios(model, baseline)
     model["unseen_folders"] = baseline["unseen_folders"]   # the same folders: the per-material means
     assert validate.unseen_ratios(model, baseline)[1]["rigid"] == [1.0 / 1e-3, 1.0 / 2e-3]
+
+
+def test_the_mesh_sets_are_pooled_window_by_window():
+    """Two mesh sets' errors pooled: each set's folders weighted by their finite windows, the
+    model's and shapes_d4.pt's over the same (the baseline's) folders."""
+    def result(folder_errors):
+        by_folder = {f"{f} (rigid)": {"position@15": e, "position@50": 2 * e, "objects": n, "diverged@15": 0,
+                                      "diverged@50": 0} for f, (e, n) in folder_errors.items()}
+        return {"unseen_folders": [f"/d/{f}" for f in folder_errors], "unseen": {"unseen_by_folder": by_folder}}
+
+    set2 = (result({"unseen_val2_rigid": (2e-3, 3)}), result({"unseen_val2_rigid": (1e-3, 3)}))
+    set3 = (result({"unseen_val3_rigid": (1e-3, 1), "unseen_val3_cloth": (9.0, 5)}),
+            result({"unseen_val3_rigid": (1e-3, 1)}))
+    ratios = validate.pooled_ratios([set2, set3])
+    expected = ((3 * 2e-3 + 1e-3) / 4) / ((3 * 1e-3 + 1e-3) / 4)   # the cloth folder: not the baseline's
+    assert ratios["rigid"] == pytest.approx([expected, expected]) and "soft" not in ratios
