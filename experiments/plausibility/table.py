@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from hrn_pyg.checkpoints import load_model, with_applied_options
-from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode
+from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode_alone
 from hrn_pyg.data.io import load_episode, save_episode
 from hrn_pyg.data.scene_file import read_scene_file
 from hrn_pyg.sampling.ensemble import episode_state
@@ -58,7 +58,7 @@ def episode_of(scene: str, pitch: float, seed: int, steps: int, work: Path) -> d
     spec = read_scene_file(scene)
     spec = dataclasses.replace(spec, config=dataclasses.replace(spec.config, pitch=pitch, steps=steps + START + 1))
     try:
-        episode = simulate_episode(spec, seed=seed)
+        episode = simulate_episode_alone(spec, seed)  # soft bodies and cloth: as in a fresh process
     except (DivergedEpisode, ValueError) as exc:  # lost by pybullet, or no scene at this pitch
         print(f"{cell_name(scene, pitch, seed)}: {str(exc).splitlines()[0]}", file=sys.stderr, flush=True)
         return None

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing as mp
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
@@ -100,3 +102,22 @@ def simulate_episode(scene: str | SceneSpec, seed: int, steps: int | None = None
     check_plausible(positions, float(spec.config.pitch), f"{sim.name} seed {seed}")
     episode["hierarchy_parent"] = start_hierarchy(positions[0], leaf_mass, leaf_object)
     return episode
+
+
+def carries_state(spec: SceneSpec) -> bool:
+    """Whether simulating ``spec`` leaves state behind in the process: pybullet keeps part of its
+    soft-body solver's state per process (a reset does not clear it), so an episode with soft
+    bodies or cloth depends on the episodes run before it in the same process."""
+    return spec.uses_deformables and spec.engine == "pybullet"
+
+
+def simulate_episode_alone(scene: str | SceneSpec, seed: int, steps: int | None = None) -> dict[str, np.ndarray]:
+    """:func:`simulate_episode` as a fresh process would run it: a scene that
+    :func:`carries_state` is simulated in an interpreter of its own (a second or two to start), so
+    a seed gives the same episode whatever ran before it; others run here. Raises what
+    :func:`simulate_episode` raises."""
+    spec = scene_spec(scene)
+    if not carries_state(spec):
+        return simulate_episode(scene, seed, steps)
+    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+        return pool.submit(simulate_episode, scene, seed, steps).result()

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from hrn_pyg.data.episodes import DivergedEpisode, simulate_episode
+from hrn_pyg.data.episodes import DivergedEpisode, carries_state, simulate_episode
 from hrn_pyg.data.io import save_episode
 from hrn_pyg.data.scene_file import builtin_scene, check_scene_name, read_scene_file
 from hrn_pyg.utils.files import LOCK_NAME, FolderLock, atomic_write_json, atomic_write_text, remove_temporaries
@@ -175,11 +175,9 @@ def _write(args: argparse.Namespace, lock: FolderLock, spec, kind: str, source: 
     bar = progress_bar(len(seeds), f"generate {name}", "ep", enabled=not args.no_progress)
     bar.update(len(seeds) - len(todo))
     written = 0
-    # pybullet keeps part of its soft-body state per process, and a reset does not clear it: an
-    # episode with soft bodies or cloth then depends on the episodes run before it in the same
-    # process. Each such episode gets an interpreter of its own, so a seed gives the same episode
-    # whatever the workers, shards or resume point. MuJoCo keeps nothing between its models.
-    isolate = spec.uses_deformables and spec.engine == "pybullet"
+    # an episode whose engine carries state between episodes (carries_state) gets an interpreter
+    # of its own, so a seed gives the same episode whatever the workers, shards or resume point
+    isolate = carries_state(spec)
     try:
         if tasks and (isolate or (args.workers > 1 and len(tasks) > 1)):
             # spawn: a fresh interpreter per worker (per episode when isolating), each with its
