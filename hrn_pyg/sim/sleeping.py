@@ -13,14 +13,16 @@ step :math:`t`, with :math:`\tau` = ``threshold`` and :math:`P` = ``patience``:
     \mathrm{active} &= \text{the smallest set} \supseteq \{o : \mathrm{moving}_o \vee \mathrm{pushed}_o\}
         \text{ closed under contact: } o \in \mathrm{active},\ (o, o') \in \mathcal{E}_C
         \Rightarrow o' \in \mathrm{active} \\
-    c_o &\leftarrow \begin{cases} c_o + 1 & \mathrm{awake}_o \wedge \mathrm{still}_o \\
+    c_o &\leftarrow \begin{cases} c_o + 1 & \mathrm{awake}_o \wedge o \notin \mathrm{active} \\
         0 & \text{otherwise} \end{cases} \\
     \mathrm{asleep}_o &\leftarrow \bigl(\mathrm{asleep}_o \wedge o \notin \mathrm{active}\bigr)
         \ \vee\ \bigl(\mathrm{awake}_o \wedge o \notin \mathrm{active} \wedge c_o \ge P\bigr)
         \ \vee\ \mathrm{static}_o
 
 Static objects never enter ``active``. A force, or a chain of contacts to a moving object (a
-*simulation island*), wakes an object; woken objects take part in the same step from rest.
+*simulation island*), wakes an object; woken objects take part in the same step from rest. An
+object in the active set counts no still steps: when what it leans on moves away, it has
+``patience`` steps to find out whether it falls before it may sleep.
 
 :func:`sleeping_step` runs :func:`hrn_pyg.sim.step.predict` on a sub-graph
 (:func:`predict_held`): the awake objects plus the asleep leaves with collision edges into them,
@@ -192,7 +194,6 @@ def update(
     moved = object_max(torch.where(leaf, disp, torch.zeros_like(disp)), objs) >= config.threshold
     pushed = object_any(leaf & force.ne(0).any(dim=-1), objs) & ~objs.static
     awake = ~state.asleep
-    still = ~moved & ~pushed
     active = (awake & moved) | pushed
     edges = graph[COLLISION].edge_index if COLLISION in graph.edge_types else force.new_empty(2, 0, dtype=torch.long)
     movable = ~objs.static
@@ -201,7 +202,7 @@ def update(
         if bool((grown == active).all()):
             break
         active = grown
-    counter = torch.where(awake & still, state.still + 1, torch.zeros_like(state.still))
+    counter = torch.where(awake & ~active, state.still + 1, torch.zeros_like(state.still))
     falls = awake & ~active & (counter >= config.patience)
     asleep = (state.asleep & ~active) | falls | objs.static
     return SleepState(asleep=asleep, still=counter)

@@ -430,6 +430,12 @@ def test_update_wakes_through_contacts_with_moving_objects_only():
     moving = scene({SQUARE: (0.01, 0.0, 0.0)}, separate=False)
     out = update(config, state([True, False, True], (0, 5, 0)), moving, none, objs)
     assert out.asleep.tolist() == [False, False, True] and out.still.tolist() == [0, 0, 0]
+    # an awake, still object touched by a moving one counts again from zero: when the mover
+    # leaves, it does not fall asleep at once wherever it was left (it may have to fall)
+    out = update(config, state([False, False, True], (5, 0, 0)), moving, none, objs)
+    assert out.asleep.tolist() == [False, False, True] and out.still.tolist() == [0, 0, 0]
+    out = update(config, out, apart, none, objs)
+    assert out.asleep.tolist() == [False, False, True] and out.still.tolist() == [1, 1, 0]
     # a push on a sleeping object wakes it and, through the contact, its sleeping neighbour
     push = none.clone()
     push[8] = torch.tensor([1.0, 0.0, 0.0])  # a leaf of the square
