@@ -139,7 +139,8 @@ class SleepState(NamedTuple):
 
     Attributes:
         asleep: bool; asleep objects are held still and not run through the network.
-        still: long; consecutive still steps so far (0 after a motion, a force or a wake-up).
+        still: long; consecutive still steps so far (0 after a motion, a force, a wake-up or a
+            step in contact with a moving object).
     """
 
     asleep: Tensor
