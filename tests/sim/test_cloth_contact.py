@@ -17,8 +17,8 @@ from hrn_pyg.checkpoints import with_applied_options
 from hrn_pyg.data.graph import COLLISION, NODE, build_structure, set_pitch, set_state
 from hrn_pyg.data.kinds import CLOTH, RIGID, SOFT, STATIC
 from hrn_pyg.nn.hrn import HRN, HRNConfig
-from hrn_pyg.sim.cloth_contact import (ENTRY_MARGIN, RIGID_DEPTH, SHIFT_LIMIT, STRETCH_LIMIT, cloth_contact,
-                                      surface_normals)
+from hrn_pyg.sim.cloth_contact import (ENTRY_MARGIN, RIGID_DEPTH, RIGID_RUN, SHIFT_LIMIT, STRETCH_LIMIT,
+                                      cloth_contact, surface_normals)
 from hrn_pyg.sim.penetration import cloth_inside_counts, object_solids
 from hrn_pyg.sim.rollout import rollout
 
@@ -466,6 +466,54 @@ def test_two_rigid_bodies_may_overlap_a_little(box):
         assert moved is pos
     else:
         assert leaves_inside(graph, moved, of=1) == 0
+
+
+@pytest.mark.parametrize("box", [RIGID, STATIC])
+def test_a_rigid_step_that_cuts_a_rigid_corner_and_ends_outside_is_left_alone(box):
+    """x_t: the small rigid cube beside the box's top edge; x_{t+1}: moved up and across, so that
+    the straight steps of its lower leaves cut through the box's corner (0.17 pitch inside it,
+    under :data:`RIGID_RUN`) and end above it, as pybullet's own steps do at an impact. Past a
+    rigid box nothing is stopped; a static box is not a rigid body, and the step is stopped."""
+    top = PITCH * (BOX_SIDE - 1)
+    graph, n_box = box_and_small_cube(RIGID, (top + 0.02, 0.1, top - 0.04), box_material=box)
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    start = graph[NODE].pos
+    pos = start.clone()
+    pos[n_box:n_box + 8] += torch.tensor([-0.06, 0.0, 0.08])
+    assert leaves_inside(graph, start, of=1) == 0 and leaves_inside(graph, pos, of=1) == 0
+    assert leaves_inside(graph, (start + pos) / 2, of=1) == 2  # halfway, the lower leaves are in the box
+    assert (0.1 / 6) / PITCH < RIGID_RUN  # the test's own set-up: the cut is short
+    stopped, _ = contact.stop_and_push(graph, pos)
+    cube = slice(n_box, n_box + 8)
+    if box == RIGID:
+        assert stopped is pos
+    else:
+        moved, asked = (stopped[cube] - start[cube]).norm(dim=-1), (pos[cube] - start[cube]).norm(dim=-1)
+        assert float(moved.max()) < 0.6 * float(asked.max())
+
+
+def test_a_rigid_step_through_a_thin_rigid_part_is_stopped():
+    """x_t: the small rigid cube above a rigid plate two leaves (one pitch) thick; x_{t+1}: 0.35 m
+    lower, wholly under the plate's bottom: no leaf ends inside it, but each runs a pitch through
+    it (more than :data:`RIGID_RUN`), so the cube is stopped where it enters."""
+    plate = lattice(4, (0.0, 0.0, 0.5))
+    plate = plate[plate[:, 2] <= 0.6 + 1e-6]
+    small = lattice(2, (0.1, 0.1, 0.65))
+    n_plate = len(plate)
+    n = n_plate + len(small)
+    parent = torch.tensor([n] * n_plate + [n + 1] * len(small) + [-1, -1])
+    graph = build_structure(parent, torch.full((n,), 0.1), torch.tensor([0] * n_plate + [1] * len(small)),
+                            torch.tensor([RIGID, RIGID]), torch.tensor([1.0, 0.5]),
+                            rest_pos=torch.cat([plate, small]), pitch=PITCH)
+    rest = graph[NODE].rest_pos
+    graph = set_state(graph, rest, rest, rest, radius=1.6 * PITCH)
+    contact = cloth_contact(graph, clearance=0.0, solid_clearance=0.2, project_cloth=False)
+    start = graph[NODE].pos
+    pos = start.clone()
+    pos[n_plate:n_plate + 8] -= torch.tensor([0.0, 0.0, 0.25 + 0.1])
+    assert leaves_inside(graph, pos, of=1) == 0 and 1.0 > RIGID_RUN and float(pos[n_plate:n_plate + 8, 2].max()) < 0.5
+    stopped, _ = contact.stop_and_push(graph, pos)
+    assert float(stopped[n_plate:n_plate + 8, 2].min()) > 0.6  # above the plate's top still
 
 
 @pytest.mark.parametrize("step", [(0.0, 0.0, -0.01), (0.01, 0.0, -0.01), (0.0, 0.0, 0.01)])
