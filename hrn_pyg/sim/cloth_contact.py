@@ -157,8 +157,8 @@ SHIFT_LIMIT = 0.5
 #: two rigid bodies may overlap by this many pitches (a leaf this far inside the other's solid,
 #: beyond the clearance) before a stop or a push acts between them
 RIGID_DEPTH = 0.75
-#: a rigid leaf's step that ends outside another rigid body, or within RIGID_DEPTH of its surface,
-#: is stopped where it enters only if it runs more than this many pitches inside it
+#: a rigid leaf whose step ends outside another rigid body is stopped where it entered it only if
+#: the step ran more than this many pitches inside it (through a part of it, not across a corner)
 RIGID_RUN = 0.5
 #: passes of the stops in one step (a body stopped can leave another inside it)
 STOP_PASSES = 4
@@ -464,7 +464,10 @@ class ClothContact:
         deep_end = torch.zeros_like(ends_in)
         deep_end[rows[~within]] = True
         # between rigid bodies: a leaf that ends too deep, or outside after a run through a part
-        keep = ~between | deep_end[leaf] | (~ends_in[leaf] & self.runs_through(graph, pos, leaf, tet))
+        outside = between & ~ends_in[leaf]
+        through = torch.zeros_like(outside)
+        through[outside] = self.runs_through(graph, pos, leaf[outside], tet[outside])
+        keep = ~between | deep_end[leaf] | through
         stopped = self.entry_clamp(graph, pos, leaf[keep], tet[keep])
         if stopped is pos:  # the depths found above still hold
             deep = (rows[~within], push[~within], host[~within])
