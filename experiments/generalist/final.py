@@ -43,6 +43,7 @@ itself stores (``hrn-pyg calibrate``). Run::
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import subprocess
 import sys
@@ -96,11 +97,19 @@ def test_meshes(test_set: str) -> str:
     return ",".join(f"pybullet_data:random_urdfs/{n}/{n}.obj" for n in TEST_SETS[test_set][1])
 
 
+def is_complete(folder: Path) -> bool:
+    """Whether ``hrn-pyg generate`` finished ``folder`` (its ``meta.json`` says ``complete``; a
+    stopped run leaves it false, and the same command finishes it)."""
+    meta = folder / "meta.json"
+    return meta.is_file() and bool(json.loads(meta.read_text()).get("complete"))
+
+
 def generate_commands(data: Path, test_set: str = DEFAULT_TEST_SET) -> dict[str, list[str]]:
-    """``hrn-pyg generate`` of each folder of ``test_set`` not under ``data`` yet, by folder name."""
+    """``hrn-pyg generate`` of each folder of ``test_set`` not complete under ``data`` yet, by
+    folder name."""
     return {name: [sys.executable, "-m", "hrn_pyg.cli", "generate", "--scene-file", str(REPO / scene), "--episodes", str(TEST_EPISODES),
                    "--out", str(data / name), "--first-seed", str(seed)]
-            for name, (scene, seed) in TEST_SETS[test_set][0].items() if not (data / name / "meta.json").is_file()}
+            for name, (scene, seed) in TEST_SETS[test_set][0].items() if not is_complete(data / name)}
 
 
 def commands(model: str, data: Path, out: Path, rest_episodes: int,

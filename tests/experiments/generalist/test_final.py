@@ -27,7 +27,7 @@ def _data(tmp_path, with_test_folders=True):
     if with_test_folders:
         for name in final.TEST_SETS[final.DEFAULT_TEST_SET][0]:
             (data / name).mkdir(parents=True)
-            (data / name / "meta.json").write_text("{}")
+            (data / name / "meta.json").write_text(json.dumps({"complete": True}))
     return data
 
 
@@ -110,8 +110,9 @@ def test_calibration_bar_reads_the_rate_stored_in_the_checkpoint(tmp_path):
 
 def test_missing_test_folders_are_made_with_their_seeds(tmp_path, monkeypatch):
     data, out = _data(tmp_path, with_test_folders=False), tmp_path / "out"
-    (data / "unseen_test6_cloth").mkdir()
-    (data / "unseen_test6_cloth" / "meta.json").write_text("{}")   # made already
+    for name, complete in (("unseen_test6_cloth", True), ("unseen_test6_soft", False)):
+        (data / name).mkdir()   # made already; stopped half-way (the same command finishes it)
+        (data / name / "meta.json").write_text(json.dumps({"complete": complete}))
     ran = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
     argv = ["--model", "m.pt", "--data", str(data), "--out", str(out), "--only", "pitch"]
