@@ -111,13 +111,15 @@ def carries_state(spec: SceneSpec) -> bool:
     return spec.uses_deformables and spec.engine == "pybullet"
 
 
-def simulate_episode_alone(scene: str | SceneSpec, seed: int, steps: int | None = None) -> dict[str, np.ndarray]:
+def simulate_episode_alone(scene: str | SceneSpec, seed: int, steps: int | None = None, *,
+                           after_reset: Callable[[Scene], None] | None = None) -> dict[str, np.ndarray]:
     """:func:`simulate_episode` as a fresh process would run it: a scene that
     :func:`carries_state` is simulated in an interpreter of its own (a second or two to start), so
-    a seed gives the same episode whatever ran before it; others run here. Raises what
-    :func:`simulate_episode` raises."""
+    a seed gives the same episode whatever ran before it; others run here. ``after_reset`` is sent
+    to that interpreter, so it must pickle (a module-level function or a dataclass instance, not a
+    closure). Raises what :func:`simulate_episode` raises."""
     spec = scene_spec(scene)
     if not carries_state(spec):
-        return simulate_episode(scene, seed, steps)
+        return simulate_episode(scene, seed, steps, after_reset=after_reset)
     with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
-        return pool.submit(simulate_episode, scene, seed, steps).result()
+        return pool.submit(simulate_episode, scene, seed, steps, after_reset=after_reset).result()

@@ -343,6 +343,8 @@ class Scene:
                 if np.any(offsets[i] != 0) or np.any(velocities[i] != 0):
                     raise ValueError(f"offsets/velocities: object {i} is static and cannot be moved")
                 continue
+            if not np.any(offsets[i]) and not np.any(velocities[i]):
+                continue  # a reset of a soft body is not free: it moves pybullet's solver state
             pos, quat = p.getBasePositionAndOrientation(obj.body, physicsClientId=c)
             p.resetBasePositionAndOrientation(obj.body, (np.asarray(pos) + offsets[i]).tolist(), quat,
                                               physicsClientId=c)

@@ -170,11 +170,11 @@ def build_start(scene: str, seed: int, steps: int, members: int,
                 config: Any = None, episode: dict | None = None) -> Start:
     """Simulate (or take) episode ``(scene, seed)`` and its perturbed-start ensemble: the start at step
     :data:`~hrn_pyg.sampling.ensemble.HISTORY`, the truth the members' leaves ``steps`` later."""
-    from hrn_pyg.data.episodes import simulate_episode
+    from hrn_pyg.data.episodes import simulate_episode_alone
     from hrn_pyg.data.graph import STATIC
 
     if episode is None:
-        episode = simulate_episode(scene if config is None else config, seed, steps=HISTORY + steps)
+        episode = simulate_episode_alone(scene if config is None else config, seed, steps=HISTORY + steps)
     ensemble = ground_truth_ensemble(scene, seed, members, HISTORY + steps, perturbation, config)
     graph = episode_state(episode, start=HISTORY, steps=steps)
     forces = graph[NODE].force_seq.transpose(0, 1)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.episodes import simulate_episode
+from hrn_pyg.data.episodes import simulate_episode_alone
 from hrn_pyg.data.graph import (
     HISTORY,
     NODE,
@@ -69,6 +69,23 @@ def draw_offsets(
     return offsets, velocities
 
 
+@dataclass(frozen=True)
+class MemberNudge:
+    """The ``after_reset`` of ensemble member ``member``: its draw of the offset stream
+    (:func:`draw_offsets` from one generator seeded ``perturbation.seed``, draw ``member``) applied
+    by :meth:`Scene.nudge`. A value rather than a closure, so a member can be simulated in a process
+    of its own (:func:`~hrn_pyg.data.episodes.simulate_episode_alone`) and still get its own draw."""
+
+    perturbation: PerturbationConfig
+    member: int
+
+    def __call__(self, sim: Scene) -> None:
+        rng = np.random.default_rng(int(self.perturbation.seed))
+        for _ in range(self.member + 1):
+            offsets, velocities = draw_offsets(rng, sim.object_material, self.perturbation)
+        sim.nudge(offsets, velocities)
+
+
 def ground_truth_ensemble(
     scene: str,
     seed: int,
@@ -78,22 +95,20 @@ def ground_truth_ensemble(
     config: SceneSpec | None = None,
 ) -> np.ndarray:
     """Leaf positions of ``members`` perturbed replays of episode ``(scene, seed)``
-    (:func:`hrn_pyg.data.episodes.simulate_episode` nudged by :func:`draw_offsets`, one generator
-    seeded ``perturbation.seed`` for all members). ``config``: the scene with changed settings;
-    None: ``scene``.
+    (:func:`hrn_pyg.data.episodes.simulate_episode` nudged by :class:`MemberNudge`: member ``m``
+    takes draw ``m`` of one stream seeded ``perturbation.seed``). ``config``: the scene with changed
+    settings; None: ``scene``. A scene with soft bodies or cloth runs each member in a fresh
+    process (:func:`~hrn_pyg.data.episodes.simulate_episode_alone`): pybullet's soft-body solver
+    keeps state between episodes of one process, which would add a spread of its own.
 
     **Shapes:** returns ``(members, S + 1, L, 3)`` float32, ``S`` = ``steps`` or the config's.
     """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ValueError(f"members must be an integer >= 1, got {members!r}")
-    rng = np.random.default_rng(int(perturbation.seed))
-
-    def nudge(sim: Scene) -> None:
-        offsets, velocities = draw_offsets(rng, sim.object_material, perturbation)
-        sim.nudge(offsets, velocities)
-
+    source = scene if config is None else config
     runs = [  # one pybullet simulation per member: the simulator is not batched
-        simulate_episode(scene if config is None else config, seed, steps, after_reset=nudge)["positions"] for _ in range(members)
+        simulate_episode_alone(source, seed, steps, after_reset=MemberNudge(perturbation, m))["positions"]
+        for m in range(members)
     ]
     return np.stack(runs)
 
