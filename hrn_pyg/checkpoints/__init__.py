@@ -41,7 +41,7 @@ POLICY_NAMES = ("cube_push_policy",)
 APPLIED_OPTIONS = ("mirror_average", "mirror_planes", "ground_projection", "ground_projection_rigid",
                    "rigid_ground_depth", "rigid_ground_speed", "rigid_ground_lift", "ground_lift_velocity", "rigid_leaf_siblings",
                    "corotated_rest", "cloth_clearance", "rigid_fit_rest", "energy_limit",
-                   "solid_clearance")
+                   "solid_clearance", "rest_friction")
 
 
 #: the most hidden layers per MLP a checkpoint's config may ask for (the shipped models have 2)

@@ -109,6 +109,9 @@ class HRNConfig(NetworkConfig):
         energy_limit: no step's prediction ends with more energy per scene copy than it started
             with plus the pushes' work (:mod:`hrn_pyg.sim.energy`); the clearance after it may add
             the height of an overlap it removes, never speed (:mod:`hrn_pyg.sim.rules`).
+        rest_friction: pitches: a supported object whose last and predicted steps are both
+            shorter than this is held still, as static friction holds it
+            (:mod:`hrn_pyg.sim.rest_friction`; 0: off).
         equivariant: the network of :mod:`hrn_pyg.nn.equivariant`, exactly equivariant in one pass
             under turns about z and vertical mirrors; needs a horizontally isotropic normaliser,
             not with ``mirror_average``.
@@ -144,6 +147,7 @@ class HRNConfig(NetworkConfig):
     cloth_clearance: float = 0.0
     solid_clearance: float = 0.0
     energy_limit: bool = False
+    rest_friction: float = 0.0
     equivariant: bool = False
     #: fields of earlier releases a saved config may hold, at the value that builds this network
     #: (:meth:`~hrn_pyg.nn.mlp.NetworkConfig.from_dict` drops them)
@@ -178,7 +182,7 @@ class HRNConfig(NetworkConfig):
         if not 0.0 <= self.rigid_ground_lift < float("inf"):
             raise ValueError(f"HRNConfig.rigid_ground_lift must be a finite number of pitches >= 0, "
                              f"got {self.rigid_ground_lift}")
-        for name in ("cloth_clearance", "solid_clearance"):
+        for name in ("cloth_clearance", "solid_clearance", "rest_friction"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"HRNConfig.{name} must be in [0, 1) pitches, got {getattr(self, name)}")
         if self.vector_channels < 1:
@@ -551,6 +555,7 @@ class HRN(nn.Module):
             + (f", pitch_aware=True, reference_pitch={c.reference_pitch}" if c.pitch_aware else "")
             + (", corotated_rest=True" if getattr(c, "corotated_rest", False) else "")
             + (f", cloth_clearance={c.cloth_clearance}" if getattr(c, "cloth_clearance", 0.0) else "")
+            + (f", rest_friction={c.rest_friction}" if getattr(c, "rest_friction", 0.0) else "")
             + (f", equivariant=True, vector_channels={c.vector_channels}" if getattr(c, "equivariant", False) else "")
             + (", collision_force=True" if getattr(c, "collision_force", False) else "")
             + (", ground_projection=True" if c.ground_projection else "")

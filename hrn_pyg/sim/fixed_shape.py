@@ -231,6 +231,10 @@ class FixedShapeSimulator:
             raise ValueError(f"fixed_shape_rollout: this model moves leaves out of the objects they enter "
                              f"({clearances}), a rule whose sizes depend on the contacts, which fixed-shape "
                              "steps do not run; roll this scene out with hrn_pyg.sim.rollout")
+        if rules is not None and rules.rest_friction > 0:
+            raise ValueError(f"fixed_shape_rollout: this model holds resting objects still (rest_friction="
+                             f"{rules.rest_friction:g}), a rule that reads the step's contacts, which fixed-shape "
+                             "steps do not run; roll this scene out with hrn_pyg.sim.rollout")
         # the energy limit without host reads: computed on every row, the unchanged ones selected
         self.rules = None if rules is None else StepRules(None, rules.energy, rules.objects, rules.rigid_from_rest,
                                                           host_reads=False)

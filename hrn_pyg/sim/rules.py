@@ -20,6 +20,9 @@ sampler and the RL dynamics (environment and planner). In order:
    of another raises it: an energy limit after it would take part of that move back and leave
    the body inside. Its stops only shorten steps; a push is about as long as the overlap
    it removes plus the clearance and gives no speed (the body's :math:`x_t` moves with it).
+4. **Static friction** (``HRNConfig.rest_friction``, :mod:`hrn_pyg.sim.rest_friction`): a
+   supported object whose last step and predicted step are both shorter than a small part of a
+   pitch is held where it is. Last, so that it judges the step the other rules leave.
 
 **Shapes.** A :class:`StepRules` maps a :class:`~hrn_pyg.sim.step.Prediction` of a graph of
 ``N`` nodes (each tensor ``(N, 3)``) to another; ``failed`` is ``(R,)`` bool over the graph's
@@ -35,6 +38,7 @@ from torch_geometric.data import HeteroData
 from hrn_pyg.data.graph import NODE
 from hrn_pyg.sim.cloth_contact import ClothContact, cloth_contact
 from hrn_pyg.sim.energy import copy_of_objects, limit_energy
+from hrn_pyg.sim.rest_friction import hold_resting
 from hrn_pyg.sim.step import Prediction, object_of
 
 
@@ -52,27 +56,32 @@ class StepRules:
         objects: ``([N] long, R)``, every node's object (:func:`~hrn_pyg.sim.step.object_of`).
         rigid_from_rest: the energy limit's rigid refit reads the rest shape.
         hold_failed: a copy whose prediction is not finite is held rather than an error.
+        rest_friction: pitches under which a supported object's steps hold it still (0: off).
         host_reads: the rules may read the device to skip work (False: a fixed-shape step, which
             then has only the energy limit).
         failed: ``[R]`` bool, row ``b``: copy ``b`` has failed at some step (``hold_failed``).
     """
 
     def __init__(self, cloth: ClothContact | None, energy: bool, objects: tuple[Tensor, int],
-                 rigid_from_rest: bool = False, hold_failed: bool = False, host_reads: bool = True) -> None:
+                 rigid_from_rest: bool = False, hold_failed: bool = False, host_reads: bool = True,
+                 rest_friction: float = 0.0) -> None:
         if not host_reads and (cloth is not None or hold_failed):
             raise ValueError("StepRules: cloth clearance and failed copies held need host reads")
+        if not 0.0 <= rest_friction < 1.0:
+            raise ValueError(f"StepRules: rest_friction must be in [0, 1) pitches, got {rest_friction}")
         self.cloth, self.energy, self.objects = cloth, energy, objects
         self.rigid_from_rest, self.hold_failed, self.host_reads = rigid_from_rest, hold_failed, host_reads
+        self.rest_friction = float(rest_friction)
         self.failed = torch.zeros(objects[1], dtype=torch.bool, device=objects[0].device)
 
     @property
     def active(self) -> bool:
         """Whether any rule can change a prediction."""
-        return self.cloth is not None or self.energy or self.hold_failed
+        return self.cloth is not None or self.energy or self.hold_failed or self.rest_friction > 0
 
     def __repr__(self) -> str:
         return (f"StepRules(cloth={self.cloth is not None}, energy={self.energy}, "
-                f"hold_failed={self.hold_failed})")
+                f"hold_failed={self.hold_failed}, rest_friction={self.rest_friction:g})")
 
     def __call__(self, graph: HeteroData, prediction: Prediction, force: Tensor | None = None,
                  movable: Tensor | None = None) -> Prediction:
@@ -83,6 +92,8 @@ class StepRules:
                                       self.host_reads)
         if self.cloth is not None:
             prediction = self.cloth(graph, prediction, movable)
+        if self.rest_friction > 0:
+            prediction = hold_resting(graph, prediction, self.objects, self.rest_friction)
         if self.hold_failed and (self.cloth is not None or self.energy):  # what the rules made, too
             prediction = self.hold_non_finite(graph, prediction)
         return prediction
@@ -121,10 +132,12 @@ def step_rules(model: torch.nn.Module, graph: HeteroData, objects: tuple[Tensor,
     solid_clearance = float(getattr(config, "solid_clearance", 0.0))
     clear = (clearance > 0 or solid_clearance > 0) and collisions
     energy = bool(getattr(config, "energy_limit", False))
-    if not clear and not energy and not hold_failed:
+    friction = float(getattr(config, "rest_friction", 0.0))
+    if not clear and not energy and not hold_failed and not friction > 0:
         return None
     objects = object_of(graph) if objects is None else objects
     cloth = (cloth_contact(graph, clearance, objects=objects, solid_clearance=solid_clearance,
                            project_cloth=clearance > 0) if clear else None)
-    rules = StepRules(cloth, energy, objects, bool(getattr(config, "rigid_fit_rest", False)), hold_failed)
+    rules = StepRules(cloth, energy, objects, bool(getattr(config, "rigid_fit_rest", False)), hold_failed,
+                      rest_friction=friction)
     return rules if rules.active else None
