@@ -41,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ensemble start perturbation in metres (default: PerturbationConfig's, "
                              "hrn_pyg.sampling.ensemble)")
     parser.add_argument("--sample-seed", type=int, default=0, help="seeds the dropout masks")
+    parser.add_argument("--ensemble-cache", default=None, metavar="DIR",
+                        help="keep each start's pybullet ensemble here and read it back when the same scene, "
+                             "seed, members, horizon and perturbation are asked for again (a later calibration "
+                             "of another model skips the simulation)")
     target = parser.add_mutually_exclusive_group()
     target.add_argument("--out", default=None, help="calibrated checkpoint to write (default: <model>.calibrated.pt)")
     target.add_argument("--in-place", action="store_true", help="write the choice into --model itself")

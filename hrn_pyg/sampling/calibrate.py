@@ -19,6 +19,7 @@ the RL environment use that rate when given none.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -56,6 +57,7 @@ from hrn_pyg.sampling.sample import sample
 from hrn_pyg.sim.plausibility import is_implausible, state_plausibility
 from hrn_pyg.utils.checkpoint import load_checkpoint, save_checkpoint
 from hrn_pyg.utils.device import resolve_device
+from hrn_pyg.utils.files import atomic_write
 from hrn_pyg.utils.options import progress_bar
 
 #: default output: ``<stem>.calibrated.pt`` beside the input
@@ -165,17 +167,51 @@ class Start:
     moving: Tensor  # [L] bool, leaves of non-static objects
 
 
+def ensemble_key(scene: str, config: Any, seed: int, members: int, steps: int,
+                 perturbation: PerturbationConfig) -> str:
+    """A name for one start's ensemble in an ``--ensemble-cache`` folder: a digest of everything
+    the ensemble depends on (the scene's name, file text and settings, the seed, members, steps
+    and perturbation)."""
+    spec = None if config is None else {"text": getattr(config, "text", None), "settings": config.settings_dict()}
+    record = {"scene": scene, "spec": spec, "seed": int(seed), "members": int(members), "steps": int(steps),
+              "perturbation": perturbation.to_dict()}
+    digest = hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return f"{scene}_{int(seed)}_{digest}.npy"
+
+
+def cached_ensemble(cache: Path | None, scene: str, seed: int, members: int, steps: int,
+                    perturbation: PerturbationConfig, config: Any, leaves: int) -> np.ndarray:
+    """:func:`~hrn_pyg.sampling.ensemble.ground_truth_ensemble` of the start, read from ``cache``
+    when it holds it with the expected shape ``(members, steps + 1, leaves, 3)``, else simulated
+    (and written there atomically)."""
+    path = None if cache is None else Path(cache) / ensemble_key(scene, config, seed, members, steps, perturbation)
+    shape = (members, steps + 1, leaves, 3)
+    if path is not None and path.is_file():
+        try:
+            kept = np.load(path, allow_pickle=False)
+        except (OSError, ValueError):
+            kept = None
+        if kept is not None and kept.shape == shape and kept.dtype == np.float32 and np.isfinite(kept).all():
+            return kept
+    ensemble = ground_truth_ensemble(scene, seed, members, steps, perturbation, config)
+    if path is not None:
+        atomic_write(path, lambda fh: np.save(fh, ensemble, allow_pickle=False))
+    return ensemble
+
+
 def build_start(scene: str, seed: int, steps: int, members: int,
                 perturbation: PerturbationConfig = PerturbationConfig(),
-                config: Any = None, episode: dict | None = None) -> Start:
+                config: Any = None, episode: dict | None = None, cache: Path | None = None) -> Start:
     """Simulate (or take) episode ``(scene, seed)`` and its perturbed-start ensemble: the start at step
-    :data:`~hrn_pyg.sampling.ensemble.HISTORY`, the truth the members' leaves ``steps`` later."""
+    :data:`~hrn_pyg.sampling.ensemble.HISTORY`, the truth the members' leaves ``steps`` later.
+    ``cache``: a folder of ensembles (:func:`cached_ensemble`)."""
     from hrn_pyg.data.episodes import simulate_episode_alone
     from hrn_pyg.data.graph import STATIC
 
     if episode is None:
         episode = simulate_episode_alone(scene if config is None else config, seed, steps=HISTORY + steps)
-    ensemble = ground_truth_ensemble(scene, seed, members, HISTORY + steps, perturbation, config)
+    leaves = np.asarray(episode["positions"]).shape[1]
+    ensemble = cached_ensemble(cache, scene, seed, members, HISTORY + steps, perturbation, config, leaves)
     graph = episode_state(episode, start=HISTORY, steps=steps)
     forces = graph[NODE].force_seq.transpose(0, 1)
     truth = torch.as_tensor(ensemble[:, HISTORY + steps]).float()
@@ -444,7 +480,8 @@ def run(args: argparse.Namespace) -> int:
         episode = read_episode(path) if path is not None else None
         print(f"simulating {name} seed {seed}: {args.members} perturbed replays of "
               f"{HISTORY + args.steps} steps", file=sys.stderr, flush=True)
-        starts.append(build_start(name, seed, args.steps, args.members, perturbation, config, episode))
+        starts.append(build_start(name, seed, args.steps, args.members, perturbation, config, episode,
+                                  getattr(args, "ensemble_cache", None)))
 
     # --- candidates ---------------------------------------------------------------------------
     candidates = calibrate(model, starts, rates, module_sets, args.k, args.steps, args.sample_seed,

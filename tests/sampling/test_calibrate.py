@@ -383,3 +383,25 @@ def test_rl_uses_the_calibrated_rate_unless_given_one(monkeypatch, tmp_path):
     ppo.train(task, "stochastic", 0, config, tmp_path, dynamics, dropout_rate=0.02)
     ppo.train(task, "stochastic", 0, config, tmp_path)  # point-mass dynamics: the task's rate
     assert seen == [0.07, 0.02, task.dropout_rate]
+
+
+def test_an_ensemble_cache_is_read_back_and_a_bad_file_in_it_is_simulated_again(tmp_path, monkeypatch):
+    pert = PerturbationConfig(position_std=POSITION_STD)
+    first = cal.build_start(SCENE, 8, STEPS, 2, pert, cache=tmp_path)
+    files = list(tmp_path.glob("*.npy"))
+    assert len(files) == 1 and files[0].name.startswith(f"{SCENE}_8_")
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated although the cache holds the ensemble")
+
+    monkeypatch.setattr(cal, "ground_truth_ensemble", no_simulation)
+    again = cal.build_start(SCENE, 8, STEPS, 2, pert, cache=tmp_path)
+    torch.testing.assert_close(again.truth, first.truth, rtol=0, atol=0)
+    # another perturbation is another key: it is simulated (here: refused by the stand-in)
+    with pytest.raises(AssertionError, match="simulated although"):
+        cal.build_start(SCENE, 8, STEPS, 2, PerturbationConfig(position_std=0.001), cache=tmp_path)
+    monkeypatch.undo()
+    np.save(files[0], np.zeros((1, 2, 3), dtype=np.float32))  # a file of the wrong shape
+    third = cal.build_start(SCENE, 8, STEPS, 2, pert, cache=tmp_path)
+    torch.testing.assert_close(third.truth, first.truth, rtol=0, atol=0)
+    assert np.load(files[0]).shape == (2, HISTORY + STEPS + 1, first.truth.shape[1], 3)
