@@ -115,7 +115,7 @@ def test_missing_test_folders_are_made_with_their_seeds(tmp_path, monkeypatch):
         (data / name / "meta.json").write_text(json.dumps({"complete": complete}))
     ran = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kw: ran.append(command))
-    argv = ["--model", "m.pt", "--data", str(data), "--out", str(out), "--only", "pitch"]
+    argv = ["--model", "m.pt", "--data", str(data), "--out", str(out), "--only", "pitch", "--test-set", "test6"]
     assert script_main("f", "f", final.add_arguments, final.run, argv) == 0
     made = [c for c in ran if "generate" in c]
     assert [c[c.index("--out") + 1] for c in made] == [str(data / "unseen_test6_rigid"), str(data / "unseen_test6_soft")]
