@@ -16,7 +16,9 @@ object :math:`o` that is not static is held at :math:`x_t` (its step is zero) wh
 
 where :math:`x(t+1)` is the prediction after the other rules and :math:`\mathrm{supported}_o`: a
 collision edge joins a leaf of :math:`o` to a leaf of another object, or its lowest leaf is less
-than one pitch above the ground :math:`z = 0`. Both steps count, so an object that the network
+than one pitch above the ground :math:`z = 0`. An object pushed in the step (a leaf with an
+external force) is never held: how it answers a push, however small, is the network's to say, as
+is how far a slow push moves it. Both steps count, so an object that the network
 brakes hard (a fast step, then a short one) is not caught mid-way, and an object in the air is
 never held (at the top of a throw it is slow but touches nothing). A hold only takes motion away:
 it gives no energy and moves nothing into another object.
@@ -55,9 +57,11 @@ def supported_objects(graph: HeteroData, objects: tuple[Tensor, int]) -> Tensor:
     return supported
 
 
-def resting_objects(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int], limit: float) -> Tensor:
+def resting_objects(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int], limit: float,
+                    force: Tensor | None = None) -> Tensor:
     """``(R,)`` bool: movable, supported objects whose every leaf moved less than ``limit``
-    pitches in the last step and moves less in the predicted one (``pos``, :math:`x_{t+1}`)."""
+    pitches in the last step and moves less in the predicted one (``pos``, :math:`x_{t+1}`), and
+    on none of whose nodes ``force`` ``(N, 3)`` (the step's external force; None: none) acts."""
     group, count = objects
     store = graph[NODE]
     leaves = store.is_leaf
@@ -66,13 +70,18 @@ def resting_objects(graph: HeteroData, pos: Tensor, objects: tuple[Tensor, int],
     longest = torch.zeros(count, dtype=step.dtype, device=group.device)
     longest = longest.scatter_reduce(0, group[leaves], relative, "amax")
     moving = torch.zeros(count, dtype=torch.bool, device=group.device).index_fill_(0, group[~store.is_static], True)
-    return moving & (longest < limit) & supported_objects(graph, objects)
+    resting = moving & (longest < limit) & supported_objects(graph, objects)
+    if force is not None:
+        pushed = (force != 0).any(-1)
+        resting = resting & ~torch.zeros_like(resting).index_fill_(0, group[pushed], True)
+    return resting
 
 
-def hold_resting(graph: HeteroData, prediction: Prediction, objects: tuple[Tensor, int], limit: float) -> Prediction:
+def hold_resting(graph: HeteroData, prediction: Prediction, objects: tuple[Tensor, int], limit: float,
+                 force: Tensor | None = None) -> Prediction:
     """``prediction`` with every object of :func:`resting_objects` held at :math:`x_t` (zero
     velocity; its ``prev_pos`` too, where the prediction carries one)."""
-    held = resting_objects(graph, prediction.pos, objects, limit)[objects[0]].unsqueeze(-1)  # [N, 1]
+    held = resting_objects(graph, prediction.pos, objects, limit, force)[objects[0]].unsqueeze(-1)  # [N, 1]
     store = graph[NODE]
     zero = torch.zeros_like(store.pos)
     since = None if prediction.prev_pos is None else torch.where(held, store.pos, prediction.prev_pos)

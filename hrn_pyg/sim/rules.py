@@ -21,8 +21,9 @@ sampler and the RL dynamics (environment and planner). In order:
    the body inside. Its stops only shorten steps; a push is about as long as the overlap
    it removes plus the clearance and gives no speed (the body's :math:`x_t` moves with it).
 4. **Static friction** (``HRNConfig.rest_friction``, :mod:`hrn_pyg.sim.rest_friction`): a
-   supported object whose last step and predicted step are both shorter than a small part of a
-   pitch is held where it is. Last, so that it judges the step the other rules leave.
+   supported object, not pushed in the step, whose last step and predicted step are both shorter
+   than a small part of a pitch is held where it is. Last, so that it judges the step the other
+   rules leave.
 
 **Shapes.** A :class:`StepRules` maps a :class:`~hrn_pyg.sim.step.Prediction` of a graph of
 ``N`` nodes (each tensor ``(N, 3)``) to another; ``failed`` is ``(R,)`` bool over the graph's
@@ -93,7 +94,7 @@ class StepRules:
         if self.cloth is not None:
             prediction = self.cloth(graph, prediction, movable)
         if self.rest_friction > 0:
-            prediction = hold_resting(graph, prediction, self.objects, self.rest_friction)
+            prediction = hold_resting(graph, prediction, self.objects, self.rest_friction, force)
         if self.hold_failed and (self.cloth is not None or self.energy):  # what the rules made, too
             prediction = self.hold_non_finite(graph, prediction)
         return prediction

@@ -107,3 +107,12 @@ def test_the_fixed_shape_steps_refuse_a_model_that_holds_resting_objects():
 
     with pytest.raises(ValueError, match=r"holds resting objects still \(rest_friction=0.02\)"):
         fixed_shape_rollout(with_applied_options(toy_model(), rest_friction=0.02), scene(), 2)
+
+
+def test_a_pushed_object_is_left_to_the_network():
+    graph = scene(1e-5)
+    objects = object_of(graph)
+    force = torch.zeros(graph[NODE].num_nodes, 3)
+    assert resting_objects(graph, moved(graph, 1e-5).pos, objects, 0.02, force).tolist() == [True, False]
+    force[1] = torch.tensor([0.1, 0.0, 0.0])  # a gentle push on a leaf of the grounded bar
+    assert resting_objects(graph, moved(graph, 1e-5).pos, objects, 0.02, force).tolist() == [False, False]
