@@ -63,6 +63,7 @@ MODULES = (
     "hrn_pyg.sim.fixed_shape",
     "hrn_pyg.sim.penetration",
     "hrn_pyg.sim.cloth_contact",
+    "hrn_pyg.sim.rest_friction",
     "hrn_pyg.losses",
     "hrn_pyg.train",
     "hrn_pyg.evaluate",
