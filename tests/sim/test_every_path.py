@@ -1,7 +1,7 @@
 """One model, one scene of each material, every path: the same positions.
 
-The shipped ``shapes`` model with the rules after the network on (:mod:`hrn_pyg.sim.rules`: the
-energy limit, solid and cloth clearance; static friction off, see ``model``) is started from the third frame of a pybullet episode
+The shipped ``shapes`` model with every rule after the network on (:mod:`hrn_pyg.sim.rules`: the
+energy limit, solid and cloth clearance) is started from the third frame of a pybullet episode
 and stepped by the plain rollout, the sleeping rollout, the sampler at rate 0 (one copy and three
 identical ones), the fixed-shape rollout (or its refusal), the RL environment's dynamics
 (:meth:`~hrn_pyg.rl.hrn_dynamics.HRNDynamics.sample_next`, which carries each object's sleep
@@ -41,11 +41,8 @@ SCENES = {"cube_collision": 2, "soft_bounce": 1, "multi_material": 3}
 
 @pytest.fixture(scope="module")
 def model():
-    """``shapes`` with every rule after the network on but static friction: two of the three starts
-    are at rest, where friction holds every object and every path would agree trivially (the
-    rule is applied by the same :class:`~hrn_pyg.sim.rules.StepRules` call on every path)."""
-    return with_applied_options(load_model("shapes"), energy_limit=True, solid_clearance=0.3, cloth_clearance=0.3,
-                                rest_friction=0.0)
+    """``shapes`` with every rule after the network on."""
+    return with_applied_options(load_model("shapes"), energy_limit=True, solid_clearance=0.3, cloth_clearance=0.3)
 
 
 @pytest.fixture(scope="module", params=list(SCENES))
@@ -122,16 +119,15 @@ def test_the_fixed_shape_rollout_gives_the_rollout_or_refuses(scene):
     scene without cloth, cloth clearance has nothing to do and the model runs."""
     name, _, graph, _ = scene
     every_rule = with_applied_options(load_model("shapes"), energy_limit=True, solid_clearance=0.3,
-                                      cloth_clearance=0.3, rest_friction=0.0)
+                                      cloth_clearance=0.3)
     with pytest.raises(ValueError, match=r"fixed_shape_rollout: .*solid_clearance=0\.3.* hrn_pyg\.sim\.rollout$"):
         fixed_shape_rollout(every_rule, graph, STEPS)
-    cloth_only = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.3, solid_clearance=0.0,
-                                      rest_friction=0.0)
+    cloth_only = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.3, solid_clearance=0.0)
     if name == "multi_material":
         with pytest.raises(ValueError, match=r"\(cloth_clearance=0\.3\)"):
             fixed_shape_rollout(cloth_only, graph, STEPS)
         allowed = with_applied_options(load_model("shapes"), energy_limit=True, cloth_clearance=0.0,
-                                       solid_clearance=0.0, rest_friction=0.0)
+                                       solid_clearance=0.0)
     else:
         allowed = cloth_only
     with torch.no_grad():
