@@ -14,7 +14,8 @@ object :math:`o` that is not static is held at :math:`x_t` (its step is zero) wh
     \mathrm{supported}_o \ \wedge\ \max_{l \in o} \max\bigl(\lVert x_l(t+1) - x_l(t) \rVert,\
         \lVert x_l(t) - x_l(t-1) \rVert\bigr) < \varepsilon\, h
 
-where :math:`x(t+1)` is the prediction after the other rules and :math:`\mathrm{supported}_o`: a
+where :math:`x(t+1)` is the prediction after the energy limit (the clearance comes after this
+rule, so a push out of another body is never taken back) and :math:`\mathrm{supported}_o`: a
 collision edge joins a leaf of :math:`o` to a leaf of another object, or its lowest leaf is less
 than one pitch above the ground :math:`z = 0`. An object pushed in the step (a leaf with an
 external force) is never held: how it answers a push, however small, is the network's to say, as

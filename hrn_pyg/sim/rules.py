@@ -13,17 +13,17 @@ sampler and the RL dynamics (environment and planner). In order:
 2. **Energy limit** (``HRNConfig.energy_limit``, :mod:`hrn_pyg.sim.energy`): no copy ends the step
    with more energy than it started with plus the work of its pushes, judged on the network's
    prediction.
-3. **Clearance** (``HRNConfig.cloth_clearance``, ``HRNConfig.solid_clearance``,
+3. **Static friction** (``HRNConfig.rest_friction``, :mod:`hrn_pyg.sim.rest_friction`): a
+   supported object, not pushed in the step, whose last step and predicted step are both shorter
+   than a small part of a pitch is held where it is. Before the clearance, so that a push out of
+   another body is never taken back.
+4. **Clearance** (``HRNConfig.cloth_clearance``, ``HRNConfig.solid_clearance``,
    :mod:`hrn_pyg.sim.cloth_contact`): a leaf of a cloth (or of a soft body or a rigid object) is
    stopped where it enters another object, or moved back out; a soft body gives way to what is
    inside it and is stretched no further than a limit. It comes last because moving a body out
    of another raises it: an energy limit after it would take part of that move back and leave
    the body inside. Its stops only shorten steps; a push is about as long as the overlap
    it removes plus the clearance and gives no speed (the body's :math:`x_t` moves with it).
-4. **Static friction** (``HRNConfig.rest_friction``, :mod:`hrn_pyg.sim.rest_friction`): a
-   supported object, not pushed in the step, whose last step and predicted step are both shorter
-   than a small part of a pitch is held where it is. Last, so that it judges the step the other
-   rules leave.
 
 **Shapes.** A :class:`StepRules` maps a :class:`~hrn_pyg.sim.step.Prediction` of a graph of
 ``N`` nodes (each tensor ``(N, 3)``) to another; ``failed`` is ``(R,)`` bool over the graph's
@@ -91,10 +91,10 @@ class StepRules:
         if self.energy:
             prediction = limit_energy(graph, prediction, self.objects, force, movable, self.rigid_from_rest,
                                       self.host_reads)
-        if self.cloth is not None:
-            prediction = self.cloth(graph, prediction, movable)
         if self.rest_friction > 0:
             prediction = hold_resting(graph, prediction, self.objects, self.rest_friction, force)
+        if self.cloth is not None:
+            prediction = self.cloth(graph, prediction, movable)
         if self.hold_failed and (self.cloth is not None or self.energy):  # what the rules made, too
             prediction = self.hold_non_finite(graph, prediction)
         return prediction

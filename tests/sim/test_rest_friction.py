@@ -116,3 +116,17 @@ def test_a_pushed_object_is_left_to_the_network():
     assert resting_objects(graph, moved(graph, 1e-5).pos, objects, 0.02, force).tolist() == [True, False]
     force[1] = torch.tensor([0.1, 0.0, 0.0])  # a gentle push on a leaf of the grounded bar
     assert resting_objects(graph, moved(graph, 1e-5).pos, objects, 0.02, force).tolist() == [False, False]
+
+
+def test_a_push_out_by_the_clearance_is_not_taken_back():
+    """Friction judges the step before the clearance: a resting body that the clearance then moves
+    out of another (here a stand-in moving everything 0.5 mm, under the 1 mm limit) keeps the move."""
+    graph = scene(1e-5)
+    objects = object_of(graph)
+
+    def push_out(graph, prediction, movable):
+        return moved(graph, 5e-4)
+
+    rules = StepRules(push_out, False, objects, rest_friction=0.02)
+    out = rules(graph, moved(graph, 1e-5))
+    assert torch.equal(out.pos, moved(graph, 5e-4).pos)
