@@ -37,7 +37,7 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from hrn_pyg.data.graph import COLLISION, NODE, node_pitch
-from hrn_pyg.sim.step import Prediction
+from hrn_pyg.sim.step import Prediction, held_at_current
 
 
 def supported_objects(graph: HeteroData, objects: tuple[Tensor, int]) -> Tensor:
@@ -82,10 +82,4 @@ def hold_resting(graph: HeteroData, prediction: Prediction, objects: tuple[Tenso
                  force: Tensor | None = None) -> Prediction:
     """``prediction`` with every object of :func:`resting_objects` held at :math:`x_t` (zero
     velocity; its ``prev_pos`` too, where the prediction carries one)."""
-    held = resting_objects(graph, prediction.pos, objects, limit, force)[objects[0]].unsqueeze(-1)  # [N, 1]
-    store = graph[NODE]
-    zero = torch.zeros_like(store.pos)
-    since = None if prediction.prev_pos is None else torch.where(held, store.pos, prediction.prev_pos)
-    return Prediction(torch.where(held, store.pos, prediction.pos),
-                      torch.where(held, zero, prediction.local_velocity),
-                      torch.where(held, zero, prediction.velocity), since)
+    return held_at_current(graph, prediction, resting_objects(graph, prediction.pos, objects, limit, force)[objects[0]])

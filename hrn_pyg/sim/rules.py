@@ -36,11 +36,10 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from hrn_pyg.data.graph import NODE
 from hrn_pyg.sim.cloth_contact import ClothContact, cloth_contact
 from hrn_pyg.sim.energy import copy_of_objects, limit_energy
 from hrn_pyg.sim.rest_friction import hold_resting
-from hrn_pyg.sim.step import Prediction, object_of
+from hrn_pyg.sim.step import Prediction, held_at_current, object_of
 
 
 class StepRules:
@@ -109,13 +108,7 @@ class StepRules:
         self.failed = self.failed | bad
         if not bool(bad.any()):
             return prediction
-        held = bad[copy].unsqueeze(-1)
-        store = graph[NODE]
-        zero = torch.zeros_like(store.pos)
-        since = None if prediction.prev_pos is None else torch.where(held, store.pos, prediction.prev_pos)
-        return Prediction(torch.where(held, store.pos, prediction.pos),
-                          torch.where(held, zero, prediction.local_velocity),
-                          torch.where(held, zero, prediction.velocity), since)
+        return held_at_current(graph, prediction, bad[copy])
 
     def failed_copies(self, copies: int) -> Tensor:
         """``[copies]`` bool: which of the first ``copies`` copies have failed."""

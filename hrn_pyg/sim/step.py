@@ -78,6 +78,17 @@ class Prediction(NamedTuple):
     prev_pos: Tensor | None = None
 
 
+def held_at_current(graph: HeteroData, prediction: Prediction, held: Tensor) -> Prediction:
+    """``prediction`` with the rows of ``held`` ``[N]`` bool kept at :math:`x_t` (the graph's
+    ``pos``) with zero velocity; their ``prev_pos`` too, where the prediction carries one."""
+    held = held.unsqueeze(-1)
+    pos = graph[NODE].pos
+    zero = torch.zeros_like(pos)
+    since = None if prediction.prev_pos is None else torch.where(held, pos, prediction.prev_pos)
+    return Prediction(torch.where(held, pos, prediction.pos), torch.where(held, zero, prediction.local_velocity),
+                      torch.where(held, zero, prediction.velocity), since)
+
+
 class Step(NamedTuple):
     """Result of one model step.
 
