@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
                         try:
                             compile_seconds[label], runs[label] = compiled_rollout(variants[source], state, steps,
                                                                                    reset=k == 0)
-                        except ValueError as exc:  # fixed-shape steps refuse rules that read contacts
+                        except ValueError as exc:  # a model the fixed-shape steps cannot run (a GNS)
                             row["compiled_skipped"] = str(exc).splitlines()[0]
                             print(f"{label}: not timed ({row['compiled_skipped']})", flush=True)
                 bullet_s, seconds, positions = paired_times(

@@ -373,11 +373,11 @@ def compiled_times(model, episode: dict, steps: int, repeats: int) -> dict:
     """The compiled fixed-shape rollout of ``steps`` steps from step 2 of ``episode``: the
     seconds of the compiling run, the median ms per step of ``repeats`` more, and the median in
     seconds (``compiled_x_pybullet``, divided by pybullet's time by the caller); for a model the
-    fixed-shape steps refuse, only ``compiled_skipped``, their reason."""
+    fixed-shape steps cannot run, only ``compiled_skipped``, the reason."""
     state = episode_state(episode, start=2, steps=steps)
     try:
         first, timed = compiled_rollout(model, state, steps)
-    except ValueError as exc:  # fixed-shape steps refuse rules that read the step's contacts
+    except ValueError as exc:  # a model the fixed-shape steps cannot run (a GNS)
         reason = str(exc).splitlines()[0]
         print(f"compiled: not timed ({reason})", flush=True)
         return {"compiled_skipped": reason}

@@ -282,15 +282,15 @@ def calibration_bars(model: str) -> list[str]:
 
 def pile_bars(pile: dict, soft: bool) -> list[str]:
     """The compiled one-pass step against pybullet's: a rigid pile of 10 at most pybullet's time,
-    soft piles at least 5x faster. A model whose rules the fixed-shape steps refuse is held to
-    the bar on its eager step (the row says so)."""
+    soft piles at least 5x faster. A model the fixed-shape steps cannot run is held to the bar
+    on its eager step (the row says so)."""
     lines = []
     for row in pile.get("rows", []):
         for name, variants in row["models"].items():
             step = "compiled step"
             run = variants.get("compiled")
             if run is None and "compiled_skipped" in row:
-                step, run = "eager step (no compiled path for its rules)", variants.get("as loaded")
+                step, run = "eager step (no compiled path)", variants.get("as loaded")
             if run is None or (not soft and row["objects"] != 10):
                 continue
             bar = SOFT_PILE_BAR if soft else RIGID_PILE_BAR

@@ -44,14 +44,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-sleep", action="store_true",
                         help="run every object at every step (default: objects at rest sleep, hrn_pyg.sim.sleeping)")
     parser.add_argument("--fixed-shape", action="store_true",
-                        help="fixed-shape steps (hrn_pyg.sim.fixed_shape): no host read inside a step, the "
-                             "same futures as --no-sleep, which it implies")
+                        help="fixed-shape steps (hrn_pyg.sim.fixed_shape): no host read inside the network's part "
+                             "of a step (rules that read the contacts run after it), the same futures as "
+                             "--no-sleep, which it implies")
     parser.add_argument("--cuda-graph", action="store_true",
                         help="with --fixed-shape on CUDA: record each kind of step as a CUDA graph")
     parser.add_argument("--compile", action="store_true",
                         help="run the network through torch.compile (Module.compile): a compile of "
                              "tens of seconds first, then fused steps while the graph's shapes hold; with "
-                             "--fixed-shape each kind of whole step is compiled (FixedShapeConfig.compile)")
+                             "--fixed-shape each kind of step is compiled (FixedShapeConfig.compile; a model's "
+                             "rules that read the contacts run after the compiled part)")
     pictures = parser.add_argument_group("pictures and exports")
     pictures.add_argument("--frames", default=None,
                           help="steps drawn as the PNG's columns, comma-separated, e.g. 0,10,30 (default: 0, "

@@ -125,6 +125,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -281,8 +282,7 @@ def scene_solid_mesh(meshes: list[tuple[np.ndarray, SolidMesh]], rows: int) -> S
     return SolidMesh(joined(tets, 4), leaf_tets, anchor, joined(edges, 2))
 
 
-@dataclass(frozen=True)
-class StepPairs:
+class StepPairs(NamedTuple):
     """The pairs one step of :class:`ClothContact` works on, each ``[P]`` long (its own ``P``):
     ``(a, b)`` the contact pairs of leaves of different objects, both ways; ``(c, j)`` those of a
     projected leaf ``c`` that may be pushed out of ``j``'s object; ``(leaf, tet)`` each such leaf
@@ -406,7 +406,7 @@ class ClothContact:
         if pairs.c.numel() == 0:
             return stopped, stopped
         pos = stopped
-        a, b, c, j, leaf, tet, back, back_tet = dataclasses.astuple(pairs)
+        a, b, c, j, leaf, tet, back, back_tet = pairs
         rotation = self.rotations(pos)
         # a rigid object is not pushed out of a soft body: the soft body gives way to it below
         pushed = ~(self.rigid_rows[c] & (self.kind[j] == SOFT))

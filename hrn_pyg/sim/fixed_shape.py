@@ -22,9 +22,13 @@ the last report.
 and replays it. ``compile=True`` compiles each kind with ``torch.compile``, the list's length
 dynamic; positions equal the eager step's up to rounding.
 
-A model with ``cloth_clearance`` on a scene whose cloth can land on another object, or with
-``solid_clearance`` on a scene with a moving soft or rigid body beside another object, is
-refused (those rules' sizes depend on the step's contacts).
+**Rules that read the contacts.** The clearance (``cloth_clearance``, ``solid_clearance``) and
+static friction (``rest_friction``) decide from the step's contacts which leaves move, so their
+sizes are not fixed. With them the step is split: the network (and what it decodes) runs as the
+fixed-shape part, compiled with ``compile=True``, and every rule of the model
+(:mod:`hrn_pyg.sim.rules`, in its order) runs after it eagerly, on the collision edges of
+:math:`x_t` taken from the candidate list, so the positions are still the plain rollout's. Such a
+step reads the host, so it cannot be recorded as a CUDA graph (``cuda_graph=True`` refuses it).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from hrn_pyg.data.candidates import (
     CollisionCandidates,
     active_collisions,
     build_candidates,
+    collisions_of,
     largest_move,
     move_limit,
     pad_candidates,
@@ -54,7 +59,7 @@ from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim.rules import StepRules, step_rules
 from hrn_pyg.sim.rollout import check_forces
-from hrn_pyg.sim.step import NEXT_POS, MasksFn, hierarchy_constants, object_of, predict, require_state
+from hrn_pyg.sim.step import NEXT_POS, MasksFn, Prediction, hierarchy_constants, object_of, predict, require_state
 from hrn_pyg.utils.checks import non_finite_error
 
 
@@ -110,34 +115,85 @@ StepFn = Callable[..., tuple[Tensor, Tensor, Tensor]]
 SPEED_MARGIN = 1.25
 
 
+def make_network_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float, skin: float,
+                      mask_names: tuple[str, ...]) -> Callable[..., tuple[Prediction, Tensor]]:
+    """The fixed-shape part of a step: the arguments of :func:`make_step` to the
+    :class:`~hrn_pyg.sim.step.Prediction` (``options.rules`` applied, which must need no host read)
+    and the 0-d largest move of the input since the search (0 without collisions)."""
+    options = replace(options, check=False, fixed_shape=True)
+
+    def network_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
+                     edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Prediction, Tensor]:
+        current = graph_at(graph, pos, prev, prev2, edge_index)
+        return _network_part(model, current, options, radius, skin, mask_names, force, masks, valid, reference)
+
+    return network_step
+
+
+def _network_part(model: HRN, current: HeteroData, options: StepOptions, radius: float, skin: float,
+                  mask_names: tuple[str, ...], force: Tensor, masks: tuple[Tensor, ...], valid: Tensor,
+                  reference: Tensor) -> tuple[Prediction, Tensor]:
+    """:func:`make_network_step`'s step on ``current`` (the graph at :math:`x_t` with the candidates
+    as its collision edges): called after :func:`graph_at`, so a compiled step breaks its graph
+    only there."""
+    pos = current[NODE].pos
+    weight, moved = None, pos.new_zeros(())
+    if radius > 0:
+        candidates = CollisionCandidates(current[COLLISION].edge_index, valid, reference, radius, skin, -1)
+        weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
+    prediction = predict(model, current, force, dict(zip(mask_names, masks)) or None,
+                         replace(options, collision_weight=weight))
+    if options.rules is not None:
+        prediction = options.rules(current, prediction, force, None)
+    return prediction, moved
+
+
+def step_report(pos: Tensor, prediction: Prediction, moved: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A step's outputs from its input ``pos`` ``[N, 3]`` and final ``prediction``: next
+    positions, the next state's :math:`x_t` and the report ``[3]`` (:data:`StepFn`)."""
+    next_pos = prediction.pos
+    step = next_pos - pos
+    speed = (step * step).sum(dim=-1).amax().sqrt()
+    bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
+    since = pos if prediction.prev_pos is None else prediction.prev_pos
+    return next_pos, since, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
+
+
 def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float, skin: float,
               mask_names: tuple[str, ...]) -> StepFn:
     """The step of :func:`fixed_shape_rollout` as a function of tensors only (no host read): positions,
     force, masks (in ``mask_names`` order) and candidates come in as tensors, so it can be recorded
     once and replayed. It runs ``options`` with ``check=False``, ``fixed_shape=True`` and the
     candidates' weights."""
-    collisions = radius > 0
     options = replace(options, check=False, fixed_shape=True)
 
     def fixed_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
                    edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         current = graph_at(graph, pos, prev, prev2, edge_index)
-        weight, moved = None, pos.new_zeros(())
-        if collisions:
-            candidates = CollisionCandidates(edge_index, valid, reference, radius, skin, -1)
-            weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
-        prediction = predict(model, current, force, dict(zip(mask_names, masks)) or None,
-                             replace(options, collision_weight=weight))
-        if options.rules is not None:
-            prediction = options.rules(current, prediction, force, None)
-        next_pos = prediction.pos
-        step = next_pos - pos
-        speed = (step * step).sum(dim=-1).amax().sqrt()
-        bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
-        since = pos if prediction.prev_pos is None else prediction.prev_pos
-        return next_pos, since, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
+        prediction, moved = _network_part(model, current, options, radius, skin, mask_names, force, masks,
+                                          valid, reference)
+        return step_report(pos, prediction, moved)
 
     return fixed_step
+
+
+def rules_after(network_step: Callable[..., tuple[Prediction, Tensor]], rules: StepRules, graph: HeteroData,
+                radius: float, skin: float) -> StepFn:
+    """A :data:`StepFn` that runs ``network_step`` (:func:`make_network_step`, compiled or not) and
+    then ``rules`` eagerly on the graph at :math:`x_t` with its collision edges (the candidates
+    within the radius, as the plain rollout's search gives them): the split step of the module
+    docstring. It reads the host."""
+
+    def step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
+             edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        prediction, moved = network_step(pos, prev, prev2, force, masks, edge_index, valid, reference)
+        edges = edge_index
+        if radius > 0:
+            edges = collisions_of(CollisionCandidates(edge_index, valid, reference, radius, skin, -1), pos)
+        prediction = rules(graph_at(graph, pos, prev, prev2, edges), prediction, force, None)
+        return step_report(pos, prediction, moved)
+
+    return step
 
 
 #: the arguments of a step function (:func:`make_step`): what changes from one call to the next
@@ -203,6 +259,13 @@ class RecordedStep:
         return tuple(o.clone() for o in self.outputs)
 
 
+def contact_rule_options(model: HRN) -> str:
+    """The model's options of rules that read the step's contacts, as ``name=value, ...``."""
+    names = ("cloth_clearance", "solid_clearance", "rest_friction")
+    return ", ".join(f"{name}={float(getattr(model.config, name, 0.0)):g}" for name in names
+                     if float(getattr(model.config, name, 0.0)) > 0)
+
+
 def _steps_within(limit: float, moved: float, speed: float, most: int) -> int:
     """How many more steps (at most ``most``) keep a node that has ``moved`` and moves ``speed``
     per step (times :data:`SPEED_MARGIN`) within ``limit``; 0: search now."""
@@ -216,28 +279,23 @@ class FixedShapeSimulator:
     between rollouts (each kind recorded or compiled once); every :meth:`rollout` starts there."""
 
     def __init__(self, model: HRN, graph: HeteroData, config: FixedShapeConfig = FixedShapeConfig()) -> None:
-        if config.cuda_graph and graph[NODE].pos.device.type != "cuda":
-            raise ValueError("FixedShapeConfig.cuda_graph needs the graph on a CUDA device")
         require_state(graph)
         store = graph[NODE]
         self.model, self.config = model, config
         self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
         self.objects = object_of(self.graph) if model.config.rigid_fit else None
         rules = step_rules(model, self.graph, self.objects)
-        if rules is not None and rules.cloth is not None:
-            clearances = ", ".join(f"{name}={float(getattr(model.config, name, 0.0)):g}"
-                                   for name in ("cloth_clearance", "solid_clearance")
-                                   if float(getattr(model.config, name, 0.0)) > 0)
-            raise ValueError(f"fixed_shape_rollout: this model moves leaves out of the objects they enter "
-                             f"({clearances}), a rule whose sizes depend on the contacts, which fixed-shape "
-                             "steps do not run; roll this scene out with hrn_pyg.sim.rollout")
-        if rules is not None and rules.rest_friction > 0:
-            raise ValueError(f"fixed_shape_rollout: this model holds resting objects still (rest_friction="
-                             f"{rules.rest_friction:g}), a rule that reads the step's contacts, which fixed-shape "
-                             "steps do not run; roll this scene out with hrn_pyg.sim.rollout")
-        # the energy limit without host reads: computed on every row, the unchanged ones selected
-        self.rules = None if rules is None else StepRules(None, rules.energy, rules.objects, rules.rigid_from_rest,
-                                                          host_reads=False)
+        # rules that read the contacts run after the fixed-shape part (module docstring); without
+        # them the energy limit runs inside it, on every row, the unchanged ones selected
+        self.host_rules = rules if rules is not None and (rules.cloth is not None or rules.rest_friction > 0) else None
+        if self.host_rules is not None and config.cuda_graph:
+            raise ValueError(f"fixed_shape_rollout: this model's rules read the step's contacts "
+                             f"({contact_rule_options(model)}), which a CUDA graph cannot hold; use "
+                             "FixedShapeConfig(compile=True) or hrn_pyg.sim.rollout")
+        if config.cuda_graph and store.pos.device.type != "cuda":
+            raise ValueError("FixedShapeConfig.cuda_graph needs the graph on a CUDA device")
+        self.rules = None if rules is None or self.host_rules is not None else StepRules(
+            None, rules.energy, rules.objects, rules.rigid_from_rest, host_reads=False)
         self.hierarchy = hierarchy_constants(model, self.graph)
         self._steps: dict[tuple, StepFn] = {}
 
@@ -247,9 +305,17 @@ class FixedShapeSimulator:
         if key not in self._steps:
             options = StepOptions(force_active=force_active, objects=self.objects, hierarchy=self.hierarchy,
                                   rules=self.rules)
-            fn = make_step(self.model, self.graph, options, radius, self.config.skin * radius, names)
-            if self.config.compile:
-                fn = torch.compile(own_code(fn), dynamic=None, options={"guard_filter_fn": step_input_guards})
+            skin = self.config.skin * radius
+            if self.host_rules is None:
+                fn = make_step(self.model, self.graph, options, radius, skin, names)
+                if self.config.compile:
+                    fn = torch.compile(own_code(fn), dynamic=None, options={"guard_filter_fn": step_input_guards})
+            else:
+                network = make_network_step(self.model, self.graph, options, radius, skin, names)
+                if self.config.compile:
+                    network = torch.compile(own_code(network), dynamic=None,
+                                            options={"guard_filter_fn": step_input_guards})
+                fn = rules_after(network, self.host_rules, self.graph, radius, skin)
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 

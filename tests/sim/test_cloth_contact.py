@@ -229,25 +229,23 @@ def test_objects_asleep_elsewhere_change_nothing_for_the_rule():
     assert torch.equal(asleep[:, far], store.pos[far].expand(6, -1, -1))
 
 
-def test_fixed_shape_steps_refuse_the_rule_where_it_acts_and_run_without_cloth():
-    """The rule's sizes depend on the step's contacts, which fixed-shape steps cannot have: a
-    model with it is refused on a scene with a cloth over a solid (one line naming the option
-    and what to use), and runs as the plain rollout on a scene with no cloth."""
+def test_fixed_shape_steps_run_the_rule_after_the_network_where_it_acts():
+    """The rule's sizes depend on the step's contacts: fixed-shape steps run it after their
+    network, on the collision edges of the candidate list, and give the plain rollout's positions,
+    on a scene with a cloth sunk 2 cm into a solid (which the rule moves out) and on one with no cloth."""
     from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
 
     top = PITCH * (BOX_SIDE - 1)
     ticks = torch.arange(3, dtype=torch.float32) * 0.075
     x, y = torch.meshgrid(ticks, ticks, indexing="ij")
-    sheet = torch.stack([x.flatten(), y.flatten(), torch.full((9,), top + 0.03)], dim=1)
+    sheet = torch.stack([x.flatten(), y.flatten(), torch.full((9,), top - 0.02)], dim=1)
     graph, _ = box_and_cloth(sheet)
     kept = with_applied_options(_model(), cloth_clearance=0.1)
-    with pytest.raises(ValueError, match=r"cloth_clearance=0\.1.*hrn_pyg\.sim\.rollout"):
-        fixed_shape_rollout(kept, graph, 3)
     no_cloth = toy_window(steps=4)
     with torch.no_grad():
-        fixed = fixed_shape_rollout(kept, no_cloth, 3).pos
-        plain = rollout(kept, no_cloth, 3, sleep=None)
-    assert torch.equal(fixed, plain)
+        for scene in (graph, no_cloth):
+            assert torch.equal(fixed_shape_rollout(kept, scene, 3).pos, rollout(kept, scene, 3, sleep=None))
+        assert not torch.equal(rollout(kept, graph, 3, sleep=None), rollout(_model(), graph, 3, sleep=None))
 
 
 def box_and_small_cube(material: int, offset, box_material: int = STATIC, side: int = BOX_SIDE) -> tuple:

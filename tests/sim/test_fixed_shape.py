@@ -321,3 +321,41 @@ def test_compiled_steps_keep_guards_on_their_inputs_and_follow_a_changing_candid
         again = sim.rollout(STEPS, forces)
     assert len(set(counts)) > 1, counts
     torch.testing.assert_close(again.pos, expected, rtol=0, atol=1e-5)
+
+
+def _solid_clearance_model():
+    """The toy model with the solid clearance (a rule that reads the step's contacts) and the
+    energy limit, on the toy scene at a pitch of 0.1 m, where the clearance moves leaves."""
+    from hrn_pyg.checkpoints import with_applied_options
+
+    model = fitted_model(rigid_fit=True)
+    graph = set_pitch(toy_scene(), 0.1)
+    kept = with_applied_options(model, solid_clearance=0.3, energy_limit=True)
+    assert not torch.equal(plain(kept, graph), plain(with_applied_options(model, energy_limit=True), graph))
+    return kept, graph
+
+
+@pytest.mark.parametrize("config", [FixedShapeConfig(), FixedShapeConfig(skin=0.05, check_every=1),
+                                    FixedShapeConfig(skin=2.0, check_every=3)])
+def test_rules_that_read_the_contacts_run_after_the_fixed_shape_part_bit_for_bit(config):
+    """A model whose clearance moves leaves: the split step (network fixed-shape, every rule after
+    it on the collision edges from the candidate list) gives the plain rollout's positions,
+    whatever the skin and the look-ahead (a stale list's steps run again with the rules)."""
+    kept, graph = _solid_clearance_model()
+    result = fixed_shape_rollout(kept, graph, STEPS, config=config)
+    assert torch.equal(result.pos, plain(kept, graph))
+
+
+def test_rules_that_read_the_contacts_run_after_a_compiled_network():
+    kept, graph = _solid_clearance_model()
+    sim = fixed_shape.FixedShapeSimulator(kept, graph, FixedShapeConfig(compile=True))
+    assert sim.host_rules is not None and sim.rules is None
+    with torch.no_grad():
+        result = sim.rollout(STEPS)
+    torch.testing.assert_close(result.pos, plain(kept, graph), rtol=0, atol=1e-5)
+
+
+def test_a_cuda_graph_refuses_rules_that_read_the_contacts_in_one_line():
+    kept, graph = _solid_clearance_model()
+    with pytest.raises(ValueError, match=r"read the step's contacts \(solid_clearance=0\.3\).*compile=True"):
+        fixed_shape_rollout(kept, graph, STEPS, config=FixedShapeConfig(cuda_graph=True))

@@ -99,14 +99,19 @@ def test_a_model_with_rest_friction_keeps_a_resting_scene_still():
     assert torch.equal(held[:, rows], graph[NODE].pos[rows].expand(30, -1, -1))
 
 
-def test_the_fixed_shape_steps_refuse_a_model_that_holds_resting_objects():
-    """The fixed-shape path would drop the rule: it says so instead of moving differently."""
+def test_the_fixed_shape_steps_hold_resting_objects_as_the_plain_rollout_does():
+    """The fixed-shape path runs the rule after its network: a resting scene is held bit for bit
+    as the plain rollout holds it."""
     from toy_scene import toy_model
 
     from hrn_pyg.sim.fixed_shape import fixed_shape_rollout
 
-    with pytest.raises(ValueError, match=r"holds resting objects still \(rest_friction=0.02\)"):
-        fixed_shape_rollout(with_applied_options(toy_model(), rest_friction=0.02), scene(), 2)
+    model = with_applied_options(toy_model(), rest_friction=0.5)
+    graph = scene(1e-5)
+    with torch.no_grad():
+        fixed = fixed_shape_rollout(model, graph, 10).pos
+        assert torch.equal(fixed, rollout(model, graph, 10, sleep=None))
+        assert not torch.equal(fixed, rollout(toy_model(), graph, 10, sleep=None))
 
 
 def test_a_pushed_object_is_left_to_the_network():

@@ -227,7 +227,7 @@ def test_a_model_without_a_compiled_path_is_held_to_the_pile_bar_on_its_eager_st
     row = {"objects": 10, "pybullet_ms": 2.0, "compiled_skipped": "fixed_shape_rollout: this model moves leaves",
            "models": {"m.pt": {"as loaded": {"x_pybullet": 1.4, "ms": 2.8}}}}
     assert final.pile_bars({"rows": [row]}, soft=False) == [
-        "| rigid pile of 10, eager step (no compiled path for its rules) / pybullet's <= 1.0 | "
+        "| rigid pile of 10, eager step (no compiled path) / pybullet's <= 1.0 | "
         "1.40 (2.80 ms against 2.00) | no |"]
     del row["compiled_skipped"]  # no compiled run and no reason: no row
     assert final.pile_bars({"rows": [row]}, soft=False) == []
