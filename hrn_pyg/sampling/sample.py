@@ -208,8 +208,9 @@ def sample(
     batched = replicate(graph, k)
     masks_fn = make_masks_fn(model, k, rate, generator, modules)
     if fixed_shape is not None:
-        pos = fixed_shape_rollout(model, batched, steps, forces_of_copies, masks_fn, effects, fixed_shape).pos
-        failed_at = None
+        result = fixed_shape_rollout(model, batched, steps, forces_of_copies, masks_fn, effects, fixed_shape,
+                                     hold_failed=True)
+        pos, failed_at = result.pos, result.failed_at
     else:
         with torch.no_grad():
             pos, failed_at = _rollout_holding_failed(model, batched, steps, forces_of_copies, masks_fn, sleep,

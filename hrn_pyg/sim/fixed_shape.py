@@ -22,6 +22,12 @@ the last report.
 and replays it. ``compile=True`` compiles each kind with ``torch.compile``, the list's length
 dynamic; positions equal the eager step's up to rounding.
 
+**Failed copies.** With ``hold_failed`` (as :func:`hrn_pyg.sim.rollout.iterate` takes it; the
+sampler sets it) a batch copy whose prediction is not finite is held at :math:`x_t` with zero
+velocity, on the device (before the rules and after them), and the rollout records the step it
+failed at (:attr:`FixedShapeRollout.failed_at`); the other copies go on. Without it a non-finite
+step is an error, as in the plain rollout.
+
 **Rules that read the contacts.** The clearance (``cloth_clearance``, ``solid_clearance``) and
 static friction (``rest_friction``) decide from the step's contacts which leaves move, so their
 sizes are not fixed. With them the step is split: the network (and what it decodes) runs as the
@@ -59,7 +65,8 @@ from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim.rules import StepRules, step_rules
 from hrn_pyg.sim.rollout import check_forces
-from hrn_pyg.sim.step import NEXT_POS, MasksFn, Prediction, hierarchy_constants, object_of, predict, require_state
+from hrn_pyg.sim.step import (NEXT_POS, MasksFn, Prediction, held_at_current, hierarchy_constants, object_of,
+                              predict, require_state)
 from hrn_pyg.utils.checks import non_finite_error
 
 
@@ -97,42 +104,51 @@ class FixedShapeRollout(NamedTuple):
         searches: collision searches made (the first included; 0 without collisions).
         host_reads: reads of the step flags.
         repeated_steps: steps run again after a stale list was found.
+        failed_at: ``[B]`` long, the step at which each batch copy's prediction first was not
+            finite (``steps``: never), with ``hold_failed``; else None.
     """
 
     pos: Tensor
     searches: int
     host_reads: int
     repeated_steps: int
+    failed_at: Tensor | None = None
 
 
 #: ``(pos, prev, prev_prev, force, masks, edge_index, valid, reference) -> (next_pos, since, report)``,
 #: ``since`` the next state's ``x_t`` (``pos``, or where the ground lift moved it: a
 #: :class:`~hrn_pyg.sim.step.Prediction`'s ``prev_pos``), report ``[3]``: input's largest move
-#: since the search, output's largest move, output not finite
+#: since the search, output's largest move, output not finite; then, when failed copies are held,
+#: ``[B]`` more: 1 for each batch copy held this step
 StepFn = Callable[..., tuple[Tensor, Tensor, Tensor]]
+
+#: ``(copy of each node [N] long, B)``: the batch copies whose failures a step holds
+Copies = tuple[Tensor, int]
 
 #: the predicted moves are scaled by this before the look-ahead is chosen (motion speeds up)
 SPEED_MARGIN = 1.25
 
 
 def make_network_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float, skin: float,
-                      mask_names: tuple[str, ...]) -> Callable[..., tuple[Prediction, Tensor]]:
+                      mask_names: tuple[str, ...], copies: Copies | None = None) -> Callable[..., tuple]:
     """The fixed-shape part of a step: the arguments of :func:`make_step` to the
-    :class:`~hrn_pyg.sim.step.Prediction` (``options.rules`` applied, which must need no host read)
-    and the 0-d largest move of the input since the search (0 without collisions)."""
+    :class:`~hrn_pyg.sim.step.Prediction` (``options.rules`` applied, which must need no host read),
+    the 0-d largest move of the input since the search (0 without collisions) and, with
+    ``copies``, the ``[B]`` bool copies held as failed (else None)."""
     options = replace(options, check=False, fixed_shape=True)
 
     def network_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
-                     edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Prediction, Tensor]:
+                     edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple:
         current = graph_at(graph, pos, prev, prev2, edge_index)
-        return _network_part(model, current, options, radius, skin, mask_names, force, masks, valid, reference)
+        return _network_part(model, current, options, radius, skin, mask_names, force, masks, valid, reference,
+                             copies)
 
     return network_step
 
 
 def _network_part(model: HRN, current: HeteroData, options: StepOptions, radius: float, skin: float,
                   mask_names: tuple[str, ...], force: Tensor, masks: tuple[Tensor, ...], valid: Tensor,
-                  reference: Tensor) -> tuple[Prediction, Tensor]:
+                  reference: Tensor, copies: Copies | None) -> tuple:
     """:func:`make_network_step`'s step on ``current`` (the graph at :math:`x_t` with the candidates
     as its collision edges): called after :func:`graph_at`, so a compiled step breaks its graph
     only there."""
@@ -143,55 +159,80 @@ def _network_part(model: HRN, current: HeteroData, options: StepOptions, radius:
         weight, moved = active_collisions(candidates, pos), largest_move(candidates, pos)
     prediction = predict(model, current, force, dict(zip(mask_names, masks)) or None,
                          replace(options, collision_weight=weight))
+    failed = None
+    if copies is not None:
+        prediction, failed = held_failed_copies(current, prediction, copies)
     if options.rules is not None:
         prediction = options.rules(current, prediction, force, None)
-    return prediction, moved
+        if copies is not None:  # what the rules made, too
+            prediction, more = held_failed_copies(current, prediction, copies)
+            failed = failed | more
+    return prediction, moved, failed
 
 
-def step_report(pos: Tensor, prediction: Prediction, moved: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def held_failed_copies(graph: HeteroData, prediction: Prediction, copies: Copies) -> tuple[Prediction, Tensor]:
+    """``prediction`` with every batch copy that has a non-finite row held at :math:`x_t` (zero
+    velocity, :func:`~hrn_pyg.sim.step.held_at_current`), and ``[B]`` bool: which copies were;
+    no host read."""
+    copy, count = copies
+    bad_row = (~torch.isfinite(prediction.pos).all(dim=-1)).to(prediction.pos.dtype)
+    bad = torch.zeros(count, dtype=bad_row.dtype, device=bad_row.device).index_add(0, copy, bad_row) > 0
+    return held_at_current(graph, prediction, bad[copy]), bad
+
+
+def step_report(pos: Tensor, prediction: Prediction, moved: Tensor,
+                failed: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """A step's outputs from its input ``pos`` ``[N, 3]`` and final ``prediction``: next
-    positions, the next state's :math:`x_t` and the report ``[3]`` (:data:`StepFn`)."""
+    positions, the next state's :math:`x_t` and the report (:data:`StepFn`; ``failed`` ``[B]``
+    bool the copies held, or None)."""
     next_pos = prediction.pos
     step = next_pos - pos
     speed = (step * step).sum(dim=-1).amax().sqrt()
     bad = (~torch.isfinite(next_pos).all()).to(pos.dtype)
     since = pos if prediction.prev_pos is None else prediction.prev_pos
-    return next_pos, since, torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
+    report = torch.stack([moved, torch.nan_to_num(speed, nan=float("inf")), bad])
+    if failed is not None:
+        report = torch.cat([report, failed.to(pos.dtype)])
+    return next_pos, since, report
 
 
 def make_step(model: HRN, graph: HeteroData, options: StepOptions, radius: float, skin: float,
-              mask_names: tuple[str, ...]) -> StepFn:
+              mask_names: tuple[str, ...], copies: Copies | None = None) -> StepFn:
     """The step of :func:`fixed_shape_rollout` as a function of tensors only (no host read): positions,
     force, masks (in ``mask_names`` order) and candidates come in as tensors, so it can be recorded
     once and replayed. It runs ``options`` with ``check=False``, ``fixed_shape=True`` and the
-    candidates' weights."""
+    candidates' weights; with ``copies`` it holds failed copies (:func:`held_failed_copies`)."""
     options = replace(options, check=False, fixed_shape=True)
 
     def fixed_step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
                    edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         current = graph_at(graph, pos, prev, prev2, edge_index)
-        prediction, moved = _network_part(model, current, options, radius, skin, mask_names, force, masks,
-                                          valid, reference)
-        return step_report(pos, prediction, moved)
+        prediction, moved, failed = _network_part(model, current, options, radius, skin, mask_names, force,
+                                                  masks, valid, reference, copies)
+        return step_report(pos, prediction, moved, failed)
 
     return fixed_step
 
 
-def rules_after(network_step: Callable[..., tuple[Prediction, Tensor]], rules: StepRules, graph: HeteroData,
-                radius: float, skin: float) -> StepFn:
+def rules_after(network_step: Callable[..., tuple], rules: StepRules, graph: HeteroData,
+                radius: float, skin: float, copies: Copies | None = None) -> StepFn:
     """A :data:`StepFn` that runs ``network_step`` (:func:`make_network_step`, compiled or not) and
     then ``rules`` eagerly on the graph at :math:`x_t` with its collision edges (the candidates
     within the radius, as the plain rollout's search gives them): the split step of the module
-    docstring. It reads the host."""
+    docstring. It reads the host. With ``copies`` what the rules make is checked too."""
 
     def step(pos: Tensor, prev: Tensor, prev2: Tensor, force: Tensor, masks: tuple[Tensor, ...],
              edge_index: Tensor, valid: Tensor, reference: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        prediction, moved = network_step(pos, prev, prev2, force, masks, edge_index, valid, reference)
+        prediction, moved, failed = network_step(pos, prev, prev2, force, masks, edge_index, valid, reference)
         edges = edge_index
         if radius > 0:
             edges = collisions_of(CollisionCandidates(edge_index, valid, reference, radius, skin, -1), pos)
-        prediction = rules(graph_at(graph, pos, prev, prev2, edges), prediction, force, None)
-        return step_report(pos, prediction, moved)
+        current = graph_at(graph, pos, prev, prev2, edges)
+        prediction = rules(current, prediction, force, None)
+        if copies is not None:
+            prediction, more = held_failed_copies(current, prediction, copies)
+            failed = failed | more
+        return step_report(pos, prediction, moved, failed)
 
     return step
 
@@ -278,10 +319,17 @@ class FixedShapeSimulator:
     """A model and one scene at its start state, with the steps of :func:`fixed_shape_rollout` kept
     between rollouts (each kind recorded or compiled once); every :meth:`rollout` starts there."""
 
-    def __init__(self, model: HRN, graph: HeteroData, config: FixedShapeConfig = FixedShapeConfig()) -> None:
+    def __init__(self, model: HRN, graph: HeteroData, config: FixedShapeConfig = FixedShapeConfig(),
+                 hold_failed: bool = False) -> None:
         require_state(graph)
         store = graph[NODE]
         self.model, self.config = model, config
+        # the batch copy of every node, for holding failed copies (module docstring)
+        self.copies: Copies | None = None
+        if hold_failed:
+            copy_of = store.batch if "batch" in store else torch.zeros(store.num_nodes, dtype=torch.long,
+                                                                      device=store.pos.device)
+            self.copies = (copy_of, int(copy_of.max()) + 1 if copy_of.numel() else 1)
         self.graph = set_state(graph, store.prev_prev_pos, store.prev_pos, store.pos, radius=None)
         self.objects = object_of(self.graph) if model.config.rigid_fit else None
         rules = step_rules(model, self.graph, self.objects)
@@ -307,15 +355,15 @@ class FixedShapeSimulator:
                                   rules=self.rules)
             skin = self.config.skin * radius
             if self.host_rules is None:
-                fn = make_step(self.model, self.graph, options, radius, skin, names)
+                fn = make_step(self.model, self.graph, options, radius, skin, names, self.copies)
                 if self.config.compile:
                     fn = torch.compile(own_code(fn), dynamic=None, options={"guard_filter_fn": step_input_guards})
             else:
-                network = make_network_step(self.model, self.graph, options, radius, skin, names)
+                network = make_network_step(self.model, self.graph, options, radius, skin, names, self.copies)
                 if self.config.compile:
                     network = torch.compile(own_code(network), dynamic=None,
                                             options={"guard_filter_fn": step_input_guards})
-                fn = rules_after(network, self.host_rules, self.graph, radius, skin)
+                fn = rules_after(network, self.host_rules, self.graph, radius, skin, self.copies)
             self._steps[key] = RecordedStep(fn, example) if self.config.cuda_graph else fn
         return self._steps[key]
 
@@ -348,6 +396,7 @@ class FixedShapeSimulator:
 
         state = (store.prev_prev_pos, store.prev_pos, store.pos)  # x_{t-2}, x_{t-1}, x_t
         out: list[Tensor] = []
+        failed_at = [steps] * (self.copies[1] if self.copies is not None else 0)
         searches = reads = repeated = 0
         candidates: CollisionCandidates | None = None
         limit = move_limit(skin)
@@ -380,12 +429,15 @@ class FixedShapeSimulator:
                 read = torch.stack(reports).cpu().tolist()  # the one host read of these steps
                 reads += 1
                 kept = len(trial)
-                for j, (moved, _, bad) in enumerate(read):
+                for j, (moved, _, bad, *held) in enumerate(read):
                     if radius > 0 and moved > limit:
                         kept = j
                         break
                     if bad:
                         raise non_finite_error(NEXT_POS)
+                    for b, flag in enumerate(held):  # copies held as failed at step t0 + j
+                        if flag and failed_at[b] == steps:
+                            failed_at[b] = t0 + j
                 for since, nxt in trial[:kept]:
                     state = (state[1], since, nxt)
                     out.append(nxt)
@@ -397,11 +449,12 @@ class FixedShapeSimulator:
                     repeated += len(trial) - kept
                     candidates = None
                 if radius > 0 and kept > 0:  # how many steps the list should still last, at the last speed
-                    moved, speed, _ = read[kept - 1]
+                    moved, speed = read[kept - 1][:2]
                     ahead = _steps_within(limit, moved, speed, config.check_every)
                     if ahead == 0:
                         candidates = None
-        return FixedShapeRollout(torch.stack(out), searches, reads, repeated)
+        failed = None if self.copies is None else torch.tensor(failed_at, dtype=torch.long, device=store.pos.device)
+        return FixedShapeRollout(torch.stack(out), searches, reads, repeated, failed)
 
 
 def fixed_shape_rollout(
@@ -412,9 +465,12 @@ def fixed_shape_rollout(
     masks_fn: MasksFn | None = None,
     effects: SceneEffects | None = None,
     config: FixedShapeConfig = FixedShapeConfig(),
+    hold_failed: bool = False,
 ) -> FixedShapeRollout:
     """The positions of :func:`hrn_pyg.sim.rollout.rollout` with ``sleep=None``, from fixed-shape steps
     (module docstring); inference only, the arguments of :func:`~hrn_pyg.sim.rollout.iterate`.
-    ``masks_fn(t, graph)`` sees the graph without collision edges. To roll one scene out several
+    ``masks_fn(t, graph)`` sees the graph without collision edges. ``hold_failed``: a batch copy
+    whose prediction is not finite is held and the others go on
+    (:attr:`FixedShapeRollout.failed_at`); else it is an error. To roll one scene out several
     times, keep a :class:`FixedShapeSimulator`."""
-    return FixedShapeSimulator(model, graph, config).rollout(steps, forces, masks_fn, effects)
+    return FixedShapeSimulator(model, graph, config, hold_failed).rollout(steps, forces, masks_fn, effects)

@@ -359,3 +359,48 @@ def test_a_cuda_graph_refuses_rules_that_read_the_contacts_in_one_line():
     kept, graph = _solid_clearance_model()
     with pytest.raises(ValueError, match=r"read the step's contacts \(solid_clearance=0\.3\).*compile=True"):
         fixed_shape_rollout(kept, graph, STEPS, config=FixedShapeConfig(cuda_graph=True))
+
+
+def test_holding_failed_copies_changes_nothing_while_every_copy_is_finite():
+    """``hold_failed``: the same positions, and every copy's failure step is ``steps`` (never);
+    without it there is no record."""
+    model = fitted_model(rigid_fit=True)
+    graph = replicate(toy_scene(), 2)
+    held = fixed_shape_rollout(model, graph, STEPS, hold_failed=True)
+    plain_result = fixed_shape_rollout(model, graph, STEPS)
+    assert torch.equal(held.pos, plain_result.pos) and plain_result.failed_at is None
+    assert held.failed_at.tolist() == [STEPS, STEPS]
+
+
+def test_a_diverging_copy_is_held_on_the_device_and_its_step_recorded():
+    """The network's output made infinite on one copy's rows from the fourth step: that copy is
+    held where it was (zero velocity) and recorded as failed at step 3; the other copy moves as
+    it does alone."""
+    from hrn_pyg.sim import step as step_module
+
+    model = fitted_model(rigid_fit=True)
+    one = toy_scene()
+    n = one[NODE].num_nodes
+    graph = replicate(one, 2)
+    calls = []
+    original = step_module.predict
+
+    def breaking(model, graph, *args, **kwargs):
+        prediction = original(model, graph, *args, **kwargs)
+        calls.append(1)
+        if len(calls) >= 4:
+            pos = prediction.pos.clone()
+            pos[n] = float("inf")
+            prediction = prediction._replace(pos=pos)
+        return prediction
+
+    fixed_shape.predict = breaking
+    try:
+        result = fixed_shape_rollout(model, graph, STEPS, config=FixedShapeConfig(check_every=1), hold_failed=True)
+    finally:
+        fixed_shape.predict = original
+    assert result.failed_at.tolist() == [STEPS, 3]
+    assert bool(torch.isfinite(result.pos).all())
+    assert torch.equal(result.pos[3:, n:], result.pos[2, n:].expand(STEPS - 3, -1, -1))
+    alone = fixed_shape_rollout(model, one, STEPS).pos
+    assert torch.equal(result.pos[:, :n], alone)

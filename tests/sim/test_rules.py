@@ -56,11 +56,20 @@ def test_without_holding_a_blow_up_is_an_error_of_the_step():
             rollout(model, graph, 2, sleep=None)
 
 
-def test_sample_returns_the_finite_futures_and_says_how_many_failed(monkeypatch):
+@pytest.mark.parametrize("path", ["plain", "fixed shape", "fixed shape, contact rules after"])
+def test_sample_returns_the_finite_futures_and_says_how_many_failed(monkeypatch, path):
     """Future 2 of 4 gets a NaN mask at step 3: it is NaN from step 4 on, the others are those
-    of the same draw without the poisoned mask, and one RuntimeWarning says so."""
+    of the same draw without the poisoned mask, and one RuntimeWarning says so; the same on
+    the fixed-shape steps (their network holding the failed copy on the device), also with a
+    rule that reads the contacts run after it."""
+    from hrn_pyg.data.graph import set_pitch
+    from hrn_pyg.sim.fixed_shape import FixedShapeConfig
+
     model = toy_model(dropout_modules=("collision",))
-    graph = toy_scene()
+    graph = set_pitch(toy_scene(), 0.1)
+    if path.endswith("after"):
+        model = with_applied_options(model, solid_clearance=0.3)
+    fixed = None if path == "plain" else FixedShapeConfig()
     original = sample_module.draw_masks
     calls = []
 
@@ -74,7 +83,8 @@ def test_sample_returns_the_finite_futures_and_says_how_many_failed(monkeypatch)
 
     monkeypatch.setattr(sample_module, "draw_masks", poisoned)
     with pytest.warns(RuntimeWarning, match=r"1 of 4 sampled futures failed \(not finite from step 4\)"):
-        futures = sample(model, graph, k=4, steps=6, rate=0.3, generator=torch.Generator().manual_seed(1), sleep=None)
+        futures = sample(model, graph, k=4, steps=6, rate=0.3, generator=torch.Generator().manual_seed(1), sleep=None,
+                         fixed_shape=fixed)
     monkeypatch.setattr(sample_module, "draw_masks", original)
     clean = sample(model, graph, k=4, steps=6, rate=0.3, generator=torch.Generator().manual_seed(1), sleep=None)
     assert bool(torch.isnan(futures[2, 3:]).all()) and bool(torch.isfinite(futures[2, :3]).all())
