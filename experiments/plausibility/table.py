@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 import time
 import tomllib
@@ -44,6 +45,13 @@ def read_set(path: Path) -> dict:
     settings = tomllib.loads(path.read_text())
     settings["scenes"] = [str((path.parent / s).resolve()) for s in settings["scenes"]]
     return settings
+
+
+def cells_tag(model: str, applied: dict, rate: float) -> str:
+    """The folder name (one path part, under ``--work``'s ``cells``) of a model's cells: its name or
+    path with every separator made ``_``, the options applied and the rate."""
+    name = re.sub(r"[^\w.=+-]+", "_", model).strip("_") or "model"
+    return name + "".join(f"_{k}={v}" for k, v in sorted(applied.items())) + f"_rate{rate:g}"
 
 
 def cell_name(scene: str, pitch: float, seed: int) -> str:
@@ -170,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         model = with_applied_options(model, **applied)
     model.eval()
     rate = model.config.dropout_rate if args.rate is None else args.rate
-    tag = args.model + "".join(f"_{k}={v}" for k, v in sorted(applied.items())) + f"_rate{rate:g}"
+    tag = cells_tag(args.model, applied, rate)
     cells_dir = args.work / "cells" / tag
     cells_dir.mkdir(parents=True, exist_ok=True)
     only = set(filter(None, args.only.split(",")))
