@@ -45,7 +45,7 @@ def test_every_shipped_model_is_listed_with_its_domain():
         assert m.domain is not None and m.domain.pitches and m.domain.materials and m.datasets, m.name
         assert m.sha256 and m.path.is_file()
     shapes = next(m for m in models if m.name == "shapes")
-    assert set(shapes.domain.materials) == {"rigid", "soft", "cloth"} and shapes.rate == 0.3
+    assert set(shapes.domain.materials) == {"rigid", "soft", "cloth"} and shapes.rate == 0.2
     assert {"shapes_drop", "cube_collision", "shapes_soft", "shapes_cloth", "urdf_drop"} <= set(shapes.datasets)
     eight_pass = next(m for m in models if m.name == "shapes_d4")
     assert "cloth" not in eight_pass.domain.materials and eight_pass.rate == 0.02
