@@ -65,8 +65,8 @@ from hrn_pyg.nn.hrn import HRN, StepOptions
 from hrn_pyg.nn.pitch import collision_radius_of
 from hrn_pyg.sim.rules import StepRules, step_rules
 from hrn_pyg.sim.rollout import check_forces
-from hrn_pyg.sim.step import (NEXT_POS, MasksFn, Prediction, held_at_current, hierarchy_constants, object_of,
-                              predict, require_state)
+from hrn_pyg.sim.step import (NEXT_POS, MasksFn, Prediction, held_at_current, hierarchy_constants,
+                              non_finite_copies, object_of, predict, require_state)
 from hrn_pyg.utils.checks import non_finite_error
 
 
@@ -175,8 +175,7 @@ def held_failed_copies(graph: HeteroData, prediction: Prediction, copies: Copies
     velocity, :func:`~hrn_pyg.sim.step.held_at_current`), and ``[B]`` bool: which copies were;
     no host read."""
     copy, count = copies
-    bad_row = (~torch.isfinite(prediction.pos).all(dim=-1)).to(prediction.pos.dtype)
-    bad = torch.zeros(count, dtype=bad_row.dtype, device=bad_row.device).index_add(0, copy, bad_row) > 0
+    bad = non_finite_copies(prediction.pos, copy, count)
     return held_at_current(graph, prediction, bad[copy]), bad
 
 

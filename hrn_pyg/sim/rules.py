@@ -39,7 +39,7 @@ from torch_geometric.data import HeteroData
 from hrn_pyg.sim.cloth_contact import ClothContact, cloth_contact
 from hrn_pyg.sim.energy import copy_of_objects, limit_energy
 from hrn_pyg.sim.rest_friction import hold_resting
-from hrn_pyg.sim.step import Prediction, held_at_current, object_of
+from hrn_pyg.sim.step import Prediction, held_at_current, non_finite_copies, object_of
 
 
 class StepRules:
@@ -102,9 +102,8 @@ class StepRules:
         """``prediction`` with every copy that has a non-finite row held at :math:`x_t` (zero
         velocity); such copies are added to :attr:`failed`. One host read."""
         group, count = self.objects
-        bad_row = ~torch.isfinite(prediction.pos).all(-1)
         copy = copy_of_objects(graph, self.objects)[group]  # [N]
-        bad = torch.zeros(count, dtype=torch.bool, device=group.device).index_fill_(0, copy[bad_row], True)
+        bad = non_finite_copies(prediction.pos, copy, count)
         self.failed = self.failed | bad
         if not bool(bad.any()):
             return prediction

@@ -78,6 +78,13 @@ class Prediction(NamedTuple):
     prev_pos: Tensor | None = None
 
 
+def non_finite_copies(pos: Tensor, copy: Tensor, count: int) -> Tensor:
+    """``[count]`` bool: the batch copies (``copy`` ``[N]`` long, each row's) with a row of ``pos``
+    ``[N, 3]`` that is not finite; no data-dependent size (a fixed-shape step may call it)."""
+    bad_row = (~torch.isfinite(pos).all(dim=-1)).to(pos.dtype)
+    return torch.zeros(count, dtype=pos.dtype, device=pos.device).index_add(0, copy, bad_row) > 0
+
+
 def held_at_current(graph: HeteroData, prediction: Prediction, held: Tensor) -> Prediction:
     """``prediction`` with the rows of ``held`` ``[N]`` bool kept at :math:`x_t` (the graph's
     ``pos``) with zero velocity; their ``prev_pos`` too, where the prediction carries one."""
